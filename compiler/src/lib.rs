@@ -1,0 +1,26 @@
+//! The readi compiler front end: the graph IR ([`ir`]), elaboration of a parsed file into
+//! it ([`elaborate`]), shape inference ([`infer`]), the pass pipeline ([`passes`]), the
+//! verifier ([`verify`]), selector patterns ([`select`]) and printers ([`print`]).
+//!
+//! ```
+//! use readi_compiler::passes::{self, Options};
+//! use readi_grammar::diag::SourceMap;
+//!
+//! let src = "model m { input x: f32[N, 8] @camera\n fc = linear(x, 4)\n output y = fc }";
+//! let mut sources = SourceMap::new();
+//! let file = sources.add("m.readi", src);
+//! let out = passes::run(file, src, &Options::default());
+//! assert!(!out.diagnostics.has_errors());
+//! let module = out.module.expect("a module");
+//! assert_eq!(module.graph.parameter_count(), 8 * 4 + 4);
+//! ```
+
+pub mod elaborate;
+pub mod infer;
+pub mod ir;
+pub mod passes;
+pub mod print;
+pub mod select;
+pub mod verify;
+
+pub use passes::{Module, Options, Outcome, Pass, run};

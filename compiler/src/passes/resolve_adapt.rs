@@ -1,0 +1,652 @@
+//! `resolve_adapt`: binds the rules of the `adapt` section to the layers they select.
+//!
+//! Changes: nothing in the graph; produces an [`AdaptPlan`] side table: for each rule,
+//! the layers it applies to, which parameters it makes per-variant (`tune`), and how many
+//! parameters it adds (`lora`, `adapter`). Injecting the LoRA branches and adapters into
+//! the graph is a later pass; this one fixes *what* each variant owns.
+//!
+//! Checks, each an error naming the rule:
+//! * a selector that selects nothing, or only layers a rule cannot apply to
+//!   (`lora` needs linear or conv2d layers; an adapter needs a 4-D input);
+//! * unknown op kinds, unknown or bad options (`rank=0`, `act=tanhh`);
+//! * two rules that claim one parameter in conflicting ways (LoRA on a weight another
+//!   rule tunes; two LoRA branches or two adapters at one layer), showing both rules.
+//!
+//! Parameter accounting (what a variant stores beyond the base):
+//! * `tune`: every selected slot (weights, biases, BatchNorm running statistics);
+//! * `lora` on `linear(in, out)`: `rank * (in + out)`; on `conv2d(in, out, k)`:
+//!   `rank * in * kh * kw + out * rank` (PEFT's `lora_A` conv and 1x1 `lora_B` conv);
+//! * `adapter` with squeeze `r` on `C` channels: a 1x1 conv `C -> C/r` and a 1x1 conv
+//!   `C/r -> C`, both with bias: `2 * C * C/r + C/r + C`.
+
+use std::collections::HashMap;
+
+use readi_grammar::ast::{AdaptKind, AdaptSection, OptionValue, Pattern, RuleOption, SelItem, Selector, SourceFile};
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
+
+use crate::ir::{Activation, Graph, NodeId, Op, ScopeKind};
+use crate::select;
+
+/// Op kinds a selector may name.
+pub const OP_KINDS: &[&str] = &[
+    "conv2d",
+    "batchnorm",
+    "layernorm",
+    "linear",
+    "matmul",
+    "add",
+    "sub",
+    "mul",
+    "div",
+    "relu",
+    "gelu",
+    "sigmoid",
+    "softmax",
+    "concat",
+    "reshape",
+    "permute",
+    "maxpool",
+    "avgpool",
+    "global_avgpool",
+    "upsample",
+    "mean",
+    "parameter",
+];
+
+/// Default LoRA rank (the paper's `k`).
+pub const DEFAULT_RANK: i64 = 4;
+/// Default LoRA alpha (PEFT's `lora_alpha` default).
+pub const DEFAULT_ALPHA: f64 = 8.0;
+/// Default adapter squeeze ratio (the paper's `r`).
+pub const DEFAULT_SQUEEZE: i64 = 2;
+
+/// Every rule of the `adapt` section, bound to layers.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdaptPlan {
+    pub rules: Vec<ResolvedRule>,
+}
+
+/// One rule and what it selected.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ResolvedRule {
+    /// The rule as written (canonical form).
+    pub text: String,
+    pub span: Span,
+    pub kind: RuleKind,
+    pub targets: Vec<Target>,
+}
+
+/// What a rule does to each target.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RuleKind {
+    Tune,
+    Lora { rank: i64, alpha: f64, rslora: bool },
+    Adapter { squeeze: i64, act: Activation },
+}
+
+impl RuleKind {
+    /// LoRA's scale: `alpha / rank`, or `alpha / sqrt(rank)` with rsLoRA.
+    pub fn lora_scale(&self) -> Option<f64> {
+        match self {
+            RuleKind::Lora { rank, alpha, rslora } => {
+                Some(if *rslora { alpha / (*rank as f64).sqrt() } else { alpha / *rank as f64 })
+            }
+            _ => None,
+        }
+    }
+}
+
+/// One layer a rule applies to.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Target {
+    pub node: NodeId,
+    /// `tune`: the slots made per-variant.
+    pub slots: Vec<&'static str>,
+    /// Existing elements the variant stores (tuned slots).
+    pub tuned: u64,
+    /// New elements the variant adds (LoRA matrices, adapter weights).
+    pub added: u64,
+}
+
+impl AdaptPlan {
+    /// Existing parameter elements tuned per variant (each slot counted once).
+    pub fn tuned_elements(&self, graph: &Graph) -> u64 {
+        let mut seen: HashMap<(NodeId, &str), u64> = HashMap::new();
+        for r in &self.rules {
+            for t in &r.targets {
+                let node = graph.node(t.node);
+                for s in &t.slots {
+                    if let Some(slot) = node.params.iter().find(|p| p.name == *s) {
+                        seen.insert((t.node, s), slot.numel());
+                    }
+                }
+            }
+        }
+        seen.values().sum()
+    }
+
+    /// New parameter elements added per variant.
+    pub fn added_elements(&self) -> u64 {
+        self.rules.iter().flat_map(|r| &r.targets).map(|t| t.added).sum()
+    }
+}
+
+pub fn run(graph: &Graph, section: &AdaptSection, ast: &SourceFile, diags: &mut Diagnostics) -> AdaptPlan {
+    let blocks: Vec<&str> = ast.blocks().map(|b| b.name.name.as_str()).collect();
+    let cx = Cx { graph, blocks };
+    let mut rules = Vec::new();
+    for rule in &section.rules {
+        let text = readi_grammar::ast_print::adapt_rule(rule);
+        let resolved = match &rule.kind {
+            AdaptKind::Tune { selector } => cx.tune(selector, diags),
+            AdaptKind::Lora { options, selector } => cx.lora(options, selector, diags),
+            AdaptKind::Adapter { options, scopes, before } => cx.adapter(options, scopes, before, diags),
+        };
+        if let Some((kind, targets)) = resolved {
+            rules.push(ResolvedRule { text, span: rule.span, kind, targets });
+        }
+    }
+    check_conflicts(graph, &rules, diags);
+    AdaptPlan { rules }
+}
+
+struct Cx<'g> {
+    graph: &'g Graph,
+    blocks: Vec<&'g str>,
+}
+
+/// A selected layer: the whole node, or only some of its slots.
+#[derive(Clone, Debug, PartialEq)]
+struct Selected {
+    node: NodeId,
+    /// `None`: every slot.
+    slots: Option<Vec<&'static str>>,
+}
+
+impl Cx<'_> {
+    /// Resolves a selector to layers, reporting items that select nothing.
+    fn select(&self, selector: &Selector, diags: &mut Diagnostics) -> Option<Vec<Selected>> {
+        let mut out: Vec<Selected> = Vec::new();
+        let mut ok = true;
+        for item in &selector.items {
+            match self.select_item(item) {
+                Ok(found) if found.is_empty() => {
+                    ok = false;
+                    diags.push(self.nothing_selected(item));
+                }
+                Ok(found) => {
+                    for s in found {
+                        match out.iter_mut().find(|o| o.node == s.node) {
+                            Some(o) => match (&mut o.slots, s.slots) {
+                                (Some(a), Some(b)) => {
+                                    for x in b {
+                                        if !a.contains(&x) {
+                                            a.push(x);
+                                        }
+                                    }
+                                }
+                                (slots, _) => *slots = None,
+                            },
+                            None => out.push(s),
+                        }
+                    }
+                }
+                Err(d) => {
+                    ok = false;
+                    diags.push(d);
+                }
+            }
+        }
+        ok.then_some(out)
+    }
+
+    fn nothing_selected(&self, item: &SelItem) -> Diagnostic {
+        let mut d = Diagnostic::error(Code::BadSelector, "this selector matches no layer")
+            .with_primary(item.span(), "selects nothing");
+        if let SelItem::Pattern(p) = item
+            && let Some(first) = p.segments.first()
+            && let readi_grammar::ast::PatternSeg::Word(w) = first
+        {
+            let tops: Vec<&str> =
+                self.graph.node_ids().filter_map(|n| self.graph.node(n).path.split('.').next()).collect();
+            if let Some(s) = suggest(w, tops.iter().copied()) {
+                d = d.with_note(format!("did you mean `{s}`?"));
+            }
+        }
+        d
+    }
+
+    fn check_kinds(&self, kinds: &[readi_grammar::ast::Ident]) -> Result<(), Diagnostic> {
+        for k in kinds {
+            if !OP_KINDS.contains(&k.name.as_str()) {
+                let mut d = Diagnostic::error(Code::BadSelector, format!("`{}` is not an op kind", k.name))
+                    .with_primary(k.span, "unknown op kind");
+                if let Some(s) = suggest(&k.name, OP_KINDS.iter().copied()) {
+                    d = d.with_note(format!("did you mean `{s}`?"));
+                }
+                return Err(d);
+            }
+        }
+        Ok(())
+    }
+
+    fn select_item(&self, item: &SelItem) -> Result<Vec<Selected>, Diagnostic> {
+        let g = self.graph;
+        match item {
+            SelItem::Pattern(p) => {
+                if let Some(word) = p.as_single_word()
+                    && OP_KINDS.contains(&word)
+                {
+                    return Ok(g
+                        .node_ids()
+                        .filter(|&n| g.node(n).op.kind_name() == word)
+                        .map(|node| Selected { node, slots: None })
+                        .collect());
+                }
+                let mut out = Vec::new();
+                for n in g.node_ids() {
+                    let node = g.node(n);
+                    if matches!(node.op, Op::Input(_)) {
+                        continue;
+                    }
+                    if select::selects(p, &node.path) {
+                        out.push(Selected { node: n, slots: None });
+                        continue;
+                    }
+                    let slots: Vec<&'static str> = node
+                        .params
+                        .iter()
+                        .filter(|s| select::matches_exactly(p, &node.param_name(s)))
+                        .map(|s| s.name)
+                        .collect();
+                    if !slots.is_empty() {
+                        out.push(Selected { node: n, slots: Some(slots) });
+                    }
+                }
+                Ok(out)
+            }
+            SelItem::KindsIn { kinds, scopes, .. } => {
+                self.check_kinds(kinds)?;
+                let mut out = Vec::new();
+                for n in g.node_ids() {
+                    let node = g.node(n);
+                    if !kinds.iter().any(|k| k.name == node.op.kind_name()) {
+                        continue;
+                    }
+                    if scopes.iter().any(|s| self.in_scope(n, s)) {
+                        out.push(Selected { node: n, slots: None });
+                    }
+                }
+                Ok(out)
+            }
+        }
+    }
+
+    /// Whether a node lies in an instance of the named block, or under a path pattern.
+    fn in_scope(&self, n: NodeId, scope: &Pattern) -> bool {
+        let node = self.graph.node(n);
+        match scope.as_single_word().filter(|w| self.blocks.contains(w)) {
+            Some(block) => {
+                self.graph.scope_chain(node.scope).any(|s| matches!(&s.kind, ScopeKind::Block(b) if b == block))
+            }
+            None => {
+                let parent = node.path.rsplit_once('.').map(|(p, _)| p).unwrap_or("");
+                select::selects(scope, parent)
+            }
+        }
+    }
+
+    fn tune(&self, selector: &Selector, diags: &mut Diagnostics) -> Option<(RuleKind, Vec<Target>)> {
+        let selected = self.select(selector, diags)?;
+        let mut targets = Vec::new();
+        for s in selected {
+            let node = self.graph.node(s.node);
+            let slots: Vec<&'static str> = match s.slots {
+                Some(v) => v,
+                None => node.params.iter().map(|p| p.name).collect(),
+            };
+            if slots.is_empty() {
+                continue;
+            }
+            let tuned = node.params.iter().filter(|p| slots.contains(&p.name)).map(|p| p.numel()).sum();
+            targets.push(Target { node: s.node, slots, tuned, added: 0 });
+        }
+        if targets.is_empty() {
+            diags.push(
+                Diagnostic::error(Code::BadSelector, "`tune` selects no layer with parameters")
+                    .with_primary(selector.span, "nothing to tune here"),
+            );
+            return None;
+        }
+        Some((RuleKind::Tune, targets))
+    }
+
+    fn lora(
+        &self,
+        options: &[RuleOption],
+        selector: &Selector,
+        diags: &mut Diagnostics,
+    ) -> Option<(RuleKind, Vec<Target>)> {
+        let opts = Options::parse(options, &["rank", "alpha", "rslora"], diags)?;
+        let rank = opts.int("rank", DEFAULT_RANK, 1, diags)?;
+        let alpha = opts.float("alpha", DEFAULT_ALPHA, diags)?;
+        let rslora = opts.flag("rslora", diags)?;
+        let selected = self.select(selector, diags)?;
+        let mut targets = Vec::new();
+        let mut skipped: Vec<&str> = Vec::new();
+        let mut ok = true;
+        for s in selected {
+            let node = self.graph.node(s.node);
+            let (fan_in, fan_out, added) = match &node.op {
+                Op::Linear { in_features, out_features, .. } => {
+                    (*in_features, *out_features, rank * (in_features + out_features))
+                }
+                Op::Conv2d(c) if c.groups == 1 => {
+                    let k = c.kernel[0] * c.kernel[1];
+                    (c.in_channels * k, c.out_channels, rank * c.in_channels * k + c.out_channels * rank)
+                }
+                Op::Conv2d(_) => {
+                    diags.push(
+                        Diagnostic::error(
+                            Code::BadSelector,
+                            format!("LoRA on grouped conv `{}` is not supported", node.path),
+                        )
+                        .with_primary(selector.span, "selects a grouped conv")
+                        .with_secondary(node.span, "the layer"),
+                    );
+                    ok = false;
+                    continue;
+                }
+                op => {
+                    if op.has_params() {
+                        skipped.push(op.kind_name());
+                    }
+                    continue;
+                }
+            };
+            if rank > fan_in.min(fan_out) {
+                diags.push(
+                    Diagnostic::error(
+                        Code::BadOption,
+                        format!("LoRA rank {rank} exceeds the size of `{}` ({fan_in} in, {fan_out} out)", node.path),
+                    )
+                    .with_primary(opts.span_of("rank").unwrap_or(selector.span), "rank too large")
+                    .with_secondary(node.span, "the layer"),
+                );
+                ok = false;
+                continue;
+            }
+            targets.push(Target { node: s.node, slots: vec![], tuned: 0, added: added as u64 });
+        }
+        if ok && targets.is_empty() {
+            let mut d = Diagnostic::error(Code::BadSelector, "`lora` selects no linear or conv2d layer")
+                .with_primary(selector.span, "LoRA applies to linear and conv2d layers");
+            if !skipped.is_empty() {
+                skipped.sort_unstable();
+                skipped.dedup();
+                d = d.with_note(format!("it selects only {} layers", skipped.join(", ")));
+            }
+            diags.push(d);
+            return None;
+        }
+        ok.then_some((RuleKind::Lora { rank, alpha, rslora }, targets))
+    }
+
+    fn adapter(
+        &self,
+        options: &[RuleOption],
+        scopes: &[Pattern],
+        before: &Pattern,
+        diags: &mut Diagnostics,
+    ) -> Option<(RuleKind, Vec<Target>)> {
+        let opts = Options::parse(options, &["squeeze", "act"], diags)?;
+        let squeeze = opts.int("squeeze", DEFAULT_SQUEEZE, 1, diags)?;
+        let act = opts.activation("act", diags)?;
+        let g = self.graph;
+        // The scope instances: every instance of a named block, or scopes on a path.
+        let mut instances = Vec::new();
+        let mut ok = true;
+        for sp in scopes {
+            let found: Vec<usize> = match sp.as_single_word().filter(|w| self.blocks.contains(w)) {
+                Some(block) => (0..g.scopes.len())
+                    .filter(|&i| matches!(&g.scopes[i].kind, ScopeKind::Block(b) if b == block))
+                    .collect(),
+                None => (1..g.scopes.len()).filter(|&i| select::matches_exactly(sp, &g.scopes[i].path)).collect(),
+            };
+            if found.is_empty() {
+                let mut d = Diagnostic::error(Code::BadSelector, format!("`{}` matches no block instance", sp.text))
+                    .with_primary(sp.span, "no instance");
+                if let Some(s) = suggest(&sp.text, self.blocks.iter().copied()) {
+                    d = d.with_note(format!("did you mean block `{s}`?"));
+                }
+                diags.push(d);
+                ok = false;
+            }
+            instances.extend(found);
+        }
+        if !ok {
+            return None;
+        }
+        let kind_target = before.as_single_word().filter(|w| OP_KINDS.contains(w));
+        let mut targets: Vec<Target> = Vec::new();
+        for &inst in &instances {
+            let prefix = &g.scopes[inst].path;
+            for n in g.node_ids() {
+                let node = g.node(n);
+                let Some(rel) = node.path.strip_prefix(prefix.as_str()).and_then(|r| r.strip_prefix('.')) else {
+                    continue;
+                };
+                let hit = match kind_target {
+                    Some(kind) => node.op.kind_name() == kind,
+                    None => select::matches_exactly(before, rel),
+                };
+                if !hit || targets.iter().any(|t| t.node == n) {
+                    continue;
+                }
+                let input = g.inputs(n).first().and_then(|v| g.value_type(*v)).cloned();
+                let channels = input.as_ref().filter(|t| t.rank() == 4).and_then(|t| t.known_dim(1));
+                let Some(c) = channels else {
+                    diags.push(
+                        Diagnostic::error(
+                            Code::BadSelector,
+                            format!(
+                                "an adapter needs an NCHW input, but `{}` takes {}",
+                                node.path,
+                                show(input.as_ref())
+                            ),
+                        )
+                        .with_primary(before.span, "adapter target")
+                        .with_secondary(node.span, "the layer"),
+                    );
+                    ok = false;
+                    continue;
+                };
+                if c % squeeze != 0 {
+                    diags.push(
+                        Diagnostic::error(
+                            Code::BadOption,
+                            format!("squeeze={squeeze} does not divide the {c} channels before `{}`", node.path),
+                        )
+                        .with_primary(opts.span_of("squeeze").unwrap_or(before.span), "bad squeeze ratio")
+                        .with_secondary(node.span, "the layer"),
+                    );
+                    ok = false;
+                    continue;
+                }
+                let mid = c / squeeze;
+                let added = (2 * c * mid + mid + c) as u64;
+                targets.push(Target { node: n, slots: vec![], tuned: 0, added });
+            }
+        }
+        if ok && targets.is_empty() {
+            diags.push(
+                Diagnostic::error(Code::BadSelector, format!("no layer `{}` in the selected instances", before.text))
+                    .with_primary(before.span, "matches nothing inside"),
+            );
+            return None;
+        }
+        ok.then_some((RuleKind::Adapter { squeeze, act }, targets))
+    }
+}
+
+fn show(t: Option<&crate::ir::TensorType>) -> String {
+    t.map(|t| t.to_string()).unwrap_or_else(|| "nothing".into())
+}
+
+/// Checked rule options.
+struct Options<'a> {
+    opts: &'a [RuleOption],
+}
+
+impl<'a> Options<'a> {
+    fn parse(opts: &'a [RuleOption], known: &[&str], diags: &mut Diagnostics) -> Option<Options<'a>> {
+        let mut ok = true;
+        for (i, o) in opts.iter().enumerate() {
+            if !known.contains(&o.name.name.as_str()) {
+                let mut d = Diagnostic::error(Code::BadOption, format!("unknown option `{}`", o.name.name))
+                    .with_primary(o.name.span, "not an option of this rule");
+                d = match suggest(&o.name.name, known.iter().copied()) {
+                    Some(s) => d.with_note(format!("did you mean `{s}`?")),
+                    None => d.with_note(format!("options: {}", known.join(", "))),
+                };
+                diags.push(d);
+                ok = false;
+            }
+            if let Some(prev) = opts[..i].iter().find(|p| p.name.name == o.name.name) {
+                diags.push(
+                    Diagnostic::error(Code::BadOption, format!("option `{}` is given twice", o.name.name))
+                        .with_primary(o.span, "again here")
+                        .with_secondary(prev.span, "first here"),
+                );
+                ok = false;
+            }
+        }
+        ok.then_some(Options { opts })
+    }
+
+    fn get(&self, name: &str) -> Option<&'a RuleOption> {
+        self.opts.iter().find(|o| o.name.name == name)
+    }
+
+    fn span_of(&self, name: &str) -> Option<Span> {
+        self.get(name).map(|o| o.span)
+    }
+
+    fn int(&self, name: &str, default: i64, min: i64, diags: &mut Diagnostics) -> Option<i64> {
+        let Some(o) = self.get(name) else { return Some(default) };
+        match &o.value {
+            Some(OptionValue::Number(n)) if n.value.fract() == 0.0 && n.value >= min as f64 && n.value <= 1e9 => {
+                Some(n.value as i64)
+            }
+            _ => {
+                diags.push(
+                    Diagnostic::error(Code::BadOption, format!("`{name}` must be an integer of at least {min}"))
+                        .with_primary(o.span, "bad value"),
+                );
+                None
+            }
+        }
+    }
+
+    fn float(&self, name: &str, default: f64, diags: &mut Diagnostics) -> Option<f64> {
+        let Some(o) = self.get(name) else { return Some(default) };
+        match &o.value {
+            Some(OptionValue::Number(n)) if n.value > 0.0 => Some(n.value),
+            _ => {
+                diags.push(
+                    Diagnostic::error(Code::BadOption, format!("`{name}` must be a positive number"))
+                        .with_primary(o.span, "bad value"),
+                );
+                None
+            }
+        }
+    }
+
+    fn flag(&self, name: &str, diags: &mut Diagnostics) -> Option<bool> {
+        let Some(o) = self.get(name) else { return Some(false) };
+        match &o.value {
+            None => Some(true),
+            Some(OptionValue::Word(w)) if w.name == "true" || w.name == "false" => Some(w.name == "true"),
+            _ => {
+                diags.push(
+                    Diagnostic::error(Code::BadOption, format!("`{name}` is a flag: write `{name}` or `{name}=false`"))
+                        .with_primary(o.span, "bad value"),
+                );
+                None
+            }
+        }
+    }
+
+    fn activation(&self, name: &str, diags: &mut Diagnostics) -> Option<Activation> {
+        let Some(o) = self.get(name) else { return Some(Activation::Relu) };
+        let acts = ["relu", "gelu", "sigmoid"];
+        match &o.value {
+            Some(OptionValue::Word(w)) if acts.contains(&w.name.as_str()) => Some(match w.name.as_str() {
+                "relu" => Activation::Relu,
+                "gelu" => Activation::Gelu,
+                _ => Activation::Sigmoid,
+            }),
+            other => {
+                let mut d = Diagnostic::error(Code::BadOption, format!("`{name}` must be one of {}", acts.join(", ")))
+                    .with_primary(o.span, "unknown activation");
+                if let Some(OptionValue::Word(w)) = other
+                    && let Some(s) = suggest(&w.name, acts)
+                {
+                    d = d.with_note(format!("did you mean `{s}`?"));
+                }
+                diags.push(d);
+                None
+            }
+        }
+    }
+}
+
+/// Reports pairs of rules that claim one parameter in conflicting ways.
+fn check_conflicts(graph: &Graph, rules: &[ResolvedRule], diags: &mut Diagnostics) {
+    // node -> (rule index) for each claim kind.
+    let mut tuned_weight: HashMap<NodeId, usize> = HashMap::new();
+    let mut lora: HashMap<NodeId, usize> = HashMap::new();
+    let mut adapter: HashMap<NodeId, usize> = HashMap::new();
+    let mut reported: std::collections::HashSet<(usize, usize)> = Default::default();
+    let mut conflict = |a: usize, b: usize, what: String, diags: &mut Diagnostics| {
+        if reported.insert((a.min(b), a.max(b))) {
+            let (first, second) = (a.min(b), a.max(b));
+            diags.push(
+                Diagnostic::error(Code::RuleConflict, format!("adaptation rules conflict: {what}"))
+                    .with_primary(rules[second].span, "this rule")
+                    .with_secondary(rules[first].span, "conflicts with this rule")
+                    .with_note("narrow one selector so that each parameter is claimed once"),
+            );
+        }
+    };
+    for (i, r) in rules.iter().enumerate() {
+        for t in &r.targets {
+            let path = &graph.node(t.node).path;
+            match r.kind {
+                RuleKind::Tune => {
+                    if t.slots.contains(&"weight") {
+                        if let Some(&j) = lora.get(&t.node) {
+                            conflict(j, i, format!("`{path}.weight` is tuned and also adapted by LoRA"), diags);
+                        }
+                        tuned_weight.entry(t.node).or_insert(i);
+                    }
+                }
+                RuleKind::Lora { .. } => {
+                    if let Some(&j) = tuned_weight.get(&t.node) {
+                        conflict(j, i, format!("`{path}.weight` is tuned and also adapted by LoRA"), diags);
+                    }
+                    if let Some(&j) = lora.get(&t.node) {
+                        conflict(j, i, format!("`{path}` gets two LoRA branches"), diags);
+                    }
+                    lora.entry(t.node).or_insert(i);
+                }
+                RuleKind::Adapter { .. } => {
+                    if let Some(&j) = adapter.get(&t.node) {
+                        conflict(j, i, format!("two adapters before `{path}`"), diags);
+                    }
+                    adapter.entry(t.node).or_insert(i);
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,189 @@
+//! The IR as stable, readable text.
+//!
+//! Nodes are renumbered `%0, %1, ...` in topological order (creation order wherever
+//! dependencies allow), so the text depends only on the graph's meaning, not on the
+//! history of node ids. Each node is one line, `%k path = op(inputs) {attrs} : type`,
+//! followed by an indented line of its parameter slots. The adaptation plan and the
+//! variant spec, when present, follow the nodes.
+
+use std::collections::HashMap;
+use std::fmt::Write;
+
+use super::thousands;
+use crate::ir::{Graph, NodeId, Op, SlotKind, ValueRef};
+use crate::passes::Module;
+use crate::passes::check_variants::{KeySource, MissingPolicy, fmt_level};
+use crate::passes::resolve_adapt::RuleKind;
+
+/// The module as text.
+pub fn to_text(module: &Module) -> String {
+    let g = &module.graph;
+    let mut out = String::new();
+    let params: Vec<String> = g.model_params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+    if params.is_empty() {
+        let _ = writeln!(out, "model {}", g.name);
+    } else {
+        let _ = writeln!(out, "model {}({})", g.name, params.join(", "));
+    }
+    let order = g.topo_order().unwrap_or_else(|| g.node_ids().collect());
+    let number: HashMap<NodeId, usize> = order.iter().enumerate().map(|(i, n)| (*n, i)).collect();
+    let val = |v: ValueRef| -> String {
+        let k = number.get(&v.node).copied().unwrap_or(usize::MAX);
+        if v.port == 0 { format!("%{k}") } else { format!("%{k}.{}", v.port) }
+    };
+    for &id in &order {
+        let node = g.node(id);
+        let k = number[&id];
+        let types: Vec<String> = node.outputs.iter().map(|t| t.to_string()).collect();
+        if let Op::Input(a) = &node.op {
+            let mut line = format!("  %{k} = input {}", a.name);
+            if let Some(m) = &a.modality {
+                let _ = write!(line, " @{m}");
+            }
+            if a.optional {
+                line.push_str(" optional");
+            }
+            let _ = writeln!(out, "{line} : {}", types.join(", "));
+            continue;
+        }
+        let inputs: Vec<String> = g.inputs(id).into_iter().map(val).collect();
+        let attrs: Vec<String> = node.op.attrs().into_iter().map(|(k, v)| format!("{k}={v}")).collect();
+        let attrs = if attrs.is_empty() { String::new() } else { format!(" {{{}}}", attrs.join(", ")) };
+        let _ = writeln!(
+            out,
+            "  %{k} {} = {}({}){attrs} : {}",
+            node.path,
+            node.op.kind_name(),
+            inputs.join(", "),
+            types.join(", ")
+        );
+        if !node.params.is_empty() {
+            let list = |kind: SlotKind| -> Vec<String> {
+                node.params
+                    .iter()
+                    .filter(|s| s.kind == kind)
+                    .map(|s| {
+                        let dims: Vec<String> = s.shape.iter().map(|d| d.to_string()).collect();
+                        let name = if s.name.is_empty() { "(value)" } else { s.name };
+                        format!("{name} {}[{}]", s.dtype.as_str(), dims.join(", "))
+                    })
+                    .collect()
+            };
+            let mut line = format!("      params {}", list(SlotKind::Param).join(", "));
+            let buffers = list(SlotKind::Buffer);
+            if !buffers.is_empty() {
+                let _ = write!(line, "; buffers {}", buffers.join(", "));
+            }
+            let _ = writeln!(out, "{line}");
+        }
+    }
+    for o in &g.outputs {
+        let _ = writeln!(out, "  output {} = {}", o.name, val(o.value));
+    }
+    if let Some(plan) = &module.adapt {
+        let _ = writeln!(out, "adapt");
+        for (i, r) in plan.rules.iter().enumerate() {
+            let what = match &r.kind {
+                RuleKind::Tune => "tunes",
+                RuleKind::Lora { .. } => "adds LoRA to",
+                RuleKind::Adapter { .. } => "adds adapters before",
+            };
+            let tuned: u64 = r.targets.iter().map(|t| t.tuned).sum();
+            let added: u64 = r.targets.iter().map(|t| t.added).sum();
+            let mut detail = String::new();
+            if let Some(scale) = r.kind.lora_scale() {
+                let _ = write!(detail, ", scale {scale}");
+            }
+            let _ = writeln!(out, "  #{} {}", i + 1, r.text);
+            let _ = writeln!(
+                out,
+                "     {what} {} layer{}: {} elements tuned, {} added{detail}",
+                r.targets.len(),
+                if r.targets.len() == 1 { "" } else { "s" },
+                thousands(tuned),
+                thousands(added)
+            );
+            let names: Vec<String> = r
+                .targets
+                .iter()
+                .map(|t| {
+                    let path = g.node(t.node).path.clone();
+                    let all = g.node(t.node).params.len() == t.slots.len();
+                    if t.slots.is_empty() || all { path } else { format!("{path}.{{{}}}", t.slots.join(",")) }
+                })
+                .collect();
+            wrap(&mut out, "       ", &names, 100);
+        }
+        let _ = writeln!(
+            out,
+            "  per variant: {} existing elements tuned, {} added",
+            thousands(plan.tuned_elements(g)),
+            thousands(plan.added_elements())
+        );
+    }
+    if let Some(v) = &module.variants {
+        let _ = writeln!(out, "variants");
+        for a in &v.axes {
+            let levels: Vec<String> = a.levels.iter().map(|l| fmt_level(*l)).collect();
+            let clear = a.clear.map(|c| format!(" clear {}", fmt_level(c))).unwrap_or_default();
+            let _ = writeln!(out, "  axis {} on {}: {}{clear}", a.name, a.modality, levels.join(", "));
+        }
+        for (m, p) in &v.missing {
+            let p = match p {
+                MissingPolicy::ZeroFill => "zero_fill",
+                MissingPolicy::Variant => "variant",
+            };
+            let _ = writeln!(out, "  missing {m}: {p}");
+        }
+        for s in &v.selectors {
+            let src = match &s.source {
+                KeySource::Meta(k) => format!("meta(\"{k}\")"),
+                KeySource::Stat { stat, input } => format!("{stat}({input})"),
+            };
+            let arms: Vec<String> = s
+                .arms
+                .iter()
+                .map(|arm| {
+                    let l = arm.level.map(fmt_level).unwrap_or_else(|| "clear".into());
+                    match arm.below {
+                        Some((t, incl)) => format!("{} {} -> {l}", if incl { "<=" } else { "<" }, fmt_level(t)),
+                        None => format!("else -> {l}"),
+                    }
+                })
+                .collect();
+            let map = if arms.is_empty() { "nearest".to_string() } else { arms.join(", ") };
+            let _ = writeln!(out, "  select {} by {src}: {map}", s.axis);
+        }
+        if let Some(meld) = &v.meld {
+            let w: Vec<String> = meld.weights.iter().map(|(m, l)| format!("{m} = {l}")).collect();
+            let _ = writeln!(out, "  meld {}", w.join(", "));
+        }
+        let keys = v.variant_keys();
+        let _ = writeln!(out, "  {} variants:", keys.len());
+        wrap(&mut out, "    ", &keys, 100);
+    }
+    out
+}
+
+/// Writes words separated by spaces, wrapped at `width` columns.
+fn wrap(out: &mut String, indent: &str, words: &[String], width: usize) {
+    let mut line = String::from(indent);
+    for w in words {
+        if line.len() > indent.len() && line.len() + 1 + w.len() > width {
+            let _ = writeln!(out, "{line}");
+            line = String::from(indent);
+        }
+        if line.len() > indent.len() {
+            line.push(' ');
+        }
+        line.push_str(w);
+    }
+    if line.len() > indent.len() {
+        let _ = writeln!(out, "{line}");
+    }
+}
+
+/// The graph alone as text (no side tables).
+pub fn graph_to_text(g: &Graph) -> String {
+    to_text(&Module { graph: g.clone(), adapt: None, variants: None })
+}
