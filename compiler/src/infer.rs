@@ -120,19 +120,22 @@ fn spatial(x: &TensorType, axis: usize, op: &str) -> Result<i64> {
         .ok_or_else(|| ShapeError::new(format!("{op} needs known spatial sizes, but axis {axis} of {x} is symbolic")))
 }
 
-/// Output length of a sliding window, as PyTorch computes it.
+/// Output length of a sliding window, as PyTorch's `pooling_output_shape` computes it:
+/// `floor((len + 2 pad - dilation (kernel - 1) - 1 + (ceil ? stride - 1 : 0)) / stride) + 1`,
+/// minus one when ceil mode would start the last window past the input and left padding.
+/// `None` when the result is not at least 1.
 fn window_out(len: i64, kernel: i64, stride: i64, pad: i64, dilation: i64, ceil: bool) -> Option<i64> {
-    let eff = dilation.checked_mul(kernel - 1)?.checked_add(1)?;
-    let span = len.checked_add(2 * pad)?.checked_sub(eff)?;
-    if span < 0 || stride < 1 {
+    if stride < 1 {
         return None;
     }
-    let mut out = if ceil { (span + stride - 1) / stride + 1 } else { span / stride + 1 };
-    // PyTorch: the last window must start inside the input or left padding.
+    let eff = dilation.checked_mul(kernel.checked_sub(1)?)?;
+    let num =
+        len.checked_add(pad.checked_mul(2)?)?.checked_sub(eff)?.checked_sub(1)? + if ceil { stride - 1 } else { 0 };
+    let mut out = num.div_euclid(stride) + 1;
     if ceil && (out - 1) * stride >= len + pad {
         out -= 1;
     }
-    Some(out)
+    (out >= 1).then_some(out)
 }
 
 fn conv2d(c: &Conv2dAttrs, x: &TensorType) -> Result<TensorType> {
@@ -150,8 +153,7 @@ fn conv2d(c: &Conv2dAttrs, x: &TensorType) -> Result<TensorType> {
     let mut out = vec![x.shape[0].clone(), Dim::known(c.out_channels)];
     for i in 0..2 {
         let len = spatial(x, 2 + i, "conv2d")?;
-        let o = window_out(len, c.kernel[i], c.stride[i], c.padding[i], c.dilation[i], false).filter(|&o| o >= 1);
-        match o {
+        match window_out(len, c.kernel[i], c.stride[i], c.padding[i], c.dilation[i], false) {
             Some(o) => out.push(Dim::known(o)),
             None => {
                 return Err(ShapeError::new(format!(
@@ -181,7 +183,7 @@ fn pool(p: &PoolAttrs, x: &TensorType) -> Result<TensorType> {
     let mut out = vec![x.shape[0].clone(), x.shape[1].clone()];
     for i in 0..2 {
         let len = spatial(x, 2 + i, name)?;
-        match window_out(len, p.kernel[i], p.stride[i], p.padding[i], 1, p.ceil_mode).filter(|&o| o >= 1) {
+        match window_out(len, p.kernel[i], p.stride[i], p.padding[i], 1, p.ceil_mode) {
             Some(o) => out.push(Dim::known(o)),
             None => {
                 return Err(ShapeError::new(format!(
