@@ -39,7 +39,7 @@ pub struct Parsed {
 /// otherwise it holds every item and statement that did parse.
 pub fn parse(file: FileId, src: &str) -> Parsed {
     configure_pest();
-    let mut p = Builder { file, src, diags: Diagnostics::default(), expr_weight: 0 };
+    let mut p = Builder { file, src, diags: Diagnostics::default(), expr_weight: 0, prev_stmt: None };
     if src.len() > MAX_SOURCE_BYTES {
         p.diags.push(
             Diagnostic::error(
@@ -164,6 +164,8 @@ struct Builder<'s> {
     diags: Diagnostics,
     /// Weight of the expressions being built (see [`MAX_EXPR_WEIGHT`]).
     expr_weight: usize,
+    /// Start of the statement parsed just before the one being recovered, if any.
+    prev_stmt: Option<usize>,
 }
 
 /// Inner pairs of a pair, as a vector (the grammar is small; clarity beats laziness).
@@ -172,9 +174,11 @@ fn inner(pair: Pair<'_, Rule>) -> Vec<Pair<'_, Rule>> {
 }
 
 impl<'s> Builder<'s> {
+    /// The span of a pair without the whitespace and comments pest skipped at its end
+    /// (it keeps what it skipped before an optional part that was then absent).
     fn span(&self, pair: &Pair<'_, Rule>) -> Span {
         let s = pair.as_span();
-        Span::new(self.file, s.start(), s.end())
+        Span::new(self.file, s.start(), s.start() + trimmed_len(s.as_str()))
     }
 
     fn ident(&self, pair: Pair<'_, Rule>) -> Ident {
@@ -274,17 +278,24 @@ impl<'s> Builder<'s> {
     fn parse_body(&mut self, pair: Pair<'_, Rule>) -> Body {
         let span = self.span(&pair);
         let mut stmts = Vec::new();
+        self.prev_stmt = None;
         for p in pair.into_inner() {
             match p.as_rule() {
                 Rule::stmt => {
+                    let start = p.as_span().start();
                     if let Some(s) = self.parse_stmt(p) {
                         stmts.push(s);
                     }
+                    self.prev_stmt = Some(start);
                 }
-                Rule::stmt_error => self.recover(p, Rule::stmt_only),
+                Rule::stmt_error => {
+                    self.recover(p, Rule::stmt_only);
+                    self.prev_stmt = None;
+                }
                 _ => {}
             }
         }
+        self.prev_stmt = None;
         Body { stmts, span }
     }
 
@@ -980,19 +991,79 @@ impl<'s> Builder<'s> {
             Some(a) if a.max_position >= loc => {
                 // The attempts' call stacks are collapsed to coarse parents (`stmt`), which
                 // would only add noise; pest's positives are precise but only at `loc`.
-                let rules = if a.max_position == loc { positives } else { Vec::new() };
+                let rules = if a.max_position == loc { positives.clone() } else { Vec::new() };
                 let tokens = a.expected_tokens().iter().map(|t| t.to_string()).collect();
                 (a.max_position, rules, tokens)
             }
-            _ => (loc, positives, Vec::new()),
+            _ => (loc, positives.clone(), Vec::new()),
         };
+        let mut pos = pos;
+        let mut expected = describe_expected(&rules, &tokens, pos == 0, entry);
+        if expected == NOTHING_EXPECTED && pos != loc {
+            // The detailed attempts only know negative lookaheads here; pest's own
+            // positives at its location say more.
+            pos = loc;
+            expected = describe_expected(&positives, &[], pos == 0, entry);
+        }
         let abs = offset + pos;
         let found = found_token(self.src, abs);
         let span = Span::new(self.file, abs, abs + found.len_in_source);
-        let expected = describe_expected(&rules, &tokens, pos == 0, entry);
         let message = format!("expected {expected}, found {}", found.description);
-        self.diags.push(Diagnostic::error(Code::Syntax, message).with_primary(span, format!("expected {expected}")));
+        let mut d = Diagnostic::error(Code::Syntax, message).with_primary(span, format!("expected {expected}"));
+        // A piece that fails at its very start may be the tail of the statement before it.
+        let from = if pos == 0 { self.prev_stmt.unwrap_or(offset) } else { offset };
+        if let Some(spill) = spilled_line_end(self.src, from, abs) {
+            // Newlines do not end statements, so a dangling operator or an unclosed
+            // bracket pulls the next line in; point at where that happened.
+            d = d
+                .with_secondary(Span::new(self.file, spill, spill + 1), "the statement continues past this line")
+                .with_note("is an operand, an argument or a closing bracket missing at the end of that line?");
+        }
+        self.diags.push(d);
     }
+}
+
+/// If the piece starting at `start` runs over a line break before `pos`, the offset of
+/// the last character before the first such break (skipping blank space and comments).
+fn spilled_line_end(src: &str, start: usize, pos: usize) -> Option<usize> {
+    let piece = src.get(start..pos)?;
+    let nl = piece.find('\n')?;
+    if piece[nl..].trim().is_empty() {
+        return None;
+    }
+    let first_line = &piece[..nl];
+    let code = &first_line[..comment_start(first_line).unwrap_or(first_line.len())];
+    let end = code.trim_end().len();
+    (end > 0).then(|| start + end - code[..end].chars().next_back().map_or(1, char::len_utf8))
+}
+
+/// The length of `text` without trailing whitespace and a trailing `# comment`.
+fn trimmed_len(text: &str) -> usize {
+    let mut t = text;
+    loop {
+        let before = t.len();
+        t = t.trim_end();
+        let line_start = t.rfind('\n').map(|i| i + 1).unwrap_or(0);
+        if let Some(hash) = comment_start(&t[line_start..]) {
+            t = &t[..line_start + hash];
+        }
+        if t.len() == before {
+            return t.len();
+        }
+    }
+}
+
+/// Where a `#` comment starts in one line, ignoring `#` inside strings.
+fn comment_start(line: &str) -> Option<usize> {
+    let mut in_string = false;
+    for (i, c) in line.char_indices() {
+        match c {
+            '"' => in_string = !in_string,
+            '#' if !in_string => return Some(i),
+            _ => {}
+        }
+    }
+    None
 }
 
 fn binary_op(rule: Rule) -> Option<BinaryOp> {
@@ -1156,6 +1227,9 @@ fn rule_words(rule: Rule) -> Option<&'static str> {
     })
 }
 
+/// What [`describe_expected`] says when it has nothing better.
+const NOTHING_EXPECTED: &str = "something else";
+
 /// Keywords worth naming when they are what the parser expected; other literal tokens
 /// that are words (dtype names, exponent letters) are covered by a rule's description.
 const STRUCTURAL_WORDS: &[&str] = &["else", "then", "in", "on", "before", "for", "optional", "clear", "nearest", "by"];
@@ -1177,7 +1251,7 @@ fn describe_expected(rules: &[Rule], tokens: &[String], at_start: bool, entry: R
             Rule::rule_only => "a rule (`tune`, `lora` or `adapter`) or `}`".into(),
             Rule::decl_only => "a declaration (`axis`, `missing`, `select` or `meld`) or `}`".into(),
             Rule::item_only | Rule::file => "`block`, `model`, `adapt` or `variants`".into(),
-            _ => "something else".into(),
+            _ => NOTHING_EXPECTED.into(),
         };
     }
     let mut words: Vec<String> = Vec::new();
@@ -1233,7 +1307,7 @@ fn describe_expected(rules: &[Rule], tokens: &[String], at_start: bool, entry: R
     // Punctuation first, then words: "`,`, `)` or an operator".
     words.sort_by_key(|w| (!w.starts_with('`'), w == "end of input"));
     match words.len() {
-        0 => "something else".into(),
+        0 => NOTHING_EXPECTED.into(),
         1 => words.remove(0),
         _ => {
             let last = words.pop().unwrap_or_default();

@@ -1144,7 +1144,11 @@ impl<'a> Elab<'a> {
                         self.error(
                             Diagnostic::error(
                                 Code::BadArgument,
-                                format!("`{callee}` takes at most {} arguments", params.len()),
+                                format!(
+                                    "`{callee}` takes at most {} argument{}",
+                                    params.len(),
+                                    if params.len() == 1 { "" } else { "s" }
+                                ),
                             )
                             .with_primary(vspan, "extra argument")
                             .with_note(format!(
