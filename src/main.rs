@@ -342,18 +342,25 @@ fn cmd_demo(s: &mut Session) -> Result<(), ExitCode> {
     let g = &m.graph;
     println!("readi demo: the bundled {} model ({name})", g.name);
     println!("parsed, elaborated and checked in {:.1} ms\n", elapsed.as_secs_f64() * 1e3);
+    let inputs: Vec<_> = g
+        .input_nodes()
+        .into_iter()
+        .filter_map(|n| match &g.node(n).op {
+            readi_compiler::ir::Op::Input(a) => Some((a, &g.node(n).outputs[0])),
+            _ => None,
+        })
+        .collect();
+    let width =
+        inputs.iter().map(|(a, _)| a.name.len()).chain(g.outputs.iter().map(|o| o.name.len())).max().unwrap_or(0);
     println!("inputs:");
-    for n in g.input_nodes() {
-        let node = g.node(n);
-        if let readi_compiler::ir::Op::Input(a) = &node.op {
-            let m = a.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
-            let opt = if a.optional { " (optional)" } else { "" };
-            println!("  {:<8} {}{m}{opt}", a.name, node.outputs[0]);
-        }
+    for (a, ty) in &inputs {
+        let m = a.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
+        let opt = if a.optional { " (optional)" } else { "" };
+        println!("  {:<width$}  {ty}{m}{opt}", a.name);
     }
     println!("outputs:");
     for o in &g.outputs {
-        println!("  {:<8} {}", o.name, g.value_type(o.value).map(|t| t.to_string()).unwrap_or_default());
+        println!("  {:<width$}  {}", o.name, g.value_type(o.value).map(|t| t.to_string()).unwrap_or_default());
     }
     println!("\n{} nodes, {} parameters", g.node_count(), print::thousands(g.parameter_count()));
     if let Some(plan) = &m.adapt {
@@ -361,9 +368,10 @@ fn cmd_demo(s: &mut Session) -> Result<(), ExitCode> {
         let tuned = plan.tuned_elements(g);
         let added = plan.added_elements();
         println!("\nadaptation (per variant):");
+        let w = plan.rules.iter().map(|r| r.text.len()).max().unwrap_or(0);
         for r in &plan.rules {
             let t: u64 = r.targets.iter().map(|t| t.tuned + t.added).sum();
-            println!("  {:<60} {:>4} layers  {:>9} elements", r.text, r.targets.len(), print::thousands(t));
+            println!("  {:<w$}  {:>4} layers  {:>9} elements", r.text, r.targets.len(), print::thousands(t));
         }
         println!(
             "  exist budget {:.2}% ({} elements), add budget {:.2}% ({} elements)",

@@ -4,7 +4,8 @@
 //!   run after every pass;
 //! * every case in tests/cases/ok/: the IR text, with no diagnostics allowed;
 //! * every case in tests/cases/errors/: the rendered diagnostics, which must include at
-//!   least one error with `file:line:col`, the source line and a caret.
+//!   least one error with `file:line:col`, the source line and a caret;
+//! * every case in tests/cases/warnings/: the rendered warnings of a file that checks.
 
 mod common;
 
@@ -28,26 +29,23 @@ fn verify_every_pass(rel: &str) {
     }
 }
 
+/// Checks a file cleanly, verifying after every pass, and snapshots its IR text.
+fn ir_snapshot(name: &str, path: &std::path::Path) {
+    let rel = rel_path(path);
+    verify_every_pass(&rel);
+    let (sources, out) = compile(&rel, &[], None);
+    assert!(out.diagnostics.is_empty(), "{rel}: {}", sources.render_all(&out.diagnostics, false));
+    insta::assert_snapshot!(name, to_text(&out.module.expect("module")));
+}
+
 #[test]
 fn model_ir() {
-    insta::glob!("../models", "*.readi", |path| {
-        let rel = rel_path(path);
-        verify_every_pass(&rel);
-        let (sources, out) = compile(&rel, &[], None);
-        assert!(out.diagnostics.is_empty(), "{rel}: {}", sources.render_all(&out.diagnostics, false));
-        insta::assert_snapshot!(to_text(&out.module.expect("module")));
-    });
+    insta::glob!("../models", "*.readi", |path| ir_snapshot("model_ir", path));
 }
 
 #[test]
 fn language_cases() {
-    insta::glob!("cases/ok/*.readi", |path| {
-        let rel = rel_path(path);
-        verify_every_pass(&rel);
-        let (sources, out) = compile(&rel, &[], None);
-        assert!(out.diagnostics.is_empty(), "{rel}: {}", sources.render_all(&out.diagnostics, false));
-        insta::assert_snapshot!(to_text(&out.module.expect("module")));
-    });
+    insta::glob!("cases/ok/*.readi", |path| ir_snapshot("language_cases", path));
 }
 
 #[test]
@@ -70,4 +68,16 @@ fn error_messages() {
         insta::assert_snapshot!(rendered);
     });
     assert!(count >= 20, "expected at least 20 error cases, found {count}");
+}
+
+#[test]
+fn warning_messages() {
+    insta::glob!("cases/warnings/*.readi", |path| {
+        let rel = rel_path(path);
+        let (sources, out) = compile(&rel, &[], None);
+        let rendered = sources.render_all(&out.diagnostics, false);
+        assert!(!out.diagnostics.has_errors(), "{rel} should check:\n{rendered}");
+        assert!(out.diagnostics.warning_count() > 0, "{rel} should warn");
+        insta::assert_snapshot!(rendered);
+    });
 }

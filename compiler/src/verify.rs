@@ -191,7 +191,7 @@ mod tests {
         let mut m = tiny();
         let fc = m.graph.node_ids().nth(1).expect("fc");
         m.graph.node_mut(fc).outputs[0].shape[1] = Dim::known(3);
-        let errs = verify(&m).unwrap_err();
+        let errs = verify(&m).expect_err("an error");
         assert!(errs[0].contains("differ from inferred"), "{errs:?}");
     }
 
@@ -200,7 +200,7 @@ mod tests {
         let mut m = tiny();
         let fc = m.graph.node_ids().nth(1).expect("fc");
         m.graph.node_mut(fc).params.pop();
-        let errs = verify(&m).unwrap_err();
+        let errs = verify(&m).expect_err("an error");
         assert!(errs.iter().any(|e| e.contains("parameter slots")), "{errs:?}");
     }
 
@@ -209,7 +209,7 @@ mod tests {
         let mut m = tiny();
         let fc = m.graph.node_ids().nth(1).expect("fc");
         m.graph.node_mut(fc).path = "x".into();
-        let errs = verify(&m).unwrap_err();
+        let errs = verify(&m).expect_err("an error");
         assert!(errs.iter().any(|e| e.contains("not unique")), "{errs:?}");
     }
 
@@ -220,7 +220,7 @@ mod tests {
         let fc = m.graph.node_ids().nth(1).expect("fc");
         // Re-point fc's input at a port x does not have.
         m.graph.replace_uses(ValueRef { node: x, port: 0 }, ValueRef { node: x, port: 3 });
-        let errs = verify(&m).unwrap_err();
+        let errs = verify(&m).expect_err("an error");
         assert!(errs.iter().any(|e| e.contains("no such output")), "{errs:?} {fc:?}");
     }
 }

@@ -102,7 +102,7 @@ impl Diagnostic {
 }
 
 /// Diagnostic codes. The first digit groups them: 1 syntax, 2 names and structure,
-/// 3 arguments and values, 4 shapes, 5 adaptation rules, 6 variants, 9 limits.
+/// 3 arguments and values, 4 shapes, 5 adaptation rules, 6 variants, 9 limits and bugs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum Code {
     /// The parser expected something else here.
@@ -123,6 +123,9 @@ pub enum Code {
     ModelCount,
     /// A value computed but never used by any output.
     Unused,
+    /// A name that is accepted but is probably a typo (a symbolic dimension close to a
+    /// model parameter).
+    LikelyTypo,
     /// Wrong number or names of arguments.
     BadArgument,
     /// A value of the wrong type.
@@ -143,6 +146,8 @@ pub enum Code {
     BadVariant,
     /// A resource limit (nesting, node count, loop length) was exceeded.
     Limit,
+    /// A bug in readi: an invariant of the IR does not hold.
+    Internal,
 }
 
 impl Code {
@@ -158,6 +163,7 @@ impl Code {
             Code::Misplaced => "E0204",
             Code::ModelCount => "E0205",
             Code::Unused => "W0206",
+            Code::LikelyTypo => "W0207",
             Code::BadArgument => "E0301",
             Code::TypeMismatch => "E0302",
             Code::BadValue => "E0303",
@@ -168,6 +174,7 @@ impl Code {
             Code::BadOption => "E0503",
             Code::BadVariant => "E0601",
             Code::Limit => "E0901",
+            Code::Internal => "E0999",
         }
     }
 }

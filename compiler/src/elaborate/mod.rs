@@ -584,7 +584,7 @@ impl<'a> Elab<'a> {
         if self.symbols_allowed {
             if let Some(s) = suggest(name, frame.vars.keys().map(String::as_str)) {
                 self.diags.push(
-                    Diagnostic::warning(Code::UnknownName, format!("`{name}` is taken as a symbolic dimension"))
+                    Diagnostic::warning(Code::LikelyTypo, format!("`{name}` is taken as a symbolic dimension"))
                         .with_primary(span, "not defined, so symbolic")
                         .with_note(format!("did you mean `{s}`?")),
                 );
@@ -858,6 +858,9 @@ impl<'a> Elab<'a> {
             (Value::Int(_) | Value::Float(_), Value::Int(_) | Value::Float(_)) => {
                 let x = as_f64(&a);
                 let y = as_f64(&b);
+                if let Some(c) = compare(op, x, y) {
+                    return Value::Bool(c);
+                }
                 let v = match op {
                     Add => x + y,
                     Sub => x - y,
@@ -866,13 +869,7 @@ impl<'a> Elab<'a> {
                     FloorDiv => (x / y).floor(),
                     Mod => x - y * (x / y).floor(),
                     Pow => x.powf(y),
-                    Eq => return Value::Bool(x == y),
-                    Ne => return Value::Bool(x != y),
-                    Lt => return Value::Bool(x < y),
-                    Le => return Value::Bool(x <= y),
-                    Gt => return Value::Bool(x > y),
-                    Ge => return Value::Bool(x >= y),
-                    And | Or => return mismatch(self, &a, &b),
+                    _ => return mismatch(self, &a, &b),
                 };
                 if v.is_finite() {
                     Value::Float(v)
@@ -933,6 +930,9 @@ impl<'a> Elab<'a> {
 
     fn int_binary(&mut self, op: BinaryOp, x: i64, y: i64, span: Span, rhs_span: Span) -> Value {
         use BinaryOp::*;
+        if let Some(c) = compare(op, x, y) {
+            return Value::Bool(c);
+        }
         let div_zero = |this: &mut Self| {
             this.error(Diagnostic::error(Code::BadValue, "division by zero").with_primary(rhs_span, "this is zero"))
         };
@@ -973,13 +973,7 @@ impl<'a> Elab<'a> {
                 }
                 u32::try_from(y).ok().and_then(|e| x.checked_pow(e))
             }
-            Eq => return Value::Bool(x == y),
-            Ne => return Value::Bool(x != y),
-            Lt => return Value::Bool(x < y),
-            Le => return Value::Bool(x <= y),
-            Gt => return Value::Bool(x > y),
-            Ge => return Value::Bool(x >= y),
-            And | Or => {
+            _ => {
                 return self.error(
                     Diagnostic::error(Code::TypeMismatch, format!("`{}` needs bools, found ints", op.as_str()))
                         .with_primary(span, "invalid operands"),
@@ -1127,6 +1121,8 @@ impl<'a> Elab<'a> {
     ) -> Option<Vec<Option<(Value, Span)>>> {
         let mut slots: Vec<Option<(Value, Span)>> = vec![None; params.len()];
         let mut ok = true;
+        // Parameters a misspelt keyword was probably meant for: not reported missing too.
+        let mut suggested: Vec<&str> = Vec::new();
         let mut positional = 0;
         let mut seen_keyword = false;
         for (name, v, vspan) in args {
@@ -1180,7 +1176,10 @@ impl<'a> Elab<'a> {
                             )
                             .with_primary(id.span, "unknown parameter");
                             match suggest(&id.name, params.iter().map(|p| p.0)) {
-                                Some(s) => d = d.with_note(format!("did you mean `{s}`?")),
+                                Some(s) => {
+                                    suggested.push(s);
+                                    d = d.with_note(format!("did you mean `{s}`?"));
+                                }
                                 None => {
                                     d = d.with_note(format!(
                                         "parameters: {}",
@@ -1195,8 +1194,12 @@ impl<'a> Elab<'a> {
                 }
             }
         }
-        let missing: Vec<&str> =
-            params.iter().zip(&slots).filter(|((_, opt), s)| !opt && s.is_none()).map(|((n, _), _)| *n).collect();
+        let missing: Vec<&str> = params
+            .iter()
+            .zip(&slots)
+            .filter(|((n, opt), s)| !opt && s.is_none() && !suggested.contains(n))
+            .map(|((n, _), _)| *n)
+            .collect();
         if !missing.is_empty() {
             let list = missing.iter().map(|m| format!("`{m}`")).collect::<Vec<_>>().join(", ");
             self.error(
@@ -1376,6 +1379,19 @@ impl<'a> Elab<'a> {
         let id = self.graph.add_node(Node { op, path, scope, params, outputs, span }, &inputs);
         Value::Tensor { value: ValueRef { node: id, port: 0 }, scope: None }
     }
+}
+
+/// The result of a comparison operator; `None` for the other operators.
+fn compare<T: PartialOrd>(op: BinaryOp, x: T, y: T) -> Option<bool> {
+    Some(match op {
+        BinaryOp::Eq => x == y,
+        BinaryOp::Ne => x != y,
+        BinaryOp::Lt => x < y,
+        BinaryOp::Le => x <= y,
+        BinaryOp::Gt => x > y,
+        BinaryOp::Ge => x >= y,
+        _ => return None,
+    })
 }
 
 fn tensor_kind(op: BinaryOp) -> Option<BinaryKind> {

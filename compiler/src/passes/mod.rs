@@ -188,7 +188,7 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
 fn check(module: &Module, after: Pass, file: FileId, diags: &mut Diagnostics) {
     if let Err(problems) = verify(module) {
         let mut d = Diagnostic::error(
-            Code::Limit,
+            Code::Internal,
             format!("internal compiler error: the graph is invalid after pass `{}`", after.name()),
         )
         .with_primary(Span::new(file, 0, 0), "please report this with the input file");
