@@ -1,0 +1,150 @@
+//! Criterion benchmarks of the GEMM-based kernels at 2 threads: sgemm 512³, conv2d on
+//! ResNet-18's layer shapes (batch 1) with the algorithm `conv::choose` picks, and a
+//! transformer-sized linear. Throughput is reported in FLOP/s (criterion's "elem/s").
+//!
+//! `cargo bench -p readi-runtime --bench kernels` runs all; a filter such as `conv2d`
+//! selects. With `READI_BENCH_ALL_ALGOS=1` every other algorithm that supports a conv
+//! layer is measured too, as `alt-<algo>`. `runtime/benches/ort_kernels.py` runs this and
+//! ONNX Runtime and prints both side by side.
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use readi_runtime::kernels::Epilogue;
+use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
+use readi_runtime::kernels::gemm::{MatMut, MatRef, sgemm};
+use readi_runtime::kernels::linear::{WeightLayout, linear};
+
+const THREADS: usize = 2;
+
+/// Deterministic values in [-1, 1).
+fn data(len: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..len)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        })
+        .collect()
+}
+
+fn pool() -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new().num_threads(THREADS).build().expect("rayon pool")
+}
+
+/// ResNet-18's conv layers at 224x224, batch 1 (name, cin, h·w, cout, k, stride, pad).
+const RESNET18: [(&str, usize, usize, usize, usize, usize, usize); 11] = [
+    ("conv1_7x7s2_3_64", 3, 224, 64, 7, 2, 3),
+    ("l1_3x3_64", 64, 56, 64, 3, 1, 1),
+    ("l2_3x3s2_64_128", 64, 56, 128, 3, 2, 1),
+    ("l2_3x3_128", 128, 28, 128, 3, 1, 1),
+    ("l3_3x3s2_128_256", 128, 28, 256, 3, 2, 1),
+    ("l3_3x3_256", 256, 14, 256, 3, 1, 1),
+    ("l4_3x3s2_256_512", 256, 14, 512, 3, 2, 1),
+    ("l4_3x3_512", 512, 7, 512, 3, 1, 1),
+    ("ds_1x1s2_64_128", 64, 56, 128, 1, 2, 0),
+    ("ds_1x1s2_128_256", 128, 28, 256, 1, 2, 0),
+    ("ds_1x1s2_256_512", 256, 14, 512, 1, 2, 0),
+];
+
+fn bench_sgemm(c: &mut Criterion) {
+    let pool = pool();
+    let n = 512;
+    let (a, b) = (data(n * n, 1), data(n * n, 2));
+    let mut out = vec![0.0; n * n];
+    let mut g = c.benchmark_group("sgemm");
+    g.throughput(Throughput::Elements(2 * (n * n * n) as u64));
+    g.bench_function("512x512x512", |bench| {
+        pool.install(|| {
+            bench.iter(|| {
+                sgemm(
+                    MatRef::row_major(&a, n, n),
+                    MatRef::row_major(&b, n, n),
+                    MatMut::row_major(&mut out, n, n),
+                    false,
+                    THREADS,
+                );
+                black_box(&out);
+            })
+        })
+    });
+    g.finish();
+}
+
+fn bench_conv(c: &mut Criterion) {
+    let pool = pool();
+    let all = std::env::var_os("READI_BENCH_ALL_ALGOS").is_some();
+    let mut g = c.benchmark_group("conv2d");
+    g.sample_size(30).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(2));
+    for (name, cin, hw, cout, k, stride, pad) in RESNET18 {
+        let o = (hw + 2 * pad - k) / stride + 1;
+        let s = Conv2dShape {
+            n: 1,
+            cin,
+            h: hw,
+            w: hw,
+            cout,
+            kh: k,
+            kw: k,
+            stride_h: stride,
+            stride_w: stride,
+            pad_h: pad,
+            pad_w: pad,
+            dil_h: 1,
+            dil_w: 1,
+            groups: 1,
+            oh: o,
+            ow: o,
+        };
+        let x = data(cin * hw * hw, 3);
+        let w = data(cout * cin * k * k, 4);
+        let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
+        let shift = data(cout, 6);
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+        let mut out = vec![0.0; cout * o * o];
+        g.throughput(Throughput::Elements(2 * (cout * o * o * cin * k * k) as u64));
+        let chosen = conv::choose(&s);
+        let others = ConvAlgo::ALL.into_iter().filter(|&a| all && a != chosen && a.supports(&s));
+        for (algo, id) in
+            std::iter::once((chosen, chosen.name().to_string())).chain(others.map(|a| (a, format!("alt-{}", a.name()))))
+        {
+            let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
+            conv::pack_weight(&s, algo, &w, &mut packed);
+            let mut scratch = vec![0.0; conv::scratch_len(&s, algo, THREADS)];
+            g.bench_function(BenchmarkId::new(name, id), |bench| {
+                pool.install(|| {
+                    bench.iter(|| {
+                        conv::conv2d(&s, algo, &packed, &ep, &x, &mut out, &mut scratch, THREADS);
+                        black_box(&out);
+                    })
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
+fn bench_linear(c: &mut Criterion) {
+    let pool = pool();
+    let (rows, fin, fout) = (196, 384, 1536);
+    let (x, w, bias) = (data(rows * fin, 7), data(fout * fin, 8), data(fout, 9));
+    let ep = Epilogue { scale: None, shift: Some(&bias), relu: false };
+    let mut out = vec![0.0; rows * fout];
+    let mut g = c.benchmark_group("linear");
+    g.throughput(Throughput::Elements(2 * (rows * fin * fout) as u64));
+    g.bench_function("196x384x1536", |bench| {
+        pool.install(|| {
+            bench.iter(|| {
+                linear(&x, rows, fin, &w, WeightLayout::InOut, fout, &ep, &mut out, THREADS);
+                black_box(&out);
+            })
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_sgemm, bench_conv, bench_linear);
+criterion_main!(benches);

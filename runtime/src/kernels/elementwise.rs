@@ -1,0 +1,534 @@
+//! Element-wise kernels: binary ops with NumPy broadcasting, ops with a scalar, activations.
+
+use rayon::prelude::*;
+
+use super::softmax::exp_fast;
+use super::{Act, BinaryOp};
+
+/// Below this many elements a kernel runs on the calling thread.
+const PAR_MIN: usize = 1 << 15;
+/// Elements per parallel task.
+const CHUNK: usize = 1 << 14;
+
+/// `out = a op b` with NumPy broadcasting, all row-major.
+///
+/// Shapes are right-aligned; every axis of `a_shape` and `b_shape` is either the size of
+/// the same axis of `out_shape` or 1 (missing leading axes count as 1). `out_shape` is the
+/// broadcast shape. Neighbouring axes that broadcast alike are merged first, so the
+/// innermost loop is always contiguous or a scalar: same-shape, `[N,C,H,W] + [1,C,1,1]`
+/// and `[N,T,D] + [1,T,D]` all run as straight vectorised loops.
+pub fn binary(
+    op: BinaryOp,
+    a: &[f32],
+    a_shape: &[usize],
+    b: &[f32],
+    b_shape: &[usize],
+    out: &mut [f32],
+    out_shape: &[usize],
+) {
+    assert_eq!(a.len(), a_shape.iter().product::<usize>(), "binary: a does not match its shape");
+    assert_eq!(b.len(), b_shape.iter().product::<usize>(), "binary: b does not match its shape");
+    assert_eq!(out.len(), out_shape.iter().product::<usize>(), "binary: out does not match its shape");
+    if out.is_empty() {
+        return;
+    }
+    if a_shape == b_shape && a_shape == out_shape {
+        return par_ranges(out, |start, o| vv(op, &a[start..start + o.len()], &b[start..start + o.len()], o));
+    }
+    let plan = Broadcast::new(a_shape, b_shape, out_shape);
+    par_ranges(out, |start, o| plan.run(op, a, b, start, o));
+}
+
+/// `out = x op value`, or `out = value op x` when `scalar_first`.
+pub fn scalar(op: BinaryOp, x: &[f32], value: f32, scalar_first: bool, out: &mut [f32]) {
+    assert_eq!(x.len(), out.len(), "scalar: x and out differ in length");
+    par_ranges(out, |start, o| {
+        let x = &x[start..start + o.len()];
+        if scalar_first { sv(op, value, x, o) } else { vs(op, x, value, o) }
+    });
+}
+
+/// `out = act(x)`, element-wise.
+///
+/// Every activation is plain arithmetic (no libm calls), so the loops vectorise. Measured
+/// over [-12, 12]: `Gelu` is within 4e-7 of the exact erf form (PyTorch's CPU kernel is
+/// within 1.1e-6 of it), `GeluTanh` within 6e-7 of its f64 formula.
+pub fn activation(act: Act, x: &[f32], out: &mut [f32]) {
+    assert_eq!(x.len(), out.len(), "activation: x and out differ in length");
+    match act {
+        Act::Relu => map(x, out, relu),
+        Act::Gelu => map(x, out, gelu),
+        Act::GeluTanh => map(x, out, gelu_tanh),
+        Act::Sigmoid => map(x, out, sigmoid),
+    }
+}
+
+/// `x = act(x)`, element-wise.
+pub fn activation_in_place(act: Act, x: &mut [f32]) {
+    match act {
+        Act::Relu => map_in_place(x, relu),
+        Act::Gelu => map_in_place(x, gelu),
+        Act::GeluTanh => map_in_place(x, gelu_tanh),
+        Act::Sigmoid => map_in_place(x, sigmoid),
+    }
+}
+
+/// `max(x, 0)`, keeping NaN as PyTorch does.
+#[inline(always)]
+pub(crate) fn relu(x: f32) -> f32 {
+    if x < 0.0 { 0.0 } else { x }
+}
+
+/// `0.5 x (1 + erf(x / √2))`, as PyTorch's default GELU.
+///
+/// `1 + erf(x / √2)` is `erfc(|x| / √2)` for negative `x` and `2 - erfc(x / √2)` otherwise,
+/// with `erfc` from Numerical Recipes' Chebyshev fit (relative error below 1.2e-7) over the
+/// vectorisable `exp_fast`: no libm call, so the loop vectorises, and the negative tail
+/// keeps its relative accuracy instead of cancelling to 0.
+#[inline(always)]
+fn gelu(x: f32) -> f32 {
+    let erfc = erfc_abs_sqrt1_2(x);
+    0.5 * x * if x < 0.0 { erfc } else { 2.0 - erfc }
+}
+
+/// `erfc(|x| / √2)`. Kept a separate function: written inline in `gelu`, LLVM declined
+/// to vectorise the loop (3 ns instead of 0.7 ns per element, measured).
+#[inline(always)]
+fn erfc_abs_sqrt1_2(x: f32) -> f32 {
+    let z = x.abs() * std::f32::consts::FRAC_1_SQRT_2;
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let mut p = 0.170_872_77;
+    p = p * t - 0.822_152_2;
+    p = p * t + 1.488_515_9;
+    p = p * t - 1.135_204;
+    p = p * t + 0.278_868_07;
+    p = p * t - 0.186_288_06;
+    p = p * t + 0.096_784_18;
+    p = p * t + 0.374_091_96;
+    p = p * t + 1.000_023_7;
+    p = p * t - 1.265_512_2;
+    t * exp_fast(p - z * z)
+}
+
+/// `0.5 x (1 + tanh(√(2/π) (x + 0.044715 x³)))`, PyTorch's `approximate='tanh'`, evaluated
+/// as the equal `x · sigmoid(2 √(2/π) (x + 0.044715 x³))`.
+#[inline(always)]
+fn gelu_tanh(x: f32) -> f32 {
+    const TWO_BETA: f32 = 1.595_769; // 2 √(2/π)
+    x * sigmoid(TWO_BETA * (x + 0.044715 * x * x * x))
+}
+
+/// `1 / (1 + e^-x)`, through `e^-|x|` so nothing overflows: exact to a few ulp, 0 below
+/// x = -87 (where the true value is under 1.7e-38), NaN for NaN.
+#[inline(always)]
+fn sigmoid(x: f32) -> f32 {
+    let e = exp_fast(-x.abs());
+    let s = 1.0 / (1.0 + e);
+    if x < 0.0 { e * s } else { s }
+}
+
+/// Runs `f(start, chunk)` over `out` in chunks, in parallel when `out` is large; `start` is
+/// the chunk's offset in `out`.
+fn par_ranges<F: Fn(usize, &mut [f32]) + Sync>(out: &mut [f32], f: F) {
+    if out.len() >= PAR_MIN {
+        out.par_chunks_mut(CHUNK).enumerate().for_each(|(i, o)| f(i * CHUNK, o));
+    } else {
+        f(0, out);
+    }
+}
+
+fn map<F: Fn(f32) -> f32 + Sync + Copy>(x: &[f32], out: &mut [f32], f: F) {
+    par_ranges(out, |start, o| super::vectorized(map_chunk::<F>, (o, &x[start..], f)));
+}
+
+fn map_in_place<F: Fn(f32) -> f32 + Sync + Copy>(x: &mut [f32], f: F) {
+    par_ranges(x, |_, x| super::vectorized(map_chunk_in_place::<F>, (x, f)));
+}
+
+#[inline(always)]
+fn map_chunk<F: Fn(f32) -> f32>((o, x, f): (&mut [f32], &[f32], F)) {
+    for (o, &v) in o.iter_mut().zip(x) {
+        *o = f(v);
+    }
+}
+
+#[inline(always)]
+fn map_chunk_in_place<F: Fn(f32) -> f32>((x, f): (&mut [f32], F)) {
+    for v in x.iter_mut() {
+        *v = f(*v);
+    }
+}
+
+/// Expands `$body` once per operation, with `$f` bound to that operation as a closure, so
+/// `op` is matched once, outside the loop, and each loop is compiled (and vectorised) on
+/// its own.
+macro_rules! per_op {
+    ($op:expr, $f:ident => $body:expr) => {
+        match $op {
+            BinaryOp::Add => {
+                let $f = |x: f32, y: f32| x + y;
+                $body
+            }
+            BinaryOp::Sub => {
+                let $f = |x: f32, y: f32| x - y;
+                $body
+            }
+            BinaryOp::Mul => {
+                let $f = |x: f32, y: f32| x * y;
+                $body
+            }
+            BinaryOp::Div => {
+                let $f = |x: f32, y: f32| x / y;
+                $body
+            }
+        }
+    };
+}
+
+/// `out[i] = a[i] op b[i]`.
+fn vv(op: BinaryOp, a: &[f32], b: &[f32], out: &mut [f32]) {
+    let (a, b) = (&a[..out.len()], &b[..out.len()]);
+    per_op!(op, f => {
+        for ((o, &x), &y) in out.iter_mut().zip(a).zip(b) {
+            *o = f(x, y);
+        }
+    })
+}
+
+/// `out[i] = a[i] op s`.
+fn vs(op: BinaryOp, a: &[f32], s: f32, out: &mut [f32]) {
+    let a = &a[..out.len()];
+    per_op!(op, f => {
+        for (o, &x) in out.iter_mut().zip(a) {
+            *o = f(x, s);
+        }
+    })
+}
+
+/// `out[i] = s op b[i]`.
+fn sv(op: BinaryOp, s: f32, b: &[f32], out: &mut [f32]) {
+    let b = &b[..out.len()];
+    per_op!(op, f => {
+        for (o, &y) in out.iter_mut().zip(b) {
+            *o = f(s, y);
+        }
+    })
+}
+
+/// A broadcast reduced to the fewest axes: size-1 output axes dropped, neighbours that
+/// broadcast alike in both operands merged. Innermost strides are 0 or 1.
+struct Broadcast {
+    dims: Vec<usize>,
+    a_strides: Vec<usize>,
+    b_strides: Vec<usize>,
+}
+
+impl Broadcast {
+    fn new(a_shape: &[usize], b_shape: &[usize], out_shape: &[usize]) -> Broadcast {
+        let rank = out_shape.len();
+        assert!(a_shape.len() <= rank && b_shape.len() <= rank, "binary: input rank exceeds output rank");
+        // Right-aligned strides of an operand over the output axes; 0 where it broadcasts.
+        let strides = |shape: &[usize]| -> Vec<usize> {
+            let mut s = vec![0; rank];
+            let mut acc = 1;
+            for (i, &n) in shape.iter().enumerate().rev() {
+                let axis = rank - shape.len() + i;
+                assert!(n == out_shape[axis] || n == 1, "binary: {shape:?} does not broadcast to {out_shape:?}");
+                if n != 1 {
+                    s[axis] = acc;
+                }
+                acc *= n;
+            }
+            s
+        };
+        let (sa, sb) = (strides(a_shape), strides(b_shape));
+        let mut dims: Vec<usize> = Vec::with_capacity(rank);
+        let (mut a_strides, mut b_strides): (Vec<usize>, Vec<usize>) = (Vec::new(), Vec::new());
+        for axis in 0..rank {
+            let n = out_shape[axis];
+            if n == 1 {
+                continue;
+            }
+            if let (Some(&m), Some(&pa), Some(&pb)) = (dims.last(), a_strides.last(), b_strides.last()) {
+                // The previous axis merges with this one if it continues both operands' strides.
+                if pa == sa[axis] * n && pb == sb[axis] * n {
+                    let last = dims.len() - 1;
+                    dims[last] = m * n;
+                    a_strides[last] = sa[axis];
+                    b_strides[last] = sb[axis];
+                    continue;
+                }
+            }
+            dims.push(n);
+            a_strides.push(sa[axis]);
+            b_strides.push(sb[axis]);
+        }
+        if dims.is_empty() {
+            dims.push(1);
+            a_strides.push(0);
+            b_strides.push(0);
+        }
+        Broadcast { dims, a_strides, b_strides }
+    }
+
+    /// Writes output elements `start..start + out.len()`.
+    fn run(&self, op: BinaryOp, a: &[f32], b: &[f32], start: usize, out: &mut [f32]) {
+        let r = self.dims.len();
+        let inner = self.dims[r - 1];
+        let (ia, ib) = (self.a_strides[r - 1], self.b_strides[r - 1]);
+        // Multi-index of `start` and the operand offsets there.
+        let mut idx = vec![0; r];
+        let mut rem = start;
+        for d in (0..r).rev() {
+            idx[d] = rem % self.dims[d];
+            rem /= self.dims[d];
+        }
+        let mut ao: usize = (0..r).map(|d| idx[d] * self.a_strides[d]).sum();
+        let mut bo: usize = (0..r).map(|d| idx[d] * self.b_strides[d]).sum();
+        let mut done = 0;
+        while done < out.len() {
+            let n = (inner - idx[r - 1]).min(out.len() - done);
+            let o = &mut out[done..done + n];
+            match (ia, ib) {
+                (0, 0) => o.fill(per_op!(op, f => f(a[ao], b[bo]))),
+                (0, _) => sv(op, a[ao], &b[bo..bo + n], o),
+                (_, 0) => vs(op, &a[ao..ao + n], b[bo], o),
+                _ => vv(op, &a[ao..ao + n], &b[bo..bo + n], o),
+            }
+            done += n;
+            idx[r - 1] += n;
+            ao += n * ia;
+            bo += n * ib;
+            if idx[r - 1] < inner {
+                continue;
+            }
+            // Carry into the outer axes.
+            for d in (0..r).rev() {
+                if idx[d] < self.dims[d] {
+                    break;
+                }
+                ao -= self.dims[d] * self.a_strides[d];
+                bo -= self.dims[d] * self.b_strides[d];
+                idx[d] = 0;
+                if d > 0 {
+                    idx[d - 1] += 1;
+                    ao += self.a_strides[d - 1];
+                    bo += self.b_strides[d - 1];
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::testutil::{assert_close, data};
+
+    fn apply(op: BinaryOp, x: f32, y: f32) -> f32 {
+        match op {
+            BinaryOp::Add => x + y,
+            BinaryOp::Sub => x - y,
+            BinaryOp::Mul => x * y,
+            BinaryOp::Div => x / y,
+        }
+    }
+
+    /// Plain broadcasting: for every output multi-index, index each operand with its
+    /// right-aligned axes, using 0 on size-1 axes.
+    fn naive_binary(
+        op: BinaryOp,
+        a: &[f32],
+        a_shape: &[usize],
+        b: &[f32],
+        b_shape: &[usize],
+        out_shape: &[usize],
+    ) -> Vec<f32> {
+        let rank = out_shape.len();
+        let len: usize = out_shape.iter().product();
+        let offset = |shape: &[usize], idx: &[usize]| -> usize {
+            let skip = rank - shape.len();
+            shape.iter().enumerate().fold(0, |o, (i, &n)| o * n + if n == 1 { 0 } else { idx[skip + i] })
+        };
+        (0..len)
+            .map(|flat| {
+                let mut idx = vec![0; rank];
+                let mut r = flat;
+                for d in (0..rank).rev() {
+                    idx[d] = r % out_shape[d];
+                    r /= out_shape[d];
+                }
+                apply(op, a[offset(a_shape, &idx)], b[offset(b_shape, &idx)])
+            })
+            .collect()
+    }
+
+    fn broadcast_shape(a: &[usize], b: &[usize]) -> Vec<usize> {
+        let rank = a.len().max(b.len());
+        let at = |s: &[usize], i: usize| if i + s.len() >= rank { s[i + s.len() - rank] } else { 1 };
+        (0..rank).map(|i| at(a, i).max(at(b, i))).collect()
+    }
+
+    fn check(a_shape: &[usize], b_shape: &[usize]) {
+        let out_shape = broadcast_shape(a_shape, b_shape);
+        let a = data(a_shape.iter().product(), 1);
+        // Keep b away from 0 so Div is well conditioned.
+        let b: Vec<f32> = data(b_shape.iter().product(), 2).iter().map(|v| v + 2.0).collect();
+        for op in [BinaryOp::Add, BinaryOp::Sub, BinaryOp::Mul, BinaryOp::Div] {
+            let want = naive_binary(op, &a, a_shape, &b, b_shape, &out_shape);
+            let mut got = vec![f32::NAN; want.len()];
+            binary(op, &a, a_shape, &b, b_shape, &mut got, &out_shape);
+            assert_eq!(got, want, "{op:?} {a_shape:?} {b_shape:?}");
+        }
+    }
+
+    #[test]
+    fn binary_same_shape_and_fast_paths() {
+        check(&[2, 3, 4, 5], &[2, 3, 4, 5]);
+        check(&[2, 3, 4, 5], &[1, 3, 1, 1]);
+        check(&[2, 3, 4, 5], &[3, 1, 1]);
+        check(&[2, 7, 6], &[1, 7, 6]);
+        check(&[2, 7, 6], &[7, 6]);
+        check(&[2, 7, 6], &[6]);
+        check(&[2, 7, 6], &[2, 1, 1]);
+        check(&[2, 7, 6], &[2, 7, 1]);
+    }
+
+    #[test]
+    fn binary_broadcasts_in_every_direction() {
+        // a broadcast instead of b, both broadcast, scalars, middle axes, rank 0 and 1.
+        check(&[1, 3, 1, 1], &[2, 3, 4, 5]);
+        check(&[4, 1], &[1, 5]);
+        check(&[1, 5], &[4, 1]);
+        check(&[3, 1, 5], &[1, 4, 1]);
+        check(&[2, 1, 4, 1], &[3, 1, 5]);
+        check(&[2, 3, 4], &[1]);
+        check(&[1], &[2, 3, 4]);
+        check(&[], &[2, 3]);
+        check(&[2, 3], &[]);
+        check(&[], &[]);
+        check(&[1, 1], &[1]);
+        check(&[5, 1, 1, 3], &[1, 2, 2, 1]);
+    }
+
+    #[test]
+    fn binary_large_broadcast_runs_in_parallel_and_matches() {
+        check(&[2, 16, 48, 40], &[1, 16, 1, 1]);
+        check(&[3, 100, 130], &[1, 100, 130]);
+        check(&[100, 1, 400], &[1, 3, 400]);
+        check(&[40000], &[40000]);
+    }
+
+    #[test]
+    fn binary_empty_output() {
+        let mut out: [f32; 0] = [];
+        binary(BinaryOp::Add, &[], &[0, 3], &[1.0, 2.0, 3.0], &[3], &mut out, &[0, 3]);
+    }
+
+    #[test]
+    fn scalar_both_orders() {
+        let x = data(50_000, 3);
+        for op in [BinaryOp::Add, BinaryOp::Sub, BinaryOp::Mul, BinaryOp::Div] {
+            let mut got = vec![0.0; x.len()];
+            scalar(op, &x, 3.0, false, &mut got);
+            let want: Vec<f32> = x.iter().map(|&v| apply(op, v, 3.0)).collect();
+            assert_eq!(got, want, "{op:?}");
+            scalar(op, &x, 3.0, true, &mut got);
+            let want: Vec<f32> = x.iter().map(|&v| apply(op, 3.0, v)).collect();
+            assert_eq!(got, want, "{op:?} scalar_first");
+        }
+    }
+
+    #[test]
+    fn relu_and_in_place_agree() {
+        let x: Vec<f32> = data(40_000, 4).iter().map(|v| v * 5.0).collect();
+        let mut got = vec![0.0; x.len()];
+        activation(Act::Relu, &x, &mut got);
+        let want: Vec<f32> = x.iter().map(|&v| if v > 0.0 { v } else { 0.0 }).collect();
+        assert_eq!(got, want);
+        for act in [Act::Relu, Act::Gelu, Act::GeluTanh, Act::Sigmoid] {
+            activation(act, &x, &mut got);
+            let mut inplace = x.clone();
+            activation_in_place(act, &mut inplace);
+            assert_eq!(inplace, got, "{act:?}");
+        }
+    }
+
+    #[test]
+    fn gelu_matches_f64_reference() {
+        // A dense grid over [-12, 12], plus values near 0.
+        let mut x: Vec<f32> = (-24_000..=24_000).map(|i| i as f32 * 5e-4).collect();
+        x.extend(data(1000, 5).iter().map(|v| v * 1e-3));
+        let mut got = vec![0.0; x.len()];
+        activation(Act::Gelu, &x, &mut got);
+        let want: Vec<f32> = x
+            .iter()
+            .map(|&v| (0.5 * v as f64 * (1.0 + libm::erf(v as f64 / std::f64::consts::SQRT_2))) as f32)
+            .collect();
+        assert_close(&got, &want, 1e-6);
+        activation(Act::GeluTanh, &x, &mut got);
+        let want: Vec<f32> = x
+            .iter()
+            .map(|&v| {
+                let v = v as f64;
+                let inner = (2.0 / std::f64::consts::PI).sqrt() * (v + 0.044715 * v * v * v);
+                (0.5 * v * (1.0 + inner.tanh())) as f32
+            })
+            .collect();
+        assert_close(&got, &want, 1e-6);
+    }
+
+    #[test]
+    fn gelu_matches_pytorch() {
+        let x = [-6.0, -3.0, -1.5, -0.5, -1e-3, 0.0, 1e-3, 0.5, 1.0, 2.5, 5.0];
+        // torch.nn.functional.gelu(torch.tensor(x)).tolist()
+        let erf = [
+            -0.0,
+            -0.004050225,
+            -0.10021086,
+            -0.15426877,
+            -0.00049960107,
+            0.0,
+            0.000500399,
+            0.34573123,
+            0.8413447,
+            2.4844759,
+            4.999999,
+        ];
+        // torch.nn.functional.gelu(torch.tensor(x), approximate='tanh').tolist()
+        let tanh = [
+            -0.0,
+            -0.003637433,
+            -0.10042843,
+            -0.154286,
+            -0.00049960107,
+            0.0,
+            0.000500399,
+            0.345714,
+            0.841192,
+            2.4849157,
+            4.9999995,
+        ];
+        let mut got = [0.0; 11];
+        activation(Act::Gelu, &x, &mut got);
+        assert_close(&got, &erf, 1e-6);
+        activation(Act::GeluTanh, &x, &mut got);
+        assert_close(&got, &tanh, 1e-6);
+    }
+
+    #[test]
+    fn sigmoid_is_safe_at_large_magnitudes() {
+        let x = [-200.0, -100.0, -86.0, -20.0, -1.0, 0.0, 1.0, 20.0, 100.0, f32::INFINITY, f32::NEG_INFINITY];
+        let mut got = [0.0; 11];
+        activation(Act::Sigmoid, &x, &mut got);
+        let want: Vec<f32> = x.iter().map(|&v| (1.0 / (1.0 + (-(v as f64)).exp())) as f32).collect();
+        assert_close(&got, &want, 1e-6);
+        // Relative accuracy holds in the tail down to -87: sigmoid(-20) = 2.0611537e-9.
+        assert!((got[3] / 2.061_153_6e-9 - 1.0).abs() < 1e-5, "sigmoid(-20) = {}", got[3]);
+        assert!(got[2] > 0.0);
+        assert!(got.iter().all(|v| (0.0..=1.0).contains(v)));
+        let mut nan = [f32::NAN];
+        activation_in_place(Act::Sigmoid, &mut nan);
+        assert!(nan[0].is_nan());
+    }
+}

@@ -1,0 +1,304 @@
+//! Single-precision matrix product, a checked safe wrapper over the `gemm` crate.
+//!
+//! This is the one module of the runtime kernels allowed `unsafe`: the `gemm` crate takes
+//! raw pointers and strides. [`sgemm`] first proves, with explicit checks, that every
+//! element the product can touch lies inside its slice and that no two destination
+//! elements share memory; only then does it call the crate.
+
+#![allow(unsafe_code)]
+
+use gemm::Parallelism;
+
+/// A read-only strided view of a `rows × cols` matrix: element `(i, j)` is
+/// `data[i * row_stride + j * col_stride]`.
+#[derive(Clone, Copy, Debug)]
+pub struct MatRef<'a> {
+    /// Backing storage; must hold every element of the view.
+    pub data: &'a [f32],
+    /// Number of rows.
+    pub rows: usize,
+    /// Number of columns.
+    pub cols: usize,
+    /// Distance between consecutive rows, in elements.
+    pub row_stride: usize,
+    /// Distance between consecutive columns, in elements.
+    pub col_stride: usize,
+}
+
+/// A writable strided view of a `rows × cols` matrix; same indexing as [`MatRef`]. Distinct
+/// elements must not share memory (checked by [`sgemm`]).
+#[derive(Debug)]
+pub struct MatMut<'a> {
+    /// Backing storage; must hold every element of the view.
+    pub data: &'a mut [f32],
+    /// Number of rows.
+    pub rows: usize,
+    /// Number of columns.
+    pub cols: usize,
+    /// Distance between consecutive rows, in elements.
+    pub row_stride: usize,
+    /// Distance between consecutive columns, in elements.
+    pub col_stride: usize,
+}
+
+impl<'a> MatRef<'a> {
+    /// A dense row-major `rows × cols` matrix at the start of `data`.
+    pub fn row_major(data: &'a [f32], rows: usize, cols: usize) -> Self {
+        MatRef { data, rows, cols, row_stride: cols, col_stride: 1 }
+    }
+
+    /// A dense column-major `rows × cols` matrix at the start of `data`.
+    pub fn col_major(data: &'a [f32], rows: usize, cols: usize) -> Self {
+        MatRef { data, rows, cols, row_stride: 1, col_stride: rows }
+    }
+
+    /// The transposed view of the same storage (no copy).
+    pub fn t(self) -> Self {
+        MatRef { rows: self.cols, cols: self.rows, row_stride: self.col_stride, col_stride: self.row_stride, ..self }
+    }
+}
+
+impl<'a> MatMut<'a> {
+    /// A dense row-major `rows × cols` matrix at the start of `data`.
+    pub fn row_major(data: &'a mut [f32], rows: usize, cols: usize) -> Self {
+        MatMut { data, rows, cols, row_stride: cols, col_stride: 1 }
+    }
+}
+
+/// One past the largest offset a `rows × cols` view with these strides reads, or `None`
+/// on overflow. An empty view touches nothing.
+fn extent(rows: usize, cols: usize, row_stride: usize, col_stride: usize) -> Option<usize> {
+    if rows == 0 || cols == 0 {
+        return Some(0);
+    }
+    (rows - 1).checked_mul(row_stride)?.checked_add((cols - 1).checked_mul(col_stride)?)?.checked_add(1)
+}
+
+/// A stride as the crate wants it. A stride along an axis of length ≤ 1 is never
+/// multiplied by anything but zero, so it is normalised to 1 to keep it in `isize` range.
+fn stride(len: usize, s: usize) -> isize {
+    if len <= 1 { 1 } else { isize::try_from(s).expect("sgemm: stride does not fit in isize") }
+}
+
+/// Whether distinct `(i, j)` map to distinct offsets: the smaller stride must be nonzero
+/// and the larger one must step past a whole run of the smaller.
+fn injective(rows: usize, cols: usize, row_stride: usize, col_stride: usize) -> bool {
+    match (rows > 1, cols > 1) {
+        (false, false) => true,
+        (true, false) => row_stride > 0,
+        (false, true) => col_stride > 0,
+        (true, true) => {
+            let ((inner_len, inner), outer) = if row_stride <= col_stride {
+                ((rows, row_stride), col_stride)
+            } else {
+                ((cols, col_stride), row_stride)
+            };
+            inner > 0 && outer > (inner_len - 1) * inner
+        }
+    }
+}
+
+#[track_caller]
+fn check_fits(what: &str, len: usize, rows: usize, cols: usize, row_stride: usize, col_stride: usize) {
+    let need = extent(rows, cols, row_stride, col_stride);
+    assert!(
+        need.is_some_and(|need| need <= len),
+        "sgemm: {what} ({rows}x{cols}, strides {row_stride}/{col_stride}) does not fit its {len} elements"
+    );
+}
+
+/// `c = a · b`, or `c += a · b` when `accumulate`, in f32.
+///
+/// `threads ≤ 1` runs on the calling thread; more lets the `gemm` crate split the work
+/// over that many threads of the current rayon pool.
+///
+/// # Panics
+/// If the shapes disagree (`a` is `m × k`, `b` is `k × n`, `c` is `m × n`), a view does not
+/// fit its slice, or two elements of `c` share memory.
+#[track_caller]
+pub fn sgemm(a: MatRef, b: MatRef, c: MatMut, accumulate: bool, threads: usize) {
+    let (m, k, n) = (a.rows, a.cols, b.cols);
+    assert!(
+        b.rows == k && c.rows == m && c.cols == n,
+        "sgemm: shapes disagree: a {}x{}, b {}x{}, c {}x{}",
+        a.rows,
+        a.cols,
+        b.rows,
+        b.cols,
+        c.rows,
+        c.cols
+    );
+    check_fits("a", a.data.len(), m, k, a.row_stride, a.col_stride);
+    check_fits("b", b.data.len(), k, n, b.row_stride, b.col_stride);
+    check_fits("c", c.data.len(), m, n, c.row_stride, c.col_stride);
+    let (rs, cs) = (c.row_stride, c.col_stride);
+    assert!(injective(m, n, rs, cs), "sgemm: elements of c overlap (strides {rs}/{cs})");
+    if m == 0 || n == 0 {
+        return;
+    }
+    let parallelism = if threads <= 1 { Parallelism::None } else { Parallelism::Rayon(threads) };
+    // SAFETY: the checks above establish everything `gemm::gemm` dereferences:
+    // - every offset `i*rs + j*cs` of `a` (i < m, j < k), `b` (i < k, j < n) and `c`
+    //   (i < m, j < n) is below its slice's length (`check_fits`), and all strides fit in
+    //   `isize` (`stride`), so no pointer leaves its allocation;
+    // - `c` is borrowed mutably, so it cannot overlap `a` or `b`, and distinct elements of
+    //   `c` are distinct memory (`injective`), so the crate's threads never write the same
+    //   element;
+    // - when `k == 0` the crate reads neither `a` nor `b` and only writes `c`;
+    // - `read_dst == false` means `c` is not read (it may hold anything).
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            c.data.as_mut_ptr(),
+            stride(n, c.col_stride),
+            stride(m, c.row_stride),
+            accumulate,
+            a.data.as_ptr(),
+            stride(k, a.col_stride),
+            stride(m, a.row_stride),
+            b.data.as_ptr(),
+            stride(n, b.col_stride),
+            stride(k, b.row_stride),
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            parallelism,
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::testutil::{assert_close, data};
+
+    /// Element `(i, j)` of a strided view.
+    fn at(m: &MatRef, i: usize, j: usize) -> f64 {
+        f64::from(m.data[i * m.row_stride + j * m.col_stride])
+    }
+
+    /// `c = a·b (+ c)` in f64 over the views, returned densely row-major.
+    fn reference(a: &MatRef, b: &MatRef, c0: Option<&[f32]>) -> Vec<f32> {
+        let (m, k, n) = (a.rows, a.cols, b.cols);
+        (0..m * n)
+            .map(|idx| {
+                let (i, j) = (idx / n, idx % n);
+                let acc: f64 = (0..k).map(|p| at(a, i, p) * at(b, p, j)).sum();
+                (acc + c0.map_or(0.0, |c| f64::from(c[idx]))) as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn products_of_odd_shapes_and_threads() {
+        for (m, k, n) in [(1, 1, 1), (3, 5, 7), (17, 1, 9), (33, 65, 17), (128, 96, 130), (5, 300, 2), (1, 64, 50)] {
+            let (a, b) = (data(m * k, 1), data(k * n, 2));
+            let (ar, br) = (MatRef::row_major(&a, m, k), MatRef::row_major(&b, k, n));
+            let want = reference(&ar, &br, None);
+            for threads in [1, 2] {
+                let mut c = vec![f32::NAN; m * n];
+                sgemm(ar, br, MatMut::row_major(&mut c, m, n), false, threads);
+                assert_close(&c, &want, 1e-4);
+            }
+        }
+    }
+
+    #[test]
+    fn accumulate_adds_to_c() {
+        let (m, k, n) = (19, 23, 29);
+        let (a, b, c0) = (data(m * k, 3), data(k * n, 4), data(m * n, 5));
+        let (ar, br) = (MatRef::row_major(&a, m, k), MatRef::row_major(&b, k, n));
+        let want = reference(&ar, &br, Some(&c0));
+        for threads in [1, 2] {
+            let mut c = c0.clone();
+            sgemm(ar, br, MatMut::row_major(&mut c, m, n), true, threads);
+            assert_close(&c, &want, 1e-4);
+        }
+    }
+
+    #[test]
+    fn strided_and_transposed_views() {
+        let (m, k, n) = (13, 11, 9);
+        // a: every other column of a wider buffer; b: the transpose of a column-major
+        // store; c: a column-major window inside a larger, guarded buffer.
+        let abuf = data(m * 2 * k, 6);
+        let a = MatRef { data: &abuf, rows: m, cols: k, row_stride: 2 * k, col_stride: 2 };
+        let bbuf = data(k * n, 7);
+        let b = MatRef::row_major(&bbuf, n, k).t();
+        assert_eq!((b.rows, b.cols, b.row_stride, b.col_stride), (k, n, 1, k));
+        let want = reference(&a, &b, None);
+        let ld = m + 3;
+        let mut cbuf = vec![f32::NAN; ld * n + 5];
+        sgemm(a, b, MatMut { data: &mut cbuf[2..], rows: m, cols: n, row_stride: 1, col_stride: ld }, false, 2);
+        let got: Vec<f32> = (0..m * n).map(|idx| cbuf[2 + (idx % n) * ld + idx / n]).collect();
+        assert_close(&got, &want, 1e-4);
+        // Untouched outside the window.
+        assert!(cbuf[..2].iter().all(|v| v.is_nan()));
+        assert!((0..n).all(|j| cbuf[2 + j * ld + m..2 + j * ld + ld].iter().all(|v| v.is_nan())));
+        // Column-major helper matches.
+        let cm: Vec<f32> = (0..m * k).map(|idx| abuf[(idx % m) * 2 * k + 2 * (idx / m)]).collect();
+        let a2 = MatRef::col_major(&cm, m, k);
+        let mut c2 = vec![0.0; m * n];
+        sgemm(a2, b, MatMut::row_major(&mut c2, m, n), false, 1);
+        assert_close(&c2, &want, 1e-4);
+    }
+
+    #[test]
+    fn empty_inner_dimension_zeroes_or_keeps_c() {
+        let mut c = vec![7.0; 6];
+        sgemm(MatRef::row_major(&[], 2, 0), MatRef::row_major(&[], 0, 3), MatMut::row_major(&mut c, 2, 3), true, 1);
+        assert_eq!(c, [7.0; 6]);
+        sgemm(MatRef::row_major(&[], 2, 0), MatRef::row_major(&[], 0, 3), MatMut::row_major(&mut c, 2, 3), false, 1);
+        assert_eq!(c, [0.0; 6]);
+    }
+
+    #[test]
+    #[should_panic(expected = "does not fit")]
+    fn rejects_a_view_past_its_slice() {
+        let a = [0.0; 11];
+        let mut c = [0.0; 9];
+        sgemm(
+            MatRef::row_major(&a, 3, 4),
+            MatRef::row_major(&[0.0; 12], 4, 3),
+            MatMut::row_major(&mut c, 3, 3),
+            false,
+            1,
+        );
+    }
+
+    #[test]
+    #[should_panic(expected = "shapes disagree")]
+    fn rejects_mismatched_shapes() {
+        let mut c = [0.0; 9];
+        sgemm(
+            MatRef::row_major(&[0.0; 12], 3, 4),
+            MatRef::row_major(&[0.0; 9], 3, 3),
+            MatMut::row_major(&mut c, 3, 3),
+            false,
+            1,
+        );
+    }
+
+    #[test]
+    #[should_panic(expected = "overlap")]
+    fn rejects_overlapping_destination() {
+        let mut c = [0.0; 16];
+        let c = MatMut { data: &mut c, rows: 3, cols: 3, row_stride: 2, col_stride: 1 };
+        sgemm(MatRef::row_major(&[0.0; 6], 3, 2), MatRef::row_major(&[0.0; 6], 2, 3), c, false, 2);
+    }
+
+    #[test]
+    fn injectivity_rule() {
+        assert!(injective(3, 3, 3, 1));
+        assert!(injective(3, 3, 1, 3));
+        assert!(!injective(3, 3, 2, 1));
+        assert!(!injective(2, 2, 0, 1));
+        assert!(injective(1, 5, 0, 1));
+        assert!(!injective(1, 5, 7, 0));
+        assert!(injective(4, 1, 9, 0));
+    }
+}

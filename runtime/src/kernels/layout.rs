@@ -1,0 +1,294 @@
+//! Data movement: axis permutation and concatenation, row-major.
+
+use rayon::prelude::*;
+
+/// Below this many elements a kernel runs on the calling thread.
+const PAR_MIN: usize = 1 << 15;
+/// Elements per parallel task, roughly.
+const CHUNK: usize = 1 << 14;
+/// Output rows a transposition fills together.
+const TB: usize = 16;
+
+/// Writes `x` (row-major, `shape`) with its axes permuted to `out`: output axis `i` is
+/// input axis `perm[i]`, so `out` has shape `[shape[perm[0]], shape[perm[1]], ...]`.
+///
+/// Size-1 axes are dropped and axes that stay neighbours are merged first. What remains
+/// is copied as whole rows when the last axis stays last (`[N,T,H,D] -> [N,H,T,D]`), 16
+/// output rows at a time when the last two axes swap (`[B,M,N] -> [B,N,M]`, and
+/// `NCHW <-> NHWC`, which merges to that) so each column reads 16 contiguous inputs, and
+/// element by element otherwise (a strided gather: slow, and rare in practice).
+pub fn permute(x: &[f32], shape: &[usize], perm: &[usize], out: &mut [f32]) {
+    assert_eq!(x.len(), shape.iter().product::<usize>(), "permute: x does not match its shape");
+    assert_eq!(out.len(), x.len(), "permute: out and x differ in length");
+    assert_eq!(perm.len(), shape.len(), "permute: perm and shape differ in rank");
+    let mut seen = vec![false; perm.len()];
+    for &p in perm {
+        assert!(p < perm.len() && !seen[p], "permute: {perm:?} is not a permutation");
+        seen[p] = true;
+    }
+    if x.is_empty() {
+        return;
+    }
+    let v = Permuted::new(shape, perm);
+    let r = v.dims.len();
+    let n = v.dims[r - 1];
+    let sl = v.strides[r - 1];
+    // Fills output rows (of length `n`) `first..` of `out`.
+    let run = |first: usize, out: &mut [f32]| {
+        let rows = out.len() / n;
+        if sl == 1 {
+            for (i, o) in out.chunks_mut(n).enumerate() {
+                let b = v.row_offset(first + i);
+                o.copy_from_slice(&x[b..b + n]);
+            }
+        } else if r >= 2 && v.strides[r - 2] == 1 {
+            // Output rows that neighbour along axis r - 2 read neighbouring input elements:
+            // fill up to TB of them together, a short contiguous read per column.
+            let m = v.dims[r - 2];
+            let mut i = 0;
+            while i < rows {
+                let g = first + i;
+                let k = TB.min(m - g % m).min(rows - i);
+                let b = v.row_offset(g);
+                let group = &mut out[i * n..(i + k) * n];
+                for j in 0..n {
+                    for (kk, &val) in x[b + j * sl..b + j * sl + k].iter().enumerate() {
+                        group[kk * n + j] = val;
+                    }
+                }
+                i += k;
+            }
+        } else {
+            for (i, o) in out.chunks_mut(n).enumerate() {
+                let b = v.row_offset(first + i);
+                for (j, o) in o.iter_mut().enumerate() {
+                    *o = x[b + j * sl];
+                }
+            }
+        }
+    };
+    let rows_per_task = (CHUNK / n).max(1).next_multiple_of(TB);
+    if out.len() >= PAR_MIN && out.len() > rows_per_task * n {
+        out.par_chunks_mut(rows_per_task * n).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
+    } else {
+        run(0, out);
+    }
+}
+
+/// A permutation reduced to the fewest output axes, each with its input stride.
+struct Permuted {
+    dims: Vec<usize>,
+    strides: Vec<usize>,
+}
+
+impl Permuted {
+    fn new(shape: &[usize], perm: &[usize]) -> Permuted {
+        let mut in_strides = vec![1; shape.len()];
+        for a in (0..shape.len().saturating_sub(1)).rev() {
+            in_strides[a] = in_strides[a + 1] * shape[a + 1];
+        }
+        let (mut dims, mut strides): (Vec<usize>, Vec<usize>) = (Vec::new(), Vec::new());
+        for &a in perm {
+            let (d, s) = (shape[a], in_strides[a]);
+            if d == 1 {
+                continue;
+            }
+            // The previous output axis merges with this one if it is this one's outer
+            // neighbour in the input too.
+            match (dims.last_mut(), strides.last_mut()) {
+                (Some(pd), Some(ps)) if *ps == s * d => {
+                    *pd *= d;
+                    *ps = s;
+                }
+                _ => {
+                    dims.push(d);
+                    strides.push(s);
+                }
+            }
+        }
+        if dims.is_empty() {
+            dims.push(1);
+            strides.push(1);
+        }
+        Permuted { dims, strides }
+    }
+
+    /// Input offset of the first element of output row `row` (rows run along the last axis).
+    fn row_offset(&self, mut row: usize) -> usize {
+        let mut off = 0;
+        for (&d, &s) in self.dims.iter().zip(&self.strides).rev().skip(1) {
+            off += (row % d) * s;
+            row /= d;
+        }
+        off
+    }
+}
+
+/// Concatenates `inputs` (each `(data, shape)`, row-major) along `axis` into `out`.
+///
+/// All inputs have the same rank and the same sizes except along `axis`; `out` has their
+/// shape with `axis` the sum of theirs. Each input contributes one contiguous block per
+/// index of the axes before `axis`.
+pub fn concat(inputs: &[(&[f32], &[usize])], axis: usize, out: &mut [f32]) {
+    let Some(&(_, first)) = inputs.first() else {
+        assert!(out.is_empty(), "concat: no inputs for a non-empty output");
+        return;
+    };
+    assert!(axis < first.len(), "concat: axis {axis} out of range for rank {}", first.len());
+    let outer: usize = first[..axis].iter().product();
+    let inner: usize = first[axis + 1..].iter().product();
+    for (d, s) in inputs {
+        assert_eq!(d.len(), s.iter().product::<usize>(), "concat: an input does not match its shape");
+        assert!(
+            s.len() == first.len() && (0..s.len()).all(|a| a == axis || s[a] == first[a]),
+            "concat: {s:?} and {first:?} differ off axis {axis}"
+        );
+    }
+    let row: usize = inputs.iter().map(|(_, s)| s[axis] * inner).sum();
+    assert_eq!(out.len(), outer * row, "concat: out does not match the concatenated shape");
+    if out.is_empty() {
+        return;
+    }
+    let fill = |o: usize, dst: &mut [f32]| {
+        let mut at = 0;
+        for (d, s) in inputs {
+            let n = s[axis] * inner;
+            dst[at..at + n].copy_from_slice(&d[o * n..(o + 1) * n]);
+            at += n;
+        }
+    };
+    if out.len() < PAR_MIN {
+        out.chunks_mut(row).enumerate().for_each(|(o, dst)| fill(o, dst));
+    } else if outer > 1 {
+        let min_rows = (CHUNK / row).max(1);
+        out.par_chunks_mut(row).enumerate().with_min_len(min_rows).for_each(|(o, dst)| fill(o, dst));
+    } else {
+        // One big block per input: split each copy instead.
+        let mut at = 0;
+        for (d, _) in inputs {
+            out[at..at + d.len()]
+                .par_chunks_mut(CHUNK)
+                .zip(d.par_chunks(CHUNK))
+                .for_each(|(o, s)| o.copy_from_slice(s));
+            at += d.len();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::testutil::data;
+
+    /// For each output multi-index, reads the input at the index with axes put back.
+    fn naive_permute(x: &[f32], shape: &[usize], perm: &[usize]) -> Vec<f32> {
+        let out_shape: Vec<usize> = perm.iter().map(|&p| shape[p]).collect();
+        (0..x.len())
+            .map(|flat| {
+                let mut oi = vec![0; perm.len()];
+                let mut r = flat;
+                for a in (0..perm.len()).rev() {
+                    oi[a] = r % out_shape[a];
+                    r /= out_shape[a];
+                }
+                let mut ii = vec![0; perm.len()];
+                for (a, &p) in perm.iter().enumerate() {
+                    ii[p] = oi[a];
+                }
+                x[ii.iter().zip(shape).fold(0, |o, (&i, &n)| o * n + i)]
+            })
+            .collect()
+    }
+
+    fn check_permute(shape: &[usize], perm: &[usize]) {
+        let x = data(shape.iter().product(), shape.len() as u64);
+        let mut got = vec![f32::NAN; x.len()];
+        permute(&x, shape, perm, &mut got);
+        assert_eq!(got, naive_permute(&x, shape, perm), "{shape:?} {perm:?}");
+    }
+
+    #[test]
+    fn permute_common_transposes() {
+        check_permute(&[2, 5, 3, 4], &[0, 2, 1, 3]);
+        check_permute(&[3, 17, 19], &[0, 2, 1]);
+        check_permute(&[17, 33], &[1, 0]);
+        check_permute(&[2, 3, 5, 7], &[0, 2, 3, 1]);
+        check_permute(&[2, 5, 7, 3], &[0, 3, 1, 2]);
+        check_permute(&[2, 3, 4, 5], &[0, 1, 3, 2]);
+    }
+
+    #[test]
+    fn permute_generic_and_degenerate() {
+        check_permute(&[3, 4, 5], &[2, 0, 1]);
+        check_permute(&[3, 4, 5], &[1, 2, 0]);
+        check_permute(&[2, 3, 4, 5], &[3, 1, 0, 2]);
+        check_permute(&[2, 3, 2, 3, 2], &[4, 2, 0, 3, 1]);
+        check_permute(&[2, 3, 4], &[0, 1, 2]);
+        check_permute(&[1, 5, 1, 3], &[2, 3, 0, 1]);
+        check_permute(&[1, 1], &[1, 0]);
+        check_permute(&[6], &[0]);
+        check_permute(&[], &[]);
+        let mut out: [f32; 0] = [];
+        permute(&[], &[3, 0], &[1, 0], &mut out);
+    }
+
+    #[test]
+    fn permute_large_runs_in_parallel_and_matches() {
+        check_permute(&[2, 197, 12, 64], &[0, 2, 1, 3]);
+        check_permute(&[3, 300, 129], &[0, 2, 1]);
+        check_permute(&[1, 64, 40, 41], &[0, 2, 3, 1]);
+        check_permute(&[40, 50, 30], &[2, 0, 1]);
+    }
+
+    /// For each output multi-index, finds the input whose range along `axis` holds it.
+    fn naive_concat(inputs: &[(Vec<f32>, Vec<usize>)], axis: usize) -> Vec<f32> {
+        let mut shape = inputs[0].1.clone();
+        shape[axis] = inputs.iter().map(|(_, s)| s[axis]).sum();
+        let len: usize = shape.iter().product();
+        (0..len)
+            .map(|flat| {
+                let mut idx = vec![0; shape.len()];
+                let mut r = flat;
+                for a in (0..shape.len()).rev() {
+                    idx[a] = r % shape[a];
+                    r /= shape[a];
+                }
+                let (mut k, mut at) = (0, idx[axis]);
+                while at >= inputs[k].1[axis] {
+                    at -= inputs[k].1[axis];
+                    k += 1;
+                }
+                idx[axis] = at;
+                let s = &inputs[k].1;
+                inputs[k].0[idx.iter().zip(s).fold(0, |o, (&i, &n)| o * n + i)]
+            })
+            .collect()
+    }
+
+    fn check_concat(shapes: &[&[usize]], axis: usize) {
+        let inputs: Vec<(Vec<f32>, Vec<usize>)> =
+            shapes.iter().enumerate().map(|(i, s)| (data(s.iter().product(), i as u64 + 1), s.to_vec())).collect();
+        let refs: Vec<(&[f32], &[usize])> = inputs.iter().map(|(d, s)| (&d[..], &s[..])).collect();
+        let want = naive_concat(&inputs, axis);
+        let mut got = vec![f32::NAN; want.len()];
+        concat(&refs, axis, &mut got);
+        assert_eq!(got, want, "{shapes:?} axis {axis}");
+    }
+
+    #[test]
+    fn concat_along_first_middle_last() {
+        check_concat(&[&[2, 3, 4], &[1, 3, 4], &[3, 3, 4]], 0);
+        check_concat(&[&[2, 3, 4], &[2, 1, 4], &[2, 5, 4]], 1);
+        check_concat(&[&[2, 3, 4], &[2, 3, 1], &[2, 3, 2]], 2);
+        check_concat(&[&[2, 3, 4], &[2, 0, 4], &[2, 2, 4]], 1);
+        check_concat(&[&[5]], 0);
+        check_concat(&[&[1, 2], &[1, 2]], 1);
+    }
+
+    #[test]
+    fn concat_large_runs_in_parallel_and_matches() {
+        check_concat(&[&[2, 64, 30, 30], &[2, 32, 30, 30]], 1);
+        check_concat(&[&[40000], &[30000]], 0);
+        check_concat(&[&[1, 5000, 3], &[1, 7000, 3]], 1);
+    }
+}

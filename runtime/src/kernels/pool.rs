@@ -1,0 +1,408 @@
+//! 2-D max and average pooling over `[nc, h, w]` planes, and global average pooling, with
+//! PyTorch's window and divisor rules.
+
+use rayon::prelude::*;
+
+use super::reduce::sum;
+
+/// Below this much work (window reads) a kernel runs on the calling thread.
+const PAR_MIN: usize = 1 << 15;
+/// Window reads per parallel task, roughly.
+const TASK_WORK: usize = 1 << 14;
+
+/// Which reduction a pooling window applies.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PoolKind {
+    /// Maximum; padding counts as `-inf` and NaN propagates.
+    Max,
+    /// Mean, with the divisor chosen by `count_include_pad`.
+    Avg,
+}
+
+/// Sizes of a 2-D pooling over `nc` planes of `h × w`, producing `oh × ow` per plane.
+///
+/// `oh` and `ow` are PyTorch's output sizes for these parameters (so with `ceil_mode` the
+/// last window may run past the input, but always starts inside it or its left padding);
+/// `ceil_mode` itself only matters to that computation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Pool2dShape {
+    pub nc: usize,
+    pub h: usize,
+    pub w: usize,
+    pub kh: usize,
+    pub kw: usize,
+    pub stride_h: usize,
+    pub stride_w: usize,
+    pub pad_h: usize,
+    pub pad_w: usize,
+    pub oh: usize,
+    pub ow: usize,
+    pub ceil_mode: bool,
+    pub count_include_pad: bool,
+}
+
+/// One window along one axis: the input range it covers, clamped to the input, and its
+/// length over the padded input (PyTorch's `pool_size` factor).
+#[derive(Clone, Copy)]
+struct Window {
+    start: usize,
+    end: usize,
+    padded_len: usize,
+}
+
+/// The window of output index `o`: it starts at `o * stride - pad`, ends `k` later but not
+/// past the right padding, and is then clamped to `[0, len)`. As PyTorch's avg_pool2d.
+fn window(o: usize, len: usize, k: usize, stride: usize, pad: usize) -> Window {
+    let start = (o * stride) as isize - pad as isize;
+    let end = (start + k as isize).min((len + pad) as isize);
+    let padded_len = (end - start) as usize;
+    let clamp = |i: isize| i.clamp(0, len as isize) as usize;
+    Window { start: clamp(start), end: clamp(end), padded_len }
+}
+
+/// PyTorch's pooled output length (`pooling_output_shape`, dilation 1).
+fn pooled_len(len: usize, k: usize, stride: usize, pad: usize, ceil_mode: bool) -> usize {
+    let span = len + 2 * pad - k;
+    let mut n = if ceil_mode { span.div_ceil(stride) } else { span / stride } + 1;
+    // The last window must start inside the input or its left padding.
+    if ceil_mode && (n - 1) * stride >= len + pad {
+        n -= 1;
+    }
+    n
+}
+
+/// Input columns one tile of a pooling row may span (a stack buffer).
+const BUF: usize = 1024;
+
+/// The start value of a window reduction.
+#[inline(always)]
+fn identity(kind: PoolKind) -> f32 {
+    match kind {
+        PoolKind::Max => f32::NEG_INFINITY,
+        PoolKind::Avg => 0.0,
+    }
+}
+
+/// Adds `v` to a window reduction: the sum, or the maximum with NaN winning (as PyTorch's
+/// `val > max || isnan(val)`).
+#[inline(always)]
+fn combine(kind: PoolKind, acc: f32, v: f32) -> f32 {
+    match kind {
+        PoolKind::Max => {
+            if v > acc || v.is_nan() {
+                v
+            } else {
+                acc
+            }
+        }
+        PoolKind::Avg => acc + v,
+    }
+}
+
+/// The output value of a reduced window: the max as is, the sum over PyTorch's divisor
+/// (0 for a window entirely outside the input).
+#[inline(always)]
+fn finish(kind: PoolKind, acc: f32, wy: &Window, wx: &Window, count_include_pad: bool) -> f32 {
+    match kind {
+        PoolKind::Max => acc,
+        PoolKind::Avg => {
+            let area = (wy.end - wy.start) * (wx.end - wx.start);
+            if area == 0 {
+                0.0
+            } else {
+                let divisor = if count_include_pad { wy.padded_len * wx.padded_len } else { area };
+                acc / divisor as f32
+            }
+        }
+    }
+}
+
+/// 2-D pooling of `x` (`[nc, h, w]`) into `out` (`[nc, oh, ow]`), exactly as PyTorch's
+/// `max_pool2d` / `avg_pool2d` (dilation 1, no `divisor_override`).
+///
+/// Max: the maximum over the window clamped to the input (padding is `-inf`).
+/// Avg: the window sum divided by, if `count_include_pad`, the window's area over the
+/// padded input (`min(start + k, len + pad) - start` per axis, so a `ceil_mode` window
+/// running past the right padding counts only up to it), else its area clamped to the
+/// input. Preconditions: `k >= 1`, `stride >= 1`, `pad <= k / 2` (PyTorch's own checks),
+/// and `oh`, `ow` as PyTorch computes them.
+pub fn pool2d(kind: PoolKind, s: &Pool2dShape, x: &[f32], out: &mut [f32]) {
+    assert_eq!(x.len(), s.nc * s.h * s.w, "pool2d: x is not [nc, h, w]");
+    assert_eq!(out.len(), s.nc * s.oh * s.ow, "pool2d: out is not [nc, oh, ow]");
+    assert!(s.kh >= 1 && s.kw >= 1 && s.stride_h >= 1 && s.stride_w >= 1, "pool2d: zero kernel or stride");
+    assert!(s.pad_h <= s.kh / 2 && s.pad_w <= s.kw / 2, "pool2d: padding exceeds half the kernel");
+    debug_assert_eq!(s.oh, pooled_len(s.h, s.kh, s.stride_h, s.pad_h, s.ceil_mode), "pool2d: oh for {s:?}");
+    debug_assert_eq!(s.ow, pooled_len(s.w, s.kw, s.stride_w, s.pad_w, s.ceil_mode), "pool2d: ow for {s:?}");
+    if out.is_empty() {
+        return;
+    }
+    let s = *s;
+    // Output columns per tile: their windows' input columns must fit in the stack buffer.
+    let tile = if s.kw <= BUF { ((BUF - s.kw) / s.stride_w + 1).min(s.ow) } else { 1 };
+    // Fills output rows `first..` (counted over all planes) of `out`: per tile of output
+    // columns, first reduce the window's input rows into `buf` (vertical, vectorised), then
+    // each output's columns from `buf`.
+    let run = |first: usize, out: &mut [f32]| {
+        let mut buf = [0f32; BUF];
+        for (i, orow) in out.chunks_mut(s.ow).enumerate() {
+            let (plane, oy) = ((first + i) / s.oh, (first + i) % s.oh);
+            let xp = &x[plane * s.h * s.w..(plane + 1) * s.h * s.w];
+            let wy = window(oy, s.h, s.kh, s.stride_h, s.pad_h);
+            for ox0 in (0..s.ow).step_by(tile) {
+                let ox1 = (ox0 + tile).min(s.ow);
+                let cs = window(ox0, s.w, s.kw, s.stride_w, s.pad_w).start;
+                let ce = window(ox1 - 1, s.w, s.kw, s.stride_w, s.pad_w).end.max(cs);
+                if ce - cs > BUF {
+                    // A window wider than the buffer (tile is 1): reduce it in place.
+                    let wx = window(ox0, s.w, s.kw, s.stride_w, s.pad_w);
+                    let mut acc = identity(kind);
+                    for y in wy.start..wy.end {
+                        acc = xp[y * s.w + wx.start..y * s.w + wx.end].iter().fold(acc, |a, &v| combine(kind, a, v));
+                    }
+                    orow[ox0] = finish(kind, acc, &wy, &wx, s.count_include_pad);
+                    continue;
+                }
+                let b = &mut buf[..ce - cs];
+                b.fill(identity(kind));
+                for y in wy.start..wy.end {
+                    for (a, &v) in b.iter_mut().zip(&xp[y * s.w + cs..y * s.w + ce]) {
+                        *a = combine(kind, *a, v);
+                    }
+                }
+                for (ox, o) in (ox0..ox1).zip(&mut orow[ox0..ox1]) {
+                    let wx = window(ox, s.w, s.kw, s.stride_w, s.pad_w);
+                    let acc = b[wx.start - cs..wx.end - cs].iter().fold(identity(kind), |a, &v| combine(kind, a, v));
+                    *o = finish(kind, acc, &wy, &wx, s.count_include_pad);
+                }
+            }
+        }
+    };
+    let rows_per_task = (TASK_WORK / (s.ow * s.kh * s.kw)).max(1);
+    if out.len() * s.kh * s.kw >= PAR_MIN && s.nc * s.oh > rows_per_task {
+        out.par_chunks_mut(rows_per_task * s.ow).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
+    } else {
+        run(0, out);
+    }
+}
+
+/// Mean of each of the `nc` rows of `x` (`[nc, hw]`), into `out` (`[nc]`).
+pub fn global_avgpool(x: &[f32], nc: usize, hw: usize, out: &mut [f32]) {
+    assert_eq!(x.len(), nc * hw, "global_avgpool: x is not [nc, hw]");
+    assert_eq!(out.len(), nc, "global_avgpool: out is not [nc]");
+    if hw == 0 {
+        out.fill(f32::NAN);
+        return;
+    }
+    let inv = 1.0 / hw as f32;
+    if x.len() >= PAR_MIN && nc > 1 {
+        let min_rows = (TASK_WORK / hw).max(1);
+        out.par_iter_mut().zip(x.par_chunks(hw)).with_min_len(min_rows).for_each(|(o, r)| *o = sum(r) * inv);
+    } else {
+        out.iter_mut().zip(x.chunks(hw)).for_each(|(o, r)| *o = sum(r) * inv);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::testutil::{assert_close, data};
+
+    #[allow(clippy::too_many_arguments)]
+    fn shape(
+        nc: usize,
+        h: usize,
+        w: usize,
+        k: (usize, usize),
+        stride: (usize, usize),
+        pad: (usize, usize),
+        ceil_mode: bool,
+        cip: bool,
+    ) -> Pool2dShape {
+        Pool2dShape {
+            nc,
+            h,
+            w,
+            kh: k.0,
+            kw: k.1,
+            stride_h: stride.0,
+            stride_w: stride.1,
+            pad_h: pad.0,
+            pad_w: pad.1,
+            oh: pooled_len(h, k.0, stride.0, pad.0, ceil_mode),
+            ow: pooled_len(w, k.1, stride.1, pad.1, ceil_mode),
+            ceil_mode,
+            count_include_pad: cip,
+        }
+    }
+
+    /// Visits every kernel tap of every window and classifies it: inside the input, in the
+    /// padding (counts towards the divisor only with count_include_pad), or past the right
+    /// padding (never counts).
+    fn naive(kind: PoolKind, s: &Pool2dShape, x: &[f32]) -> Vec<f32> {
+        let mut out = Vec::new();
+        for p in 0..s.nc {
+            for oy in 0..s.oh {
+                for ox in 0..s.ow {
+                    let (mut max, mut total, mut inside, mut padded) = (f32::NEG_INFINITY, 0.0f32, 0, 0);
+                    for dy in 0..s.kh {
+                        for dx in 0..s.kw {
+                            let iy = (oy * s.stride_h + dy) as isize - s.pad_h as isize;
+                            let ix = (ox * s.stride_w + dx) as isize - s.pad_w as isize;
+                            if iy >= (s.h + s.pad_h) as isize || ix >= (s.w + s.pad_w) as isize {
+                                continue;
+                            }
+                            padded += 1;
+                            if iy < 0 || ix < 0 || iy >= s.h as isize || ix >= s.w as isize {
+                                continue;
+                            }
+                            let v = x[(p * s.h + iy as usize) * s.w + ix as usize];
+                            max = max.max(v);
+                            total += v;
+                            inside += 1;
+                        }
+                    }
+                    out.push(match kind {
+                        PoolKind::Max => max,
+                        PoolKind::Avg => total / if s.count_include_pad { padded } else { inside } as f32,
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    fn check(s: Pool2dShape) {
+        let x = data(s.nc * s.h * s.w, (s.h * 31 + s.w) as u64);
+        for kind in [PoolKind::Max, PoolKind::Avg] {
+            let mut got = vec![f32::NAN; s.nc * s.oh * s.ow];
+            pool2d(kind, &s, &x, &mut got);
+            assert_close(&got, &naive(kind, &s, &x), 1e-6);
+        }
+    }
+
+    #[test]
+    fn pool_plain_strided_and_padded() {
+        for cip in [false, true] {
+            check(shape(2, 4, 4, (2, 2), (2, 2), (0, 0), false, cip));
+            check(shape(3, 7, 5, (3, 3), (1, 1), (1, 1), false, cip));
+            check(shape(1, 9, 6, (3, 2), (2, 1), (1, 0), false, cip));
+            check(shape(2, 1, 8, (1, 3), (1, 2), (0, 1), false, cip));
+            check(shape(1, 5, 5, (5, 5), (1, 1), (2, 2), false, cip));
+            check(shape(4, 1, 1, (1, 1), (1, 1), (0, 0), false, cip));
+        }
+    }
+
+    #[test]
+    fn pool_ceil_mode_windows_past_the_input() {
+        for cip in [false, true] {
+            check(shape(2, 5, 6, (3, 3), (2, 2), (1, 1), true, cip));
+            check(shape(1, 5, 6, (2, 3), (2, 2), (0, 0), true, cip));
+            check(shape(3, 8, 7, (3, 3), (3, 3), (1, 1), true, cip));
+            check(shape(1, 6, 9, (4, 2), (3, 2), (2, 1), true, cip));
+            check(shape(1, 2, 2, (3, 3), (2, 2), (1, 1), true, cip));
+        }
+    }
+
+    #[test]
+    fn pool_rows_wider_than_one_tile_and_windows_wider_than_the_buffer() {
+        for cip in [false, true] {
+            check(shape(1, 4, 2500, (3, 3), (1, 1), (1, 1), false, cip));
+            check(shape(2, 5, 2501, (3, 3), (2, 2), (1, 1), true, cip));
+            check(shape(2, 3, 1500, (2, 1100), (1, 300), (1, 0), true, cip));
+        }
+    }
+
+    #[test]
+    fn pool_large_runs_in_parallel_and_matches() {
+        check(shape(64, 56, 57, (3, 3), (2, 2), (1, 1), true, false));
+        check(shape(3, 112, 112, (3, 3), (2, 2), (1, 1), false, true));
+    }
+
+    #[test]
+    fn pool_output_length_matches_pytorch_shapes() {
+        // Shapes of F.avg_pool2d(torch.zeros(1, 1, h, w), k, s, p, ceil_mode=...) for each case.
+        assert_eq!(pooled_len(5, 3, 2, 1, true), 3);
+        assert_eq!(pooled_len(6, 3, 2, 1, true), 4);
+        assert_eq!(pooled_len(6, 3, 2, 1, false), 3);
+        assert_eq!(pooled_len(6, 2, 2, 1, true), 4);
+        // (n - 1) * stride >= len + pad: the would-be last window starts in the right padding.
+        assert_eq!(pooled_len(5, 2, 2, 1, true), 3);
+        assert_eq!(pooled_len(112, 3, 2, 1, false), 56);
+    }
+
+    /// x = torch.arange(30.).reshape(1, 1, 5, 6) for the PyTorch literals below.
+    fn arange_5x6() -> Vec<f32> {
+        (0..30).map(|v| v as f32).collect()
+    }
+
+    fn run(kind: PoolKind, s: &Pool2dShape, x: &[f32]) -> Vec<f32> {
+        let mut out = vec![f32::NAN; s.nc * s.oh * s.ow];
+        pool2d(kind, s, x, &mut out);
+        out
+    }
+
+    #[test]
+    fn avg_pool_matches_pytorch_divisors() {
+        let x = arange_5x6();
+        // F.avg_pool2d(x, 3, 2, 1, ceil_mode=True, count_include_pad=True): the last column's
+        // windows reach past w + pad, so they divide by 6, not 9 (e.g. (5 + 11) / 6).
+        let s = shape(1, 5, 6, (3, 3), (2, 2), (1, 1), true, true);
+        #[rustfmt::skip]
+        let want = [
+            1.5555556, 3.3333333, 4.6666665, 2.6666667,
+            8.333333, 14.0, 16.0, 8.5,
+            9.555555, 15.333333, 16.666666, 8.666667,
+        ];
+        assert_close(&run(PoolKind::Avg, &s, &x), &want, 1e-6);
+        // Same with count_include_pad=False: divide by the taps inside the input.
+        let s = Pool2dShape { count_include_pad: false, ..s };
+        let want = [3.5, 5.0, 7.0, 8.0, 12.5, 14.0, 16.0, 17.0, 21.5, 23.0, 25.0, 26.0];
+        assert_close(&run(PoolKind::Avg, &s, &x), &want, 1e-6);
+        // F.avg_pool2d(x, (2, 3), (2, 2), 0, ceil_mode=True, count_include_pad=True): without
+        // padding a window past the input divides by its clamped area either way.
+        let s = shape(1, 5, 6, (2, 3), (2, 2), (0, 0), true, true);
+        let want = [4.0, 6.0, 7.5, 16.0, 18.0, 19.5, 25.0, 27.0, 28.5];
+        assert_close(&run(PoolKind::Avg, &s, &x), &want, 1e-6);
+        // F.avg_pool2d(x, (3, 2), (3, 1), (1, 1), count_include_pad=True)
+        let s = shape(1, 5, 6, (3, 2), (3, 1), (1, 1), false, true);
+        #[rustfmt::skip]
+        let want = [
+            1.0, 2.3333333, 3.0, 3.6666667, 4.3333335, 5.0, 2.6666667,
+            9.0, 18.5, 19.5, 20.5, 21.5, 22.5, 11.5,
+        ];
+        assert_close(&run(PoolKind::Avg, &s, &x), &want, 1e-6);
+    }
+
+    #[test]
+    fn max_pool_matches_pytorch() {
+        let x = arange_5x6();
+        let neg: Vec<f32> = x.iter().map(|v| -v).collect();
+        // F.max_pool2d(-x, 3, 2, 1, ceil_mode=True): padding never wins, even over negatives.
+        let s = shape(1, 5, 6, (3, 3), (2, 2), (1, 1), true, false);
+        let want = [-0.0, -1.0, -3.0, -5.0, -6.0, -7.0, -9.0, -11.0, -18.0, -19.0, -21.0, -23.0];
+        assert_close(&run(PoolKind::Max, &s, &neg), &want, 0.0);
+        // F.max_pool2d(x, (2, 3), (2, 2), 0, ceil_mode=True)
+        let s = shape(1, 5, 6, (2, 3), (2, 2), (0, 0), true, false);
+        let want = [8.0, 10.0, 11.0, 20.0, 22.0, 23.0, 26.0, 28.0, 29.0];
+        assert_close(&run(PoolKind::Max, &s, &x), &want, 0.0);
+    }
+
+    #[test]
+    fn max_pool_propagates_nan() {
+        // torch.nn.functional.max_pool2d(torch.tensor([[[1., nan], [3., 2.]]]), 2) is nan.
+        let s = shape(1, 2, 2, (2, 2), (2, 2), (0, 0), false, false);
+        assert!(run(PoolKind::Max, &s, &[1.0, f32::NAN, 3.0, 2.0])[0].is_nan());
+    }
+
+    #[test]
+    fn global_avgpool_means_rows() {
+        for (nc, hw) in [(1, 1), (3, 7), (5, 49), (300, 150)] {
+            let x = data(nc * hw, 3);
+            let mut got = vec![f32::NAN; nc];
+            global_avgpool(&x, nc, hw, &mut got);
+            let want: Vec<f32> =
+                x.chunks(hw).map(|r| (r.iter().map(|&v| v as f64).sum::<f64>() / hw as f64) as f32).collect();
+            assert_close(&got, &want, 1e-6);
+        }
+    }
+}

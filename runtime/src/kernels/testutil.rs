@@ -1,0 +1,24 @@
+//! Deterministic test data and comparison helpers for kernel tests.
+
+/// `len` pseudo-random values in [-1, 1), from a seed (xorshift; no dependencies).
+pub fn data(len: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..len)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        })
+        .collect()
+}
+
+/// Asserts `got` and `want` agree within `tol`, absolute or relative to |want|.
+#[track_caller]
+pub fn assert_close(got: &[f32], want: &[f32], tol: f32) {
+    assert_eq!(got.len(), want.len(), "lengths differ");
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        let err = (g - w).abs();
+        assert!(err <= tol * (1.0 + w.abs()), "element {i}: got {g}, want {w} (error {err})");
+    }
+}

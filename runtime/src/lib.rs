@@ -1,0 +1,5 @@
+//! The readi runtime: loads a plan and runs it on CPU in f32.
+
+pub mod exec;
+pub mod kernels;
+pub mod plan;
