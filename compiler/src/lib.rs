@@ -15,6 +15,7 @@
 //! assert_eq!(module.graph.parameter_count(), 8 * 4 + 4);
 //! ```
 
+pub mod backend;
 pub mod elaborate;
 pub mod infer;
 pub mod ir;

@@ -102,7 +102,8 @@ impl Diagnostic {
 }
 
 /// Diagnostic codes. The first digit groups them: 1 syntax, 2 names and structure,
-/// 3 arguments and values, 4 shapes, 5 adaptation rules, 6 variants, 9 limits and bugs.
+/// 3 arguments and values, 4 shapes, 5 adaptation rules, 6 variants, 7 weights, 9 limits
+/// and bugs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum Code {
     /// The parser expected something else here.
@@ -144,6 +145,8 @@ pub enum Code {
     BadOption,
     /// A problem in the variants section.
     BadVariant,
+    /// A weights file that does not fit the model (missing, extra, misshapen tensors).
+    Weights,
     /// A resource limit (nesting, node count, loop length) was exceeded.
     Limit,
     /// A bug in readi: an invariant of the IR does not hold.
@@ -173,6 +176,7 @@ impl Code {
             Code::RuleConflict => "E0502",
             Code::BadOption => "E0503",
             Code::BadVariant => "E0601",
+            Code::Weights => "E0701",
             Code::Limit => "E0901",
             Code::Internal => "E0999",
         }

@@ -461,6 +461,7 @@ pub(super) fn build_op(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         "global_avgpool" => (Op::GlobalAvgPool, vec![x()?]),
         "upsample" => {
             let t = args.ttype("x")?;
+            let mut factor = None;
             let size = match (args.present("scale"), args.present("size")) {
                 (true, false) => {
                     let scale = positive_float(args, "scale")?;
@@ -479,6 +480,7 @@ pub(super) fn build_op(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
                         }
                         *o = v as i64;
                     }
+                    factor = Some([scale, scale]);
                     out
                 }
                 (false, true) => args.pair("size", 1)?,
@@ -501,7 +503,7 @@ pub(super) fn build_op(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
             if align_corners && mode == UpsampleMode::Nearest {
                 return Err(args.bad_value("align_corners", "applies to bilinear mode only".into()));
             }
-            (Op::Upsample { size, mode, align_corners }, vec![x()?])
+            (Op::Upsample { size, scale: factor, mode, align_corners }, vec![x()?])
         }
         "mean" => {
             let rank = args.ttype("x")?.rank();

@@ -25,6 +25,11 @@ impl Dim {
         Dim { coef: 1, syms: vec![name.to_string()] }
     }
 
+    /// The constant factor.
+    pub fn coef(&self) -> i64 {
+        self.coef
+    }
+
     /// The size, if it has no symbolic factor.
     pub fn as_known(&self) -> Option<i64> {
         self.syms.is_empty().then_some(self.coef)

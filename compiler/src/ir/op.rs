@@ -44,8 +44,9 @@ pub enum Op {
     Pool(PoolAttrs),
     /// Mean over the spatial axes of NCHW, keeping them as 1x1.
     GlobalAvgPool,
-    /// Resize of the last two axes to a fixed size.
-    Upsample { size: [i64; 2], mode: UpsampleMode, align_corners: bool },
+    /// Resize of the last two axes to a fixed size. `scale` is the factor the source gave,
+    /// which PyTorch uses (rather than the size ratio) to map output to input positions.
+    Upsample { size: [i64; 2], scale: Option<[f64; 2]>, mode: UpsampleMode, align_corners: bool },
     /// Mean over the given axes.
     Mean { axes: Vec<usize>, keepdim: bool },
     /// A learned tensor used directly (a position embedding, a query table). Its single
@@ -316,8 +317,16 @@ impl Op {
                 }
                 v
             }
-            Op::Upsample { size, mode, align_corners } => vec![
+            Op::Upsample { size, scale, mode, align_corners } => vec![
                 ("size", format!("{}x{}", size[0], size[1])),
+                (
+                    "scale",
+                    match scale {
+                        Some(s) if s[0] == s[1] => float(s[0]),
+                        Some(s) => format!("{}x{}", float(s[0]), float(s[1])),
+                        None => "none".into(),
+                    },
+                ),
                 (
                     "mode",
                     match mode {

@@ -1,0 +1,115 @@
+//! `plan_buffers`: assigns every computed value an activation buffer (slot) so that
+//! values whose lifetimes do not overlap share one.
+//!
+//! A value lives from the step that writes it to the last step that reads it (graph
+//! outputs live to the end). Steps are visited in order; a step's output takes a free slot
+//! before the step's own inputs are released, so no step ever writes a buffer it reads.
+//! Among free slots the best fit is taken: the smallest slot at least as large as the
+//! value (sizes compared at batch size 1), else the largest one, which then grows. The
+//! runtime sizes each slot as the largest value assigned to it at the bound batch size.
+
+use readi_runtime::plan::{Step, Storage, ValueSpec};
+
+/// Rewrites the storage of every slot value; returns the number of slots.
+pub fn plan_buffers(values: &mut [ValueSpec], steps: &[Step], outputs: &[usize]) -> usize {
+    // Elements at batch size 1 (every symbol taken as 1), at least one.
+    let size = |v: &ValueSpec| -> usize { v.shape.iter().map(|d| d.coef.max(0) as usize).product::<usize>().max(1) };
+    let mut last_use: Vec<Option<usize>> = vec![None; values.len()];
+    for (k, s) in steps.iter().enumerate() {
+        for &i in &s.inputs {
+            last_use[i] = Some(k);
+        }
+    }
+    for &o in outputs {
+        last_use[o] = Some(usize::MAX);
+    }
+    let mut slot_size: Vec<usize> = Vec::new();
+    let mut free: Vec<usize> = Vec::new();
+    for (k, s) in steps.iter().enumerate() {
+        let need = size(&values[s.output]);
+        let fit = free
+            .iter()
+            .enumerate()
+            .filter(|(_, slot)| slot_size[**slot] >= need)
+            .min_by_key(|(_, slot)| slot_size[**slot])
+            .or_else(|| free.iter().enumerate().max_by_key(|(_, slot)| slot_size[**slot]))
+            .map(|(i, _)| i);
+        let slot = match fit {
+            Some(i) => free.swap_remove(i),
+            None => {
+                slot_size.push(0);
+                slot_size.len() - 1
+            }
+        };
+        slot_size[slot] = slot_size[slot].max(need);
+        values[s.output].storage = Storage::Slot(slot);
+        // Release the inputs this step reads for the last time (once, even if read twice).
+        let mut released: Vec<usize> = Vec::new();
+        for &i in &s.inputs {
+            if last_use[i] == Some(k) && !released.contains(&i) {
+                released.push(i);
+                if let Storage::Slot(sl) = values[i].storage {
+                    free.push(sl);
+                }
+            }
+        }
+        // A value nobody reads is free as soon as it is written.
+        if last_use[s.output].is_none() {
+            free.push(slot);
+        }
+    }
+    slot_size.len()
+}
+
+#[cfg(test)]
+mod tests {
+    use readi_runtime::plan::{Kernel, SymDim};
+
+    use super::*;
+
+    fn value(n: i64, storage: Storage) -> ValueSpec {
+        ValueSpec { shape: vec![SymDim { coef: n, syms: vec!["N".into()] }], storage }
+    }
+
+    fn step(inputs: Vec<usize>, output: usize) -> Step {
+        Step { path: format!("v{output}"), kernel: Kernel::Reshape, inputs, output }
+    }
+
+    #[test]
+    fn a_chain_needs_two_buffers() {
+        // x -> a -> b -> c -> d: each step reads the previous value only.
+        let mut values = vec![value(8, Storage::Input(0))];
+        values.extend((0..4).map(|_| value(8, Storage::Slot(0))));
+        let steps: Vec<Step> = (1..5).map(|i| step(vec![i - 1], i)).collect();
+        let slots = plan_buffers(&mut values, &steps, &[4]);
+        assert_eq!(slots, 2);
+        for s in &steps {
+            for &i in &s.inputs {
+                assert_ne!(values[i].storage, values[s.output].storage, "step {} writes what it reads", s.path);
+            }
+        }
+    }
+
+    #[test]
+    fn live_values_never_share_a_buffer() {
+        // a = f(x); b = g(a); c = h(a, b): a is live across b.
+        let mut values = vec![value(4, Storage::Input(0)), value(4, Storage::Slot(0)), value(4, Storage::Slot(0))];
+        values.push(value(4, Storage::Slot(0)));
+        let steps = vec![step(vec![0], 1), step(vec![1], 2), step(vec![1, 2], 3)];
+        let slots = plan_buffers(&mut values, &steps, &[3]);
+        assert_eq!(slots, 3);
+        let s: Vec<_> = values[1..].iter().map(|v| v.storage).collect();
+        assert!(s[0] != s[1] && s[1] != s[2] && s[0] != s[2], "{s:?}");
+    }
+
+    #[test]
+    fn outputs_are_never_reused() {
+        // a = f(x) is an output; b = g(x), c = h(b) must not take a's buffer.
+        let mut values: Vec<ValueSpec> = vec![value(4, Storage::Input(0))];
+        values.extend((0..3).map(|_| value(4, Storage::Slot(0))));
+        let steps = vec![step(vec![0], 1), step(vec![0], 2), step(vec![2], 3)];
+        plan_buffers(&mut values, &steps, &[1, 3]);
+        assert_ne!(values[1].storage, values[3].storage);
+        assert_ne!(values[1].storage, values[2].storage);
+    }
+}

@@ -1,0 +1,435 @@
+//! `lower`: turns the graph and its bound weights into the plan's schedule.
+//!
+//! Walks the graph in topological order and emits one step per node, except where a rule
+//! fuses nodes into one step (each rule is named in the plan's step path listing):
+//!
+//! * `fold_batchnorm`: a BatchNorm whose input is a conv used by nothing else becomes the
+//!   conv's per-channel epilogue, `scale = gamma / sqrt(var + eps)`,
+//!   `shift = beta - mean * scale (+ conv_bias * scale)`; the conv weight is untouched (so
+//!   a variant can later own the affine alone). An unfused BatchNorm becomes a
+//!   `ChannelAffine` step with the same scale and shift.
+//! * `fuse_relu`: a ReLU whose input is a conv, linear or channel-affine value used by
+//!   nothing else runs in that step's epilogue.
+//! * `bias_epilogue`: conv and linear biases are the epilogue's shift.
+//!
+//! Conv weights are packed for the algorithm the runtime's `conv::choose` picks (at batch
+//! size 1), here, once. Folded values are computed in f64 and stored as f32.
+
+use std::collections::HashMap;
+
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_runtime::kernels::conv::{self, Conv2dShape};
+use readi_runtime::plan::{
+    ActKind, BinaryKind, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec, Step,
+    Storage, SymDim, TensorSpec, ValueSpec,
+};
+
+use super::buffers::plan_buffers;
+use super::weights::Bound;
+use crate::ir::{self, Activation, Dim, Graph, NodeId, Op, PoolKind, SlotKind, UpsampleMode, ValueRef};
+
+/// A manifest and its tensors, ready to become a plan.
+pub struct Lowered {
+    pub manifest: Manifest,
+    pub tensors: Vec<Vec<f32>>,
+}
+
+fn sym(d: &Dim) -> SymDim {
+    SymDim { coef: d.coef(), syms: d.symbols().to_vec() }
+}
+
+fn ice(message: String) -> Diagnostics {
+    Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error while lowering: {message}"))])
+}
+
+struct Lowering<'g> {
+    graph: &'g Graph,
+    bound: &'g Bound,
+    values: Vec<ValueSpec>,
+    value_of: HashMap<ValueRef, usize>,
+    steps: Vec<Step>,
+    tensors: Vec<TensorSpec>,
+    data: Vec<Vec<f32>>,
+    tensor_index: HashMap<String, usize>,
+    stored_as: HashMap<String, String>,
+    /// Number of uses of each node's output (edges plus graph outputs).
+    uses: HashMap<NodeId, usize>,
+    /// Nodes already emitted as part of another node's step.
+    absorbed: HashMap<NodeId, usize>,
+}
+
+impl Lowering<'_> {
+    fn weight(&self, node: &ir::Node, slot: &str) -> Result<&Vec<f32>, Diagnostics> {
+        let name = ir::join_path(&node.path, slot);
+        self.bound.get(&name).ok_or_else(|| ice(format!("weight `{name}` was not bound")))
+    }
+
+    fn add_tensor(&mut self, name: String, shape: Vec<usize>, data: Vec<f32>) -> usize {
+        if let Some(&i) = self.tensor_index.get(&name) {
+            return i;
+        }
+        self.tensors.push(TensorSpec { name: name.clone(), shape });
+        self.data.push(data);
+        self.tensor_index.insert(name, self.tensors.len() - 1);
+        self.tensors.len() - 1
+    }
+
+    fn new_value(&mut self, v: ValueRef, storage: Storage) -> usize {
+        let ty = &self.graph.node(v.node).outputs[v.port as usize];
+        self.values.push(ValueSpec { shape: ty.shape.iter().map(sym).collect(), storage });
+        self.values.len() - 1
+    }
+
+    fn input_value(&self, v: ValueRef) -> Result<usize, Diagnostics> {
+        self.value_of
+            .get(&v)
+            .copied()
+            .ok_or_else(|| ice(format!("value of node {} used before it is computed", v.node.index())))
+    }
+
+    /// The single user of a node's output, if it has exactly one and is not a graph output.
+    fn sole_user(&self, id: NodeId) -> Option<NodeId> {
+        let users = self.graph.users(id);
+        (self.uses.get(&id) == Some(&1) && users.len() == 1).then(|| users[0])
+    }
+
+    /// If the sole user of `id` is a ReLU, absorbs it and returns true.
+    fn absorb_relu(&mut self, id: NodeId, into: NodeId) -> bool {
+        match self.sole_user(id) {
+            Some(u) if matches!(self.graph.node(u).op, Op::Activation(Activation::Relu)) => {
+                self.absorbed.insert(u, into.index());
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Emits a step computing node `id` (and anything it absorbs) into a new value.
+    fn emit(&mut self, id: NodeId, kernel: Kernel, inputs: Vec<usize>, last: NodeId) {
+        let out = self.new_value(ValueRef { node: id, port: 0 }, Storage::Slot(0));
+        let node = self.graph.node(id);
+        let path =
+            if last == id { node.path.clone() } else { format!("{} (+{})", node.path, self.graph.node(last).path) };
+        self.steps.push(Step { path, kernel, inputs, output: out });
+        self.value_of.insert(ValueRef { node: id, port: 0 }, out);
+        if last != id {
+            self.value_of.insert(ValueRef { node: last, port: 0 }, out);
+        }
+    }
+
+    /// BatchNorm's folded scale and shift, with an optional preceding bias folded in.
+    fn fold_bn(&mut self, bn: NodeId, prior_bias: Option<&[f32]>) -> Result<(usize, usize), Diagnostics> {
+        let node = self.graph.node(bn);
+        let Op::BatchNorm { channels, eps, .. } = node.op else { return Err(ice("not a batchnorm".into())) };
+        let (w, b, mean, var) = (
+            self.weight(node, "weight")?,
+            self.weight(node, "bias")?,
+            self.weight(node, "running_mean")?,
+            self.weight(node, "running_var")?,
+        );
+        let c = channels as usize;
+        let mut scale = Vec::with_capacity(c);
+        let mut shift = Vec::with_capacity(c);
+        for i in 0..c {
+            let s = w[i] as f64 / (var[i] as f64 + eps).sqrt();
+            let pre = prior_bias.map_or(0.0, |pb| pb[i] as f64);
+            scale.push(s as f32);
+            shift.push((b[i] as f64 + (pre - mean[i] as f64) * s) as f32);
+        }
+        let path = node.path.clone();
+        let targets = format!("folded into `{path}@scale`, `{path}@shift`");
+        for slot in ["weight", "bias", "running_mean", "running_var"] {
+            self.stored_as.insert(ir::join_path(&path, slot), targets.clone());
+        }
+        let st = self.add_tensor(format!("{path}@scale"), vec![c], scale);
+        let sh = self.add_tensor(format!("{path}@shift"), vec![c], shift);
+        Ok((st, sh))
+    }
+
+    fn lower_node(&mut self, id: NodeId) -> Result<(), Diagnostics> {
+        if self.absorbed.contains_key(&id) {
+            return Ok(());
+        }
+        let g = self.graph;
+        let node = g.node(id);
+        let inputs: Vec<usize> = g.inputs(id).into_iter().map(|v| self.input_value(v)).collect::<Result<_, _>>()?;
+        let shape_of = |v: ValueRef| g.value_type(v).map(|t| t.shape.clone()).unwrap_or_default();
+        let known = |d: &Dim| d.as_known().map(|v| v as usize).unwrap_or(1);
+        match &node.op {
+            Op::Input(_) => {}
+            Op::Parameter { shape } => {
+                let data = self.weight(node, "")?.clone();
+                let t = self.add_tensor(node.path.clone(), shape.iter().map(|&d| d as usize).collect(), data);
+                self.stored_as.insert(node.path.clone(), format!("tensor `{}`", node.path));
+                let v = self.new_value(ValueRef { node: id, port: 0 }, Storage::Tensor(t));
+                self.value_of.insert(ValueRef { node: id, port: 0 }, v);
+            }
+            Op::Conv2d(c) => {
+                let xin = g.inputs(id)[0];
+                let xs = shape_of(xin);
+                let os = &node.outputs[0].shape;
+                let s = Conv2dShape {
+                    n: 1,
+                    cin: c.in_channels as usize,
+                    h: known(&xs[2]),
+                    w: known(&xs[3]),
+                    cout: c.out_channels as usize,
+                    kh: c.kernel[0] as usize,
+                    kw: c.kernel[1] as usize,
+                    stride_h: c.stride[0] as usize,
+                    stride_w: c.stride[1] as usize,
+                    pad_h: c.padding[0] as usize,
+                    pad_w: c.padding[1] as usize,
+                    dil_h: c.dilation[0] as usize,
+                    dil_w: c.dilation[1] as usize,
+                    groups: c.groups as usize,
+                    oh: known(&os[2]),
+                    ow: known(&os[3]),
+                };
+                let algo = conv::choose(&s);
+                let weight = self.weight(node, "weight")?;
+                let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
+                conv::pack_weight(&s, algo, weight, &mut packed);
+                let wname = format!("{}.weight@{}", node.path, algo.name());
+                self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("packed as `{wname}`"));
+                let wt = self.add_tensor(wname, vec![packed.len()], packed);
+                let bias = if c.bias { Some(self.weight(node, "bias")?.clone()) } else { None };
+                let mut ep = EpilogueSpec::default();
+                let mut last = id;
+                let bn = self.sole_user(id).filter(|&u| matches!(g.node(u).op, Op::BatchNorm { .. }));
+                if let Some(bn) = bn {
+                    let (st, sh) = self.fold_bn(bn, bias.as_deref())?;
+                    if c.bias {
+                        let bname = ir::join_path(&node.path, "bias");
+                        self.stored_as.insert(bname, format!("folded into `{}@shift`", g.node(bn).path));
+                    }
+                    ep.scale = Some(st);
+                    ep.shift = Some(sh);
+                    self.absorbed.insert(bn, id.index());
+                    last = bn;
+                } else if let Some(b) = bias {
+                    let bname = ir::join_path(&node.path, "bias");
+                    self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
+                    ep.shift = Some(self.add_tensor(bname, vec![b.len()], b));
+                }
+                if self.absorb_relu(last, id) {
+                    ep.relu = true;
+                    last = self.graph.users(last)[0];
+                }
+                let kernel = Kernel::Conv2d {
+                    cout: s.cout,
+                    kernel: [s.kh, s.kw],
+                    stride: [s.stride_h, s.stride_w],
+                    padding: [s.pad_h, s.pad_w],
+                    dilation: [s.dil_h, s.dil_w],
+                    groups: s.groups,
+                    algo: algo.name().to_string(),
+                    weight: wt,
+                    epilogue: ep,
+                };
+                self.emit_fused(id, kernel, inputs, last);
+            }
+            Op::BatchNorm { .. } => {
+                let (st, sh) = self.fold_bn(id, None)?;
+                let mut ep = EpilogueSpec { scale: Some(st), shift: Some(sh), relu: false };
+                let mut last = id;
+                if self.absorb_relu(id, id) {
+                    ep.relu = true;
+                    last = self.graph.users(id)[0];
+                }
+                self.emit_fused(id, Kernel::ChannelAffine { epilogue: ep }, inputs, last);
+            }
+            Op::Linear { in_features, out_features, bias } => {
+                // Stored transposed, [in, out]: the layout GEMM reads fastest.
+                let (fin, fout) = (*in_features as usize, *out_features as usize);
+                let w = self.weight(node, "weight")?;
+                let mut t = vec![0.0f32; w.len()];
+                for o in 0..fout {
+                    for i in 0..fin {
+                        t[i * fout + o] = w[o * fin + i];
+                    }
+                }
+                let wname = format!("{}.weight@t", node.path);
+                self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("transposed as `{wname}`"));
+                let wt = self.add_tensor(wname, vec![fin, fout], t);
+                let mut ep = EpilogueSpec::default();
+                if *bias {
+                    let b = self.weight(node, "bias")?.clone();
+                    let bname = ir::join_path(&node.path, "bias");
+                    self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
+                    ep.shift = Some(self.add_tensor(bname, vec![b.len()], b));
+                }
+                let mut last = id;
+                if self.absorb_relu(id, id) {
+                    ep.relu = true;
+                    last = self.graph.users(id)[0];
+                }
+                let kernel = Kernel::Linear { out_features: *out_features as usize, weight: wt, epilogue: ep };
+                self.emit_fused(id, kernel, inputs, last);
+            }
+            Op::LayerNorm { features, eps, affine } => {
+                let (mut wt, mut bt) = (None, None);
+                if *affine {
+                    for (slot, target) in [("weight", &mut wt), ("bias", &mut bt)] {
+                        let data = self.weight(node, slot)?.clone();
+                        let name = ir::join_path(&node.path, slot);
+                        self.stored_as.insert(name.clone(), format!("tensor `{name}`"));
+                        *target = Some(self.add_tensor(name, vec![*features as usize], data));
+                    }
+                }
+                self.emit(id, Kernel::LayerNorm { weight: wt, bias: bt, eps: *eps as f32 }, inputs, id);
+            }
+            op => {
+                let kernel = simple_kernel(op).ok_or_else(|| ice(format!("no kernel for `{}`", op.kind_name())))?;
+                self.emit(id, kernel, inputs, id);
+            }
+        }
+        Ok(())
+    }
+
+    fn emit_fused(&mut self, id: NodeId, kernel: Kernel, inputs: Vec<usize>, last: NodeId) {
+        self.emit(id, kernel, inputs, last);
+        // Every node absorbed into this step reads the step's value.
+        let out = self.steps.last().map(|s| s.output).unwrap_or(0);
+        let mut absorbed: Vec<NodeId> =
+            self.absorbed.iter().filter(|(_, into)| **into == id.index()).map(|(n, _)| *n).collect();
+        absorbed.sort();
+        for &n in &absorbed {
+            self.value_of.insert(ValueRef { node: n, port: 0 }, out);
+        }
+        if !absorbed.is_empty() {
+            let names: Vec<&str> = absorbed.iter().map(|&n| self.graph.node(n).path.as_str()).collect();
+            let path = format!("{} (+{})", self.graph.node(id).path, names.join(", "));
+            if let Some(step) = self.steps.last_mut() {
+                step.path = path;
+            }
+        }
+    }
+}
+
+/// Kernels that map one-to-one from an op without weights.
+fn simple_kernel(op: &Op) -> Option<Kernel> {
+    let bin = |k: ir::BinaryKind| match k {
+        ir::BinaryKind::Add => BinaryKind::Add,
+        ir::BinaryKind::Sub => BinaryKind::Sub,
+        ir::BinaryKind::Mul => BinaryKind::Mul,
+        ir::BinaryKind::Div => BinaryKind::Div,
+    };
+    Some(match op {
+        Op::MatMul => Kernel::MatMul,
+        Op::Binary(k) => Kernel::Binary { op: bin(*k) },
+        Op::Scalar { kind, value, scalar_first } => {
+            Kernel::Scalar { op: bin(*kind), value: *value as f32, scalar_first: *scalar_first }
+        }
+        Op::Activation(a) => Kernel::Activation {
+            act: match a {
+                Activation::Relu => ActKind::Relu,
+                Activation::Gelu => ActKind::Gelu,
+                Activation::GeluTanh => ActKind::GeluTanh,
+                Activation::Sigmoid => ActKind::Sigmoid,
+            },
+        },
+        Op::Softmax { axis } => Kernel::Softmax { axis: *axis },
+        Op::Concat { axis } => Kernel::Concat { axis: *axis },
+        Op::Reshape { .. } => Kernel::Reshape,
+        Op::Permute { perm } => Kernel::Permute { perm: perm.clone() },
+        Op::Pool(p) => Kernel::Pool {
+            max: p.kind == PoolKind::Max,
+            kernel: [p.kernel[0] as usize, p.kernel[1] as usize],
+            stride: [p.stride[0] as usize, p.stride[1] as usize],
+            padding: [p.padding[0] as usize, p.padding[1] as usize],
+            ceil_mode: p.ceil_mode,
+            count_include_pad: p.count_include_pad,
+        },
+        Op::GlobalAvgPool => Kernel::GlobalAvgPool,
+        Op::Upsample { mode, align_corners, scale, .. } => {
+            Kernel::Upsample { bilinear: *mode == UpsampleMode::Bilinear, align_corners: *align_corners, scale: *scale }
+        }
+        Op::Mean { axes, .. } => Kernel::Mean { axes: axes.clone() },
+        _ => return None,
+    })
+}
+
+/// Lowers a verified graph with all its weights bound.
+pub fn lower(graph: &Graph, bound: &Bound) -> Result<Lowered, Diagnostics> {
+    let order = graph.topo_order().ok_or_else(|| ice("the graph has a cycle".into()))?;
+    let mut uses: HashMap<NodeId, usize> = HashMap::new();
+    for id in graph.node_ids() {
+        for v in graph.inputs(id) {
+            *uses.entry(v.node).or_default() += 1;
+        }
+    }
+    for o in &graph.outputs {
+        *uses.entry(o.value.node).or_default() += 1;
+    }
+    let mut l = Lowering {
+        graph,
+        bound,
+        values: Vec::new(),
+        value_of: HashMap::new(),
+        steps: Vec::new(),
+        tensors: Vec::new(),
+        data: Vec::new(),
+        tensor_index: HashMap::new(),
+        stored_as: HashMap::new(),
+        uses,
+        absorbed: HashMap::new(),
+    };
+    let mut inputs = Vec::new();
+    let mut symbols: Vec<String> = Vec::new();
+    for (i, id) in graph.input_nodes().into_iter().enumerate() {
+        let node = graph.node(id);
+        let Op::Input(a) = &node.op else { continue };
+        let v = l.new_value(ValueRef { node: id, port: 0 }, Storage::Input(i));
+        l.value_of.insert(ValueRef { node: id, port: 0 }, v);
+        for d in &node.outputs[0].shape {
+            for s in d.symbols() {
+                if !symbols.contains(s) {
+                    symbols.push(s.clone());
+                }
+            }
+        }
+        inputs.push(InputSpec {
+            name: a.name.clone(),
+            shape: node.outputs[0].shape.iter().map(sym).collect(),
+            modality: a.modality.clone(),
+            optional: a.optional,
+            value: v,
+        });
+    }
+    for id in order {
+        l.lower_node(id)?;
+    }
+    let mut outputs = Vec::new();
+    for o in &graph.outputs {
+        outputs.push(OutputSpec { name: o.name.clone(), value: l.input_value(o.value)? });
+    }
+    let params = graph
+        .param_table()
+        .into_iter()
+        .map(|(name, _, slot)| ParamSpec {
+            shape: slot.shape.iter().map(|&d| d as usize).collect(),
+            trainable: slot.kind == SlotKind::Param,
+            stored_as: l.stored_as.get(&name).cloned().unwrap_or_else(|| "not used by the plan".into()),
+            name,
+        })
+        .collect();
+    let Lowering { mut values, steps, tensors, data, .. } = l;
+    let output_values: Vec<usize> = outputs.iter().map(|o: &OutputSpec| o.value).collect();
+    let slots = plan_buffers(&mut values, &steps, &output_values);
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: graph.name.clone(),
+        model_params: graph.model_params.clone(),
+        symbols,
+        inputs,
+        outputs,
+        values,
+        steps,
+        slots,
+        tensors,
+        params,
+        variants: Vec::new(),
+    };
+    Ok(Lowered { manifest, tensors: data })
+}

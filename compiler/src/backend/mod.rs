@@ -1,0 +1,129 @@
+//! The back end: from a checked module and its weights to a runtime plan.
+//!
+//! | pass           | changes                                                   |
+//! |----------------|-----------------------------------------------------------|
+//! | `bind_weights` | binds safetensors tensors to parameter slots by name      |
+//! | `lower`        | schedule of kernel steps; folds BatchNorm, fuses ReLU/bias |
+//! | `plan_buffers` | assigns activation buffers by liveness                    |
+//!
+//! [`compile`] runs them and returns a [`Plan`] held in memory; `Plan::write` stores it.
+
+pub mod buffers;
+pub mod lower;
+pub mod weights;
+
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_runtime::plan::Plan;
+
+use crate::ir::Graph;
+use crate::passes::Module;
+pub use weights::WeightSet;
+
+/// Options of the back end.
+#[derive(Clone, Debug, Default)]
+pub struct CompileOptions {
+    /// Tensors in the weights file that the model does not use are warnings, not errors.
+    pub allow_unused: bool,
+}
+
+/// Compiles a checked module with its weights. Returns the plan and any warnings.
+pub fn compile(
+    module: &Module,
+    weights: &WeightSet,
+    weights_name: &str,
+    opts: &CompileOptions,
+) -> Result<(Plan, Diagnostics), Diagnostics> {
+    let (bound, warnings) = weights::bind(&module.graph, weights, weights_name, opts.allow_unused)?;
+    let lowered = lower::lower(&module.graph, &bound)?;
+    let plan = Plan::new(lowered.manifest, lowered.tensors).map_err(|e| {
+        Diagnostics(vec![Diagnostic::error(
+            Code::Internal,
+            format!("internal compiler error: the plan is invalid: {e}"),
+        )])
+    })?;
+    Ok((plan, warnings))
+}
+
+/// Deterministic weights for every parameter of a graph: see [`seeded_tensor`].
+pub fn seeded_weights(graph: &Graph, seed: u64) -> WeightSet {
+    let mut set = WeightSet::default();
+    for (name, _, slot) in graph.param_table() {
+        if slot.dtype != readi_grammar::ast::DType::F32 {
+            continue;
+        }
+        let shape: Vec<usize> = slot.shape.iter().map(|&d| d as usize).collect();
+        let data = seeded_tensor(seed, &name, &shape);
+        set.tensors.insert(name, (shape, data));
+    }
+    set
+}
+
+/// The seeded value of one tensor, a function of the seed, the tensor's name and its
+/// shape only, so that any implementation can reproduce it (the PyTorch fixture script
+/// `tests/fixtures/make_fixtures.py` does, to run the same weights):
+///
+/// * a SplitMix64 stream seeded with `seed ^ fnv1a64(name)` gives `u` uniform in [-1, 1):
+///   `((x >> 40) / 2^24) * 2 - 1`, in f32;
+/// * `*.weight` with two or more axes (conv, linear): `u * (1 / sqrt(fan_in))` with
+///   `fan_in = product(shape[1..])` (PyTorch's default init range);
+/// * `*.running_var`: `1 + 0.25 * |u|`; other one-axis `*.weight` (norm layers):
+///   `1 + 0.1 * u`; everything else (biases, running means, free parameters): `0.1 * u`.
+pub fn seeded_tensor(seed: u64, name: &str, shape: &[usize]) -> Vec<f32> {
+    let mut rng = SplitMix(seed ^ fnv1a64(name));
+    let n: usize = shape.iter().product();
+    let is_weight = name.ends_with(".weight") || name == "weight";
+    if is_weight && shape.len() >= 2 {
+        let fan_in: usize = shape[1..].iter().product();
+        let bound = 1.0f32 / (fan_in as f32).sqrt();
+        (0..n).map(|_| rng.uniform() * bound).collect()
+    } else if name.ends_with("running_var") {
+        (0..n).map(|_| 1.0 + 0.25 * rng.uniform().abs()).collect()
+    } else if is_weight {
+        (0..n).map(|_| 1.0 + 0.1 * rng.uniform()).collect()
+    } else {
+        (0..n).map(|_| 0.1 * rng.uniform()).collect()
+    }
+}
+
+/// FNV-1a, 64 bit, of a string's UTF-8 bytes.
+fn fnv1a64(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3))
+}
+
+/// SplitMix64: a small, well-mixed deterministic generator.
+struct SplitMix(u64);
+
+impl SplitMix {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [-1, 1), exactly representable in f32.
+    fn uniform(&mut self) -> f32 {
+        ((self.next() >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seeded_tensors_follow_the_documented_recipe() {
+        // The published FNV-1a 64-bit test vectors.
+        assert_eq!(fnv1a64(""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(fnv1a64("a"), 0xaf63_dc4c_8601_ec8c);
+        assert_eq!(fnv1a64("foobar"), 0x8594_4171_f739_67e8);
+        let a = seeded_tensor(1, "fc.weight", &[3, 4]);
+        assert_eq!(a.len(), 12);
+        assert!(a.iter().all(|v| v.abs() <= 0.5), "|u| / sqrt(4) <= 0.5: {a:?}");
+        let v = seeded_tensor(1, "bn.running_var", &[8]);
+        assert!(v.iter().all(|x| (1.0..=1.25).contains(x)), "{v:?}");
+        assert_ne!(seeded_tensor(1, "a.bias", &[4]), seeded_tensor(1, "b.bias", &[4]));
+        assert_eq!(seeded_tensor(7, "a.bias", &[4]), seeded_tensor(7, "a.bias", &[4]));
+    }
+}
