@@ -1,22 +1,32 @@
-//! `readi`: the command-line front end of the readi compiler.
+//! `readi`: the command-line front end of the readi compiler and runtime.
+
+mod tensor_io;
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::Instant;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use readi_compiler::backend::{self, CompileOptions, WeightSet};
 use readi_compiler::elaborate::{ElabOptions, Literal};
 use readi_compiler::passes::{self, Options, Outcome, PIPELINE, Pass};
 use readi_compiler::print;
 use readi_grammar::diag::{Diagnostics, FileId, SourceMap};
+use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::plan::{Plan, Storage, show_shape};
 
 /// The bundled default model, used by `readi demo`.
 const DEMO_MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../models/bevfusion_tiny.readi"));
 
 const EXAMPLES: &str = "\
 Examples:
-  readi demo                                 check and summarise the bundled BEVFusion-tiny model
+  readi demo                                 compile and run the bundled BEVFusion-tiny model
+  readi compile models/resnet18.readi --weights resnet18.safetensors -o resnet18.plan
+  readi run resnet18.plan --input image=img.npy --output logits.npy
+  readi bench resnet18.plan --threads 2 --runs 50
+  readi inspect resnet18.plan
   readi check models/*.readi                 check specs; exit status 1 on errors
   readi params models/resnet18.readi         parameter table with the total
   readi params models/resnet18.readi --set num_classes=10
@@ -104,8 +114,75 @@ enum Command {
     },
     /// List the passes of the pipeline.
     Passes,
-    /// Check and summarise the bundled BEVFusion-tiny model (no files needed).
-    Demo,
+    /// Compile a spec and its weights (safetensors, PyTorch names) into a plan file.
+    #[command(after_help = "Example:\n  readi compile models/resnet18.readi --weights r18.safetensors -o r18.plan")]
+    Compile {
+        spec: PathBuf,
+        /// Base weights: a safetensors file of the model's state_dict (f32, f16 or bf16).
+        #[arg(long)]
+        weights: PathBuf,
+        /// The plan file to write.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Warn about tensors the model does not use instead of failing.
+        #[arg(long)]
+        allow_unused: bool,
+        #[command(flatten)]
+        model: ModelArgs,
+    },
+    /// Run a plan on inputs from .npy or .safetensors files.
+    #[command(after_help = "Examples:\n  readi run r18.plan --input image=img.npy --output logits.npy\n  \
+                            readi run bev.plan --input camera=cams.npy --input lidar_bev=bev.npy --output out.safetensors")]
+    Run {
+        plan: PathBuf,
+        /// An input, `NAME=FILE` (repeatable). Absent `optional` inputs are zeros.
+        #[arg(long = "input", value_name = "NAME=FILE", value_parser = parse_set)]
+        inputs: Vec<(String, String)>,
+        /// Where to write outputs: a .safetensors file (all outputs), a .npy file (the
+        /// only output), or `NAME=FILE.npy` for one output (repeatable).
+        #[arg(long = "output", value_name = "FILE")]
+        outputs: Vec<String>,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+    },
+    /// Time a plan on seeded random inputs: median and p90 latency.
+    #[command(after_help = "Example:\n  readi bench r18.plan --threads 2 --runs 50")]
+    Bench {
+        plan: PathBuf,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Timed runs.
+        #[arg(long, default_value_t = 20)]
+        runs: usize,
+        /// Untimed runs first.
+        #[arg(long, default_value_t = 3)]
+        warmup: usize,
+        /// Batch size bound to the plan's symbolic batch dimension.
+        #[arg(long, default_value_t = 1)]
+        batch: usize,
+        /// Also print the time of each step (the slowest first) and per kernel kind.
+        #[arg(long)]
+        profile: bool,
+    },
+    /// Describe a plan: inputs, outputs, parameters, bytes, schedule and buffers.
+    #[command(after_help = "Example:\n  readi inspect r18.plan")]
+    Inspect {
+        plan: PathBuf,
+        /// Also list every parameter and every step.
+        #[arg(long)]
+        verbose: bool,
+    },
+    /// Compile the bundled BEVFusion-tiny model with seeded weights and run a few frames.
+    Demo {
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Frames to run.
+        #[arg(long, default_value_t = 5)]
+        frames: usize,
+    },
 }
 
 fn parse_set(s: &str) -> Result<(String, String), String> {
@@ -137,12 +214,12 @@ fn main() -> ExitCode {
 }
 
 /// A loaded source file, its pipeline outcome, and how to show its diagnostics.
-struct Session {
+struct Frontend {
     sources: SourceMap,
     color: bool,
 }
 
-impl Session {
+impl Frontend {
     fn load(&mut self, path: &Path) -> Result<(FileId, String), ExitCode> {
         match std::fs::read(path) {
             Ok(bytes) => match String::from_utf8(bytes) {
@@ -207,7 +284,7 @@ fn run(cli: Cli) -> ExitCode {
         ColorWhen::Never => false,
         ColorWhen::Auto => std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none(),
     };
-    let mut s = Session { sources: SourceMap::new(), color };
+    let mut s = Frontend { sources: SourceMap::new(), color };
     let result = match cli.command {
         Command::Check { files, model, deny_warnings } => cmd_check(&mut s, &files, &model, deny_warnings),
         Command::Ast { file, debug } => cmd_ast(&mut s, &file, debug),
@@ -244,7 +321,15 @@ fn run(cli: Cli) -> ExitCode {
             }
             Ok(())
         }
-        Command::Demo => cmd_demo(&mut s),
+        Command::Compile { spec, weights, output, allow_unused, model } => {
+            cmd_compile(&mut s, &spec, &weights, &output, allow_unused, &model)
+        }
+        Command::Run { plan, inputs, outputs, threads } => cmd_run(&plan, &inputs, &outputs, threads),
+        Command::Bench { plan, threads, runs, warmup, batch, profile } => {
+            cmd_bench(&plan, threads, runs, warmup, batch, profile)
+        }
+        Command::Inspect { plan, verbose } => cmd_inspect(&plan, verbose),
+        Command::Demo { threads, frames } => cmd_demo(&mut s, threads, frames),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -254,7 +339,7 @@ fn run(cli: Cli) -> ExitCode {
 
 /// Compiles a file and, if that succeeded, hands the module to `f`.
 fn with_module(
-    s: &mut Session,
+    s: &mut Frontend,
     path: &Path,
     model: &ModelArgs,
     stop_after: Option<Pass>,
@@ -277,7 +362,7 @@ fn with_module(
     }
 }
 
-fn cmd_check(s: &mut Session, files: &[PathBuf], model: &ModelArgs, deny_warnings: bool) -> Result<(), ExitCode> {
+fn cmd_check(s: &mut Frontend, files: &[PathBuf], model: &ModelArgs, deny_warnings: bool) -> Result<(), ExitCode> {
     let mut failed = 0;
     for path in files {
         let start = Instant::now();
@@ -312,7 +397,7 @@ fn cmd_check(s: &mut Session, files: &[PathBuf], model: &ModelArgs, deny_warning
     if failed > 0 { Err(ExitCode::FAILURE) } else { Ok(()) }
 }
 
-fn cmd_ast(s: &mut Session, path: &Path, debug: bool) -> Result<(), ExitCode> {
+fn cmd_ast(s: &mut Frontend, path: &Path, debug: bool) -> Result<(), ExitCode> {
     let (file, text) = s.load(path)?;
     let parsed = readi_grammar::parse(file, &text);
     s.report(&parsed.diagnostics);
@@ -328,20 +413,304 @@ fn cmd_ast(s: &mut Session, path: &Path, debug: bool) -> Result<(), ExitCode> {
     Ok(())
 }
 
-fn cmd_demo(s: &mut Session) -> Result<(), ExitCode> {
+fn threads_or_default(threads: Option<usize>) -> usize {
+    threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)).max(1)
+}
+
+fn load_plan(path: &Path) -> Result<Arc<Plan>, ExitCode> {
+    match Plan::load(path) {
+        Ok(p) => Ok(Arc::new(p)),
+        Err(e) => {
+            eprintln!("error: {e}");
+            Err(ExitCode::FAILURE)
+        }
+    }
+}
+
+fn cmd_compile(
+    s: &mut Frontend,
+    spec: &Path,
+    weights: &Path,
+    output: &Path,
+    allow_unused: bool,
+    model: &ModelArgs,
+) -> Result<(), ExitCode> {
+    let start = Instant::now();
+    let (out, _) = s.compile(spec, model, None)?;
+    let Some(module) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
+        eprintln!("error: {}", summary_line(&spec.display().to_string(), &out.diagnostics));
+        return Err(ExitCode::FAILURE);
+    };
+    let wname = weights.display().to_string();
+    let bytes = std::fs::read(weights).map_err(|e| {
+        eprintln!("error: cannot read {wname}: {e}");
+        ExitCode::FAILURE
+    })?;
+    let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| {
+        s.report(&d);
+        ExitCode::FAILURE
+    })?;
+    let (plan, warnings) = backend::compile(&module, &set, &wname, &CompileOptions { allow_unused }).map_err(|d| {
+        s.report(&d);
+        eprintln!("error: {}", summary_line(&wname, &d));
+        ExitCode::FAILURE
+    })?;
+    s.report(&warnings);
+    if let Err(e) = plan.write(output) {
+        eprintln!("error: {e}");
+        return Err(ExitCode::FAILURE);
+    }
+    let m = &plan.manifest;
+    println!(
+        "wrote {}: {} steps, {} tensors ({}), {} activation buffers, {:.0} ms",
+        output.display(),
+        m.steps.len(),
+        m.tensors.len(),
+        print::bytes(plan.tensor_bytes() as u64),
+        m.slots,
+        start.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(())
+}
+
+/// Summary of a tensor for terminal output: shape, min, max, mean.
+fn describe(t: &Tensor) -> String {
+    let (mut lo, mut hi, mut sum) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f64);
+    for &v in &t.data {
+        lo = lo.min(v);
+        hi = hi.max(v);
+        sum += v as f64;
+    }
+    let mean = if t.data.is_empty() { 0.0 } else { sum / t.data.len() as f64 };
+    format!("{:?}  min {lo:.4}  max {hi:.4}  mean {mean:.4}", t.shape)
+}
+
+fn cmd_run(
+    plan_path: &Path,
+    inputs: &[(String, String)],
+    outputs: &[String],
+    threads: Option<usize>,
+) -> Result<(), ExitCode> {
+    let plan = load_plan(plan_path)?;
+    let fail = |msg: String| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    };
+    let mut loaded = Vec::new();
+    for (name, file) in inputs {
+        loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file)).map_err(fail)?));
+    }
+    let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
+    let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
+    let start = Instant::now();
+    let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
+    let elapsed = start.elapsed();
+    for (name, t) in &result {
+        println!("{name}: {}", describe(t));
+    }
+    println!("ran in {:.2} ms on {} threads", elapsed.as_secs_f64() * 1e3, session.threads());
+    let names: Vec<&str> = result.iter().map(|(n, _)| n.as_str()).collect();
+    for spec in outputs {
+        match spec.split_once('=').filter(|(n, _)| names.contains(n)) {
+            Some((name, file)) => {
+                let t = result.iter().find(|(n, _)| n == name).map(|(_, t)| t);
+                if let Some(t) = t {
+                    tensor_io::write_npy(Path::new(file), t).map_err(fail)?;
+                }
+            }
+            None => tensor_io::write_outputs(Path::new(spec), &result).map_err(fail)?,
+        }
+    }
+    Ok(())
+}
+
+/// Seeded inputs for every input of a plan at the given batch size.
+fn synthetic_inputs(plan: &Plan, batch: usize, seed: u64) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+    let bindings = plan.manifest.symbols.iter().map(|s| (s.clone(), batch)).collect();
+    let mut state = seed;
+    plan.manifest
+        .inputs
+        .iter()
+        .map(|i| {
+            let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&bindings).unwrap_or(1)).collect();
+            let n = shape.iter().product();
+            let data = (0..n)
+                .map(|_| {
+                    state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                    ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+                })
+                .collect();
+            (i.name.clone(), shape, data)
+        })
+        .collect()
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+fn cmd_bench(
+    plan_path: &Path,
+    threads: Option<usize>,
+    runs: usize,
+    warmup: usize,
+    batch: usize,
+    profile: bool,
+) -> Result<(), ExitCode> {
+    let plan = load_plan(plan_path)?;
+    let fail = |msg: String| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    };
+    let threads = threads_or_default(threads);
+    let mut session = Session::new(plan.clone(), threads).map_err(|e| fail(e.to_string()))?;
+    let data = synthetic_inputs(&plan, batch.max(1), 42);
+    let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
+    for _ in 0..warmup {
+        session.run(&given).map_err(|e| fail(e.to_string()))?;
+    }
+    if profile {
+        session.enable_profiling();
+    }
+    let mut times = Vec::with_capacity(runs.max(1));
+    for _ in 0..runs.max(1) {
+        let t = Instant::now();
+        session.run(&given).map_err(|e| fail(e.to_string()))?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    println!(
+        "{}: batch {}, {} threads, {} runs: median {:.2} ms, p90 {:.2} ms, min {:.2} ms",
+        plan.manifest.model,
+        batch.max(1),
+        threads,
+        times.len(),
+        percentile(&times, 0.5),
+        percentile(&times, 0.9),
+        times[0]
+    );
+    if let Some(p) = session.profile() {
+        print_profile(&plan, p, times.len());
+    }
+    Ok(())
+}
+
+/// Per-step and per-kernel time from a profiled session, averaged over `runs`.
+fn print_profile(plan: &Plan, seconds: &[f64], runs: usize) {
+    let total: f64 = seconds.iter().sum();
+    let ms = |s: f64| s * 1e3 / runs.max(1) as f64;
+    let mut kinds: Vec<(String, f64)> = Vec::new();
+    for (st, &t) in plan.manifest.steps.iter().zip(seconds) {
+        let kind = match &st.kernel {
+            readi_runtime::plan::Kernel::Conv2d { algo, .. } => format!("conv2d/{algo}"),
+            k => k.name().to_string(),
+        };
+        match kinds.iter_mut().find(|(k, _)| *k == kind) {
+            Some(e) => e.1 += t,
+            None => kinds.push((kind, t)),
+        }
+    }
+    kinds.sort_by(|a, b| b.1.total_cmp(&a.1));
+    println!("time per kernel kind (mean per run):");
+    for (k, t) in &kinds {
+        println!("  {k:<20} {:8.3} ms  {:5.1}%", ms(*t), 100.0 * t / total.max(1e-12));
+    }
+    let mut steps: Vec<(usize, f64)> = seconds.iter().copied().enumerate().collect();
+    steps.sort_by(|a, b| b.1.total_cmp(&a.1));
+    println!("slowest steps:");
+    for (k, t) in steps.iter().take(12) {
+        let st = &plan.manifest.steps[*k];
+        println!("  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), st.path);
+    }
+}
+
+fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
+    let plan = load_plan(plan_path)?;
+    let m = &plan.manifest;
+    let params: Vec<String> = m.model_params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+    println!("plan {} (format version {}, checksum ok)", plan_path.display(), m.format_version);
+    println!("model {}({})", m.model, params.join(", "));
+    println!("inputs:");
+    for i in &m.inputs {
+        let modality = i.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
+        let opt = if i.optional { " optional" } else { "" };
+        println!("  {}: f32{}{modality}{opt}", i.name, show_shape(&i.shape));
+    }
+    println!("outputs:");
+    for o in &m.outputs {
+        println!("  {}: f32{}", o.name, show_shape(&m.values[o.value].shape));
+    }
+    let trainable: usize = m.params.iter().filter(|p| p.trainable).map(|p| p.shape.iter().product::<usize>()).sum();
+    println!(
+        "parameters: {} in the spec; stored: {} tensors, {}",
+        print::thousands(trainable as u64),
+        m.tensors.len(),
+        print::bytes(plan.tensor_bytes() as u64)
+    );
+    if verbose {
+        for p in &m.params {
+            println!("  {:<40} {:?} {}", p.name, p.shape, p.stored_as);
+        }
+    }
+    let mut kinds: Vec<(&str, usize)> = Vec::new();
+    for st in &m.steps {
+        match kinds.iter_mut().find(|(k, _)| *k == st.kernel.name()) {
+            Some(e) => e.1 += 1,
+            None => kinds.push((st.kernel.name(), 1)),
+        }
+    }
+    let kinds: Vec<String> = kinds.iter().map(|(k, n)| format!("{n} {k}")).collect();
+    println!("schedule: {} steps ({})", m.steps.len(), kinds.join(", "));
+    if verbose {
+        for (k, st) in m.steps.iter().enumerate() {
+            let ins: Vec<String> = st.inputs.iter().map(|i| format!("%{i}")).collect();
+            println!(
+                "  {k:>4} %{} = {}({}) {}  {}",
+                st.output,
+                st.kernel.name(),
+                ins.join(", "),
+                show_shape(&m.values[st.output].shape),
+                st.path
+            );
+        }
+    }
+    let ones = m.symbols.iter().map(|s| (s.clone(), 1usize)).collect();
+    let mut slot_len = vec![0usize; m.slots];
+    let mut total_values = 0usize;
+    for v in &m.values {
+        if let Storage::Slot(s) = v.storage {
+            let n: usize = v.shape.iter().map(|d| d.eval(&ones).unwrap_or(0)).product();
+            slot_len[s] = slot_len[s].max(n);
+            total_values += n;
+        }
+    }
+    let planned: usize = slot_len.iter().sum();
+    println!(
+        "buffers: {} slots, {} at batch 1 ({} without reuse)",
+        m.slots,
+        print::bytes(planned as u64 * 4),
+        print::bytes(total_values as u64 * 4)
+    );
+    Ok(())
+}
+
+fn cmd_demo(s: &mut Frontend, threads: Option<usize>, frames: usize) -> Result<(), ExitCode> {
     let (name, text) = DEMO_MODEL;
     let file = s.sources.add(name, text);
     let start = Instant::now();
     let out = passes::run(file, text, &Options::default());
-    let elapsed = start.elapsed();
+    let check_time = start.elapsed();
     s.report(&out.diagnostics);
     let Some(m) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
         eprintln!("error: the bundled model does not check");
         return Err(ExitCode::FAILURE);
     };
     let g = &m.graph;
-    println!("readi demo: the bundled {} model ({name})", g.name);
-    println!("parsed, elaborated and checked in {:.1} ms\n", elapsed.as_secs_f64() * 1e3);
+    println!("readi demo: {} ({name}), checked in {:.1} ms", g.name, check_time.as_secs_f64() * 1e3);
     let inputs: Vec<_> = g
         .input_nodes()
         .into_iter()
@@ -352,29 +721,21 @@ fn cmd_demo(s: &mut Session) -> Result<(), ExitCode> {
         .collect();
     let width =
         inputs.iter().map(|(a, _)| a.name.len()).chain(g.outputs.iter().map(|o| o.name.len())).max().unwrap_or(0);
-    println!("inputs:");
     for (a, ty) in &inputs {
         let m = a.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
         let opt = if a.optional { " (optional)" } else { "" };
-        println!("  {:<width$}  {ty}{m}{opt}", a.name);
+        println!("  input  {:<width$}  {ty}{m}{opt}", a.name);
     }
-    println!("outputs:");
     for o in &g.outputs {
-        println!("  {:<width$}  {}", o.name, g.value_type(o.value).map(|t| t.to_string()).unwrap_or_default());
+        println!("  output {:<width$}  {}", o.name, g.value_type(o.value).map(|t| t.to_string()).unwrap_or_default());
     }
-    println!("\n{} nodes, {} parameters", g.node_count(), print::thousands(g.parameter_count()));
+    println!("  {} nodes, {} parameters", g.node_count(), print::thousands(g.parameter_count()));
     if let Some(plan) = &m.adapt {
         let p = g.parameter_count().max(1) as f64;
         let tuned = plan.tuned_elements(g);
         let added = plan.added_elements();
-        println!("\nadaptation (per variant):");
-        let w = plan.rules.iter().map(|r| r.text.len()).max().unwrap_or(0);
-        for r in &plan.rules {
-            let t: u64 = r.targets.iter().map(|t| t.tuned + t.added).sum();
-            println!("  {:<w$}  {:>4} layers  {:>9} elements", r.text, r.targets.len(), print::thousands(t));
-        }
         println!(
-            "  exist budget {:.2}% ({} elements), add budget {:.2}% ({} elements)",
+            "  per variant: exist budget {:.2}% ({} elements), add budget {:.2}% ({} elements)",
             100.0 * tuned as f64 / p,
             print::thousands(tuned),
             100.0 * added as f64 / p,
@@ -382,12 +743,48 @@ fn cmd_demo(s: &mut Session) -> Result<(), ExitCode> {
         );
     }
     if let Some(v) = &m.variants {
-        let keys = v.variant_keys();
-        println!("\nvariants ({}): {}", keys.len(), keys.join(" "));
-        if let Some(meld) = &v.meld {
-            let w: Vec<String> = meld.weights.iter().map(|(m, l)| format!("{m} {l}")).collect();
-            println!("combined conditions are melded with lambda {}", w.join(", "));
+        println!("  {} variants declared: {}", v.variant_keys().len(), v.variant_keys().join(" "));
+    }
+
+    let start = Instant::now();
+    let weights = backend::seeded_weights(g, 2024);
+    let plan = match backend::compile(&m, &weights, "<seeded weights>", &CompileOptions::default()) {
+        Ok((plan, _)) => Arc::new(plan),
+        Err(d) => {
+            s.report(&d);
+            return Err(ExitCode::FAILURE);
         }
+    };
+    println!(
+        "\ncompiled with seeded weights in {:.0} ms: {} steps, {} of weights, {} activation buffers",
+        start.elapsed().as_secs_f64() * 1e3,
+        plan.manifest.steps.len(),
+        print::bytes(plan.tensor_bytes() as u64),
+        plan.manifest.slots
+    );
+    let threads = threads_or_default(threads);
+    let mut session = match Session::new(plan.clone(), threads) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return Err(ExitCode::FAILURE);
+        }
+    };
+    println!("running {frames} frames on {threads} threads (seeded sensor data):");
+    for frame in 0..frames {
+        let data = synthetic_inputs(&plan, 1, 7 + frame as u64);
+        let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
+        let t = Instant::now();
+        let result = match session.run(&given) {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("error: {e}");
+                return Err(ExitCode::FAILURE);
+            }
+        };
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        let summary: Vec<String> = result.iter().map(|(n, t)| format!("{n} {}", describe(t))).collect();
+        println!("  frame {frame}: {ms:7.2} ms   {}", summary.join("   "));
     }
     println!("\nnext: `readi ir {name}` for the graph, `readi params {name}` for every tensor");
     Ok(())
