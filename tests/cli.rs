@@ -83,7 +83,7 @@ fn ir_stops_after_a_pass() {
     let o = readi(&["ir", "models/resnet18.readi", "--stop-after", "elaborate"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
-    assert!(out.starts_with("model resnet18(num_classes = 1000)"), "{out}");
+    assert!(out.starts_with("model resnet18(num_classes = 1000, img = 224)"), "{out}");
     assert!(!out.contains("\nadapt\n"), "the adapt plan comes from a later pass:\n{out}");
     let full = stdout(&readi(&["ir", "models/resnet18.readi"]));
     assert!(full.contains("\nadapt\n") && full.contains("\nvariants\n"), "{full}");
@@ -143,4 +143,121 @@ fn demo_runs_on_the_embedded_model() {
     let out = stdout(&o);
     assert!(out.contains("bevfusion_tiny"), "{out}");
     assert!(out.contains("exist budget") && out.contains("add budget"), "{out}");
+}
+
+/// Writes seeded weights for a spec to a temp safetensors file; returns (dir, weights path).
+fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+    use readi_compiler::elaborate::{ElabOptions, Literal};
+    use readi_compiler::passes::{self, Options};
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join(spec)).expect("spec");
+    let opts = Options {
+        elab: ElabOptions { overrides: overrides.iter().map(|(k, v)| (k.to_string(), Literal::parse(v))).collect() },
+        stop_after: None,
+    };
+    let out = passes::run(readi_grammar::diag::FileId(0), &text, &opts);
+    let module = out.module.expect("module");
+    let dir = std::env::temp_dir().join(format!("readi-cli-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let path = dir.join("weights.safetensors");
+    let bytes = readi_compiler::backend::seeded_weights(&module.graph, 11).to_safetensors();
+    std::fs::write(&path, bytes).expect("write weights");
+    (dir, path)
+}
+
+#[test]
+fn compile_run_bench_inspect() {
+    let (dir, weights) = seeded_weights_file("models/resnet18.readi", &[("num_classes", "10"), ("img", "32")], "r18");
+    let plan = dir.join("r18.plan");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "-o",
+        &p(&plan),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=32",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("steps"), "{}", stdout(&o));
+
+    let o = readi(&["inspect", &p(&plan)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("checksum ok") && out.contains("image: f32[N, 3, 32, 32] @camera"), "{out}");
+    assert!(out.contains("parameters: 11,181,642"), "{out}");
+
+    // An input as .npy, outputs as .npy and as .safetensors.
+    let input = dir.join("image.npy");
+    let t = readi_runtime::exec::Tensor { shape: vec![2, 3, 32, 32], data: vec![0.1; 2 * 3 * 32 * 32] };
+    write_npy(&input, &t);
+    let logits = dir.join("logits.npy");
+    let all = dir.join("out.safetensors");
+    let o = readi(&[
+        "run",
+        &p(&plan),
+        "--input",
+        &format!("image={}", p(&input)),
+        "--output",
+        &p(&logits),
+        "--output",
+        &p(&all),
+        "--threads",
+        "2",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("logits: [2, 10]"), "{}", stdout(&o));
+    assert!(logits.exists() && all.exists());
+
+    let o = readi(&["run", &p(&plan), "--input", &format!("img={}", p(&input))]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("no input `img`"), "{}", stderr(&o));
+
+    let o = readi(&["bench", &p(&plan), "--runs", "3", "--warmup", "1", "--threads", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("median") && stdout(&o).contains("p90"), "{}", stdout(&o));
+
+    // A corrupted plan is refused by every command that reads plans.
+    let mut bytes = std::fs::read(&plan).expect("plan");
+    let n = bytes.len();
+    bytes[n - 10] ^= 0x40;
+    let bad = dir.join("bad.plan");
+    std::fs::write(&bad, bytes).expect("write");
+    let o = readi(&["inspect", &p(&bad)]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("checksum mismatch"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn compile_reports_weight_errors_against_the_spec() {
+    let (dir, _) = seeded_weights_file("models/resnet18.readi", &[], "bad");
+    let plan = dir.join("x.plan");
+    // Weights for 1000 classes, spec compiled for 10.
+    let (_, weights) = seeded_weights_file("models/resnet18.readi", &[], "bad1000");
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        weights.to_str().expect("utf-8"),
+        "-o",
+        plan.to_str().expect("utf-8"),
+        "--set",
+        "num_classes=10",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(err.contains("tensor `fc.weight`") && err.contains("models/resnet18.readi:45:"), "{err}");
+    assert!(!plan.exists(), "no plan is written on error");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn write_npy(path: &std::path::Path, t: &readi_runtime::exec::Tensor) {
+    use ndarray_npy::WriteNpyExt;
+    let a = ndarray::ArrayD::from_shape_vec(ndarray::IxDyn(&t.shape), t.data.clone()).expect("shape");
+    a.write_npy(std::fs::File::create(path).expect("create")).expect("write npy");
 }

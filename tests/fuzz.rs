@@ -135,10 +135,10 @@ fn exercise(src: &str) {
         let _ = print::to_text(m);
         let _ = print::to_dot(&m.graph);
         let _ = print::param_table(m, true);
-        if !out.diagnostics.has_errors() {
-            if let Err(problems) = verify(m) {
-                panic!("a module without errors fails verification: {problems:?}\n--- source ---\n{src}");
-            }
+        if !out.diagnostics.has_errors()
+            && let Err(problems) = verify(m)
+        {
+            panic!("a module without errors fails verification: {problems:?}\n--- source ---\n{src}");
         }
     }
 }

@@ -50,7 +50,15 @@ fn window_shapes_match_pytorch() {
                 // readi computes the size when the op is built: floor(len * scale).
                 let scale: f64 = f[3].parse().expect("scale");
                 let size = [(n(1) as f64 * scale).floor() as i64, (n(2) as f64 * scale).floor() as i64];
-                (Op::Upsample { size, mode: UpsampleMode::Nearest, align_corners: false }, nchw(2, n(1), n(2)))
+                (
+                    Op::Upsample {
+                        size,
+                        scale: Some([scale, scale]),
+                        mode: UpsampleMode::Nearest,
+                        align_corners: false,
+                    },
+                    nchw(2, n(1), n(2)),
+                )
             }
             other => panic!("unknown case kind {other}"),
         };

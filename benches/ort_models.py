@@ -1,0 +1,144 @@
+#!/usr/bin/env python3
+"""readi against ONNX Runtime on whole models, same weights, same threads, one run.
+
+From the workspace root:
+
+    python3 benches/ort_models.py                # ResNet-18, 1x3x224x224, 2 threads
+    python3 benches/ort_models.py --threads 1 --rounds 5
+
+For each model it
+  1. builds the PyTorch module the spec describes (torchvision's ResNet-18; the ViT
+     encoder of tests/fixtures/make_fixtures.py) with readi's seeded weights,
+  2. writes the state_dict to safetensors and runs `readi compile` on the spec,
+  3. exports the same module to ONNX,
+  4. checks that readi and ORT agree on one input (max abs error),
+  5. alternates `readi bench` and ORT timing for --rounds rounds (each round: --runs
+     timed runs after warm-up) and reports the medians and readi / ORT.
+
+Needs torch, torchvision, onnx, onnxruntime and safetensors (pip). Builds readi in
+release mode first. Nothing here is part of the Rust build or of CI.
+"""
+
+import argparse
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+import torch
+import torchvision
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "tests", "fixtures"))
+from make_fixtures import VitEncoder, seed_model  # noqa: E402
+
+READI = os.path.join(ROOT, "target", "release", "readi")
+
+
+def models():
+    return {
+        "resnet18": (
+            "models/resnet18.readi",
+            [],
+            lambda: torchvision.models.resnet18(),
+            {"image": (1, 3, 224, 224)},
+        ),
+        "vit_encoder": (
+            "models/vit_encoder.readi",
+            [],
+            lambda: VitEncoder(),
+            {"image": (1, 3, 224, 224)},
+        ),
+    }
+
+
+def run(cmd):
+    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    if r.returncode != 0:
+        sys.exit(f"command failed: {' '.join(cmd)}\n{r.stdout}\n{r.stderr}")
+    return r.stdout
+
+
+def readi_median(plan, threads, runs):
+    out = run([READI, "bench", plan, "--threads", str(threads), "--runs", str(runs), "--warmup", "3"])
+    m = re.search(r"median ([0-9.]+) ms", out)
+    return float(m.group(1))
+
+
+def ort_median(sess, feeds, runs):
+    for _ in range(3):
+        sess.run(None, feeds)
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        sess.run(None, feeds)
+        times.append((time.perf_counter() - t) * 1e3)
+    return statistics.median(times)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--models", default="resnet18", help="comma-separated: resnet18,vit_encoder")
+    args = ap.parse_args()
+
+    import onnxruntime as ort
+    from safetensors.torch import save_file
+
+    run(["cargo", "build", "--release", "-q", "--bin", "readi"])
+    tmp = tempfile.mkdtemp(prefix="readi-ort-")
+    for name in args.models.split(","):
+        spec, overrides, build, inputs = models()[name]
+        model = seed_model(build(), 1)
+        weights = os.path.join(tmp, f"{name}.safetensors")
+        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, weights)
+        plan = os.path.join(tmp, f"{name}.plan")
+        run([READI, "compile", spec, "--weights", weights, "-o", plan] + overrides)
+
+        x = {k: torch.randn(*s) for k, s in inputs.items()}
+        onnx_path = os.path.join(tmp, f"{name}.onnx")
+        torch.onnx.export(model, tuple(x.values()), onnx_path, input_names=list(x), dynamo=False)
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = args.threads
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        sess = ort.InferenceSession(onnx_path, so, providers=["CPUExecutionProvider"])
+        feeds = {k: v.numpy() for k, v in x.items()}
+
+        # Agreement on one input.
+        npys = []
+        for k, v in feeds.items():
+            p = os.path.join(tmp, f"{k}.npy")
+            np.save(p, v)
+            npys += ["--input", f"{k}={p}"]
+        out_path = os.path.join(tmp, "out.safetensors")
+        run([READI, "run", plan, "--output", out_path, "--threads", str(args.threads)] + npys)
+        from safetensors.numpy import load_file
+
+        readi_out = load_file(out_path)
+        ort_out = sess.run(None, feeds)
+        errs = [float(np.abs(a - b).max()) for a, b in zip(readi_out.values(), ort_out) if a.shape == b.shape]
+        torch_out = model(*x.values())
+        torch_out = torch_out if isinstance(torch_out, tuple) else (torch_out,)
+
+        readi_t, ort_t = [], []
+        for _ in range(args.rounds):
+            readi_t.append(readi_median(plan, args.threads, args.runs))
+            ort_t.append(ort_median(sess, feeds, args.runs))
+        r, o = statistics.median(readi_t), statistics.median(ort_t)
+        print(
+            f"{name}: {args.threads} threads, {args.rounds} rounds x {args.runs} runs: "
+            f"readi {r:.2f} ms, ORT {o:.2f} ms, readi/ORT = {r / o:.2f} "
+            f"(max abs error vs ORT {max(errs) if errs else float('nan'):.2e}; rounds readi {readi_t}, ORT {ort_t})"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+//! Binding weights: every problem is an error naming the tensor and showing the layer's
+//! source line (rendered diagnostics are snapshots); f16/bf16 are converted; PyTorch's
+//! `num_batches_tracked` counters are understood.
+
+mod common;
+
+use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_compiler::passes::Module;
+use readi_grammar::diag::SourceMap;
+use safetensors::tensor::{Dtype, TensorView};
+
+const SPEC: &str = "models/resnet18.readi";
+
+fn module() -> (SourceMap, Module) {
+    let (sources, out) = common::compile(SPEC, &[("num_classes", "10")], None);
+    assert!(!out.diagnostics.has_errors());
+    (sources, out.module.expect("module"))
+}
+
+/// Compiles with the given weights; returns the rendered diagnostics (errors or warnings).
+fn attempt(weights: &WeightSet, allow_unused: bool) -> (bool, String) {
+    let (sources, m) = module();
+    match backend::compile(&m, weights, "r18.safetensors", &CompileOptions { allow_unused }) {
+        Ok((_, warnings)) => (true, sources.render_all(&warnings, false)),
+        Err(d) => (false, sources.render_all(&d, false)),
+    }
+}
+
+fn seeded() -> WeightSet {
+    backend::seeded_weights(&module().1.graph, 5)
+}
+
+#[test]
+fn seeded_weights_compile_cleanly() {
+    let (ok, text) = attempt(&seeded(), false);
+    assert!(ok && text.is_empty(), "{text}");
+}
+
+#[test]
+fn missing_tensor() {
+    let mut w = seeded();
+    w.tensors.remove("layer2.1.bn2.running_var");
+    let (ok, text) = attempt(&w, false);
+    assert!(!ok);
+    insta::assert_snapshot!(text);
+}
+
+#[test]
+fn misnamed_tensor_suggests_the_right_name() {
+    let mut w = seeded();
+    let t = w.tensors.remove("layer3.0.downsample.0.weight").expect("exists");
+    w.tensors.insert("layer3.0.downsample.0.weights".into(), t);
+    let (ok, text) = attempt(&w, false);
+    assert!(!ok);
+    insta::assert_snapshot!(text);
+}
+
+#[test]
+fn wrong_shape() {
+    let mut w = seeded();
+    w.tensors.insert("fc.weight".into(), (vec![1000, 512], vec![0.0; 512_000]));
+    let (ok, text) = attempt(&w, false);
+    assert!(!ok);
+    insta::assert_snapshot!(text);
+}
+
+#[test]
+fn nan_in_a_tensor() {
+    let mut w = seeded();
+    let (_, data) = w.tensors.get_mut("layer1.1.conv2.weight").expect("exists");
+    data[1234] = f32::NAN;
+    let (ok, text) = attempt(&w, false);
+    assert!(!ok);
+    insta::assert_snapshot!(text);
+}
+
+#[test]
+fn unexpected_tensor_is_an_error_or_a_warning() {
+    let mut w = seeded();
+    w.tensors.insert("aux_head.weight".into(), (vec![2], vec![0.0, 1.0]));
+    let (ok, text) = attempt(&w, false);
+    assert!(!ok);
+    insta::assert_snapshot!("unexpected_tensor_error", text);
+    let (ok, text) = attempt(&w, true);
+    assert!(ok, "{text}");
+    insta::assert_snapshot!("unexpected_tensor_warning", text);
+}
+
+/// Builds a safetensors file from (name, dtype, shape, bytes).
+fn file(entries: &[(&str, Dtype, Vec<usize>, Vec<u8>)]) -> Vec<u8> {
+    let views: Vec<(String, TensorView<'_>)> =
+        entries.iter().map(|(n, d, s, b)| (n.to_string(), TensorView::new(*d, s.clone(), b).expect("view"))).collect();
+    safetensors::serialize(views, None).expect("serialise")
+}
+
+#[test]
+fn integer_weights_are_a_dtype_error() {
+    let bytes = file(&[("fc.weight", Dtype::I32, vec![2], vec![0; 8])]);
+    let d = WeightSet::from_safetensors("ints.safetensors", &bytes).expect_err("ints are not weights");
+    let text = SourceMap::new().render_all(&d, false);
+    assert!(text.contains("ints.safetensors: tensor `fc.weight` has dtype I32"), "{text}");
+}
+
+#[test]
+fn truncated_weights_file_is_an_error() {
+    let bytes = seeded().to_safetensors();
+    let d = WeightSet::from_safetensors("cut.safetensors", &bytes[..bytes.len() - 3]).expect_err("truncated");
+    let text = SourceMap::new().render_all(&d, false);
+    assert!(text.contains("cut.safetensors: not a valid safetensors file") && text.contains("truncated"), "{text}");
+}
+
+#[test]
+fn half_precision_is_converted_and_counters_are_understood() {
+    let w = seeded();
+    let mut entries = Vec::new();
+    for (name, (shape, data)) in &w.tensors {
+        let bytes: Vec<u8> = data.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect();
+        entries.push((name.as_str(), Dtype::F16, shape.clone(), bytes));
+    }
+    // PyTorch's BatchNorm counters, as `model.state_dict()` saves them.
+    entries.push(("bn1.num_batches_tracked", Dtype::I64, vec![], 7i64.to_le_bytes().to_vec()));
+    let bytes = file(&entries);
+    let set = WeightSet::from_safetensors("r18-f16.safetensors", &bytes).expect("f16 converts");
+    let (a, b) = (&set.tensors["fc.weight"].1, &w.tensors["fc.weight"].1);
+    let err = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(err > 0.0 && err < 1e-3, "f16 rounding error {err}");
+    let (ok, text) = attempt(&set, false);
+    assert!(ok, "{text}");
+}
