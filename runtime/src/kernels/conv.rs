@@ -23,7 +23,11 @@
 //! is still in cache.
 //!
 //! Only `gemm.rs` may use `unsafe`, so the transforms here are plain Rust written to
-//! auto-vectorise (fixed-size lane arrays); without `-C target-cpu` that means SSE2.
+//! auto-vectorise (fixed-size lane arrays), compiled for the widest SIMD the CPU has
+//! through pulp (see the [module doc](super)): the input transform uses 16, 8 or 4
+//! lanes as the tiles per row allow, the output transform 16.
+
+use std::marker::PhantomData;
 
 use rayon::prelude::*;
 
@@ -382,7 +386,7 @@ fn split<'a>(out: &'a mut [f32], s: &Conv2dShape, algo: ConvAlgo, threads: usize
 }
 
 /// Writes `act(acc · scale[c] + shift[c])` into `dst`.
-#[inline]
+#[inline(always)]
 fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
     let scale = ep.scale.map_or(1.0, |v| v[c]);
     let shift = ep.shift.map_or(0.0, |v| v[c]);
@@ -449,22 +453,46 @@ fn gemm_part(
                 let rhs = if algo == ConvAlgo::Gemm1x1 {
                     MatRef { data: &xg[p0..], rows: cin_g, cols: tp, row_stride: plane_in, col_stride: 1 }
                 } else {
-                    im2col(s, xg, p0, tp, &mut col[..k * tp]);
+                    im2col_simd(s, xg, p0, tp, &mut col[..k * tp]);
                     MatRef::row_major(&col[..k * tp], k, tp)
                 };
                 let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
                 sgemm(lhs, rhs, MatMut::row_major(&mut acc[..mrows * tp], mrows, tp), false, 1);
-                for (c, acc_row) in chans.zip(acc.chunks(tp)) {
-                    finish(&mut part.plane(n, c)[p0 - p_lo..], acc_row, c, ep);
-                }
+                finish_tile(part, n, chans, p0 - p_lo, acc, tp, ep);
             }
             p0 += tp;
         }
     }
 }
 
+simd_fn! {
+    /// The epilogue of one GEMM tile: row `c - chans.start` of `acc` (rows of `tp`) into
+    /// the part's plane of image `n`, channel `c`, from offset `off`.
+    fn finish_tile(
+        part: &mut Part<'_>,
+        n: usize,
+        chans: std::ops::Range<usize>,
+        off: usize,
+        acc: &[f32],
+        tp: usize,
+        ep: &Epilogue<'_>,
+    ) {
+        for (c, acc_row) in chans.zip(acc.chunks(tp)) {
+            finish(&mut part.plane(n, c)[off..], acc_row, c, ep);
+        }
+    }
+}
+
+simd_fn! {
+    /// [`im2col`], vectorised.
+    fn im2col_simd(s: &Conv2dShape, xg: &[f32], p0: usize, tp: usize, col: &mut [f32]) {
+        im2col(s, xg, p0, tp, col)
+    }
+}
+
 /// Unfolds output pixels `p0..p0 + tp` of one image and group into `col`, a row-major
 /// `(cin_g·kh·kw) × tp` matrix: `col[(ci, ky, kx)][p] = x[ci, iy, ix]` (0 in the padding).
+#[inline(always)]
 fn im2col(s: &Conv2dShape, xg: &[f32], p0: usize, tp: usize, col: &mut [f32]) {
     let (h, w) = (s.h as isize, s.w as isize);
     let mut row = 0;
@@ -510,7 +538,7 @@ fn im2col(s: &Conv2dShape, xg: &[f32], p0: usize, tp: usize, col: &mut [f32]) {
 }
 
 /// `dst[i] = src[i · stride]`, vectorised for the common strides.
-#[inline]
+#[inline(always)]
 fn strided_copy(dst: &mut [f32], src: &[f32], stride: usize) {
     let n = dst.len();
     match stride {
@@ -660,10 +688,18 @@ fn pack_winograd<const A: usize>(s: &Conv2dShape, g_mat: &[[f64; 3]; A], weight:
     }
 }
 
-/// Lanes of the input transform (one tile row at a time: few tiles on small images).
-const IN_LANES: usize = 4;
-/// Lanes of the output transform (all tiles of a block at once).
-const OUT_LANES: usize = 8;
+/// Lanes of the input transform for `tx` tiles across, the widest that wastes at most a
+/// quarter (it works one tile row at a time, and small images have few tiles per row).
+fn in_lanes(tx: usize) -> usize {
+    match tx {
+        12.. => 16,
+        6.. => 8,
+        _ => 4,
+    }
+}
+
+/// Lanes of the output transform (all tiles of a block at once): one AVX-512 register.
+const OUT_LANES: usize = 16;
 
 /// Sizes of one thread's Winograd scratch.
 struct Wino {
@@ -671,7 +707,9 @@ struct Wino {
     tx: usize,
     /// Tile rows per block (one block = one set of GEMMs).
     rows: usize,
-    /// Length of one input-phase row: room for whole-lane loads at offset 1 past `tx`.
+    /// Lanes of the input transform, [`in_lanes`].
+    lanes: usize,
+    /// Length of one input-phase row: room for whole-lane loads at offset 1.
     plen: usize,
     alpha: usize,
     cin_g: usize,
@@ -687,7 +725,11 @@ impl Wino {
         let per_tile = (cin_g + cout_g) * A * A;
         let tiles = (512 * 1024 / per_tile.max(1)).max(16);
         let rows = (tiles / tx).clamp(1, s.oh.div_ceil(M));
-        Wino { tx, rows, plen: tx.div_ceil(IN_LANES) * IN_LANES + IN_LANES, alpha: A, cin_g, cout_g }
+        let lanes = in_lanes(tx);
+        // Whole-lane loads reach one past the last whole-lane group of tiles; M·plen is a
+        // whole number of lanes, for the vertical pass.
+        let plen = (tx.div_ceil(lanes) * lanes + 1).next_multiple_of((lanes / M).max(1));
+        Wino { tx, rows, lanes, plen, alpha: A, cin_g, cout_g }
     }
 
     /// Tiles per block.
@@ -697,14 +739,14 @@ impl Wino {
 
     /// Row stride of V and M: the block plus room for whole-lane stores past its end.
     fn stride(&self) -> usize {
-        self.block() + OUT_LANES.max(IN_LANES)
+        self.block() + OUT_LANES.max(self.lanes)
     }
 
-    /// Transform work space: the input transform's padded row (M·plen), A·M phase rows
-    /// and their A·M vertical transforms; the output transform's A·M + M·M rows of a block.
+    /// Transform work space: the input transform's A·M phase rows and their A·M vertical
+    /// transforms; the output transform's A·M + M·M rows of a block.
     fn work(&self) -> usize {
         let (a, m) = (self.alpha, self.alpha - 2);
-        let input = m * self.plen + 2 * a * m * self.plen;
+        let input = 2 * a * m * self.plen;
         let output = (a * m + m * m) * self.stride();
         input.max(output)
     }
@@ -743,14 +785,17 @@ fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
             if mrows == 0 {
                 continue;
             }
-            // Input transform.
-            for (ci, vc) in v.chunks_mut(aa * ts).enumerate() {
-                for gu in b0..b1 {
-                    let (n, ty) = (gu / ty_n, gu % ty_n);
-                    let xc = &x[(n * s.cin + g * cin_g + ci) * s.h * s.w..][..s.h * s.w];
-                    input_row::<T, A, M>(s, &wz, xc, ty, vc, (gu - b0) * tx, work);
-                }
-            }
+            let blocks = b0..b1;
+            pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
+                s,
+                wz: &wz,
+                x,
+                g,
+                blocks,
+                v,
+                work,
+                tf: PhantomData,
+            });
             // One GEMM per transformed position.
             for xi in 0..aa {
                 let lhs = MatRef::row_major(&u[(xi * s.cout + chans.start) * cin_g..][..mrows * cin_g], mrows, cin_g);
@@ -759,12 +804,88 @@ fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                     MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
                 sgemm(lhs, rhs, dst, false, 1);
             }
-            // Output transform and epilogue.
-            for (c, mc) in chans.zip(mt.chunks(aa * ts)) {
-                output_block::<T, A, M>(s, &wz, mc, tb, b0, c, part, ep, work);
-            }
+            let (wz, mt, work) = (&wz, &*mt, &mut *work);
+            pulp::Arch::new().dispatch(OutputTransform::<T, A, M> {
+                s,
+                wz,
+                mt,
+                tb,
+                b0,
+                chans,
+                part,
+                ep,
+                work,
+                tf: PhantomData,
+            });
         }
         b0 = b1;
+    }
+}
+
+/// The input transform of tile rows `blocks` (of a block), every input channel of group
+/// `g`, into `v[ci][ξ][t]`; compiled for the widest SIMD the CPU has.
+struct InputTransform<'a, T, const A: usize, const M: usize> {
+    s: &'a Conv2dShape,
+    wz: &'a Wino,
+    x: &'a [f32],
+    g: usize,
+    blocks: std::ops::Range<usize>,
+    v: &'a mut [f32],
+    work: &'a mut [f32],
+    tf: PhantomData<T>,
+}
+
+impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for InputTransform<'_, T, A, M> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        match self.wz.lanes {
+            16 => self.run::<16>(),
+            8 => self.run::<8>(),
+            _ => self.run::<4>(),
+        }
+    }
+}
+
+impl<T: WinoTf<A, M>, const A: usize, const M: usize> InputTransform<'_, T, A, M> {
+    #[inline(always)]
+    fn run<const L: usize>(self) {
+        let InputTransform { s, wz, x, g, blocks, v, work, .. } = self;
+        let (cin_g, ty_n) = (s.cin_g(), s.oh.div_ceil(M));
+        for (ci, vc) in v.chunks_mut(A * A * wz.stride()).take(cin_g).enumerate() {
+            for gu in blocks.clone() {
+                let (n, ty) = (gu / ty_n, gu % ty_n);
+                let xc = &x[(n * s.cin + g * cin_g + ci) * s.h * s.w..][..s.h * s.w];
+                input_row::<T, A, M, L>(s, wz, xc, ty, vc, (gu - blocks.start) * wz.tx, work);
+            }
+        }
+    }
+}
+
+/// The output transform and epilogue of a block (`tb` tiles from global tile row `b0`)
+/// for output channels `chans`, from `mt[co][ξ][t]`; compiled for the widest SIMD the
+/// CPU has.
+struct OutputTransform<'a, 'p, T, const A: usize, const M: usize> {
+    s: &'a Conv2dShape,
+    wz: &'a Wino,
+    mt: &'a [f32],
+    tb: usize,
+    b0: usize,
+    chans: std::ops::Range<usize>,
+    part: &'a mut Part<'p>,
+    ep: &'a Epilogue<'a>,
+    work: &'a mut [f32],
+    tf: PhantomData<T>,
+}
+
+impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for OutputTransform<'_, '_, T, A, M> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let OutputTransform { s, wz, mt, tb, b0, chans, part, ep, work, .. } = self;
+        for (c, mc) in chans.zip(mt.chunks(A * A * wz.stride())) {
+            output_block::<T, A, M>(s, wz, mc, tb, b0, c, part, ep, work);
+        }
     }
 }
 
@@ -772,7 +893,8 @@ fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
 /// (row stride `wz.stride()`). Vectorised across the tiles of the row: the padded input
 /// rows are split into M phases (phase q holds columns q, q+M, ..), so that column j of
 /// every tile is the contiguous run `phase[j % M][j / M..]`.
-fn input_row<T: WinoTf<A, M>, const A: usize, const M: usize>(
+#[inline(always)]
+fn input_row<T: WinoTf<A, M>, const A: usize, const M: usize, const L: usize>(
     s: &Conv2dShape,
     wz: &Wino,
     xc: &[f32],
@@ -781,22 +903,43 @@ fn input_row<T: WinoTf<A, M>, const A: usize, const M: usize>(
     t0: usize,
     work: &mut [f32],
 ) {
-    const L: usize = IN_LANES;
     let (plen, ts) = (wz.plen, wz.stride());
-    let (row, rest) = work.split_at_mut(M * plen);
-    let (ph, rest) = rest.split_at_mut(A * M * plen);
+    let (ph, rest) = work.split_at_mut(A * M * plen);
     let tv = &mut rest[..A * M * plen];
-    // ph[j][q][u] = padded input (row ty·M + j, column u·M + q).
+    // ph[j][q][u] = padded input (row ty·M + j, column u·M + q), straight from the input
+    // row: through a padded copy of the row, the next loop's loads stalled on forwarding
+    // from the copy's stores.
     for (j, phj) in ph.chunks_mut(M * plen).enumerate() {
         let iy = (ty * M + j) as isize - s.pad_h as isize;
         if iy < 0 || iy as usize >= s.h {
             phj.fill(0.0);
             continue;
         }
-        row.fill(0.0);
-        let len = s.w.min(row.len() - s.pad_w);
-        row[s.pad_w..s.pad_w + len].copy_from_slice(&xc[iy as usize * s.w..][..len]);
-        deinterleave::<M>(row, phj, plen);
+        let row = iy as usize * s.w;
+        let src = &xc[row..][..s.w];
+        // Tiles u whose M columns u·M + q − pad all lie inside the row: ua..ub. They are
+        // copied in groups of L tiles, which LLVM unrolls into straight-line moves (rows
+        // have fewer tiles than its 16-lane vector loop needs, which left them to a
+        // slower remainder loop; the vector loop itself, forced, measured slower still).
+        // A group may read past the row (into the next; not past the plane) and past
+        // `ub`: the edges below then overwrite what it wrote there.
+        let ua = s.pad_w.div_ceil(M).min(plen);
+        let ub = ((s.w + s.pad_w) / M).clamp(ua, plen);
+        let mut u = ua;
+        while u < ub && u + L <= plen && row + u * M - s.pad_w + L * M <= xc.len() {
+            let start = row + u * M - s.pad_w;
+            deinterleave::<M>(&xc[start..start + L * M], phj, plen, u);
+            u += L;
+        }
+        deinterleave::<M>(&src[u.min(ub) * M - s.pad_w..ub * M - s.pad_w], phj, plen, u.min(ub));
+        // The edges. Phase columns past `tx` only feed lanes past the last tile, whose
+        // results are overwritten or never read: left as they are.
+        for u in (0..ua).chain(ub..(wz.tx + 1).min(plen)) {
+            for q in 0..M {
+                let col = (u * M + q).checked_sub(s.pad_w).filter(|&c| c < s.w);
+                phj[q * plen + u] = col.map_or(0.0, |c| src[c]);
+            }
+        }
     }
     // Vertical, column-wise (phases are just a column order): tv[i] = Σ_j Bᵀ[i][j] ph[j].
     for c in (0..M * plen).step_by(L) {
@@ -819,14 +962,16 @@ fn input_row<T: WinoTf<A, M>, const A: usize, const M: usize>(
     }
 }
 
-/// `ph[q·plen + u] = row[u·M + q]` for the M phases (a transpose the compiler vectorises
-/// when each phase is its own slice).
-fn deinterleave<const M: usize>(row: &[f32], ph: &mut [f32], plen: usize) {
+/// `ph[q·plen + u0 + u] = row[u·M + q]` for the M phases (a transpose the compiler
+/// vectorises, with shuffles, when each phase is its own slice; only whole vectors of
+/// tiles, the rest is scalar).
+#[inline(always)]
+fn deinterleave<const M: usize>(row: &[f32], ph: &mut [f32], plen: usize, u0: usize) {
     let n = row.len() / M;
     match M {
         2 => {
             let (p0, p1) = ph.split_at_mut(plen);
-            let (p0, p1) = (&mut p0[..n], &mut p1[..n]);
+            let (p0, p1) = (&mut p0[u0..u0 + n], &mut p1[u0..u0 + n]);
             for (u, c) in row.chunks_exact(2).enumerate() {
                 p0[u] = c[0];
                 p1[u] = c[1];
@@ -836,7 +981,8 @@ fn deinterleave<const M: usize>(row: &[f32], ph: &mut [f32], plen: usize) {
             let (p0, rest) = ph.split_at_mut(plen);
             let (p1, rest) = rest.split_at_mut(plen);
             let (p2, p3) = rest.split_at_mut(plen);
-            let (p0, p1, p2, p3) = (&mut p0[..n], &mut p1[..n], &mut p2[..n], &mut p3[..n]);
+            let (p0, p1) = (&mut p0[u0..u0 + n], &mut p1[u0..u0 + n]);
+            let (p2, p3) = (&mut p2[u0..u0 + n], &mut p3[u0..u0 + n]);
             let row = &row[..4 * n];
             for u in 0..n {
                 p0[u] = row[4 * u];
@@ -850,6 +996,7 @@ fn deinterleave<const M: usize>(row: &[f32], ph: &mut [f32], plen: usize) {
 }
 
 /// `row[t·M + col] = y[col·stride + t]`, the inverse of [`deinterleave`].
+#[inline(always)]
 fn interleave<const M: usize>(y: &[f32], stride: usize, row: &mut [f32]) {
     let n = row.len() / M;
     match M {
@@ -877,6 +1024,7 @@ fn interleave<const M: usize>(y: &[f32], stride: usize, row: &mut [f32]) {
 /// Output transform of one output channel over a whole block (`tb` tiles starting at
 /// global tile row `b0`), from `mc[ξ][t]`, then the epilogue into the part's plane.
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
     s: &Conv2dShape,
     wz: &Wino,
@@ -940,13 +1088,7 @@ fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], out: &mut [f3
         let g = c / s.cout_g();
         let xc = &x[(n * s.cin + g) * s.h * s.w..][..s.h * s.w];
         let k = &w[c * s.kh * s.kw..][..s.kh * s.kw];
-        depthwise_plane(s, xc, k, dst);
-        let acc_scale = ep.scale.map_or(1.0, |v| v[c]);
-        let shift = ep.shift.map_or(0.0, |v| v[c]);
-        for d in dst.iter_mut() {
-            let y = *d * acc_scale + shift;
-            *d = if ep.relu { y.max(0.0) } else { y };
-        }
+        depthwise_plane(s, xc, k, c, ep, dst);
     };
     if threads <= 1 {
         out.chunks_mut(plane).enumerate().for_each(one);
@@ -955,7 +1097,23 @@ fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], out: &mut [f3
     }
 }
 
-fn depthwise_plane(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32]) {
+simd_fn! {
+    /// One output plane (channel `c`) of a depthwise conv, with the epilogue.
+    fn depthwise_plane(s: &Conv2dShape, xc: &[f32], k: &[f32], c: usize, ep: &Epilogue<'_>, dst: &mut [f32]) {
+        depthwise_acc(s, xc, k, dst);
+        let acc_scale = ep.scale.map_or(1.0, |v| v[c]);
+        let shift = ep.shift.map_or(0.0, |v| v[c]);
+        if ep.relu {
+            dst.iter_mut().for_each(|d| *d = (*d * acc_scale + shift).max(0.0));
+        } else {
+            dst.iter_mut().for_each(|d| *d = *d * acc_scale + shift);
+        }
+    }
+}
+
+/// The accumulation of a depthwise conv plane into `dst`.
+#[inline(always)]
+fn depthwise_acc(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32]) {
     dst.fill(0.0);
     let (h, w) = (s.h as isize, s.w as isize);
     for (oy, row) in dst.chunks_mut(s.ow).enumerate() {

@@ -33,10 +33,13 @@ pub fn binary(
         return;
     }
     if a_shape == b_shape && a_shape == out_shape {
-        return par_ranges(out, |start, o| vv(op, &a[start..start + o.len()], &b[start..start + o.len()], o));
+        return par_ranges(out, |start, o| {
+            let n = o.len();
+            vv_simd(op, &a[start..start + n], &b[start..start + n], o)
+        });
     }
     let plan = Broadcast::new(a_shape, b_shape, out_shape);
-    par_ranges(out, |start, o| plan.run(op, a, b, start, o));
+    par_ranges(out, |start, o| broadcast_simd(&plan, op, a, b, start, o));
 }
 
 /// `out = x op value`, or `out = value op x` when `scalar_first`.
@@ -44,7 +47,7 @@ pub fn scalar(op: BinaryOp, x: &[f32], value: f32, scalar_first: bool, out: &mut
     assert_eq!(x.len(), out.len(), "scalar: x and out differ in length");
     par_ranges(out, |start, o| {
         let x = &x[start..start + o.len()];
-        if scalar_first { sv(op, value, x, o) } else { vs(op, x, value, o) }
+        scalar_simd(op, x, value, scalar_first, o)
     });
 }
 
@@ -55,21 +58,59 @@ pub fn scalar(op: BinaryOp, x: &[f32], value: f32, scalar_first: bool, out: &mut
 /// within 1.1e-6 of it), `GeluTanh` within 6e-7 of its f64 formula.
 pub fn activation(act: Act, x: &[f32], out: &mut [f32]) {
     assert_eq!(x.len(), out.len(), "activation: x and out differ in length");
-    match act {
-        Act::Relu => map(x, out, relu),
-        Act::Gelu => map(x, out, gelu),
-        Act::GeluTanh => map(x, out, gelu_tanh),
-        Act::Sigmoid => map(x, out, sigmoid),
-    }
+    par_ranges(out, |start, o| map_chunk(act, &x[start..start + o.len()], o));
 }
 
 /// `x = act(x)`, element-wise.
 pub fn activation_in_place(act: Act, x: &mut [f32]) {
-    match act {
-        Act::Relu => map_in_place(x, relu),
-        Act::Gelu => map_in_place(x, gelu),
-        Act::GeluTanh => map_in_place(x, gelu_tanh),
-        Act::Sigmoid => map_in_place(x, sigmoid),
+    par_ranges(x, |_, x| map_chunk_in_place(act, x));
+}
+
+/// Expands `$body` once per activation, with `$f` bound to its function item (a direct
+/// call, inlined), so each loop is compiled on its own.
+macro_rules! per_act {
+    ($act:expr, $f:ident => $body:expr) => {
+        match $act {
+            Act::Relu => {
+                let $f = relu;
+                $body
+            }
+            Act::Gelu => {
+                let $f = gelu;
+                $body
+            }
+            Act::GeluTanh => {
+                let $f = gelu_tanh;
+                $body
+            }
+            Act::Sigmoid => {
+                let $f = sigmoid;
+                $body
+            }
+        }
+    };
+}
+
+simd_fn! {
+    /// `out[i] = act(x[i])`.
+    fn map_chunk(act: Act, x: &[f32], out: &mut [f32]) {
+        let x = &x[..out.len()];
+        per_act!(act, f => {
+            for (o, &v) in out.iter_mut().zip(x) {
+                *o = f(v);
+            }
+        })
+    }
+}
+
+simd_fn! {
+    /// `x[i] = act(x[i])`.
+    fn map_chunk_in_place(act: Act, x: &mut [f32]) {
+        per_act!(act, f => {
+            for v in x.iter_mut() {
+                *v = f(*v);
+            }
+        })
     }
 }
 
@@ -137,55 +178,54 @@ fn par_ranges<F: Fn(usize, &mut [f32]) + Sync>(out: &mut [f32], f: F) {
     }
 }
 
-fn map<F: Fn(f32) -> f32 + Sync + Copy>(x: &[f32], out: &mut [f32], f: F) {
-    par_ranges(out, |start, o| super::vectorized(map_chunk::<F>, (o, &x[start..], f)));
-}
-
-fn map_in_place<F: Fn(f32) -> f32 + Sync + Copy>(x: &mut [f32], f: F) {
-    par_ranges(x, |_, x| super::vectorized(map_chunk_in_place::<F>, (x, f)));
-}
-
-#[inline(always)]
-fn map_chunk<F: Fn(f32) -> f32>((o, x, f): (&mut [f32], &[f32], F)) {
-    for (o, &v) in o.iter_mut().zip(x) {
-        *o = f(v);
-    }
-}
-
-#[inline(always)]
-fn map_chunk_in_place<F: Fn(f32) -> f32>((x, f): (&mut [f32], F)) {
-    for v in x.iter_mut() {
-        *v = f(*v);
-    }
-}
-
-/// Expands `$body` once per operation, with `$f` bound to that operation as a closure, so
-/// `op` is matched once, outside the loop, and each loop is compiled (and vectorised) on
-/// its own.
+/// Expands `$body` once per operation, with `$f` bound to that operation as a function
+/// item, so `op` is matched once, outside the loop, and each loop is compiled (and
+/// vectorised) on its own.
 macro_rules! per_op {
     ($op:expr, $f:ident => $body:expr) => {
         match $op {
             BinaryOp::Add => {
-                let $f = |x: f32, y: f32| x + y;
+                let $f = add;
                 $body
             }
             BinaryOp::Sub => {
-                let $f = |x: f32, y: f32| x - y;
+                let $f = sub;
                 $body
             }
             BinaryOp::Mul => {
-                let $f = |x: f32, y: f32| x * y;
+                let $f = mul;
                 $body
             }
             BinaryOp::Div => {
-                let $f = |x: f32, y: f32| x / y;
+                let $f = div;
                 $body
             }
         }
     };
 }
 
+#[inline(always)]
+fn add(x: f32, y: f32) -> f32 {
+    x + y
+}
+
+#[inline(always)]
+fn sub(x: f32, y: f32) -> f32 {
+    x - y
+}
+
+#[inline(always)]
+fn mul(x: f32, y: f32) -> f32 {
+    x * y
+}
+
+#[inline(always)]
+fn div(x: f32, y: f32) -> f32 {
+    x / y
+}
+
 /// `out[i] = a[i] op b[i]`.
+#[inline(always)]
 fn vv(op: BinaryOp, a: &[f32], b: &[f32], out: &mut [f32]) {
     let (a, b) = (&a[..out.len()], &b[..out.len()]);
     per_op!(op, f => {
@@ -196,6 +236,7 @@ fn vv(op: BinaryOp, a: &[f32], b: &[f32], out: &mut [f32]) {
 }
 
 /// `out[i] = a[i] op s`.
+#[inline(always)]
 fn vs(op: BinaryOp, a: &[f32], s: f32, out: &mut [f32]) {
     let a = &a[..out.len()];
     per_op!(op, f => {
@@ -206,6 +247,7 @@ fn vs(op: BinaryOp, a: &[f32], s: f32, out: &mut [f32]) {
 }
 
 /// `out[i] = s op b[i]`.
+#[inline(always)]
 fn sv(op: BinaryOp, s: f32, b: &[f32], out: &mut [f32]) {
     let b = &b[..out.len()];
     per_op!(op, f => {
@@ -213,6 +255,27 @@ fn sv(op: BinaryOp, s: f32, b: &[f32], out: &mut [f32]) {
             *o = f(s, y);
         }
     })
+}
+
+simd_fn! {
+    /// [`vv`], vectorised.
+    fn vv_simd(op: BinaryOp, a: &[f32], b: &[f32], out: &mut [f32]) {
+        vv(op, a, b, out)
+    }
+}
+
+simd_fn! {
+    /// [`vs`] or, if `scalar_first`, [`sv`], vectorised.
+    fn scalar_simd(op: BinaryOp, x: &[f32], value: f32, scalar_first: bool, out: &mut [f32]) {
+        if scalar_first { sv(op, value, x, out) } else { vs(op, x, value, out) }
+    }
+}
+
+simd_fn! {
+    /// [`Broadcast::run`], vectorised.
+    fn broadcast_simd(plan: &Broadcast, op: BinaryOp, a: &[f32], b: &[f32], start: usize, out: &mut [f32]) {
+        plan.run(op, a, b, start, out)
+    }
 }
 
 /// A broadcast reduced to the fewest axes: size-1 output axes dropped, neighbours that
@@ -272,6 +335,7 @@ impl Broadcast {
     }
 
     /// Writes output elements `start..start + out.len()`.
+    #[inline(always)]
     fn run(&self, op: BinaryOp, a: &[f32], b: &[f32], start: usize, out: &mut [f32]) {
         let r = self.dims.len();
         let inner = self.dims[r - 1];

@@ -68,9 +68,7 @@ pub fn linear(
             false,
             gemm_threads,
         );
-        for row in rows_out.chunks_mut(out_features) {
-            epilogue_row(row, ep);
-        }
+        epilogue_rows(rows_out, out_features, ep);
     };
     if in_features == 0 {
         block(out, x, threads);
@@ -89,7 +87,20 @@ pub fn linear(
     }
 }
 
+simd_fn! {
+    /// [`epilogue_row`] over every row (of `out_features`) of a block, vectorised.
+    fn epilogue_rows(rows: &mut [f32], out_features: usize, ep: &Epilogue<'_>) {
+        if ep.scale.is_none() && ep.shift.is_none() && !ep.relu {
+            return;
+        }
+        for row in rows.chunks_mut(out_features) {
+            epilogue_row(row, ep);
+        }
+    }
+}
+
 /// `row[j] = act(row[j] · scale[j] + shift[j])` over one output row.
+#[inline(always)]
 fn epilogue_row(row: &mut [f32], ep: &Epilogue) {
     match (ep.scale, ep.shift) {
         (None, None) => {}

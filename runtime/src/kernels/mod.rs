@@ -9,6 +9,67 @@
 //!
 //! Each kernel has unit tests against a naive reference implementation, including odd
 //! shapes.
+//!
+//! # SIMD
+//!
+//! The crate is built without `-C target-cpu`, so a plain loop only gets the baseline's
+//! SSE2. Every hot loop therefore runs inside a function that pulp dispatches at run time
+//! to a copy compiled for AVX-512, AVX2+FMA or the baseline, in one of two ways:
+//!
+//! * `simd_fn!` (below) for plain loops left to LLVM's auto-vectoriser (element-wise maps,
+//!   copies, per-channel affines): the body is written as usual.
+//! * A hand-written `pulp::WithSimd` type, where the code is generic (conv's transforms,
+//!   pooling) or uses pulp's vector type `S::f32s` explicitly. Reductions do (softmax,
+//!   `reduce::sum_simd`, LayerNorm): lane-array accumulators left to LLVM ended up in
+//!   memory or split into narrow vectors depending on the code around them.
+//!
+//! Measured pitfalls with AVX-512, each worth 2-3x on the loop it hit: a read-modify-write
+//! select (`*a = if v > *a { v } else { *a }`) becomes a masked store, and the next read of
+//! `*a` stalls on store forwarding; reading a buffer right after filling it with
+//! differently sized stores (a `memcpy`, a scalar tail) stalls the same way; a loop
+//! shorter than one 16-lane vector runs entirely in the scalar remainder. Check with
+//! `objdump -d --no-show-raw-insn -C`: the loops belong in `V4::vectorize` functions, on
+//! `zmm` registers, with no calls out.
+
+/// Defines a function whose body is compiled for the widest SIMD extension the CPU has
+/// (AVX-512, AVX2+FMA, or the baseline), chosen at run time on every call. The crate is
+/// built without `-C target-cpu`, so loops elsewhere only get the baseline's SSE2.
+///
+/// The body becomes the `with_simd` method of a local `pulp::WithSimd` type, which pulp
+/// inlines into one `#[target_feature]` function per extension, so every loop in it is
+/// vectorised for that extension. Functions the body calls must be `#[inline(always)]`
+/// (or trivially small) to be compiled with it; `objdump -d` on the binary shows whether
+/// they were: the loops should use `zmm` registers inside `V4::vectorize`.
+///
+/// Why a macro and not a function taking the body as a closure or a function item: the
+/// body then sits behind an `FnOnce` call (a closure or a fn-item shim) that each of the
+/// three dispatch targets calls, and LLVM declines to inline a large callee with several
+/// callers, so the body silently stays SSE2 (measured: GELU 3.0 ns/element that way,
+/// 0.75 ns inlined; `scalar` likewise). Arguments are plain `name: Type` pairs; elided
+/// reference lifetimes are fine, but a type's own lifetime parameters must be written
+/// (`Part<'_>`); generic parameters are not supported (write a `WithSimd` type instead).
+macro_rules! simd_fn {
+    (
+        $(#[$attr:meta])*
+        $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block
+    ) => {
+        $(#[$attr])*
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
+            struct Op<A>(A);
+            impl pulp::WithSimd for Op<($($ty,)*)> {
+                type Output = simd_fn!(@ret $($ret)?);
+                #[inline(always)]
+                fn with_simd<S: pulp::Simd>(self, _simd: S) -> Self::Output {
+                    let ($($arg,)*) = self.0;
+                    $body
+                }
+            }
+            pulp::Arch::new().dispatch(Op(($($arg,)*)))
+        }
+    };
+    (@ret) => { () };
+    (@ret $ret:ty) => { $ret };
+}
 
 pub mod conv;
 pub mod elementwise;
@@ -23,27 +84,6 @@ pub mod softmax;
 
 #[cfg(test)]
 pub(crate) mod testutil;
-
-/// Runs `f(args)` compiled for the widest SIMD extension the CPU has (AVX-512, AVX2+FMA,
-/// or the baseline), chosen at run time; without it kernel loops only get the baseline's
-/// SSE2.
-///
-/// `f` should be a function item marked `#[inline(always)]` holding the whole loop: it
-/// is then inlined into the target-feature function and vectorised for it. (A large
-/// closure is not reliably inlined there and silently stays SSE2; measured 4x slower for
-/// GELU.)
-#[inline(always)]
-pub(crate) fn vectorized<A, R, F: FnOnce(A) -> R>(f: F, args: A) -> R {
-    struct Op<F, A>(F, A);
-    impl<A, R, F: FnOnce(A) -> R> pulp::WithSimd for Op<F, A> {
-        type Output = R;
-        #[inline(always)]
-        fn with_simd<S: pulp::Simd>(self, _simd: S) -> R {
-            (self.0)(self.1)
-        }
-    }
-    pulp::Arch::new().dispatch(Op(f, args))
-}
 
 /// Element-wise binary operations.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -1,9 +1,10 @@
 //! Normalisations: inference BatchNorm, per-channel affine, LayerNorm.
 
+use pulp::Simd;
 use rayon::prelude::*;
 
 use super::elementwise;
-use super::reduce::sum;
+use super::reduce::{sum_map_simd, sum_simd};
 
 /// Below this many elements a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;
@@ -31,13 +32,10 @@ pub fn batchnorm(
     assert_eq!(x.len(), n * c * inner, "batchnorm: x is not [n, c, inner]");
     assert_eq!(out.len(), x.len(), "batchnorm: out and x differ in length");
     assert!([weight, bias, mean, var].iter().all(|p| p.len() == c), "batchnorm: parameters must have length c");
-    for_row_segments(x, out, inner, |row, x, out| {
+    affine_rows(x, out, inner, false, |row| {
         let ch = row % c;
         let a = weight[ch] / (var[ch] + eps).sqrt();
-        let b = bias[ch] - mean[ch] * a;
-        for (o, &v) in out.iter_mut().zip(x) {
-            *o = v * a + b;
-        }
+        (a, bias[ch] - mean[ch] * a)
     });
 }
 
@@ -59,26 +57,16 @@ pub fn channel_affine(
     assert_eq!(out.len(), x.len(), "channel_affine: out and x differ in length");
     assert!(scale.is_none_or(|s| s.len() == c), "channel_affine: scale must have length c");
     assert!(shift.is_none_or(|s| s.len() == c), "channel_affine: shift must have length c");
-    for_row_segments(x, out, inner, |row, x, out| {
+    affine_rows(x, out, inner, relu, |row| {
         let ch = row % c;
-        let a = scale.map_or(1.0, |s| s[ch]);
-        let b = shift.map_or(0.0, |s| s[ch]);
-        if relu {
-            for (o, &v) in out.iter_mut().zip(x) {
-                *o = elementwise::relu(v * a + b);
-            }
-        } else {
-            for (o, &v) in out.iter_mut().zip(x) {
-                *o = v * a + b;
-            }
-        }
+        (scale.map_or(1.0, |s| s[ch]), shift.map_or(0.0, |s| s[ch]))
     });
 }
 
 /// LayerNorm over the last axis of `x` viewed as `[rows, features]`:
 /// `y = (x - mean) / sqrt(var + eps) * weight + bias`, with the biased variance (divided
 /// by `features`) as PyTorch. Two passes over each row (mean, then squared deviations), so
-/// a large mean does not cancel the variance. `weight` and `bias`, when present, have
+/// a large mean does not cancel the variance; both sums in explicit SIMD vectors. `weight` and `bias`, when present, have
 /// length `features`; missing, they are 1 and 0.
 pub fn layernorm(
     x: &[f32],
@@ -96,61 +84,76 @@ pub fn layernorm(
     if x.is_empty() {
         return;
     }
-    let row = |x: &[f32], out: &mut [f32]| {
-        let inv_n = 1.0 / features as f32;
-        let mean = sum(x) * inv_n;
-        // Squared deviations, written to `out` first so the sum vectorises.
-        for (o, &v) in out.iter_mut().zip(x) {
-            let d = v - mean;
-            *o = d * d;
-        }
-        let rstd = 1.0 / (sum(out) * inv_n + eps).sqrt();
-        match (weight, bias) {
-            (Some(w), Some(b)) => {
-                for (((o, &v), &w), &b) in out.iter_mut().zip(x).zip(w).zip(b) {
-                    *o = (v - mean) * rstd * w + b;
-                }
-            }
-            (Some(w), None) => {
-                for ((o, &v), &w) in out.iter_mut().zip(x).zip(w) {
-                    *o = (v - mean) * rstd * w;
-                }
-            }
-            (None, Some(b)) => {
-                for ((o, &v), &b) in out.iter_mut().zip(x).zip(b) {
-                    *o = (v - mean) * rstd + b;
-                }
-            }
-            (None, None) => {
-                for (o, &v) in out.iter_mut().zip(x) {
-                    *o = (v - mean) * rstd;
-                }
-            }
-        }
+    let run = |x: &[f32], out: &mut [f32]| {
+        pulp::Arch::new().dispatch(LayerNormRows { x, out, features, weight, bias, eps });
     };
     if x.len() >= PAR_MIN && rows > 1 {
-        let min_rows = (CHUNK / features).max(1);
-        out.par_chunks_mut(features).zip(x.par_chunks(features)).with_min_len(min_rows).for_each(|(o, x)| row(x, o));
+        let task = (CHUNK / features).max(1) * features;
+        out.par_chunks_mut(task).zip(x.par_chunks(task)).for_each(|(o, x)| run(x, o));
     } else {
-        out.chunks_mut(features).zip(x.chunks(features)).for_each(|(o, x)| row(x, o));
+        run(x, out);
     }
 }
 
-/// Calls `f(row, x_segment, out_segment)` over `x` and `out` cut into rows of length
-/// `inner`, splitting rows where parallel chunks end; parallel when large, so both many
-/// short rows and a few long ones spread across threads.
-fn for_row_segments<F>(x: &[f32], out: &mut [f32], inner: usize, f: F)
+/// LayerNorm of consecutive rows, compiled for the widest SIMD the CPU has.
+struct LayerNormRows<'a> {
+    x: &'a [f32],
+    out: &'a mut [f32],
+    features: usize,
+    weight: Option<&'a [f32]>,
+    bias: Option<&'a [f32]>,
+    eps: f32,
+}
+
+impl pulp::WithSimd for LayerNormRows<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        let inv_n = 1.0 / self.features as f32;
+        for (out, x) in self.out.chunks_mut(self.features).zip(self.x.chunks(self.features)) {
+            let mean = sum_simd(simd, x) * inv_n;
+            let vmean = simd.splat_f32s(mean);
+            let sq_dev = |v| {
+                let d = simd.sub_f32s(v, vmean);
+                simd.mul_f32s(d, d)
+            };
+            let var = sum_map_simd(simd, x, sq_dev, |v| (v - mean) * (v - mean)) * inv_n;
+            let rstd = 1.0 / (var + self.eps).sqrt();
+            match (self.weight, self.bias) {
+                (Some(w), Some(b)) => {
+                    for (((o, &v), &w), &b) in out.iter_mut().zip(x).zip(w).zip(b) {
+                        *o = (v - mean) * rstd * w + b;
+                    }
+                }
+                (Some(w), None) => {
+                    for ((o, &v), &w) in out.iter_mut().zip(x).zip(w) {
+                        *o = (v - mean) * rstd * w;
+                    }
+                }
+                (None, Some(b)) => {
+                    for ((o, &v), &b) in out.iter_mut().zip(x).zip(b) {
+                        *o = (v - mean) * rstd + b;
+                    }
+                }
+                (None, None) => {
+                    for (o, &v) in out.iter_mut().zip(x) {
+                        *o = (v - mean) * rstd;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `out = x * a + b`, then `max(·, 0)` if `relu`, over `x` and `out` cut into rows of
+/// length `inner`, with `(a, b) = coef(row)`. Rows are split where parallel chunks end;
+/// parallel when large, so both many short rows and a few long ones spread across threads.
+fn affine_rows<F>(x: &[f32], out: &mut [f32], inner: usize, relu: bool, coef: F)
 where
-    F: Fn(usize, &[f32], &mut [f32]) + Sync,
+    F: Fn(usize) -> (f32, f32) + Sync,
 {
     let run = |start: usize, x: &[f32], out: &mut [f32]| {
-        let mut pos = 0;
-        while pos < out.len() {
-            let g = start + pos;
-            let n = (inner - g % inner).min(out.len() - pos);
-            f(g / inner, &x[pos..pos + n], &mut out[pos..pos + n]);
-            pos += n;
-        }
+        pulp::Arch::new().dispatch(AffineRows { x, out, start, inner, relu, coef: &coef });
     };
     if out.len() >= PAR_MIN {
         out.par_chunks_mut(CHUNK).zip(x.par_chunks(CHUNK)).enumerate().for_each(|(i, (o, x))| run(i * CHUNK, x, o));
@@ -159,10 +162,46 @@ where
     }
 }
 
+/// [`affine_rows`] on elements `start..start + out.len()`, compiled for the widest SIMD
+/// the CPU has. (`coef` runs once per row, outside the vectorised loops.)
+struct AffineRows<'a, F> {
+    x: &'a [f32],
+    out: &'a mut [f32],
+    start: usize,
+    inner: usize,
+    relu: bool,
+    coef: &'a F,
+}
+
+impl<F: Fn(usize) -> (f32, f32)> pulp::WithSimd for AffineRows<'_, F> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, _simd: S) {
+        let AffineRows { x, out, start, inner, relu, coef } = self;
+        let mut pos = 0;
+        while pos < out.len() {
+            let g = start + pos;
+            let n = (inner - g % inner).min(out.len() - pos);
+            let (a, b) = coef(g / inner);
+            let (x, out) = (&x[pos..pos + n], &mut out[pos..pos + n]);
+            if relu {
+                for (o, &v) in out.iter_mut().zip(x) {
+                    *o = elementwise::relu(v * a + b);
+                }
+            } else {
+                for (o, &v) in out.iter_mut().zip(x) {
+                    *o = v * a + b;
+                }
+            }
+            pos += n;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{assert_close, data};
+    use crate::kernels::testutil::{assert_close, backends, data};
 
     fn positive(len: usize, seed: u64) -> Vec<f32> {
         data(len, seed).iter().map(|v| v + 1.5).collect()
@@ -243,6 +282,20 @@ mod tests {
                 let mut got = vec![f32::NAN; x.len()];
                 layernorm(&x, rows, features, wo, bo, 1e-5, &mut got);
                 assert_close(&got, &naive_layernorm(&x, features, wo, bo, 1e-5), 1e-4);
+            }
+        }
+    }
+
+    #[test]
+    fn layernorm_on_every_simd_backend() {
+        for features in [1, 5, 8, 15, 16, 17, 63, 64, 65, 384] {
+            let x = data(3 * features, features as u64);
+            let (w, b) = (data(features, 10), data(features, 11));
+            let want = naive_layernorm(&x, features, Some(&w), Some(&b), 1e-5);
+            for be in backends() {
+                let mut got = vec![f32::NAN; x.len()];
+                be.run(LayerNormRows { x: &x, out: &mut got, features, weight: Some(&w), bias: Some(&b), eps: 1e-5 });
+                assert_close(&got, &want, 1e-4);
             }
         }
     }

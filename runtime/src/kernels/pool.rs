@@ -3,7 +3,7 @@
 
 use rayon::prelude::*;
 
-use super::reduce::sum;
+use super::reduce::sum_simd;
 
 /// Below this much work (window reads) a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;
@@ -83,22 +83,6 @@ fn identity(kind: PoolKind) -> f32 {
     }
 }
 
-/// Adds `v` to a window reduction: the sum, or the maximum with NaN winning (as PyTorch's
-/// `val > max || isnan(val)`).
-#[inline(always)]
-fn combine(kind: PoolKind, acc: f32, v: f32) -> f32 {
-    match kind {
-        PoolKind::Max => {
-            if v > acc || v.is_nan() {
-                v
-            } else {
-                acc
-            }
-        }
-        PoolKind::Avg => acc + v,
-    }
-}
-
 /// The output value of a reduced window: the max as is, the sum over PyTorch's divisor
 /// (0 for a window entirely outside the input).
 #[inline(always)]
@@ -137,51 +121,190 @@ pub fn pool2d(kind: PoolKind, s: &Pool2dShape, x: &[f32], out: &mut [f32]) {
         return;
     }
     let s = *s;
-    // Output columns per tile: their windows' input columns must fit in the stack buffer.
-    let tile = if s.kw <= BUF { ((BUF - s.kw) / s.stride_w + 1).min(s.ow) } else { 1 };
-    // Fills output rows `first..` (counted over all planes) of `out`: per tile of output
-    // columns, first reduce the window's input rows into `buf` (vertical, vectorised), then
-    // each output's columns from `buf`.
-    let run = |first: usize, out: &mut [f32]| {
-        let mut buf = [0f32; BUF];
-        for (i, orow) in out.chunks_mut(s.ow).enumerate() {
-            let (plane, oy) = ((first + i) / s.oh, (first + i) % s.oh);
-            let xp = &x[plane * s.h * s.w..(plane + 1) * s.h * s.w];
-            let wy = window(oy, s.h, s.kh, s.stride_h, s.pad_h);
-            for ox0 in (0..s.ow).step_by(tile) {
-                let ox1 = (ox0 + tile).min(s.ow);
-                let cs = window(ox0, s.w, s.kw, s.stride_w, s.pad_w).start;
-                let ce = window(ox1 - 1, s.w, s.kw, s.stride_w, s.pad_w).end.max(cs);
-                if ce - cs > BUF {
-                    // A window wider than the buffer (tile is 1): reduce it in place.
-                    let wx = window(ox0, s.w, s.kw, s.stride_w, s.pad_w);
-                    let mut acc = identity(kind);
-                    for y in wy.start..wy.end {
-                        acc = xp[y * s.w + wx.start..y * s.w + wx.end].iter().fold(acc, |a, &v| combine(kind, a, v));
-                    }
-                    orow[ox0] = finish(kind, acc, &wy, &wx, s.count_include_pad);
-                    continue;
-                }
-                let b = &mut buf[..ce - cs];
-                b.fill(identity(kind));
-                for y in wy.start..wy.end {
-                    for (a, &v) in b.iter_mut().zip(&xp[y * s.w + cs..y * s.w + ce]) {
-                        *a = combine(kind, *a, v);
-                    }
-                }
-                for (ox, o) in (ox0..ox1).zip(&mut orow[ox0..ox1]) {
-                    let wx = window(ox, s.w, s.kw, s.stride_w, s.pad_w);
-                    let acc = b[wx.start - cs..wx.end - cs].iter().fold(identity(kind), |a, &v| combine(kind, a, v));
-                    *o = finish(kind, acc, &wy, &wx, s.count_include_pad);
-                }
-            }
-        }
-    };
     let rows_per_task = (TASK_WORK / (s.ow * s.kh * s.kw)).max(1);
+    let run = |first: usize, out: &mut [f32]| pulp::Arch::new().dispatch(PoolRows { kind, s: &s, x, first, out });
     if out.len() * s.kh * s.kw >= PAR_MIN && s.nc * s.oh > rows_per_task {
         out.par_chunks_mut(rows_per_task * s.ow).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
     } else {
         run(0, out);
+    }
+}
+
+/// Output rows `first..` (counted over all planes) of a pooling, into `out`; compiled for
+/// the widest SIMD the CPU has.
+struct PoolRows<'a> {
+    kind: PoolKind,
+    s: &'a Pool2dShape,
+    x: &'a [f32],
+    first: usize,
+    out: &'a mut [f32],
+}
+
+impl pulp::WithSimd for PoolRows<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let PoolRows { kind, s, x, first, out } = self;
+        match kind {
+            PoolKind::Avg => pool_rows::<Sum>(s, x, first, out),
+            PoolKind::Max => pool_rows::<Max>(s, x, first, out),
+        }
+    }
+}
+
+/// A window reduction, as a type so that each gets its own vectorised loops.
+trait Reduction {
+    const KIND: PoolKind;
+    /// Adds `v` to the reduction `acc`.
+    fn combine(acc: f32, v: f32) -> f32;
+}
+
+/// The maximum, with NaN winning (as PyTorch's `val > max || isnan(val)`).
+struct Max;
+/// The sum, for `Avg`.
+struct Sum;
+
+impl Reduction for Max {
+    const KIND: PoolKind = PoolKind::Max;
+    #[inline(always)]
+    fn combine(acc: f32, v: f32) -> f32 {
+        if v > acc || v.is_nan() { v } else { acc }
+    }
+}
+
+impl Reduction for Sum {
+    const KIND: PoolKind = PoolKind::Avg;
+    #[inline(always)]
+    fn combine(acc: f32, v: f32) -> f32 {
+        acc + v
+    }
+}
+
+/// [`PoolRows`] with the reduction `R`.
+///
+/// Per output row, per tile of output columns: the window rows are reduced into `buf`
+/// (vertical), which spans the tile's windows' columns including padding (padding holds
+/// the identity, `-inf` or 0, which changes no result); then each output combines its `kw`
+/// columns of `buf` (horizontal). Both are vectorised loops over columns: the horizontal
+/// pass reads window column `dx` of all the tile's outputs as one contiguous run, of
+/// `buf` itself for stride 1, and of its even or odd columns, split off first, for
+/// stride 2. (Other strides gather.)
+#[inline(always)]
+fn pool_rows<R: Reduction>(s: &Pool2dShape, x: &[f32], first: usize, out: &mut [f32]) {
+    let kind = R::KIND;
+    let id = identity(kind);
+    let (sw, kw) = (s.stride_w, s.kw);
+    // Output columns per tile: their windows' padded columns must fit in the stack buffer.
+    let tile = if kw <= BUF { ((BUF - kw) / sw + 1).min(s.ow) } else { 1 };
+    let mut buf = [0f32; BUF];
+    let mut even = [0f32; BUF / 2];
+    let mut odd = [0f32; BUF / 2];
+    // Average pooling: each output column's share of the divisor (see `finish`), for the
+    // tile starting at `div_for`.
+    let mut div_x = [0f32; BUF];
+    let mut div_for = usize::MAX;
+    for (i, orow) in out.chunks_mut(s.ow).enumerate() {
+        let (plane, oy) = ((first + i) / s.oh, (first + i) % s.oh);
+        let xp = &x[plane * s.h * s.w..(plane + 1) * s.h * s.w];
+        let wy = window(oy, s.h, s.kh, s.stride_h, s.pad_h);
+        for ox0 in (0..s.ow).step_by(tile) {
+            let ox1 = (ox0 + tile).min(s.ow);
+            if kw > BUF {
+                // A window wider than the buffer (tile is 1): reduce it in place.
+                let wx = window(ox0, s.w, kw, sw, s.pad_w);
+                let mut acc = id;
+                for y in wy.start..wy.end {
+                    acc = xp[y * s.w + wx.start..y * s.w + wx.end].iter().fold(acc, |a, &v| R::combine(a, v));
+                }
+                orow[ox0] = finish(kind, acc, &wy, &wx, s.count_include_pad);
+                continue;
+            }
+            // Padded input columns p0..p1 of the tile's windows (p0 may be negative), and
+            // the part inside the input, c0..c1.
+            let p0 = (ox0 * sw) as isize - s.pad_w as isize;
+            let p1 = ((ox1 - 1) * sw + kw) as isize - s.pad_w as isize;
+            let clamp = |p: isize| p.clamp(0, s.w as isize) as usize;
+            let (c0, c1) = (clamp(p0), clamp(p1).max(clamp(p0)));
+            let b = &mut buf[..(p1 - p0) as usize];
+            let (left, rest) = b.split_at_mut((c0 as isize - p0) as usize);
+            let (inside, right) = rest.split_at_mut(c1 - c0);
+            left.fill(id);
+            right.fill(id);
+            combine_into::<R>(inside, wy.end - wy.start, |i| &xp[(wy.start + i) * s.w + c0..]);
+            let o = &mut orow[ox0..ox1];
+            match sw {
+                1 => combine_into::<R>(o, kw, |dx| &b[dx..]),
+                2 => {
+                    let half = b.len().div_ceil(2);
+                    let (e, od) = (&mut even[..half], &mut odd[..half]);
+                    for ((e, od), c) in e.iter_mut().zip(od.iter_mut()).zip(b.chunks_exact(2)) {
+                        *e = c[0];
+                        *od = c[1];
+                    }
+                    if b.len() % 2 == 1 {
+                        e[half - 1] = b[b.len() - 1];
+                    }
+                    combine_into::<R>(o, kw, |dx| if dx % 2 == 0 { &even[dx / 2..] } else { &odd[dx / 2..] });
+                }
+                _ => {
+                    o.fill(id);
+                    for dx in 0..kw {
+                        for (a, &v) in o.iter_mut().zip(b[dx..].iter().step_by(sw)) {
+                            *a = R::combine(*a, v);
+                        }
+                    }
+                }
+            }
+            let n = o.len();
+            if kind == PoolKind::Avg {
+                if div_for != ox0 {
+                    for (ox, d) in (ox0..ox1).zip(div_x.iter_mut()) {
+                        let wx = window(ox, s.w, kw, sw, s.pad_w);
+                        let len = if s.count_include_pad { wx.padded_len } else { wx.end - wx.start };
+                        // 0 marks a window entirely outside the input.
+                        *d = if wx.end > wx.start { len as f32 } else { 0.0 };
+                    }
+                    div_for = ox0;
+                }
+                let div_y = if s.count_include_pad { wy.padded_len } else { wy.end - wy.start } as f32;
+                let empty_y = wy.end == wy.start;
+                for (a, &d) in o.iter_mut().zip(&div_x[..n]) {
+                    *a = if d == 0.0 || empty_y { 0.0 } else { *a / (div_y * d) };
+                }
+            }
+        }
+    }
+}
+
+/// `dst[j] = R-reduction of src(0)[j], .., src(k - 1)[j]` (the identity for `k = 0`).
+///
+/// The first three sources are combined in one loop that only writes `dst`; further ones
+/// are added in read-modify-write loops. (With AVX-512, LLVM compiles a read-modify-write
+/// `*a = if v > *a { v } else { *a }` into a masked store, and the next loop's read of
+/// `*a` then stalls on store forwarding: it made max pooling 3x slower.)
+#[inline(always)]
+fn combine_into<'a, R: Reduction>(dst: &mut [f32], k: usize, src: impl Fn(usize) -> &'a [f32]) {
+    let n = dst.len();
+    let c = R::combine;
+    match k {
+        0 => dst.fill(identity(R::KIND)),
+        1 => dst.copy_from_slice(&src(0)[..n]),
+        2 => {
+            for ((d, &a), &b) in dst.iter_mut().zip(&src(0)[..n]).zip(&src(1)[..n]) {
+                *d = c(a, b);
+            }
+        }
+        _ => {
+            let (s0, s1, s2) = (&src(0)[..n], &src(1)[..n], &src(2)[..n]);
+            for (((d, &a), &b), &e) in dst.iter_mut().zip(s0).zip(s1).zip(s2) {
+                *d = c(c(a, b), e);
+            }
+            for i in 3..k {
+                for (d, &v) in dst.iter_mut().zip(&src(i)[..n]) {
+                    *d = c(*d, v);
+                }
+            }
+        }
     }
 }
 
@@ -193,13 +316,31 @@ pub fn global_avgpool(x: &[f32], nc: usize, hw: usize, out: &mut [f32]) {
         out.fill(f32::NAN);
         return;
     }
-    let inv = 1.0 / hw as f32;
     if x.len() >= PAR_MIN && nc > 1 {
-        let min_rows = (TASK_WORK / hw).max(1);
-        out.par_iter_mut().zip(x.par_chunks(hw)).with_min_len(min_rows).for_each(|(o, r)| *o = sum(r) * inv);
+        let rows = (TASK_WORK / hw).max(1);
+        out.par_chunks_mut(rows).zip(x.par_chunks(rows * hw)).for_each(|(o, x)| row_means(x, o));
     } else {
-        out.iter_mut().zip(x.chunks(hw)).for_each(|(o, r)| *o = sum(r) * inv);
+        row_means(x, out);
     }
+}
+
+/// `out[i] = mean(x[i·hw..(i + 1)·hw])`, `hw = x.len() / out.len()`, compiled for the
+/// widest SIMD the CPU has.
+fn row_means(x: &[f32], out: &mut [f32]) {
+    struct Op<'a>(&'a [f32], &'a mut [f32]);
+    impl pulp::WithSimd for Op<'_> {
+        type Output = ();
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, simd: S) {
+            let Op(x, out) = self;
+            let hw = x.len() / out.len();
+            let inv = 1.0 / hw as f32;
+            for (o, r) in out.iter_mut().zip(x.chunks(hw)) {
+                *o = sum_simd(simd, r) * inv;
+            }
+        }
+    }
+    pulp::Arch::new().dispatch(Op(x, out));
 }
 
 #[cfg(test)]

@@ -1,5 +1,6 @@
-//! Reductions: `mean` over any set of axes, and the vectorising `sum` the other kernels use.
+//! Reductions: `mean` over any set of axes, and the vectorised `sum` the other kernels use.
 
+use pulp::Simd;
 use rayon::prelude::*;
 
 /// Below this many input elements a reduction runs on the calling thread.
@@ -9,29 +10,42 @@ const TASK_WORK: usize = 1 << 14;
 /// Output elements accumulated together when the last axis is kept.
 const TILE: usize = 1024;
 
-/// Sum of `x`, with 16 independent accumulators: the loop vectorises, and the rounding
-/// error grows 16 times more slowly than a sequential sum's.
-pub(crate) fn sum(x: &[f32]) -> f32 {
-    let mut acc = [0f32; 16];
-    let chunks = x.chunks_exact(16);
-    let rest = chunks.remainder();
-    for c in chunks {
-        for (a, v) in acc.iter_mut().zip(c) {
-            *a += v;
+/// Sum of `x` in explicit SIMD vectors (`S::f32s`) with four accumulators: the loop runs
+/// at full width for whatever `S` is, and the rounding error grows `4 · lanes` times
+/// more slowly than a sequential sum's. (Lane arrays left to LLVM's auto-vectoriser were
+/// fragile: depending on the code around them the accumulators ended up in memory.)
+#[inline(always)]
+pub(crate) fn sum_simd<S: Simd>(simd: S, x: &[f32]) -> f32 {
+    sum_map_simd(simd, x, |v| v, |v| v)
+}
+
+/// `Σ f(x[i])`, as [`sum_simd`]; `fv` is `f` on a vector, `fs` on a scalar (the tail).
+#[inline(always)]
+pub(crate) fn sum_map_simd<S: Simd>(
+    simd: S,
+    x: &[f32],
+    fv: impl Fn(S::f32s) -> S::f32s,
+    fs: impl Fn(f32) -> f32,
+) -> f32 {
+    let (head, tail) = S::as_simd_f32s(x);
+    let (quads, rest) = head.as_chunks::<4>();
+    let zero = simd.splat_f32s(0.0);
+    let (mut a0, mut a1, mut a2, mut a3) = (zero, zero, zero, zero);
+    for q in quads {
+        a0 = simd.add_f32s(a0, fv(q[0]));
+        a1 = simd.add_f32s(a1, fv(q[1]));
+        a2 = simd.add_f32s(a2, fv(q[2]));
+        a3 = simd.add_f32s(a3, fv(q[3]));
+    }
+    for (i, &v) in rest.iter().enumerate() {
+        match i {
+            0 => a0 = simd.add_f32s(a0, fv(v)),
+            1 => a1 = simd.add_f32s(a1, fv(v)),
+            _ => a2 = simd.add_f32s(a2, fv(v)),
         }
     }
-    for (a, v) in acc.iter_mut().zip(rest) {
-        *a += v;
-    }
-    // Pairwise combine.
-    let mut w = 16;
-    while w > 1 {
-        w /= 2;
-        for i in 0..w {
-            acc[i] += acc[i + w];
-        }
-    }
-    acc[0]
+    let total = simd.reduce_sum_f32s(simd.add_f32s(simd.add_f32s(a0, a1), simd.add_f32s(a2, a3)));
+    tail.iter().fold(total, |t, &v| t + fs(v))
 }
 
 /// Mean of `x` (row-major, `shape`) over `axes` (sorted, distinct, each `< shape.len()`).
@@ -51,16 +65,32 @@ pub fn mean(x: &[f32], shape: &[usize], axes: &[usize], out: &mut [f32]) {
     }
     let v = View::new(shape, axes);
     let inv = 1.0 / count as f32;
-    let run = |start: usize, out: &mut [f32]| {
-        v.sum_into(x, start, out);
-        out.iter_mut().for_each(|o| *o *= inv);
-    };
+    let run = |start: usize, out: &mut [f32]| pulp::Arch::new().dispatch(MeanPart { view: &v, x, start, out, inv });
     // Each output element costs `count` input reads; give every task enough of them.
     let per_task = TASK_WORK.div_ceil(count.max(1)).max(1);
     if x.len() >= PAR_MIN && out.len() > per_task {
         out.par_chunks_mut(per_task).enumerate().for_each(|(i, o)| run(i * per_task, o));
     } else {
         run(0, out);
+    }
+}
+
+/// Output elements `start..start + out.len()` of a mean, compiled for the widest SIMD the
+/// CPU has.
+struct MeanPart<'a> {
+    view: &'a View,
+    x: &'a [f32],
+    start: usize,
+    out: &'a mut [f32],
+    inv: f32,
+}
+
+impl pulp::WithSimd for MeanPart<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        self.view.sum_into(simd, self.x, self.start, self.out);
+        self.out.iter_mut().for_each(|o| *o *= self.inv);
     }
 }
 
@@ -127,7 +157,8 @@ impl View {
     }
 
     /// Writes the sums of output elements `start..start + out.len()` to `out`.
-    fn sum_into(&self, x: &[f32], start: usize, out: &mut [f32]) {
+    #[inline(always)]
+    fn sum_into<S: Simd>(&self, simd: S, x: &[f32], start: usize, out: &mut [f32]) {
         let combos: usize = self.reduced.iter().map(|d| d.0).product();
         if self.run_reduced {
             for (i, o) in out.iter_mut().enumerate() {
@@ -135,7 +166,7 @@ impl View {
                 *o = (0..combos)
                     .map(|r| {
                         let b = base + self.reduced_offset(r);
-                        sum(&x[b..b + self.run])
+                        sum_simd(simd, &x[b..b + self.run])
                     })
                     .sum();
             }
@@ -168,7 +199,7 @@ impl View {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{assert_close, data};
+    use crate::kernels::testutil::{assert_close, backends, data};
 
     /// Plain reference: for each input element, add it to the output element of its kept index.
     fn naive_mean(x: &[f32], shape: &[usize], axes: &[usize]) -> Vec<f32> {
@@ -198,12 +229,24 @@ mod tests {
         assert_close(&got, &want, 1e-5);
     }
 
+    struct Sum<'a>(&'a [f32]);
+
+    impl pulp::WithSimd for Sum<'_> {
+        type Output = f32;
+        #[inline(always)]
+        fn with_simd<S: Simd>(self, simd: S) -> f32 {
+            sum_simd(simd, self.0)
+        }
+    }
+
     #[test]
     fn sum_matches_f64_for_all_remainders() {
-        for n in [0, 1, 5, 15, 16, 17, 33, 1000] {
+        for n in [0, 1, 5, 15, 16, 17, 33, 63, 64, 65, 100, 1000] {
             let x = data(n, n as u64);
             let want: f64 = x.iter().map(|&v| v as f64).sum();
-            assert_close(&[sum(&x)], &[want as f32], 1e-6);
+            for b in backends() {
+                assert_close(&[b.run(Sum(&x))], &[want as f32], 1e-6);
+            }
         }
     }
 

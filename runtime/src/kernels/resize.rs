@@ -47,6 +47,7 @@ impl AxisMap {
 
     /// Nearest source index (PyTorch's `nearest_idx`): the same index when sizes agree,
     /// `o / 2` when the output is exactly twice the input, else `min(floor(o * ratio), in - 1)`.
+    #[inline(always)]
     fn nearest(&self, o: usize) -> usize {
         if self.out_len == self.in_len {
             o
@@ -61,6 +62,7 @@ impl AxisMap {
     /// `compute_source_index_and_lambda`): identity when sizes agree; otherwise the source
     /// position `o * ratio` (align_corners) or `max((o + 0.5) * ratio - 0.5, 0)`, its floor
     /// clamped to the input, and the next index unless at the edge.
+    #[inline(always)]
     fn linear(&self, o: usize) -> (usize, usize, f32, f32) {
         if self.out_len == self.in_len {
             return (o, o, 1.0, 0.0);
@@ -104,8 +106,31 @@ pub fn upsample(
     assert!(h > 0 && w > 0, "upsample: empty input with a non-empty output");
     let my = AxisMap::new(mode, align_corners, scale.map(|s| s.0), h, oh);
     let mx = AxisMap::new(mode, align_corners, scale.map(|s| s.1), w, ow);
-    // Fills output rows `first..` (counted over all planes) of `out`.
-    let run = |first: usize, out: &mut [f32]| {
+    let run = |first: usize, out: &mut [f32]| upsample_rows(mode, &my, &mx, x, h, w, oh, ow, first, out);
+    let rows_per_task = (CHUNK / ow).max(1);
+    if out.len() >= PAR_MIN && nc * oh > rows_per_task {
+        out.par_chunks_mut(rows_per_task * ow).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
+    } else {
+        run(0, out);
+    }
+}
+
+simd_fn! {
+    /// Fills output rows `first..` (counted over all planes) of an upsampling of `x`
+    /// (`[nc, h, w]`) to `[nc, oh, ow]` into `out`.
+    #[allow(clippy::too_many_arguments)]
+    fn upsample_rows(
+        mode: ResizeMode,
+        my: &AxisMap,
+        mx: &AxisMap,
+        x: &[f32],
+        h: usize,
+        w: usize,
+        oh: usize,
+        ow: usize,
+        first: usize,
+        out: &mut [f32],
+    ) {
         let rows = out.len() / ow;
         for c0 in (0..ow).step_by(TILE) {
             let cw = TILE.min(ow - c0);
@@ -126,8 +151,22 @@ pub fn upsample(
                             continue;
                         }
                         let xr = &x[(plane * h + sy) * w..(plane * h + sy + 1) * w];
-                        for (o, &s) in out[dst..dst + cw].iter_mut().zip(&src[..cw]) {
-                            *o = xr[s];
+                        let dst = &mut out[dst..dst + cw];
+                        if mx.out_len == 2 * mx.in_len {
+                            // Each input column twice (c0 is even): no gather.
+                            let xr = &xr[c0 / 2..];
+                            let mut pairs = dst.chunks_exact_mut(2);
+                            for (pair, &v) in (&mut pairs).zip(xr) {
+                                pair[0] = v;
+                                pair[1] = v;
+                            }
+                            if let [last] = pairs.into_remainder() {
+                                *last = xr[cw / 2];
+                            }
+                        } else {
+                            for (o, &s) in dst.iter_mut().zip(&src[..cw]) {
+                                *o = xr[s];
+                            }
                         }
                         prev = Some((i, plane * h + sy));
                     }
@@ -138,28 +177,38 @@ pub fn upsample(
                     for j in 0..cw {
                         (x0[j], x1[j], w0[j], w1[j]) = mx.linear(c0 + j);
                     }
+                    // Separable: each input row is interpolated horizontally once into
+                    // `hrow` (keyed by its row index over all planes in `key`), and output
+                    // rows blend two of them, a contiguous vectorised loop. Upsampling
+                    // reads each input row for about two output rows in a row.
+                    let mut hrow = [[0f32; TILE]; 2];
+                    let mut key = [usize::MAX; 2];
                     for i in 0..rows {
                         let (plane, oy) = ((first + i) / oh, (first + i) % oh);
                         let (y0, y1, v0, v1) = my.linear(oy);
-                        let r0 = &x[(plane * h + y0) * w..(plane * h + y0 + 1) * w];
-                        let r1 = &x[(plane * h + y1) * w..(plane * h + y1 + 1) * w];
+                        let (k0, k1) = (plane * h + y0, plane * h + y1);
+                        for k in [k0, k1] {
+                            if key.contains(&k) {
+                                continue;
+                            }
+                            // Replace the slot not holding the other row needed.
+                            let slot = if key[0] == k0 || key[0] == k1 { 1 } else { 0 };
+                            let r = &x[k * w..(k + 1) * w];
+                            let taps = x0.iter().zip(&x1).zip(w0.iter().zip(&w1));
+                            for (o, ((&i0, &i1), (&a0, &a1))) in hrow[slot][..cw].iter_mut().zip(taps) {
+                                *o = r[i0] * a0 + r[i1] * a1;
+                            }
+                            key[slot] = k;
+                        }
+                        let (top, bottom) = (&hrow[usize::from(key[0] != k0)], &hrow[usize::from(key[0] != k1)]);
                         let dst = &mut out[i * ow + c0..i * ow + c0 + cw];
-                        let taps = x0.iter().zip(&x1).zip(w0.iter().zip(&w1));
-                        for (o, ((&i0, &i1), (&a0, &a1))) in dst.iter_mut().zip(taps) {
-                            let top = r0[i0] * a0 + r0[i1] * a1;
-                            let bottom = r1[i0] * a0 + r1[i1] * a1;
-                            *o = top * v0 + bottom * v1;
+                        for ((o, &t), &b) in dst.iter_mut().zip(top).zip(bottom) {
+                            *o = t * v0 + b * v1;
                         }
                     }
                 }
             }
         }
-    };
-    let rows_per_task = (CHUNK / ow).max(1);
-    if out.len() >= PAR_MIN && nc * oh > rows_per_task {
-        out.par_chunks_mut(rows_per_task * ow).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
-    } else {
-        run(0, out);
     }
 }
 
