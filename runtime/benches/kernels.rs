@@ -15,21 +15,9 @@ use readi_runtime::kernels::Epilogue;
 use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use readi_runtime::kernels::gemm::{MatMut, MatRef, sgemm};
 use readi_runtime::kernels::linear::{WeightLayout, linear};
+use readi_runtime::testdata::data;
 
 const THREADS: usize = 2;
-
-/// Deterministic values in [-1, 1).
-fn data(len: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..len)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        })
-        .collect()
-}
 
 fn pool() -> rayon::ThreadPool {
     rayon::ThreadPoolBuilder::new().num_threads(THREADS).build().expect("rayon pool")
@@ -80,25 +68,8 @@ fn bench_conv(c: &mut Criterion) {
     let mut g = c.benchmark_group("conv2d");
     g.sample_size(30).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(2));
     for (name, cin, hw, cout, k, stride, pad) in RESNET18 {
-        let o = (hw + 2 * pad - k) / stride + 1;
-        let s = Conv2dShape {
-            n: 1,
-            cin,
-            h: hw,
-            w: hw,
-            cout,
-            kh: k,
-            kw: k,
-            stride_h: stride,
-            stride_w: stride,
-            pad_h: pad,
-            pad_w: pad,
-            dil_h: 1,
-            dil_w: 1,
-            groups: 1,
-            oh: o,
-            ow: o,
-        };
+        let s = Conv2dShape::square(1, cin, hw, cout, k, stride, pad, 1);
+        let o = s.oh;
         let x = data(cin * hw * hw, 3);
         let w = data(cout * cin * k * k, 4);
         let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();

@@ -8,18 +8,7 @@ use readi_runtime::kernels::conv::{self, Conv2dShape};
 use readi_runtime::kernels::pool::{Pool2dShape, PoolKind, pool2d};
 use readi_runtime::kernels::resize::{ResizeMode, upsample};
 use readi_runtime::kernels::{BinaryOp, Epilogue, elementwise, layout, norm, reduce, softmax};
-
-fn data(len: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..len)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        })
-        .collect()
-}
+use readi_runtime::testdata::data;
 
 fn time(name: &str, filter: &str, mut f: impl FnMut(usize) + Send) {
     if !name.contains(filter) {
@@ -146,26 +135,9 @@ fn main() {
         ("dw_3x3_64", 64, 56, 64, 3, 1, 1),
     ];
     for (name, cin, hw, cout, k, stride, pad) in layers {
-        let o = (hw + 2 * pad - k) / stride + 1;
         let groups = if name.starts_with("dw") { cin } else { 1 };
-        let s = Conv2dShape {
-            n: 1,
-            cin,
-            h: hw,
-            w: hw,
-            cout,
-            kh: k,
-            kw: k,
-            stride_h: stride,
-            stride_w: stride,
-            pad_h: pad,
-            pad_w: pad,
-            dil_h: 1,
-            dil_w: 1,
-            groups,
-            oh: o,
-            ow: o,
-        };
+        let s = Conv2dShape::square(1, cin, hw, cout, k, stride, pad, groups);
+        let o = s.oh;
         let algo = conv::choose(&s);
         let x = data(cin * hw * hw, 3);
         let w = data(cout * cin / groups * k * k, 4);

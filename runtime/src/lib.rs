@@ -3,3 +3,5 @@
 pub mod exec;
 pub mod kernels;
 pub mod plan;
+#[doc(hidden)]
+pub mod testdata;

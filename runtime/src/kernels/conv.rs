@@ -108,6 +108,42 @@ pub enum ConvAlgo {
     Depthwise,
 }
 
+impl Conv2dShape {
+    /// A square layer without dilation: `n x cin x hw x hw` to `cout` channels with a
+    /// `k x k` kernel; the output size follows PyTorch's formula.
+    #[allow(clippy::too_many_arguments)]
+    pub fn square(
+        n: usize,
+        cin: usize,
+        hw: usize,
+        cout: usize,
+        k: usize,
+        stride: usize,
+        pad: usize,
+        groups: usize,
+    ) -> Self {
+        let o = (hw + 2 * pad - k) / stride + 1;
+        Conv2dShape {
+            n,
+            cin,
+            h: hw,
+            w: hw,
+            cout,
+            kh: k,
+            kw: k,
+            stride_h: stride,
+            stride_w: stride,
+            pad_h: pad,
+            pad_w: pad,
+            dil_h: 1,
+            dil_w: 1,
+            groups,
+            oh: o,
+            ow: o,
+        }
+    }
+}
+
 impl ConvAlgo {
     /// Every algorithm, for listings and tests.
     pub const ALL: [ConvAlgo; 5] =
