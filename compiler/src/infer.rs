@@ -6,6 +6,7 @@
 //! the node path and source location.
 
 use readi_grammar::ast::DType;
+use readi_runtime::kernels::window_out;
 
 use crate::ir::*;
 
@@ -118,24 +119,6 @@ fn axis_in_range(axis: usize, x: &TensorType) -> Result<()> {
 fn spatial(x: &TensorType, axis: usize, op: &str) -> Result<i64> {
     x.known_dim(axis)
         .ok_or_else(|| ShapeError::new(format!("{op} needs known spatial sizes, but axis {axis} of {x} is symbolic")))
-}
-
-/// Output length of a sliding window, as PyTorch's `pooling_output_shape` computes it:
-/// `floor((len + 2 pad - dilation (kernel - 1) - 1 + (ceil ? stride - 1 : 0)) / stride) + 1`,
-/// minus one when ceil mode would start the last window past the input and left padding.
-/// `None` when the result is not at least 1.
-fn window_out(len: i64, kernel: i64, stride: i64, pad: i64, dilation: i64, ceil: bool) -> Option<i64> {
-    if stride < 1 {
-        return None;
-    }
-    let eff = dilation.checked_mul(kernel.checked_sub(1)?)?;
-    let num =
-        len.checked_add(pad.checked_mul(2)?)?.checked_sub(eff)?.checked_sub(1)? + if ceil { stride - 1 } else { 0 };
-    let mut out = num.div_euclid(stride) + 1;
-    if ceil && (out - 1) * stride >= len + pad {
-        out -= 1;
-    }
-    (out >= 1).then_some(out)
 }
 
 fn conv2d(c: &Conv2dAttrs, x: &TensorType) -> Result<TensorType> {

@@ -310,18 +310,12 @@ fn check_epilogue(plan: &Plan, ep: &EpilogueSpec, channels: usize, at: &str) -> 
     Ok(())
 }
 
-/// PyTorch's sliding-window output size (see the compiler's shape inference).
+/// [`window_out`](crate::kernels::window_out) on sizes from the plan; `None` (rejected)
+/// for values that do not fit.
 fn window_out(len: usize, k: usize, s: usize, p: usize, d: usize, ceil: bool) -> Option<usize> {
-    let (len, k, s, p, d) = (len as i64, k as i64, s as i64, p as i64, d as i64);
-    if s < 1 || k < 1 || d < 1 {
-        return None;
-    }
-    let num = len + 2 * p - d * (k - 1) - 1 + if ceil { s - 1 } else { 0 };
-    let mut out = num.div_euclid(s) + 1;
-    if ceil && (out - 1) * s >= len + p {
-        out -= 1;
-    }
-    (out >= 1).then_some(out as usize)
+    let i = |v: usize| i64::try_from(v).ok();
+    let out = crate::kernels::window_out(i(len)?, i(k)?, i(s)?, i(p)?, i(d)?, ceil)?;
+    usize::try_from(out).ok()
 }
 
 /// Checks a step's inputs and output against what its kernel needs, so kernels never see
