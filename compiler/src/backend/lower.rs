@@ -44,7 +44,7 @@ fn ice(message: String) -> Diagnostics {
 
 struct Lowering<'g> {
     graph: &'g Graph,
-    bound: &'g Bound,
+    bound: &'g Bound<'g>,
     values: Vec<ValueSpec>,
     value_of: HashMap<ValueRef, usize>,
     steps: Vec<Step>,
@@ -54,14 +54,14 @@ struct Lowering<'g> {
     stored_as: HashMap<String, String>,
     /// Number of uses of each node's output (edges plus graph outputs).
     uses: HashMap<NodeId, usize>,
-    /// Nodes already emitted as part of another node's step.
-    absorbed: HashMap<NodeId, usize>,
+    /// Nodes emitted as part of another node's step, and that node.
+    absorbed: HashMap<NodeId, NodeId>,
 }
 
-impl Lowering<'_> {
-    fn weight(&self, node: &ir::Node, slot: &str) -> Result<&Vec<f32>, Diagnostics> {
+impl<'g> Lowering<'g> {
+    fn weight(&self, node: &ir::Node, slot: &str) -> Result<&'g [f32], Diagnostics> {
         let name = ir::join_path(&node.path, slot);
-        self.bound.get(&name).ok_or_else(|| ice(format!("weight `{name}` was not bound")))
+        self.bound.get(&name).copied().ok_or_else(|| ice(format!("weight `{name}` was not bound")))
     }
 
     fn add_tensor(&mut self, name: String, shape: Vec<usize>, data: Vec<f32>) -> usize {
@@ -93,28 +93,33 @@ impl Lowering<'_> {
         (self.uses.get(&id) == Some(&1) && users.len() == 1).then(|| users[0])
     }
 
-    /// If the sole user of `id` is a ReLU, absorbs it and returns true.
+    /// If the sole user of `id` is a ReLU, absorbs it into `into`'s step and returns true.
     fn absorb_relu(&mut self, id: NodeId, into: NodeId) -> bool {
         match self.sole_user(id) {
             Some(u) if matches!(self.graph.node(u).op, Op::Activation(Activation::Relu)) => {
-                self.absorbed.insert(u, into.index());
+                self.absorbed.insert(u, into);
                 true
             }
             _ => false,
         }
     }
 
-    /// Emits a step computing node `id` (and anything it absorbs) into a new value.
-    fn emit(&mut self, id: NodeId, kernel: Kernel, inputs: Vec<usize>, last: NodeId) {
+    /// Emits a step computing node `id` and every node absorbed into it: they all read the
+    /// step's value, and the step's path lists them (`conv1 (+bn1, relu#0)`).
+    fn emit(&mut self, id: NodeId, kernel: Kernel, inputs: Vec<usize>) {
         let out = self.new_value(ValueRef { node: id, port: 0 }, Storage::Slot(0));
-        let node = self.graph.node(id);
-        let path =
-            if last == id { node.path.clone() } else { format!("{} (+{})", node.path, self.graph.node(last).path) };
-        self.steps.push(Step { path, kernel, inputs, output: out });
-        self.value_of.insert(ValueRef { node: id, port: 0 }, out);
-        if last != id {
-            self.value_of.insert(ValueRef { node: last, port: 0 }, out);
+        let mut absorbed: Vec<NodeId> =
+            self.absorbed.iter().filter(|(_, into)| **into == id).map(|(n, _)| *n).collect();
+        absorbed.sort();
+        let mut path = self.graph.node(id).path.clone();
+        if !absorbed.is_empty() {
+            let names: Vec<&str> = absorbed.iter().map(|&n| self.graph.node(n).path.as_str()).collect();
+            path = format!("{path} (+{})", names.join(", "));
         }
+        for n in std::iter::once(id).chain(absorbed) {
+            self.value_of.insert(ValueRef { node: n, port: 0 }, out);
+        }
+        self.steps.push(Step { path, kernel, inputs, output: out });
     }
 
     /// BatchNorm's folded scale and shift, with an optional preceding bias folded in.
@@ -158,7 +163,7 @@ impl Lowering<'_> {
         match &node.op {
             Op::Input(_) => {}
             Op::Parameter { shape } => {
-                let data = self.weight(node, "")?.clone();
+                let data = self.weight(node, "")?.to_vec();
                 let t = self.add_tensor(node.path.clone(), shape.iter().map(|&d| d as usize).collect(), data);
                 self.stored_as.insert(node.path.clone(), format!("tensor `{}`", node.path));
                 let v = self.new_value(ValueRef { node: id, port: 0 }, Storage::Tensor(t));
@@ -193,29 +198,25 @@ impl Lowering<'_> {
                 let wname = format!("{}.weight@{}", node.path, algo.name());
                 self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("packed as `{wname}`"));
                 let wt = self.add_tensor(wname, vec![packed.len()], packed);
-                let bias = if c.bias { Some(self.weight(node, "bias")?.clone()) } else { None };
+                let bias = if c.bias { Some(self.weight(node, "bias")?) } else { None };
                 let mut ep = EpilogueSpec::default();
-                let mut last = id;
                 let bn = self.sole_user(id).filter(|&u| matches!(g.node(u).op, Op::BatchNorm { .. }));
                 if let Some(bn) = bn {
-                    let (st, sh) = self.fold_bn(bn, bias.as_deref())?;
+                    let (st, sh) = self.fold_bn(bn, bias)?;
                     if c.bias {
                         let bname = ir::join_path(&node.path, "bias");
                         self.stored_as.insert(bname, format!("folded into `{}@shift`", g.node(bn).path));
                     }
                     ep.scale = Some(st);
                     ep.shift = Some(sh);
-                    self.absorbed.insert(bn, id.index());
-                    last = bn;
+                    self.absorbed.insert(bn, id);
                 } else if let Some(b) = bias {
                     let bname = ir::join_path(&node.path, "bias");
                     self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
-                    ep.shift = Some(self.add_tensor(bname, vec![b.len()], b));
+                    ep.shift = Some(self.add_tensor(bname, vec![b.len()], b.to_vec()));
                 }
-                if self.absorb_relu(last, id) {
-                    ep.relu = true;
-                    last = self.graph.users(last)[0];
-                }
+                // A ReLU after the conv, or after its folded BatchNorm.
+                ep.relu = self.absorb_relu(bn.unwrap_or(id), id);
                 let kernel = Kernel::Conv2d {
                     cout: s.cout,
                     kernel: [s.kh, s.kw],
@@ -227,17 +228,13 @@ impl Lowering<'_> {
                     weight: wt,
                     epilogue: ep,
                 };
-                self.emit_fused(id, kernel, inputs, last);
+                self.emit(id, kernel, inputs);
             }
             Op::BatchNorm { .. } => {
                 let (st, sh) = self.fold_bn(id, None)?;
-                let mut ep = EpilogueSpec { scale: Some(st), shift: Some(sh), relu: false };
-                let mut last = id;
-                if self.absorb_relu(id, id) {
-                    ep.relu = true;
-                    last = self.graph.users(id)[0];
-                }
-                self.emit_fused(id, Kernel::ChannelAffine { epilogue: ep }, inputs, last);
+                let relu = self.absorb_relu(id, id);
+                let ep = EpilogueSpec { scale: Some(st), shift: Some(sh), relu };
+                self.emit(id, Kernel::ChannelAffine { epilogue: ep }, inputs);
             }
             Op::Linear { in_features, out_features, bias } => {
                 // Stored transposed, [in, out]: the layout GEMM reads fastest.
@@ -254,56 +251,33 @@ impl Lowering<'_> {
                 let wt = self.add_tensor(wname, vec![fin, fout], t);
                 let mut ep = EpilogueSpec::default();
                 if *bias {
-                    let b = self.weight(node, "bias")?.clone();
+                    let b = self.weight(node, "bias")?.to_vec();
                     let bname = ir::join_path(&node.path, "bias");
                     self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
                     ep.shift = Some(self.add_tensor(bname, vec![b.len()], b));
                 }
-                let mut last = id;
-                if self.absorb_relu(id, id) {
-                    ep.relu = true;
-                    last = self.graph.users(id)[0];
-                }
+                ep.relu = self.absorb_relu(id, id);
                 let kernel = Kernel::Linear { out_features: *out_features as usize, weight: wt, epilogue: ep };
-                self.emit_fused(id, kernel, inputs, last);
+                self.emit(id, kernel, inputs);
             }
             Op::LayerNorm { features, eps, affine } => {
                 let (mut wt, mut bt) = (None, None);
                 if *affine {
                     for (slot, target) in [("weight", &mut wt), ("bias", &mut bt)] {
-                        let data = self.weight(node, slot)?.clone();
+                        let data = self.weight(node, slot)?.to_vec();
                         let name = ir::join_path(&node.path, slot);
                         self.stored_as.insert(name.clone(), format!("tensor `{name}`"));
                         *target = Some(self.add_tensor(name, vec![*features as usize], data));
                     }
                 }
-                self.emit(id, Kernel::LayerNorm { weight: wt, bias: bt, eps: *eps as f32 }, inputs, id);
+                self.emit(id, Kernel::LayerNorm { weight: wt, bias: bt, eps: *eps as f32 }, inputs);
             }
             op => {
                 let kernel = simple_kernel(op).ok_or_else(|| ice(format!("no kernel for `{}`", op.kind_name())))?;
-                self.emit(id, kernel, inputs, id);
+                self.emit(id, kernel, inputs);
             }
         }
         Ok(())
-    }
-
-    fn emit_fused(&mut self, id: NodeId, kernel: Kernel, inputs: Vec<usize>, last: NodeId) {
-        self.emit(id, kernel, inputs, last);
-        // Every node absorbed into this step reads the step's value.
-        let out = self.steps.last().map(|s| s.output).unwrap_or(0);
-        let mut absorbed: Vec<NodeId> =
-            self.absorbed.iter().filter(|(_, into)| **into == id.index()).map(|(n, _)| *n).collect();
-        absorbed.sort();
-        for &n in &absorbed {
-            self.value_of.insert(ValueRef { node: n, port: 0 }, out);
-        }
-        if !absorbed.is_empty() {
-            let names: Vec<&str> = absorbed.iter().map(|&n| self.graph.node(n).path.as_str()).collect();
-            let path = format!("{} (+{})", self.graph.node(id).path, names.join(", "));
-            if let Some(step) = self.steps.last_mut() {
-                step.path = path;
-            }
-        }
     }
 }
 
@@ -351,7 +325,7 @@ fn simple_kernel(op: &Op) -> Option<Kernel> {
 }
 
 /// Lowers a verified graph with all its weights bound.
-pub fn lower(graph: &Graph, bound: &Bound) -> Result<Lowered, Diagnostics> {
+pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
     let order = graph.topo_order().ok_or_else(|| ice("the graph has a cycle".into()))?;
     let mut uses: HashMap<NodeId, usize> = HashMap::new();
     for id in graph.node_ids() {

@@ -77,16 +77,17 @@ impl WeightSet {
     }
 }
 
-/// The value of every parameter slot of the graph, by full name.
-pub type Bound = HashMap<String, Vec<f32>>;
+/// The value of every parameter slot of the graph, by full name, borrowed from the
+/// weight set (weights are copied once, into the plan, by `lower`).
+pub type Bound<'w> = HashMap<String, &'w [f32]>;
 
 /// Binds `weights` to the graph's slots. `weights_name` names the file in messages.
-pub fn bind(
+pub fn bind<'w>(
     graph: &Graph,
-    weights: &WeightSet,
+    weights: &'w WeightSet,
     weights_name: &str,
     allow_unused: bool,
-) -> Result<(Bound, Diagnostics), Diagnostics> {
+) -> Result<(Bound<'w>, Diagnostics), Diagnostics> {
     let mut diags = Diagnostics::default();
     let mut bound = Bound::new();
     let expected: std::collections::HashSet<String> =
@@ -133,7 +134,7 @@ pub fn bind(
                 );
                 continue;
             }
-            bound.insert(name, data.clone());
+            bound.insert(name, data.as_slice());
         }
     }
     for name in weights.tensors.keys() {
