@@ -161,14 +161,40 @@ pub struct ParamSpec {
     pub trainable: bool,
     /// How it is stored: `tensor <name>`, `folded into <tensor>`, `unused`.
     pub stored_as: String,
+    /// Added by an adaptation rule (a LoRA matrix, an adapter weight): zero in the base
+    /// model, owned by the variants.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub added: bool,
 }
 
-/// The tensors one variant replaces (format version 1 writes none).
+/// One variant: the stored tensors it reads instead of the base's, and its budget.
+///
+/// A run under the variant reads tensor `with` wherever a step names tensor `base`; every
+/// other tensor is the base's. Replacements are ordinary entries of
+/// [`Manifest::tensors`] (stored once however many variants share them) and have their
+/// base tensor's shape.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct VariantTable {
+    /// The variant's key, `fog=0.03` or `missing=lidar`.
     pub key: String,
-    /// `(tensor index in the base table, name of the replacement in the container)`.
-    pub replaces: Vec<(usize, String)>,
+    pub replaces: Vec<Replacement>,
+    /// Elements of existing parameters the variant owns (the paper's "exist budget").
+    pub tuned_elements: u64,
+    /// Elements of parameters the variant adds: LoRA matrices, adapters ("add budget").
+    pub added_elements: u64,
+    /// Owned parameters the variant's files did not provide; they keep the base value.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fallback: Vec<String>,
+}
+
+/// A base tensor a variant replaces, and with which.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Replacement {
+    pub base: usize,
+    pub with: usize,
+    /// Derived from parameters the adaptation rules add (LoRA, adapters), rather than
+    /// from tuned existing parameters.
+    pub added: bool,
 }
 
 /// One step of the schedule: a kernel applied to values.
@@ -618,9 +644,15 @@ impl Plan {
             }
         }
         for v in &m.variants {
-            for (t, _) in &v.replaces {
-                if *t >= m.tensors.len() {
-                    return bad(format!("variant `{}` replaces tensor {t} of {}", v.key, m.tensors.len()));
+            for r in &v.replaces {
+                if r.base >= m.tensors.len() || r.with >= m.tensors.len() {
+                    return bad(format!(
+                        "variant `{}` replaces tensor {} with {} of {}",
+                        v.key,
+                        r.base,
+                        r.with,
+                        m.tensors.len()
+                    ));
                 }
             }
         }

@@ -385,6 +385,7 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
             shape: slot.shape.iter().map(|&d| d as usize).collect(),
             trainable: slot.kind == SlotKind::Param,
             stored_as: l.stored_as.get(&name).cloned().unwrap_or_else(|| "not used by the plan".into()),
+            added: false,
             name,
         })
         .collect();
