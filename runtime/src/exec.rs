@@ -4,20 +4,34 @@
 //! (and any run with a new batch size) *binds* the plan: it evaluates every value's shape
 //! from the inputs', checks each step against its kernel's requirements (a plan file is
 //! untrusted), and allocates one buffer per slot of the plan's buffer plan plus the
-//! kernels' scratch. Later runs at the same batch size allocate nothing but the output
-//! tensors they return; weights are read in place from the plan.
+//! kernels' scratch. Later runs at the same batch size allocate nothing in the executor
+//! but the output tensors they return (`runtime/tests/allocations.rs` counts; some
+//! kernels still allocate small per-call work lists: conv, the GEMM, matmul, permute,
+//! mean and broadcasting binary ops); weights are read in place from the plan.
 //!
 //! An `optional` input that is not given is zero-filled.
+//!
+//! # Variants
+//!
+//! A session's active variant (see [`crate::plan`]) is an atomic index shared with every
+//! [`VariantSwitch`] handle taken from it. Switching looks the key up and stores the
+//! index: no weight is copied or rewritten and nothing is allocated, and it may happen
+//! from any thread while a run is in progress. A run loads the index once, at its start,
+//! and resolves every tensor access through that variant's map, so each run sees exactly
+//! one variant.
 
 use std::collections::HashMap;
 use std::fmt;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use rayon::prelude::*;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::pool::{self, Pool2dShape, PoolKind};
 use crate::kernels::resize::{self, ResizeMode};
 use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
-use crate::plan::{EpilogueSpec, Kernel, Plan, Storage, show_shape};
+use crate::plan::{EpilogueSpec, Kernel, Plan, Step, Storage, VariantTensors, show_shape};
 
 /// A dense f32 tensor returned by a run.
 #[derive(Clone, Debug, PartialEq)]
@@ -53,7 +67,14 @@ pub enum RunError {
     BadPlan { step: String, detail: String },
     /// The thread pool could not be created.
     Threads(String),
+    /// A variant key the plan does not have.
+    UnknownVariant { key: String, known: Vec<String>, nearest: Option<String> },
+    /// A variant index past the plan's variants.
+    VariantIndex { index: usize, count: usize },
 }
+
+/// Most keys an [`RunError::UnknownVariant`] message lists.
+const KEYS_SHOWN: usize = 24;
 
 impl fmt::Display for RunError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -74,6 +95,21 @@ impl fmt::Display for RunError {
             }
             RunError::BadPlan { step, detail } => write!(f, "invalid plan at {step}: {detail}"),
             RunError::Threads(e) => write!(f, "cannot start the thread pool: {e}"),
+            RunError::UnknownVariant { key, known, nearest } => {
+                write!(f, "the plan has no variant `{key}`")?;
+                if let Some(near) = nearest {
+                    write!(f, "; did you mean `{near}`?")?;
+                }
+                let shown: Vec<&str> = known.iter().take(KEYS_SHOWN).map(String::as_str).collect();
+                write!(f, " (its variants: {}", shown.join(", "))?;
+                if known.len() > KEYS_SHOWN {
+                    write!(f, " and {} more", known.len() - KEYS_SHOWN)?;
+                }
+                f.write_str(")")
+            }
+            RunError::VariantIndex { index, count } => {
+                write!(f, "variant index {index} is out of range: the plan has {count} variants (0 is the base)")
+            }
         }
     }
 }
@@ -85,14 +121,26 @@ pub struct Session {
     plan: Arc<Plan>,
     pool: rayon::ThreadPool,
     threads: usize,
+    /// The active variant's index, shared with every [`VariantSwitch`]; always a valid
+    /// index (stores are checked).
+    active: Arc<AtomicUsize>,
+    /// The variant the last successful run used.
+    last_variant: Option<usize>,
     bound: Option<Bound>,
+    /// Per plan input, the position in the caller's list of the input of that name.
+    /// Refilled by every run; kept so that a run does not allocate it.
+    given: Vec<Option<usize>>,
+    /// The symbol values of the current run in `manifest.symbols` order (0: not bound
+    /// yet). Refilled by every run.
+    symbols: Vec<usize>,
     /// Accumulated seconds per step, when profiling.
     profile: Option<Vec<f64>>,
 }
 
 /// Everything that depends on the bound symbol values.
 struct Bound {
-    bindings: HashMap<String, usize>,
+    /// The symbol values the buffers were made for, in `manifest.symbols` order.
+    symbols: Vec<usize>,
     shapes: Vec<Vec<usize>>,
     slots: Vec<Vec<f32>>,
     scratch: Vec<f32>,
@@ -102,12 +150,24 @@ struct Bound {
     zeros: Vec<Vec<f32>>,
 }
 
+/// What one run reads besides its buffers: the stored tensors under the run's variant
+/// and the caller's inputs.
+#[derive(Clone, Copy)]
+struct Run<'a> {
+    plan: &'a Plan,
+    weights: VariantTensors<'a>,
+    inputs: &'a [Input<'a>],
+    /// [`Session::given`].
+    given: &'a [Option<usize>],
+}
+
 fn bad(step: &str, detail: impl Into<String>) -> RunError {
     RunError::BadPlan { step: step.to_string(), detail: detail.into() }
 }
 
 impl Session {
-    /// A session running `plan` on `threads` threads (at least 1).
+    /// A session running `plan` on `threads` threads (at least 1), under the base
+    /// variant.
     pub fn new(plan: Arc<Plan>, threads: usize) -> Result<Session, RunError> {
         let threads = threads.max(1);
         let pool = rayon::ThreadPoolBuilder::new()
@@ -115,7 +175,19 @@ impl Session {
             .thread_name(|i| format!("readi-{i}"))
             .build()
             .map_err(|e| RunError::Threads(e.to_string()))?;
-        Ok(Session { plan, pool, threads, bound: None, profile: None })
+        let given = Vec::with_capacity(plan.manifest.inputs.len());
+        let symbols = vec![0; plan.manifest.symbols.len()];
+        Ok(Session {
+            plan,
+            pool,
+            threads,
+            active: Arc::new(AtomicUsize::new(0)),
+            last_variant: None,
+            bound: None,
+            given,
+            symbols,
+            profile: None,
+        })
     }
 
     /// Starts (or restarts) accumulating the time each step takes across runs.
@@ -136,17 +208,49 @@ impl Session {
         self.threads
     }
 
-    /// Runs the plan. Inputs are matched by name; absent `optional` inputs are zeros.
-    /// Returns the outputs in the plan's order, with their names.
+    /// Makes variant `key` ([`BASE_VARIANT`](crate::plan::BASE_VARIANT) for the base)
+    /// active for the runs that start from now on. A run in progress keeps its variant.
+    /// Copies no weights and allocates nothing (except for the error of an unknown key).
+    pub fn set_variant(&self, key: &str) -> Result<(), RunError> {
+        select(&self.plan, &self.active, key)
+    }
+
+    /// The active variant's key: the one the next run will use, unless it is switched
+    /// before.
+    pub fn variant(&self) -> &str {
+        self.plan.variant_key(self.active.load(Ordering::Acquire))
+    }
+
+    /// A handle that switches this session's variant, for another thread (or many).
+    pub fn switch_handle(&self) -> VariantSwitch {
+        VariantSwitch { plan: Arc::clone(&self.plan), active: Arc::clone(&self.active) }
+    }
+
+    /// The index of the variant the last successful run used (its key:
+    /// [`Plan::variant_key`]), or `None` before the first.
+    pub fn last_variant(&self) -> Option<usize> {
+        self.last_variant
+    }
+
+    /// Runs the plan under the active variant. Inputs are matched by name; absent
+    /// `optional` inputs are zeros. Returns the outputs in the plan's order, with their
+    /// names.
     pub fn run(&mut self, inputs: &[Input<'_>]) -> Result<Vec<(String, Tensor)>, RunError> {
+        // The run's only read of the active variant: every tensor access below resolves
+        // through this variant's map, whatever switches happen meanwhile.
+        let variant = self.active.load(Ordering::Acquire);
         let plan = Arc::clone(&self.plan);
         let m = &plan.manifest;
+        let weights = plan
+            .variant_tensors(variant)
+            .ok_or(RunError::VariantIndex { index: variant, count: plan.variant_count() })?;
         // Match inputs to the plan's.
-        let mut given: Vec<Option<&Input<'_>>> = vec![None; m.inputs.len()];
-        for inp in inputs {
+        self.given.clear();
+        self.given.resize(m.inputs.len(), None);
+        for (pos, inp) in inputs.iter().enumerate() {
             match m.inputs.iter().position(|s| s.name == inp.name) {
-                Some(i) if given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
-                Some(i) => given[i] = Some(inp),
+                Some(i) if self.given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
+                Some(i) => self.given[i] = Some(pos),
                 None => {
                     return Err(RunError::UnknownInput {
                         name: inp.name.into(),
@@ -155,37 +259,40 @@ impl Session {
                 }
             }
         }
-        let bindings = self.bind_symbols(&given)?;
-        for (spec, g) in m.inputs.iter().zip(&given) {
-            if let Some(inp) = g
-                && let Some(index) = inp.data.iter().position(|v| !v.is_finite())
+        self.bind_symbols(inputs)?;
+        for (spec, g) in m.inputs.iter().zip(&self.given) {
+            if let Some(pos) = *g
+                && let Some(index) = inputs[pos].data.iter().position(|v| !v.is_finite())
             {
-                return Err(RunError::NotFinite { name: spec.name.clone(), index, value: inp.data[index] });
+                return Err(RunError::NotFinite { name: spec.name.clone(), index, value: inputs[pos].data[index] });
             }
         }
-        if self.bound.as_ref().is_none_or(|b| b.bindings != bindings) {
-            self.bound = Some(bind(&plan, bindings, self.threads)?);
+        if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
+            self.bound = Some(bind(&plan, &self.symbols, self.threads)?);
         }
         let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        let run = Run { plan: &plan, weights, inputs, given: &self.given };
         let threads = self.threads;
-        let given_data: Vec<Option<&[f32]>> = given.iter().map(|g| g.map(|i| i.data)).collect();
         let profile = self.profile.as_deref_mut();
-        self.pool.install(|| execute(&plan, bound, &given_data, threads, profile))?;
-        let bound = self.bound.as_ref().ok_or_else(|| bad("run", "no buffers"))?;
+        self.pool.install(|| execute(&run, bound, threads, profile))?;
+        let bound: &Bound = bound;
         let mut out = Vec::with_capacity(m.outputs.len());
         for o in &m.outputs {
-            let data = value_slice(&plan, bound, &given_data, o.value).to_vec();
+            let data = value_slice(&run, bound, o.value).to_vec();
             out.push((o.name.clone(), Tensor { shape: bound.shapes[o.value].clone(), data }));
         }
+        self.last_variant = Some(variant);
         Ok(out)
     }
 
-    /// Binds the symbols from the given inputs' shapes and checks every given input.
-    fn bind_symbols(&self, given: &[Option<&Input<'_>>]) -> Result<HashMap<String, usize>, RunError> {
+    /// Binds the symbols from the given inputs' shapes into `self.symbols` and checks every
+    /// given input (`self.given`). Allocates nothing unless it fails.
+    fn bind_symbols(&mut self, inputs: &[Input<'_>]) -> Result<(), RunError> {
         let m = &self.plan.manifest;
-        let mut bindings: HashMap<String, usize> = HashMap::new();
-        for (spec, g) in m.inputs.iter().zip(given) {
-            let Some(inp) = g else {
+        let symbols = &mut self.symbols;
+        symbols.fill(0);
+        for (spec, g) in m.inputs.iter().zip(&self.given) {
+            let Some(inp) = g.map(|pos| &inputs[pos]) else {
                 if !spec.optional {
                     return Err(RunError::MissingInput { name: spec.name.clone() });
                 }
@@ -221,15 +328,18 @@ impl Session {
                             return Err(shape_err(format!("axis {axis} must be a positive multiple of {c}")));
                         }
                         let v = got / c;
-                        match bindings.get(s) {
-                            Some(&prev) if prev != v => {
+                        // Validation: every symbol of an input's shape is one of the plan's.
+                        let Some(k) = m.symbols.iter().position(|x| x == s) else {
+                            return Err(bad(&format!("input `{}`", spec.name), format!("unknown symbol `{s}`")));
+                        };
+                        match symbols[k] {
+                            0 => symbols[k] = v,
+                            prev if prev != v => {
                                 return Err(shape_err(format!(
                                     "axis {axis} gives {s} = {v}, another input gave {prev}"
                                 )));
                             }
-                            _ => {
-                                bindings.insert(s.clone(), v);
-                            }
+                            _ => {}
                         }
                     }
                     _ => {
@@ -240,19 +350,108 @@ impl Session {
                 }
             }
         }
-        for s in &m.symbols {
-            if !bindings.contains_key(s) {
-                // Every input that carries this symbol is absent: a batch of one.
-                bindings.insert(s.clone(), 1);
-            }
+        for v in symbols.iter_mut().filter(|v| **v == 0) {
+            // Every input that carries this symbol is absent: a batch of one.
+            *v = 1;
         }
-        Ok(bindings)
+        Ok(())
     }
 }
 
-/// Evaluates shapes, checks the steps, and allocates buffers for one binding.
-fn bind(plan: &Plan, bindings: HashMap<String, usize>, threads: usize) -> Result<Bound, RunError> {
+/// Switches the variant of the session it was taken from ([`Session::switch_handle`]),
+/// from any thread, while that session runs or not. Cheap to clone; every clone switches
+/// the same session.
+#[derive(Clone)]
+pub struct VariantSwitch {
+    plan: Arc<Plan>,
+    active: Arc<AtomicUsize>,
+}
+
+impl VariantSwitch {
+    /// Makes variant `key` active for the runs that start from now on: a lookup that
+    /// allocates nothing and an atomic store. A run in progress keeps its variant.
+    pub fn set(&self, key: &str) -> Result<(), RunError> {
+        select(&self.plan, &self.active, key)
+    }
+
+    /// As [`set`](VariantSwitch::set), by index (0 is the base).
+    pub fn set_index(&self, index: usize) -> Result<(), RunError> {
+        let count = self.plan.variant_count();
+        if index >= count {
+            return Err(RunError::VariantIndex { index, count });
+        }
+        self.active.store(index, Ordering::Release);
+        Ok(())
+    }
+
+    /// The active variant's index.
+    pub fn index(&self) -> usize {
+        self.active.load(Ordering::Acquire)
+    }
+
+    /// The active variant's key.
+    pub fn key(&self) -> &str {
+        self.plan.variant_key(self.index())
+    }
+}
+
+impl fmt::Debug for VariantSwitch {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("VariantSwitch").field("active", &self.key()).finish()
+    }
+}
+
+/// Looks `key` up and stores its index; the lookup is a binary search over the plan's
+/// keys, so nothing is allocated unless the key is unknown.
+fn select(plan: &Plan, active: &AtomicUsize, key: &str) -> Result<(), RunError> {
+    let Some(i) = plan.variant_index(key) else {
+        let known: Vec<String> = plan.variant_keys().map(str::to_string).collect();
+        let nearest = nearest_key(key, &known).map(str::to_string);
+        return Err(RunError::UnknownVariant { key: key.to_string(), known, nearest });
+    };
+    active.store(i, Ordering::Release);
+    Ok(())
+}
+
+/// The known key closest to `key` by edit distance (ignoring case), if it is close: at
+/// most a third of the key's length, and at least 1, edits away.
+fn nearest_key<'a>(key: &str, known: &'a [String]) -> Option<&'a str> {
+    let key = key.to_lowercase();
+    let limit = (key.chars().count() / 3).max(1);
+    known
+        .iter()
+        .map(|k| (edit_distance(&key, &k.to_lowercase()), k.as_str()))
+        .filter(|&(d, _)| d <= limit)
+        .min_by_key(|&(d, _)| d)
+        .map(|(_, k)| k)
+}
+
+/// Levenshtein distance over chars.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut diag = row[0];
+        row[0] = i + 1;
+        for (j, &cb) in b.iter().enumerate() {
+            let next = (diag + usize::from(ca != cb)).min(row[j] + 1).min(row[j + 1] + 1);
+            diag = row[j + 1];
+            row[j + 1] = next;
+        }
+    }
+    row[b.len()]
+}
+
+/// Evaluates shapes, checks the steps, and allocates buffers for one binding of the
+/// symbols (values in `manifest.symbols` order).
+///
+/// The checks read the base's tensors. Every variant's replacement has exactly its base
+/// tensor's shape (checked when the plan was built), so they hold under every variant
+/// and a switch needs no new check.
+fn bind(plan: &Plan, symbols: &[usize], threads: usize) -> Result<Bound, RunError> {
     let m = &plan.manifest;
+    let base = plan.base_tensors();
+    let bindings: HashMap<String, usize> = m.symbols.iter().cloned().zip(symbols.iter().copied()).collect();
     let mut shapes = Vec::with_capacity(m.values.len());
     for (i, v) in m.values.iter().enumerate() {
         let s: Option<Vec<usize>> = v.shape.iter().map(|d| d.eval(&bindings)).collect();
@@ -268,7 +467,7 @@ fn bind(plan: &Plan, bindings: HashMap<String, usize>, threads: usize) -> Result
         match v.storage {
             Storage::Slot(s) => slot_len[s] = slot_len[s].max(numel(i)),
             Storage::Tensor(t) => {
-                if plan.tensor(t).len() != numel(i) {
+                if base.get(t).len() != numel(i) {
                     return Err(bad(&format!("value {i}"), "stored tensor does not match the value's shape"));
                 }
             }
@@ -279,7 +478,13 @@ fn bind(plan: &Plan, bindings: HashMap<String, usize>, threads: usize) -> Result
     let mut scratch = 0usize;
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
-        let conv = check_step(plan, &shapes, step, &at)?;
+        // `execute` takes a step's output buffer out while it reads the inputs.
+        if let Storage::Slot(o) = m.values[step.output].storage
+            && step.inputs.iter().any(|&i| m.values[i].storage == Storage::Slot(o))
+        {
+            return Err(bad(&at, format!("reads buffer {o}, which it writes")));
+        }
+        let conv = check_step(base, &shapes, step, &at)?;
         if let Some((s, algo)) = &conv {
             scratch = scratch.max(conv::scratch_len(s, *algo, threads));
         }
@@ -288,7 +493,7 @@ fn bind(plan: &Plan, bindings: HashMap<String, usize>, threads: usize) -> Result
     let zeros =
         m.inputs.iter().map(|spec| if spec.optional { vec![0.0; numel(spec.value)] } else { Vec::new() }).collect();
     Ok(Bound {
-        bindings,
+        symbols: symbols.to_vec(),
         shapes,
         slots: slot_len.into_iter().map(|n| vec![0.0; n]).collect(),
         scratch: vec![0.0; scratch],
@@ -297,12 +502,12 @@ fn bind(plan: &Plan, bindings: HashMap<String, usize>, threads: usize) -> Result
     })
 }
 
-fn tensor_len(plan: &Plan, t: Option<usize>) -> Option<usize> {
-    t.map(|t| plan.tensor(t).len())
+fn tensor_len(w: VariantTensors<'_>, t: Option<usize>) -> Option<usize> {
+    t.map(|t| w.get(t).len())
 }
 
-fn check_epilogue(plan: &Plan, ep: &EpilogueSpec, channels: usize, at: &str) -> Result<(), RunError> {
-    for len in [tensor_len(plan, ep.scale), tensor_len(plan, ep.shift)].into_iter().flatten() {
+fn check_epilogue(w: VariantTensors<'_>, ep: &EpilogueSpec, channels: usize, at: &str) -> Result<(), RunError> {
+    for len in [tensor_len(w, ep.scale), tensor_len(w, ep.shift)].into_iter().flatten() {
         if len != channels {
             return Err(bad(at, format!("epilogue has {len} values for {channels} channels")));
         }
@@ -319,11 +524,12 @@ fn window_out(len: usize, k: usize, s: usize, p: usize, d: usize, ceil: bool) ->
 }
 
 /// Checks a step's inputs and output against what its kernel needs, so kernels never see
-/// inconsistent sizes. Returns the conv parameters for conv steps.
+/// inconsistent sizes. Returns the conv parameters for conv steps. Reads the tensors of
+/// the base (`w`): see [`bind`].
 fn check_step(
-    plan: &Plan,
+    w: VariantTensors<'_>,
     shapes: &[Vec<usize>],
-    step: &crate::plan::Step,
+    step: &Step,
     at: &str,
 ) -> Result<Option<(Conv2dShape, ConvAlgo)>, RunError> {
     let ins: Vec<&Vec<usize>> = step.inputs.iter().map(|&i| &shapes[i]).collect();
@@ -367,10 +573,10 @@ fn check_step(
                 return Err(bad(at, "groups must divide both channel counts"));
             }
             same(out, &[s.n, s.cout, oh.unwrap_or(0), ow.unwrap_or(0)], "conv2d output shape")?;
-            if plan.tensor(*weight).len() != conv::packed_weight_len(&s, algo) {
+            if w.get(*weight).len() != conv::packed_weight_len(&s, algo) {
                 return Err(bad(at, "conv2d weight has the wrong size"));
             }
-            check_epilogue(plan, epilogue, s.cout, at)?;
+            check_epilogue(w, epilogue, s.cout, at)?;
             return Ok(Some((s, algo)));
         }
         Kernel::Linear { out_features, weight, epilogue } => {
@@ -380,10 +586,10 @@ fn check_step(
             let mut want = lead.to_vec();
             want.push(*out_features);
             same(out, &want, "linear output shape")?;
-            if plan.tensor(*weight).len() != fin * out_features {
+            if w.get(*weight).len() != fin * out_features {
                 return Err(bad(at, "linear weight has the wrong size"));
             }
-            check_epilogue(plan, epilogue, *out_features, at)?;
+            check_epilogue(w, epilogue, *out_features, at)?;
         }
         Kernel::MatMul => {
             arity(2)?;
@@ -411,13 +617,13 @@ fn check_step(
             if ins[0].len() < 2 {
                 return Err(bad(at, "channel affine needs a channel axis"));
             }
-            check_epilogue(plan, epilogue, ins[0][1], at)?;
+            check_epilogue(w, epilogue, ins[0][1], at)?;
         }
         Kernel::LayerNorm { weight, bias, .. } => {
             arity(1)?;
             same(out, ins[0], "layernorm shape")?;
             let f = ins[0].last().copied().unwrap_or(0);
-            for len in [tensor_len(plan, *weight), tensor_len(plan, *bias)].into_iter().flatten() {
+            for len in [tensor_len(w, *weight), tensor_len(w, *bias)].into_iter().flatten() {
                 if len != f {
                     return Err(bad(at, "layernorm parameters have the wrong size"));
                 }
@@ -527,46 +733,41 @@ fn broadcast(a: &[usize], b: &[usize]) -> Option<Vec<usize>> {
         .collect()
 }
 
-/// The data of a value.
-fn value_slice<'a>(plan: &'a Plan, bound: &'a Bound, given: &[Option<&'a [f32]>], v: usize) -> &'a [f32] {
+/// The data of a value, stored tensors resolved under the run's variant.
+fn value_slice<'a>(run: &Run<'a>, bound: &'a Bound, v: usize) -> &'a [f32] {
     let n: usize = bound.shapes[v].iter().product();
-    match plan.manifest.values[v].storage {
-        Storage::Input(i) => given[i].unwrap_or(&bound.zeros[i]),
+    match run.plan.manifest.values[v].storage {
+        Storage::Input(i) => match run.given[i] {
+            Some(pos) => run.inputs[pos].data,
+            None => &bound.zeros[i],
+        },
         Storage::Slot(s) => &bound.slots[s][..n],
-        Storage::Tensor(t) => plan.tensor(t),
+        Storage::Tensor(t) => run.weights.get(t),
     }
 }
 
-fn epilogue<'a>(plan: &'a Plan, e: &EpilogueSpec) -> Epilogue<'a> {
-    Epilogue { scale: e.scale.map(|t| plan.tensor(t)), shift: e.shift.map(|t| plan.tensor(t)), relu: e.relu }
+fn epilogue<'a>(w: VariantTensors<'a>, e: &EpilogueSpec) -> Epilogue<'a> {
+    Epilogue { scale: e.scale.map(|t| w.get(t)), shift: e.shift.map(|t| w.get(t)), relu: e.relu }
 }
 
-/// Runs every step in order.
-fn execute(
-    plan: &Plan,
-    bound: &mut Bound,
-    given: &[Option<&[f32]>],
-    threads: usize,
-    mut profile: Option<&mut [f64]>,
-) -> Result<(), RunError> {
-    let m = &plan.manifest;
+/// Runs every step in order. Allocates nothing: inputs are fetched by each kernel as
+/// it needs them.
+fn execute(run: &Run<'_>, bound: &mut Bound, threads: usize, mut profile: Option<&mut [f64]>) -> Result<(), RunError> {
+    let m = &run.plan.manifest;
     for (k, step) in m.steps.iter().enumerate() {
         let start = profile.is_some().then(std::time::Instant::now);
         let Storage::Slot(out_slot) = m.values[step.output].storage else {
             return Err(bad(&step.path, "output is not an activation buffer"));
         };
-        // Take the output buffer out so inputs can be borrowed alongside it; the buffer
-        // plan never gives a step's output the slot of one of its inputs.
+        // Take the output buffer out so inputs can be borrowed alongside it; `bind`
+        // checked that no step reads the slot it writes.
         let mut out_buf = std::mem::take(&mut bound.slots[out_slot]);
         let out_len: usize = bound.shapes[step.output].iter().product();
         let mut scratch = std::mem::take(&mut bound.scratch);
         {
             let b: &Bound = bound;
-            let ins: Vec<&[f32]> = step.inputs.iter().map(|&i| value_slice(plan, b, given, i)).collect();
-            let in_shapes: Vec<&[usize]> = step.inputs.iter().map(|&i| b.shapes[i].as_slice()).collect();
             let out = &mut out_buf[..out_len];
-            let out_shape = &b.shapes[step.output];
-            run_step(plan, &step.kernel, b.convs[k].as_ref(), &ins, &in_shapes, out, out_shape, &mut scratch, threads);
+            run_step(run, b, step, b.convs[k].as_ref(), out, &mut scratch, threads);
         }
         bound.scratch = scratch;
         bound.slots[out_slot] = out_buf;
@@ -577,56 +778,63 @@ fn execute(
     Ok(())
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Runs one step, its shapes checked at bind time.
 fn run_step(
-    plan: &Plan,
-    kernel: &Kernel,
+    run: &Run<'_>,
+    b: &Bound,
+    step: &Step,
     conv_params: Option<&(Conv2dShape, ConvAlgo)>,
-    ins: &[&[f32]],
-    in_shapes: &[&[usize]],
     out: &mut [f32],
-    out_shape: &[usize],
     scratch: &mut [f32],
     threads: usize,
 ) {
-    let x = ins[0];
-    let xs = in_shapes[0];
-    match kernel {
+    let w = run.weights;
+    let input = |j: usize| {
+        let v = step.inputs[j];
+        (value_slice(run, b, v), b.shapes[v].as_slice())
+    };
+    let out_shape = b.shapes[step.output].as_slice();
+    // Every kernel takes at least one input (checked at bind time).
+    let (x, xs) = input(0);
+    match &step.kernel {
         Kernel::Conv2d { weight, epilogue: ep, .. } => {
             if let Some((s, algo)) = conv_params {
-                conv::conv2d(s, *algo, plan.tensor(*weight), &epilogue(plan, ep), x, out, scratch, threads);
+                conv::conv2d(s, *algo, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
             }
         }
         Kernel::Linear { out_features, weight, epilogue: ep } => {
             let fin = xs.last().copied().unwrap_or(1);
             let rows = x.len() / fin.max(1);
-            let (w, layout) = (plan.tensor(*weight), linear::WeightLayout::InOut);
-            linear::linear(x, rows, fin, w, layout, *out_features, &epilogue(plan, ep), out, threads);
+            let layout = linear::WeightLayout::InOut;
+            linear::linear(x, rows, fin, w.get(*weight), layout, *out_features, &epilogue(w, ep), out, threads);
         }
-        Kernel::MatMul => linear::matmul(x, xs, ins[1], in_shapes[1], out, out_shape, threads),
-        Kernel::Binary { op } => elementwise::binary((*op).into(), x, xs, ins[1], in_shapes[1], out, out_shape),
+        Kernel::MatMul => {
+            let (y, ys) = input(1);
+            linear::matmul(x, xs, y, ys, out, out_shape, threads);
+        }
+        Kernel::Binary { op } => {
+            let (y, ys) = input(1);
+            elementwise::binary((*op).into(), x, xs, y, ys, out, out_shape);
+        }
         Kernel::Scalar { op, value, scalar_first } => elementwise::scalar((*op).into(), x, *value, *scalar_first, out),
         Kernel::Activation { act } => elementwise::activation((*act).into(), x, out),
         Kernel::ChannelAffine { epilogue: ep } => {
             let (n, c) = (xs[0], xs[1]);
             let inner = x.len() / (n * c).max(1);
-            let e = epilogue(plan, ep);
+            let e = epilogue(w, ep);
             norm::channel_affine(x, n, c, inner, e.scale, e.shift, e.relu, out);
         }
         Kernel::LayerNorm { weight, bias, eps } => {
             let f = xs.last().copied().unwrap_or(1);
             let rows = x.len() / f.max(1);
-            norm::layernorm(x, rows, f, weight.map(|t| plan.tensor(t)), bias.map(|t| plan.tensor(t)), *eps, out);
+            norm::layernorm(x, rows, f, weight.map(|t| w.get(t)), bias.map(|t| w.get(t)), *eps, out);
         }
         Kernel::Softmax { axis } => {
             let outer: usize = xs[..*axis].iter().product();
             let inner: usize = xs[*axis + 1..].iter().product();
             softmax::softmax(x, outer, xs[*axis], inner, out);
         }
-        Kernel::Concat { axis } => {
-            let parts: Vec<(&[f32], &[usize])> = ins.iter().copied().zip(in_shapes.iter().copied()).collect();
-            layout::concat(&parts, *axis, out);
-        }
+        Kernel::Concat { axis } => concat(step.inputs.len(), input, *axis, out, out_shape),
         Kernel::Reshape => out.copy_from_slice(x),
         Kernel::Permute { perm } => layout::permute(x, xs, perm, out),
         Kernel::Pool { max, kernel, stride, padding, ceil_mode, count_include_pad } => {
@@ -668,6 +876,51 @@ fn run_step(
     }
 }
 
+/// Outputs at least this long are copied in parallel.
+const CONCAT_PAR_MIN: usize = 1 << 15;
+/// Elements per parallel task.
+const CONCAT_CHUNK: usize = 1 << 14;
+
+/// Concatenation along `axis` of `count` inputs given by `part`, each copied into its
+/// place in turn, so no list of inputs is built (the result is
+/// [`layout::concat`]'s). Shapes were checked at bind time.
+fn concat<'a>(
+    count: usize,
+    part: impl Fn(usize) -> (&'a [f32], &'a [usize]),
+    axis: usize,
+    out: &mut [f32],
+    out_shape: &[usize],
+) {
+    let inner: usize = out_shape[axis + 1..].iter().product();
+    let row = out_shape[axis] * inner;
+    if row == 0 || out.is_empty() {
+        return;
+    }
+    let outer = out.len() / row;
+    let mut at = 0;
+    for j in 0..count {
+        let (d, s) = part(j);
+        let n = s[axis] * inner;
+        if n == 0 {
+            continue;
+        }
+        let copy = |dst: &mut [f32], src: &[f32]| dst[at..at + n].copy_from_slice(src);
+        if out.len() < CONCAT_PAR_MIN {
+            out.chunks_mut(row).zip(d.chunks(n)).for_each(|(dst, src)| copy(dst, src));
+        } else if outer > 1 {
+            let min_rows = (CONCAT_CHUNK / row).max(1);
+            out.par_chunks_mut(row).zip(d.par_chunks(n)).with_min_len(min_rows).for_each(|(dst, src)| copy(dst, src));
+        } else {
+            // One block per input: split the copy instead.
+            out[at..at + n]
+                .par_chunks_mut(CONCAT_CHUNK)
+                .zip(d.par_chunks(CONCAT_CHUNK))
+                .for_each(|(dst, src)| dst.copy_from_slice(src));
+        }
+        at += n;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -677,6 +930,46 @@ mod tests {
         assert_eq!(window_out(224, 7, 2, 3, 1, false), Some(112));
         assert_eq!(window_out(1, 2, 2, 0, 1, true), Some(1));
         assert_eq!(window_out(3, 5, 1, 0, 1, false), None);
+    }
+
+    #[test]
+    fn concat_by_parts_matches_the_kernel() {
+        use crate::testdata::data;
+        // (shapes of the parts, axis): small, empty parts, one big block per part and
+        // many rows (both parallel paths).
+        let cases: [(&[&[usize]], usize); 5] = [
+            (&[&[2, 3, 4], &[2, 1, 4], &[2, 2, 4]], 1),
+            (&[&[2, 0, 4], &[2, 3, 4], &[2, 0, 4]], 1),
+            (&[&[3, 5], &[4, 5]], 0),
+            (&[&[1, 40_000], &[1, 30_000]], 1),
+            (&[&[600, 40, 2], &[600, 7, 2], &[600, 1, 2]], 1),
+        ];
+        for (k, (shapes, axis)) in cases.into_iter().enumerate() {
+            let datas: Vec<Vec<f32>> =
+                shapes.iter().enumerate().map(|(i, s)| data(s.iter().product(), (10 * k + i) as u64)).collect();
+            let parts: Vec<(&[f32], &[usize])> = datas.iter().map(Vec::as_slice).zip(shapes.iter().copied()).collect();
+            let mut out_shape = shapes[0].to_vec();
+            out_shape[axis] = shapes.iter().map(|s| s[axis]).sum();
+            let len = out_shape.iter().product();
+            let mut want = vec![f32::NAN; len];
+            layout::concat(&parts, axis, &mut want);
+            let mut got = vec![f32::NAN; len];
+            concat(parts.len(), |j| parts[j], axis, &mut got, &out_shape);
+            assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "case {k}");
+        }
+    }
+
+    #[test]
+    fn near_keys_are_suggested() {
+        assert_eq!(edit_distance("fog=0.05", "fog=0.5"), 1);
+        assert_eq!(edit_distance("", "abc"), 3);
+        assert_eq!(edit_distance("kitten", "sitting"), 3);
+        let known: Vec<String> = ["base", "fog=0.05", "fog=0.1", "gamma=0.25"].map(String::from).to_vec();
+        assert_eq!(nearest_key("fog=0.11", &known), Some("fog=0.1"));
+        assert_eq!(nearest_key("Gamma=0.25", &known), Some("gamma=0.25"));
+        assert_eq!(nearest_key("bas", &known), Some("base"));
+        assert_eq!(nearest_key("snow=1", &known), None);
+        assert_eq!(nearest_key("", &known), None);
     }
 
     #[test]

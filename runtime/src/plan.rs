@@ -6,7 +6,7 @@
 //! * `readi.format_version`: [`FORMAT_VERSION`], checked first;
 //! * `readi.manifest`: the [`Manifest`] as JSON: inputs, outputs, the schedule of steps,
 //!   every value's shape, the buffer plan, the stored tensors and the model's parameter
-//!   table, and per-variant tables (empty in this version);
+//!   table, and the variant tables;
 //! * `readi.checksum`: CRC-32 of the manifest text followed by every tensor's bytes in
 //!   manifest order, so a flipped bit anywhere is caught at load.
 //!
@@ -16,9 +16,18 @@
 //! checksum and every index in the manifest, and reports a [`PlanError`] naming what is
 //! wrong; shapes are checked again when a batch size is bound.
 //!
+//! # Variants
+//!
+//! A plan holds one base model and any number of *variants*, each a [`VariantTable`]
+//! naming the stored tensors it reads instead of the base's. Variant 0 is the base (key
+//! [`BASE_VARIANT`]); variant `i + 1` is `manifest.variants[i]`. At construction the plan
+//! builds, per variant, a dense map from the tensor index a step names to the tensor it
+//! reads ([`VariantTensors`]), so resolving a tensor under a variant is one array lookup
+//! and selecting a variant copies nothing.
+//!
 //! [safetensors]: https://huggingface.co/docs/safetensors
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::fmt;
 use std::ops::Range;
 use std::path::Path;
@@ -33,6 +42,14 @@ pub const FORMAT_VERSION: u32 = 1;
 const KEY_VERSION: &str = "readi.format_version";
 const KEY_MANIFEST: &str = "readi.manifest";
 const KEY_CHECKSUM: &str = "readi.checksum";
+
+/// The key of variant 0, the base model; no variant table may use it.
+pub const BASE_VARIANT: &str = "base";
+
+/// Most entries the variant maps may take together (variants x mapped tensors): 256 MiB.
+/// A real plan needs a few thousand; the bound keeps a small crafted manifest from asking
+/// for an enormous allocation.
+const MAX_MAP_ENTRIES: usize = 1 << 26;
 
 /// A dimension `coef * s1 * s2 ...` over the plan's symbols (the batch size `N`).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -437,9 +454,103 @@ enum Weights {
 }
 
 /// A compiled model: the manifest and its tensors.
+///
+/// The variant maps are built from the manifest at construction ([`Plan::new`],
+/// [`Plan::load`]); edit a manifest before building a plan from it, not after.
 pub struct Plan {
     pub manifest: Manifest,
     weights: Weights,
+    variants: VariantMaps,
+}
+
+/// Per variant, which stored tensor a step's tensor index resolves to; built once at
+/// construction so runs resolve with one array lookup and switching is a key lookup.
+#[derive(Default)]
+struct VariantMaps {
+    /// Key of each variant: [`BASE_VARIANT`], then the tables' keys in manifest order.
+    keys: Box<[Box<str>]>,
+    /// Variant indices sorted by [`key_order`], for lookups by binary search (no hashing,
+    /// no allocation).
+    by_key: Box<[u32]>,
+    /// `span` entries per variant: entry `t` of row `v` is the tensor variant `v` reads
+    /// where a step names tensor `t`. Row 0 (the base) is the identity.
+    maps: Box<[u32]>,
+    /// One past the highest tensor index a step or a value names (0 in a plan without
+    /// variants). Tensors from `span` on are never named by a step, so never replaced;
+    /// they resolve to themselves without an entry.
+    span: usize,
+}
+
+impl VariantMaps {
+    /// Builds the maps of a validated manifest.
+    fn build(m: &Manifest) -> VariantMaps {
+        // Without variants every lookup falls through to the identity: no map at all.
+        let span =
+            if m.variants.is_empty() { 0 } else { read_tensors(m).iter().rposition(|&r| r).map_or(0, |t| t + 1) };
+        let count = m.variants.len() + 1;
+        let mut maps: Vec<u32> = Vec::with_capacity(count * span);
+        for _ in 0..count {
+            // Validation bounds the tensor count by u32::MAX.
+            maps.extend((0..span).map(|t| t as u32));
+        }
+        for (i, v) in m.variants.iter().enumerate() {
+            let row = &mut maps[(i + 1) * span..(i + 2) * span];
+            for r in &v.replaces {
+                // Validation: `base` is read by a step, so below `span`.
+                row[r.base] = r.with as u32;
+            }
+        }
+        let keys: Box<[Box<str>]> =
+            std::iter::once(BASE_VARIANT).chain(m.variants.iter().map(|v| v.key.as_str())).map(Box::from).collect();
+        let mut by_key: Vec<u32> = (0..count as u32).collect();
+        by_key.sort_by(|&a, &b| key_order(&keys[a as usize], &keys[b as usize]));
+        VariantMaps { keys, by_key: by_key.into(), maps: maps.into(), span }
+    }
+}
+
+/// The order of the key lookup table: by length, then by bytes, so that most comparisons
+/// of a lookup are decided by the lengths.
+fn key_order(a: &str, b: &str) -> std::cmp::Ordering {
+    a.len().cmp(&b.len()).then_with(|| a.cmp(b))
+}
+
+/// The stored tensors as one variant sees them: where a step names tensor `t`, the
+/// variant reads [`resolve(t)`](VariantTensors::resolve). Cheap to copy.
+#[derive(Clone, Copy)]
+pub struct VariantTensors<'a> {
+    plan: &'a Plan,
+    map: &'a [u32],
+    index: usize,
+}
+
+impl<'a> VariantTensors<'a> {
+    /// The variant's index (0 is the base).
+    pub fn index(&self) -> usize {
+        self.index
+    }
+
+    /// The variant's key.
+    pub fn key(&self) -> &'a str {
+        &self.plan.variants.keys[self.index]
+    }
+
+    /// The stored tensor read where a step names tensor `t`.
+    #[inline]
+    pub fn resolve(&self, t: usize) -> usize {
+        self.map.get(t).map_or(t, |&w| w as usize)
+    }
+
+    /// The data read where a step names tensor `t`.
+    #[inline]
+    pub fn get(&self, t: usize) -> &'a [f32] {
+        self.plan.tensor(self.resolve(t))
+    }
+}
+
+impl fmt::Debug for VariantTensors<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("VariantTensors").field("index", &self.index).field("key", &self.key()).finish()
+    }
 }
 
 impl fmt::Debug for Plan {
@@ -455,9 +566,56 @@ impl fmt::Debug for Plan {
 impl Plan {
     /// A plan from the compiler: the manifest and one f32 vector per manifest tensor.
     pub fn new(manifest: Manifest, tensors: Vec<Vec<f32>>) -> Result<Plan, PlanError> {
-        let plan = Plan { manifest, weights: Weights::Owned(tensors) };
-        plan.validate("<compiled plan>")?;
+        Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")
+    }
+
+    /// Validates and builds the variant maps.
+    fn build(manifest: Manifest, weights: Weights, path: &str) -> Result<Plan, PlanError> {
+        let mut plan = Plan { manifest, weights, variants: VariantMaps::default() };
+        plan.validate(path)?;
+        plan.variants = VariantMaps::build(&plan.manifest);
         Ok(plan)
+    }
+
+    /// Number of variants including the base; their indices are `0..variant_count()`.
+    pub fn variant_count(&self) -> usize {
+        self.variants.keys.len()
+    }
+
+    /// The index of the variant with key `key` ([`BASE_VARIANT`] is 0). Allocates nothing.
+    pub fn variant_index(&self, key: &str) -> Option<usize> {
+        let keys = &self.variants.keys;
+        let at = self.variants.by_key.binary_search_by(|&i| key_order(&keys[i as usize], key)).ok()?;
+        Some(self.variants.by_key[at] as usize)
+    }
+
+    /// The key of variant `i`.
+    ///
+    /// # Panics
+    /// If `i >= self.variant_count()`.
+    pub fn variant_key(&self, i: usize) -> &str {
+        &self.variants.keys[i]
+    }
+
+    /// The keys of all variants, the base first.
+    pub fn variant_keys(&self) -> impl ExactSizeIterator<Item = &str> {
+        self.variants.keys.iter().map(|k| &**k)
+    }
+
+    /// The tensors as variant `i` sees them, or `None` if the plan has no variant `i`.
+    pub fn variant_tensors(&self, i: usize) -> Option<VariantTensors<'_>> {
+        if i >= self.variant_count() {
+            return None;
+        }
+        let span = self.variants.span;
+        let map = self.variants.maps.get(i * span..(i + 1) * span)?;
+        Some(VariantTensors { plan: self, map, index: i })
+    }
+
+    /// The base model's tensors (variant 0).
+    pub fn base_tensors(&self) -> VariantTensors<'_> {
+        let span = self.variants.span;
+        VariantTensors { plan: self, map: &self.variants.maps[..span], index: 0 }
     }
 
     /// The data of stored tensor `i`.
@@ -570,13 +728,12 @@ impl Plan {
             return Err(PlanError::Checksum { path: path.into(), stored: stored.clone(), computed });
         }
         drop(st);
-        let plan = Plan { manifest, weights: Weights::Mapped { map, ranges } };
-        plan.validate(path)?;
-        Ok(plan)
+        Plan::build(manifest, Weights::Mapped { map, ranges }, path)
     }
 
-    /// Checks that every index in the manifest is in range and that the schedule is
-    /// well-formed: each value written once, before it is read.
+    /// Checks that every index in the manifest is in range, that the schedule is
+    /// well-formed (each value written once, before it is read), and that the variant
+    /// tables are usable (see [`Plan::validate_variants`]).
     fn validate(&self, path: &str) -> Result<(), PlanError> {
         let m = &self.manifest;
         let bad = |detail: String| Err(PlanError::Manifest { path: path.into(), detail });
@@ -601,6 +758,11 @@ impl Plan {
         for (i, inp) in m.inputs.iter().enumerate() {
             if inp.value >= nv || m.values[inp.value].storage != Storage::Input(i) {
                 return bad(format!("input `{}` refers to an invalid value", inp.name));
+            }
+            for d in &inp.shape {
+                if d.coef < 0 || d.syms.iter().any(|s| !m.symbols.contains(s)) {
+                    return bad(format!("input `{}` has an invalid dimension {d}", inp.name));
+                }
             }
             written[inp.value] = true;
         }
@@ -643,21 +805,86 @@ impl Plan {
                 return bad(format!("output `{}` is never computed", o.name));
             }
         }
-        for v in &m.variants {
+        Plan::validate_variants(m).map_err(|detail| PlanError::Manifest { path: path.into(), detail })
+    }
+
+    /// Checks the variant tables of a manifest whose schedule is valid: keys non-empty,
+    /// unique and not [`BASE_VARIANT`]; every replacement names tensors in range, replaces
+    /// a tensor that a step or a value reads, at most once per variant, with a tensor of
+    /// exactly its shape (so bind-time checks of the base cover every variant); and the
+    /// maps fit [`MAX_MAP_ENTRIES`].
+    fn validate_variants(m: &Manifest) -> Result<(), String> {
+        let n = m.tensors.len();
+        if m.variants.is_empty() {
+            return Ok(());
+        }
+        if u32::try_from(n).is_err() {
+            return Err(format!("{n} tensors; variant plans hold at most {}", u32::MAX));
+        }
+        let read = read_tensors(m);
+        let span = read.iter().rposition(|&r| r).map_or(0, |t| t + 1);
+        if (m.variants.len() + 1).saturating_mul(span) > MAX_MAP_ENTRIES {
+            return Err(format!(
+                "{} variants over {span} tensors exceed the limit of {MAX_MAP_ENTRIES} variant map entries",
+                m.variants.len()
+            ));
+        }
+        let name = |t: usize| &m.tensors[t].name;
+        let mut keys: HashSet<&str> = HashSet::with_capacity(m.variants.len());
+        let mut replaced = vec![usize::MAX; n];
+        for (i, v) in m.variants.iter().enumerate() {
+            if v.key.trim().is_empty() {
+                return Err(format!("variant {i} has an empty key"));
+            }
+            let at = format!("variant `{}`", v.key);
+            if v.key == BASE_VARIANT {
+                return Err(format!("{at}: the key `{BASE_VARIANT}` is reserved for the base model"));
+            }
+            if !keys.insert(&v.key) {
+                return Err(format!("{at}: the key is used by two variants"));
+            }
             for r in &v.replaces {
-                if r.base >= m.tensors.len() || r.with >= m.tensors.len() {
-                    return bad(format!(
-                        "variant `{}` replaces tensor {} with {} of {}",
-                        v.key,
+                if r.base >= n || r.with >= n {
+                    return Err(format!("{at} replaces tensor {} with tensor {}, of {n} tensors", r.base, r.with));
+                }
+                if !read[r.base] {
+                    return Err(format!("{at} replaces tensor {} (`{}`), which no step reads", r.base, name(r.base)));
+                }
+                let (base, with) = (&m.tensors[r.base].shape, &m.tensors[r.with].shape);
+                if base != with {
+                    return Err(format!(
+                        "{at} replaces tensor {} (`{}`, shape {base:?}) with tensor {} (`{}`, shape {with:?}); \
+                         a replacement must have its base tensor's shape",
                         r.base,
+                        name(r.base),
                         r.with,
-                        m.tensors.len()
+                        name(r.with)
                     ));
+                }
+                if std::mem::replace(&mut replaced[r.base], i) == i {
+                    return Err(format!("{at} replaces tensor {} (`{}`) twice", r.base, name(r.base)));
                 }
             }
         }
         Ok(())
     }
+}
+
+/// Which stored tensors the schedule names: read by a step's kernel or stored as a value.
+/// Indices out of range are skipped (validation reports them).
+fn read_tensors(m: &Manifest) -> Vec<bool> {
+    let mut read = vec![false; m.tensors.len()];
+    let named = m.steps.iter().flat_map(|s| s.kernel.tensors());
+    let values = m.values.iter().filter_map(|v| match v.storage {
+        Storage::Tensor(t) => Some(t),
+        _ => None,
+    });
+    for t in named.chain(values) {
+        if let Some(r) = read.get_mut(t) {
+            *r = true;
+        }
+    }
+    read
 }
 
 /// Maps a file read-only.

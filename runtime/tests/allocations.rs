@@ -1,0 +1,184 @@
+//! Counts heap allocations: switching variants allocates nothing, and a run at a bound
+//! batch size allocates only the outputs it returns. The counter is global, so this file
+//! holds a single test (tests of one binary run on parallel threads).
+//!
+//! The plan uses only kernels that allocate nothing themselves, so the count is the
+//! executor's. (At the time of writing the conv, linear, matmul, permute and mean kernels
+//! allocate small work lists per call, a few to a few dozen, independent of the data.)
+
+use std::alloc::System;
+use std::sync::Arc;
+
+use readi_runtime::exec::{Input, Session};
+use readi_runtime::plan::{
+    ActKind, BinaryKind, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement,
+    Step, Storage, SymDim, TensorSpec, ValueSpec, VariantTable,
+};
+use readi_runtime::testdata::data;
+use stats_alloc::{INSTRUMENTED_SYSTEM, Region, StatsAlloc};
+
+#[global_allocator]
+static GLOBAL: &StatsAlloc<System> = &INSTRUMENTED_SYSTEM;
+
+fn shape(n: bool, rest: &[usize]) -> Vec<SymDim> {
+    let batch = n.then(|| SymDim { coef: 1, syms: vec!["N".into()] });
+    batch.into_iter().chain(rest.iter().map(|&d| SymDim::known(d as i64))).collect()
+}
+
+/// `x: [N, 4, 8, 8]` and an optional `z: [N, 2, 8, 8]` through a three-way concat (of
+/// both inputs, one twice), a channel affine, max pooling, global average pooling, a
+/// reshape, a layernorm, a residual addition, a GELU and a softmax; two outputs. Twelve
+/// variants each replace the affine's shift and the layernorm's weight and bias.
+fn plan() -> Plan {
+    let mut specs = Vec::new();
+    let mut tensors = Vec::new();
+    let mut add = |name: String, shape: Vec<usize>, seed: u64| {
+        tensors.push(data(shape.iter().product(), seed));
+        specs.push(TensorSpec { name, shape });
+        specs.len() - 1
+    };
+    let aff_s = add("bn@scale".into(), vec![10], 3);
+    let aff_t = add("bn@shift".into(), vec![10], 4);
+    let ln_w = add("ln.weight".into(), vec![10], 5);
+    let ln_b = add("ln.bias".into(), vec![10], 6);
+    let mut variants = Vec::new();
+    for v in 0..12u64 {
+        let key = format!("fog={v}");
+        let t = add(format!("bn@shift~{key}"), vec![10], 10 + v);
+        let w = add(format!("ln.weight~{key}"), vec![10], 30 + v);
+        let b = add(format!("ln.bias~{key}"), vec![10], 50 + v);
+        let replaces = [(aff_t, t), (ln_w, w), (ln_b, b)];
+        variants.push(VariantTable {
+            key,
+            replaces: replaces.iter().map(|&(base, with)| Replacement { base, with, added: false }).collect(),
+            tuned_elements: 0,
+            added_elements: 0,
+            fallback: Vec::new(),
+        });
+    }
+    let values = vec![
+        ValueSpec { shape: shape(true, &[4, 8, 8]), storage: Storage::Input(0) },
+        ValueSpec { shape: shape(true, &[2, 8, 8]), storage: Storage::Input(1) },
+        ValueSpec { shape: shape(true, &[10, 8, 8]), storage: Storage::Slot(0) },
+        ValueSpec { shape: shape(true, &[10, 8, 8]), storage: Storage::Slot(1) },
+        ValueSpec { shape: shape(true, &[10, 4, 4]), storage: Storage::Slot(0) },
+        ValueSpec { shape: shape(true, &[10, 1, 1]), storage: Storage::Slot(1) },
+        ValueSpec { shape: shape(true, &[10]), storage: Storage::Slot(0) },
+        ValueSpec { shape: shape(true, &[10]), storage: Storage::Slot(1) },
+        ValueSpec { shape: shape(true, &[10]), storage: Storage::Slot(2) },
+        ValueSpec { shape: shape(true, &[10]), storage: Storage::Slot(3) },
+        ValueSpec { shape: shape(true, &[10]), storage: Storage::Slot(0) },
+    ];
+    let step = |path: &str, kernel, inputs: Vec<usize>, output| Step { path: path.into(), kernel, inputs, output };
+    let steps = vec![
+        step("cat", Kernel::Concat { axis: 1 }, vec![0, 1, 0], 2),
+        step(
+            "bn",
+            Kernel::ChannelAffine { epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false } },
+            vec![2],
+            3,
+        ),
+        step(
+            "pool",
+            Kernel::Pool {
+                max: true,
+                kernel: [2, 2],
+                stride: [2, 2],
+                padding: [0, 0],
+                ceil_mode: false,
+                count_include_pad: false,
+            },
+            vec![3],
+            4,
+        ),
+        step("gap", Kernel::GlobalAvgPool, vec![4], 5),
+        step("flat", Kernel::Reshape, vec![5], 6),
+        step("ln", Kernel::LayerNorm { weight: Some(ln_w), bias: Some(ln_b), eps: 1e-5 }, vec![6], 7),
+        step("add", Kernel::Binary { op: BinaryKind::Add }, vec![7, 6], 8),
+        step("act", Kernel::Activation { act: ActKind::Gelu }, vec![8], 9),
+        step("softmax", Kernel::Softmax { axis: 1 }, vec![9], 10),
+    ];
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "allocations".into(),
+        model_params: Vec::new(),
+        symbols: vec!["N".into()],
+        inputs: vec![
+            InputSpec { name: "x".into(), shape: shape(true, &[4, 8, 8]), modality: None, optional: false, value: 0 },
+            InputSpec { name: "z".into(), shape: shape(true, &[2, 8, 8]), modality: None, optional: true, value: 1 },
+        ],
+        outputs: vec![OutputSpec { name: "probs".into(), value: 10 }, OutputSpec { name: "act".into(), value: 9 }],
+        values,
+        steps,
+        slots: 4,
+        tensors: specs,
+        params: Vec::new(),
+        variants,
+    };
+    Plan::new(manifest, tensors).expect("a valid plan")
+}
+
+#[test]
+fn switching_and_runs_allocate_only_outputs() {
+    let plan = Arc::new(plan());
+    assert_eq!(plan.variant_count(), 13);
+    let keys: Vec<String> = plan.variant_keys().map(str::to_string).collect();
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    let handle = s.switch_handle();
+    let x = data(3 * 4 * 64, 7);
+    let z = data(3 * 2 * 64, 8);
+    let with_z =
+        [Input { name: "x", data: &x, shape: &[3, 4, 8, 8] }, Input { name: "z", data: &z, shape: &[3, 2, 8, 8] }];
+    let without_z = &with_z[..1];
+    // Bind, and let the thread pool and the GEMM's thread-local buffers settle.
+    for _ in 0..20 {
+        for inputs in [&with_z[..], without_z] {
+            s.run(inputs).expect("runs");
+        }
+    }
+
+    // The counter sees every thread, and the pool's threads allocate now and then on
+    // their own (rayon's queues, crossbeam's epoch bookkeeping), more under CPU
+    // contention. So each count is taken over several trials and the smallest kept: an
+    // allocation made by switching or by the executor shows in every trial.
+    const TRIALS: usize = 5;
+
+    let switching = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for i in 0..10_000 {
+                handle.set(&keys[i % keys.len()]).expect("known key");
+                s.set_variant(&keys[(i + 5) % keys.len()]).expect("known key");
+                handle.set_index(i % keys.len()).expect("in range");
+            }
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min();
+    assert_eq!(switching, Some(0), "30,000 switches allocated");
+
+    // Each run returns a Vec of two (name, tensor) pairs: 1 + 2 * 3 allocations.
+    let per_run = 7;
+    let runs = 100;
+    let running = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for i in 0..runs {
+                handle.set_index(i % keys.len()).expect("in range");
+                let out = s.run(if i % 2 == 0 { &with_z[..] } else { without_z }).expect("runs");
+                assert_eq!(out.len(), 2);
+            }
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min()
+        .expect("trials");
+    // rayon's injector queue (every job handed to the pool from outside goes through it)
+    // allocates a block per 63 jobs: one or two per trial.
+    let slack = 2;
+    assert!(
+        (per_run * runs..=per_run * runs + slack).contains(&running),
+        "{runs} runs made {running} allocations at least; their outputs need {}",
+        per_run * runs
+    );
+}

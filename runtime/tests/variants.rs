@@ -1,0 +1,747 @@
+//! Variants: each runs with its own tensors (checked against naive references computed
+//! here from the weights), switching is exact and reversible, a run sees one variant while
+//! another thread switches, variants survive a file round trip, and bad variant tables or
+//! keys are refused with errors naming them. Also the plan checks the executor relies on.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use readi_runtime::exec::{Input, RunError, Session, VariantSwitch};
+use readi_runtime::plan::{
+    BASE_VARIANT, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, PlanError, Replacement,
+    Step, Storage, SymDim, TensorSpec, ValueSpec, VariantTable,
+};
+use readi_runtime::testdata::data;
+
+// ---------------------------------------------------------------------------------------
+// Building plans by hand
+// ---------------------------------------------------------------------------------------
+
+/// Stored tensors under construction: specs and data in manifest order.
+#[derive(Default)]
+struct Store {
+    specs: Vec<TensorSpec>,
+    data: Vec<Vec<f32>>,
+}
+
+impl Store {
+    fn add(&mut self, name: &str, shape: &[usize], data: Vec<f32>) -> usize {
+        assert_eq!(data.len(), shape.iter().product::<usize>(), "{name}");
+        self.specs.push(TensorSpec { name: name.into(), shape: shape.to_vec() });
+        self.data.push(data);
+        self.specs.len() - 1
+    }
+}
+
+fn n_dim() -> SymDim {
+    SymDim { coef: 1, syms: vec!["N".into()] }
+}
+
+fn dims(rest: &[usize]) -> Vec<SymDim> {
+    std::iter::once(n_dim()).chain(rest.iter().map(|&d| SymDim::known(d as i64))).collect()
+}
+
+fn table(key: &str, replaces: &[(usize, usize)]) -> VariantTable {
+    VariantTable {
+        key: key.into(),
+        replaces: replaces.iter().map(|&(base, with)| Replacement { base, with, added: false }).collect(),
+        tuned_elements: 0,
+        added_elements: 0,
+        fallback: Vec::new(),
+    }
+}
+
+fn manifest(
+    inputs: Vec<InputSpec>,
+    values: Vec<ValueSpec>,
+    steps: Vec<Step>,
+    slots: usize,
+    output: usize,
+    tensors: Vec<TensorSpec>,
+    variants: Vec<VariantTable>,
+) -> Manifest {
+    Manifest {
+        format_version: FORMAT_VERSION,
+        model: "variants-test".into(),
+        model_params: Vec::new(),
+        symbols: vec!["N".into()],
+        inputs,
+        outputs: vec![OutputSpec { name: "y".into(), value: output }],
+        values,
+        steps,
+        slots,
+        tensors,
+        params: Vec::new(),
+        variants,
+    }
+}
+
+/// The weights of one variant of the MLP plan, as the reference sees them.
+#[derive(Clone)]
+struct MlpWeights {
+    /// `[fin, fout]` (the runtime's linear layout: `y = x W`).
+    w: Vec<f32>,
+    bias: Vec<f32>,
+    gamma: Vec<f32>,
+    beta: Vec<f32>,
+    /// `[1, fout]`, added to every row (a stored tensor used as a value).
+    p: Vec<f32>,
+}
+
+/// `y = layernorm(relu(x W + bias)) * gamma + beta + p` over `x: [N, fin]`: three steps
+/// (linear with epilogue, layernorm, add of a stored value) reading five base tensors, and
+/// variants:
+///
+/// * `A`: W, gamma and p (one tensor in each step);
+/// * `B`: W, bias, beta and p (again every step);
+/// * `C`: W only, sharing A's stored W.
+struct Mlp {
+    plan: Plan,
+    fin: usize,
+    fout: usize,
+    weights: HashMap<&'static str, MlpWeights>,
+}
+
+const LN_EPS: f32 = 1e-5;
+
+fn mlp(fin: usize, fout: usize) -> Mlp {
+    let mut s = Store::default();
+    // Offsets keep every variant's tensors different from the base's everywhere.
+    let base = MlpWeights {
+        w: data(fin * fout, 1),
+        bias: data(fout, 2),
+        gamma: data(fout, 3).iter().map(|v| 1.0 + 0.5 * v).collect(),
+        beta: data(fout, 4),
+        p: data(fout, 5),
+    };
+    let w = s.add("fc.weight@t", &[fin, fout], base.w.clone());
+    let bias = s.add("fc.bias", &[fout], base.bias.clone());
+    let gamma = s.add("ln.weight", &[fout], base.gamma.clone());
+    let beta = s.add("ln.bias", &[fout], base.beta.clone());
+    let p = s.add("p", &[1, fout], base.p.clone());
+
+    let a = MlpWeights {
+        w: data(fin * fout, 11),
+        gamma: data(fout, 13).iter().map(|v| 2.0 + 0.5 * v).collect(),
+        p: data(fout, 15).iter().map(|v| v + 3.0).collect(),
+        ..base.clone()
+    };
+    let w_a = s.add("fc.weight@t~A", &[fin, fout], a.w.clone());
+    let gamma_a = s.add("ln.weight~A", &[fout], a.gamma.clone());
+    let p_a = s.add("p~A", &[1, fout], a.p.clone());
+
+    let b = MlpWeights {
+        w: data(fin * fout, 21),
+        bias: data(fout, 22).iter().map(|v| v - 3.0).collect(),
+        beta: data(fout, 24).iter().map(|v| v + 5.0).collect(),
+        p: data(fout, 25).iter().map(|v| v - 7.0).collect(),
+        ..base.clone()
+    };
+    let w_b = s.add("fc.weight@t~B", &[fin, fout], b.w.clone());
+    let bias_b = s.add("fc.bias~B", &[fout], b.bias.clone());
+    let beta_b = s.add("ln.bias~B", &[fout], b.beta.clone());
+    let p_b = s.add("p~B", &[1, fout], b.p.clone());
+
+    let c = MlpWeights { w: a.w.clone(), ..base.clone() };
+
+    let values = vec![
+        ValueSpec { shape: dims(&[fin]), storage: Storage::Input(0) },
+        ValueSpec { shape: dims(&[fout]), storage: Storage::Slot(0) },
+        ValueSpec { shape: dims(&[fout]), storage: Storage::Slot(1) },
+        ValueSpec { shape: vec![SymDim::known(1), SymDim::known(fout as i64)], storage: Storage::Tensor(p) },
+        ValueSpec { shape: dims(&[fout]), storage: Storage::Slot(0) },
+    ];
+    let steps = vec![
+        Step {
+            path: "fc".into(),
+            kernel: Kernel::Linear {
+                out_features: fout,
+                weight: w,
+                epilogue: EpilogueSpec { scale: None, shift: Some(bias), relu: true },
+            },
+            inputs: vec![0],
+            output: 1,
+        },
+        Step {
+            path: "ln".into(),
+            kernel: Kernel::LayerNorm { weight: Some(gamma), bias: Some(beta), eps: LN_EPS },
+            inputs: vec![1],
+            output: 2,
+        },
+        Step {
+            path: "add".into(),
+            kernel: Kernel::Binary { op: readi_runtime::plan::BinaryKind::Add },
+            inputs: vec![2, 3],
+            output: 4,
+        },
+    ];
+    let inputs = vec![InputSpec { name: "x".into(), shape: dims(&[fin]), modality: None, optional: false, value: 0 }];
+    let variants = vec![
+        table("A", &[(w, w_a), (gamma, gamma_a), (p, p_a)]),
+        table("B", &[(w, w_b), (bias, bias_b), (beta, beta_b), (p, p_b)]),
+        table("C", &[(w, w_a)]),
+    ];
+    let m = manifest(inputs, values, steps, 2, 4, s.specs, variants);
+    let plan = Plan::new(m, s.data).expect("a valid plan");
+    let weights = HashMap::from([(BASE_VARIANT, base), ("A", a), ("B", b), ("C", c)]);
+    Mlp { plan, fin, fout, weights }
+}
+
+/// The MLP computed naively in f64.
+fn mlp_reference(x: &[f32], fin: usize, fout: usize, w: &MlpWeights) -> Vec<f64> {
+    let mut y = Vec::with_capacity(x.len() / fin * fout);
+    for row in x.chunks(fin) {
+        let h: Vec<f64> = (0..fout)
+            .map(|o| {
+                let acc: f64 = (0..fin).map(|i| f64::from(row[i]) * f64::from(w.w[i * fout + o])).sum();
+                (acc + f64::from(w.bias[o])).max(0.0)
+            })
+            .collect();
+        let mean = h.iter().sum::<f64>() / fout as f64;
+        let var = h.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / fout as f64;
+        let inv = 1.0 / (var + f64::from(LN_EPS)).sqrt();
+        for (o, &h) in h.iter().enumerate() {
+            let ln = (h - mean) * inv * f64::from(w.gamma[o]) + f64::from(w.beta[o]);
+            y.push(ln + f64::from(w.p[o]));
+        }
+    }
+    y
+}
+
+/// The weights of one variant of the conv plan.
+#[derive(Clone)]
+struct ConvWeights {
+    /// PyTorch layout `[cout, cin, 3, 3]` (im2col's packing).
+    w: Vec<f32>,
+    scale1: Vec<f32>,
+    shift1: Vec<f32>,
+    scale2: Vec<f32>,
+    shift2: Vec<f32>,
+}
+
+/// `y = affine2(relu(affine1(conv3x3(x))))` over `x: [N, cin, hw, hw]`, padding 1, with
+/// variants `fog=0.05` (the folded BatchNorm's scale and shift and the second affine's
+/// scale: BitFit-style tuning) and `gamma=2` (the conv weight, as a merged LoRA would
+/// change it, and the second affine's shift).
+struct ConvPlan {
+    plan: Plan,
+    cin: usize,
+    cout: usize,
+    hw: usize,
+    weights: HashMap<&'static str, ConvWeights>,
+}
+
+fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
+    let mut s = Store::default();
+    let pos = |len, seed| data(len, seed).iter().map(|v| 1.0 + 0.5 * v).collect::<Vec<f32>>();
+    let base = ConvWeights {
+        w: data(cout * cin * 9, 31),
+        scale1: pos(cout, 32),
+        shift1: data(cout, 33),
+        scale2: pos(cout, 34),
+        shift2: data(cout, 35),
+    };
+    let w = s.add("conv.weight", &[cout, cin, 3, 3], base.w.clone());
+    let scale1 = s.add("bn1@scale", &[cout], base.scale1.clone());
+    let shift1 = s.add("bn1@shift", &[cout], base.shift1.clone());
+    let scale2 = s.add("bn2@scale", &[cout], base.scale2.clone());
+    let shift2 = s.add("bn2@shift", &[cout], base.shift2.clone());
+    let fog = ConvWeights { scale1: pos(cout, 42), shift1: data(cout, 43), scale2: pos(cout, 44), ..base.clone() };
+    let fog_s1 = s.add("bn1@scale~fog", &[cout], fog.scale1.clone());
+    let fog_t1 = s.add("bn1@shift~fog", &[cout], fog.shift1.clone());
+    let fog_s2 = s.add("bn2@scale~fog", &[cout], fog.scale2.clone());
+    let gamma = ConvWeights { w: data(cout * cin * 9, 51), shift2: data(cout, 55), ..base.clone() };
+    let gamma_w = s.add("conv.weight~gamma", &[cout, cin, 3, 3], gamma.w.clone());
+    let gamma_t2 = s.add("bn2@shift~gamma", &[cout], gamma.shift2.clone());
+
+    let values = vec![
+        ValueSpec { shape: dims(&[cin, hw, hw]), storage: Storage::Input(0) },
+        ValueSpec { shape: dims(&[cout, hw, hw]), storage: Storage::Slot(0) },
+        ValueSpec { shape: dims(&[cout, hw, hw]), storage: Storage::Slot(1) },
+    ];
+    let steps = vec![
+        Step {
+            path: "conv".into(),
+            kernel: Kernel::Conv2d {
+                cout,
+                kernel: [3, 3],
+                stride: [1, 1],
+                padding: [1, 1],
+                dilation: [1, 1],
+                groups: 1,
+                algo: "im2col".into(),
+                weight: w,
+                epilogue: EpilogueSpec { scale: Some(scale1), shift: Some(shift1), relu: true },
+            },
+            inputs: vec![0],
+            output: 1,
+        },
+        Step {
+            path: "bn2".into(),
+            kernel: Kernel::ChannelAffine {
+                epilogue: EpilogueSpec { scale: Some(scale2), shift: Some(shift2), relu: false },
+            },
+            inputs: vec![1],
+            output: 2,
+        },
+    ];
+    let inputs =
+        vec![InputSpec { name: "x".into(), shape: dims(&[cin, hw, hw]), modality: None, optional: false, value: 0 }];
+    let variants = vec![
+        table("fog=0.05", &[(scale1, fog_s1), (shift1, fog_t1), (scale2, fog_s2)]),
+        table("gamma=2", &[(w, gamma_w), (shift2, gamma_t2)]),
+    ];
+    let m = manifest(inputs, values, steps, 2, 2, s.specs, variants);
+    let plan = Plan::new(m, s.data).expect("a valid plan");
+    let weights = HashMap::from([(BASE_VARIANT, base), ("fog=0.05", fog), ("gamma=2", gamma)]);
+    ConvPlan { plan, cin, cout, hw, weights }
+}
+
+/// The conv plan computed naively in f64.
+fn conv_reference(x: &[f32], p: &ConvPlan, w: &ConvWeights) -> Vec<f64> {
+    let (cin, cout, hw) = (p.cin, p.cout, p.hw);
+    let n = x.len() / (cin * hw * hw);
+    let mut y = Vec::with_capacity(n * cout * hw * hw);
+    for b in 0..n {
+        for o in 0..cout {
+            for i in 0..hw {
+                for j in 0..hw {
+                    let mut acc = 0.0f64;
+                    for c in 0..cin {
+                        for ki in 0..3 {
+                            for kj in 0..3 {
+                                let (ii, jj) = ((i + ki) as isize - 1, (j + kj) as isize - 1);
+                                if ii < 0 || jj < 0 || ii >= hw as isize || jj >= hw as isize {
+                                    continue;
+                                }
+                                let xv = x[((b * cin + c) * hw + ii as usize) * hw + jj as usize];
+                                let wv = w.w[((o * cin + c) * 3 + ki) * 3 + kj];
+                                acc += f64::from(xv) * f64::from(wv);
+                            }
+                        }
+                    }
+                    let h = (acc * f64::from(w.scale1[o]) + f64::from(w.shift1[o])).max(0.0);
+                    y.push(h * f64::from(w.scale2[o]) + f64::from(w.shift2[o]));
+                }
+            }
+        }
+    }
+    y
+}
+
+fn assert_close(got: &[f32], want: &[f64], what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: length");
+    for (i, (&g, &w)) in got.iter().zip(want).enumerate() {
+        assert!((f64::from(g) - w).abs() <= 1e-4 * (1.0 + w.abs()), "{what}: element {i} is {g}, expected {w}");
+    }
+}
+
+/// Runs with input `x` of shape `shape` and returns output `y`.
+fn run(s: &mut Session, x: &[f32], shape: &[usize]) -> Vec<f32> {
+    let mut out = s.run(&[Input { name: "x", data: x, shape }]).expect("runs");
+    assert_eq!(out.len(), 1);
+    out.pop().expect("one output").1.data
+}
+
+/// Output of a fresh session under `key`.
+fn fresh(plan: &Arc<Plan>, key: &str, threads: usize, x: &[f32], shape: &[usize]) -> Vec<f32> {
+    let mut s = Session::new(Arc::clone(plan), threads).expect("session");
+    s.set_variant(key).expect("known key");
+    run(&mut s, x, shape)
+}
+
+fn temp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("readi-variants-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+// ---------------------------------------------------------------------------------------
+// (a) Each variant computes with its own tensors
+// ---------------------------------------------------------------------------------------
+
+#[test]
+fn each_mlp_variant_matches_a_reference_from_its_weights() {
+    let m = mlp(24, 16);
+    let plan = Arc::new(m.plan);
+    assert_eq!(plan.variant_count(), 4);
+    let x = data(3 * m.fin, 7);
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    assert_eq!(s.variant(), BASE_VARIANT);
+    let mut outputs = Vec::new();
+    for key in [BASE_VARIANT, "A", "B", "C"] {
+        s.set_variant(key).expect("known key");
+        assert_eq!(s.variant(), key);
+        let y = run(&mut s, &x, &[3, m.fin]);
+        assert_eq!(s.last_variant().map(|i| plan.variant_key(i)), Some(key));
+        assert_close(&y, &mlp_reference(&x, m.fin, m.fout, &m.weights[key]), key);
+        outputs.push(y);
+    }
+    // The variants really differ (so the reference comparison above distinguishes them).
+    for i in 0..outputs.len() {
+        for j in i + 1..outputs.len() {
+            assert_ne!(outputs[i], outputs[j], "variants {i} and {j}");
+        }
+    }
+}
+
+#[test]
+fn each_conv_variant_matches_a_reference_from_its_weights() {
+    let p = conv_plan(3, 5, 7);
+    let x = data(2 * p.cin * p.hw * p.hw, 8);
+    let shape = [2, p.cin, p.hw, p.hw];
+    let plan = Arc::new(conv_plan(3, 5, 7).plan);
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    for key in [BASE_VARIANT, "fog=0.05", "gamma=2"] {
+        s.set_variant(key).expect("known key");
+        let y = run(&mut s, &x, &shape);
+        assert_close(&y, &conv_reference(&x, &p, &p.weights[key]), key);
+    }
+}
+
+#[test]
+fn variant_lookups_agree_with_the_manifest() {
+    let plan = mlp(4, 4).plan;
+    assert_eq!(plan.variant_index(BASE_VARIANT), Some(0));
+    for (i, v) in plan.manifest.variants.iter().enumerate() {
+        assert_eq!(plan.variant_index(&v.key), Some(i + 1));
+        assert_eq!(plan.variant_key(i + 1), v.key);
+        let t = plan.variant_tensors(i + 1).expect("variant");
+        for r in &v.replaces {
+            assert_eq!(t.resolve(r.base), r.with);
+        }
+    }
+    assert_eq!(plan.variant_index("a"), None);
+    assert!(plan.variant_tensors(plan.variant_count()).is_none());
+    assert_eq!(plan.variant_keys().collect::<Vec<_>>(), [BASE_VARIANT, "A", "B", "C"]);
+    // Tensors no variant replaces resolve to themselves.
+    let b = plan.variant_tensors(2).expect("B");
+    assert_eq!(b.resolve(2), 2);
+    assert_eq!(b.resolve(5), 5, "A's replacement, not named by a step");
+}
+
+// ---------------------------------------------------------------------------------------
+// (b) Switching is exact and reversible
+// ---------------------------------------------------------------------------------------
+
+#[test]
+fn switching_a_b_a_is_bit_identical_to_a_fresh_session() {
+    let m = mlp(64, 32);
+    let plan = Arc::new(m.plan);
+    let x = data(5 * m.fin, 9);
+    let shape = [5, m.fin];
+    let a = fresh(&plan, "A", 2, &x, &shape);
+    let b = fresh(&plan, "B", 2, &x, &shape);
+    let base = fresh(&plan, BASE_VARIANT, 2, &x, &shape);
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    let handle = s.switch_handle();
+    assert_eq!(run(&mut s, &x, &shape), base);
+    for (key, want) in [("A", &a), ("B", &b), ("A", &a), (BASE_VARIANT, &base), ("B", &b), ("A", &a)] {
+        handle.set(key).expect("known key");
+        assert_eq!(handle.key(), key);
+        assert_eq!(&run(&mut s, &x, &shape), want, "after switching to {key}");
+    }
+    // By index too.
+    handle.set_index(2).expect("in range");
+    assert_eq!(s.variant(), "B");
+    assert_eq!(run(&mut s, &x, &shape), b);
+}
+
+#[test]
+fn switching_copies_no_weights() {
+    let m = mlp(8, 8);
+    let plan = Arc::new(m.plan);
+    let before: Vec<Vec<f32>> = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    let ptrs: Vec<*const f32> = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).as_ptr()).collect();
+    let mut s = Session::new(Arc::clone(&plan), 1).expect("session");
+    let x = data(2 * m.fin, 3);
+    for key in ["A", "B", "C", BASE_VARIANT] {
+        s.set_variant(key).expect("known key");
+        run(&mut s, &x, &[2, m.fin]);
+    }
+    for i in 0..before.len() {
+        assert_eq!(plan.tensor(i), before[i], "tensor {i} changed");
+        assert_eq!(plan.tensor(i).as_ptr(), ptrs[i], "tensor {i} moved");
+    }
+    // A variant reads the stored replacement in place.
+    let a = plan.variant_tensors(1).expect("A");
+    assert_eq!(a.get(0).as_ptr(), plan.tensor(5).as_ptr());
+}
+
+// ---------------------------------------------------------------------------------------
+// (c) A run sees exactly one variant while another thread switches
+// ---------------------------------------------------------------------------------------
+
+#[test]
+fn a_run_sees_one_variant_while_another_thread_switches() {
+    // Large enough that a run spans many switches.
+    let m = mlp(256, 256);
+    let plan = Arc::new(m.plan);
+    let rows = 32;
+    let x = data(rows * m.fin, 10);
+    let shape = [rows, m.fin];
+    let threads = 2;
+    let a = fresh(&plan, "A", threads, &x, &shape);
+    let b = fresh(&plan, "B", threads, &x, &shape);
+    // A and B differ in every element, and a run mixing their steps would match neither.
+    assert!(a.iter().zip(&b).all(|(p, q)| p != q));
+    let (ia, ib) = (plan.variant_index("A").expect("A"), plan.variant_index("B").expect("B"));
+
+    let mut s = Session::new(Arc::clone(&plan), threads).expect("session");
+    let handle: VariantSwitch = s.switch_handle();
+    handle.set("A").expect("A");
+    let stop = Arc::new(AtomicBool::new(false));
+    let started = Arc::new(AtomicBool::new(false));
+    let switcher = {
+        let (handle, stop, started) = (handle.clone(), Arc::clone(&stop), Arc::clone(&started));
+        std::thread::spawn(move || {
+            let mut switches = 0u64;
+            started.store(true, Ordering::Relaxed);
+            while !stop.load(Ordering::Relaxed) {
+                handle.set("A").expect("A");
+                handle.set("B").expect("B");
+                switches += 2;
+            }
+            switches
+        })
+    };
+    while !started.load(Ordering::Relaxed) {
+        std::thread::yield_now();
+    }
+    // At least 400 runs, and on until both variants were seen (a loaded machine may
+    // schedule the switcher rarely).
+    let (mut seen_a, mut seen_b) = (0, 0);
+    let mut i = 0;
+    while i < 400 || ((seen_a == 0 || seen_b == 0) && i < 20_000) {
+        i += 1;
+        let y = run(&mut s, &x, &shape);
+        let used = s.last_variant().expect("ran");
+        if y == a {
+            assert_eq!(used, ia, "run {i}: A's output, but the session reports variant {used}");
+            seen_a += 1;
+        } else if y == b {
+            assert_eq!(used, ib, "run {i}: B's output, but the session reports variant {used}");
+            seen_b += 1;
+        } else {
+            let off_a = y.iter().zip(&a).filter(|(p, q)| p != q).count();
+            let off_b = y.iter().zip(&b).filter(|(p, q)| p != q).count();
+            panic!("run {i} matches neither variant ({off_a} elements differ from A, {off_b} from B)");
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    let switches = switcher.join().expect("switcher");
+    assert!(switches > 2, "only {switches} switches happened during the runs");
+    assert!(seen_a > 0 && seen_b > 0, "runs saw A {seen_a} times and B {seen_b} times");
+}
+
+#[test]
+fn the_switch_handle_is_send_sync_and_clone() {
+    fn check<T: Send + Sync + Clone + 'static>() {}
+    check::<VariantSwitch>();
+}
+
+// ---------------------------------------------------------------------------------------
+// (d) File round trip
+// ---------------------------------------------------------------------------------------
+
+#[test]
+fn variants_survive_a_write_and_load() {
+    let m = mlp(32, 16);
+    let path = temp("mlp.plan");
+    m.plan.write(&path).expect("writes");
+    let loaded = Arc::new(Plan::load(&path).expect("loads"));
+    assert!(loaded.is_mapped());
+    assert_eq!(loaded.manifest.variants, m.plan.manifest.variants);
+    let owned = Arc::new(m.plan);
+    let x = data(4 * m.fin, 12);
+    let shape = [4, m.fin];
+    let mut s = Session::new(Arc::clone(&loaded), 2).expect("session");
+    for key in ["B", BASE_VARIANT, "A", "C"] {
+        s.set_variant(key).expect("known key");
+        let y = run(&mut s, &x, &shape);
+        assert_eq!(y, fresh(&owned, key, 2, &x, &shape), "{key}: loaded and compiled plans differ");
+        assert_close(&y, &mlp_reference(&x, m.fin, m.fout, &m.weights[key]), key);
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// (e) Bad variant tables and keys
+// ---------------------------------------------------------------------------------------
+
+/// The MLP plan's manifest and tensors with its variant tables edited by `edit`.
+fn edited(edit: impl FnOnce(&mut Vec<VariantTable>)) -> (Manifest, Vec<Vec<f32>>) {
+    let p = mlp(4, 3).plan;
+    let mut m = p.manifest.clone();
+    let tensors = (0..m.tensors.len()).map(|i| p.tensor(i).to_vec()).collect();
+    edit(&mut m.variants);
+    (m, tensors)
+}
+
+fn refused(edit: impl FnOnce(&mut Vec<VariantTable>)) -> String {
+    let (m, tensors) = edited(edit);
+    match Plan::new(m, tensors) {
+        Err(e @ PlanError::Manifest { .. }) => e.to_string(),
+        Err(e) => panic!("expected a manifest error, got {e}"),
+        Ok(_) => panic!("an invalid variant table was accepted"),
+    }
+}
+
+#[test]
+fn bad_variant_tables_are_refused_with_the_key() {
+    type Edit = Box<dyn FnOnce(&mut Vec<VariantTable>)>;
+    let cases: Vec<(&str, Edit, &[&str])> = vec![
+        ("replacement out of range", Box::new(|v| v[0].replaces[0].with = 99), &["variant `A`", "tensor 99"]),
+        ("base out of range", Box::new(|v| v[1].replaces[1].base = 1000), &["variant `B`", "tensor 1000"]),
+        (
+            "shape mismatch",
+            // W ([4, 3]) replaced with B's bias ([3]).
+            Box::new(|v| v[0].replaces[0].with = 9),
+            &["variant `A`", "`fc.weight@t`", "[4, 3]", "`fc.bias~B`", "[3]"],
+        ),
+        (
+            "same numel, different shape",
+            // p ([1, 3]) replaced with gamma ([3]).
+            Box::new(|v| v[0].replaces[2].with = 2),
+            &["variant `A`", "`p`", "[1, 3]", "`ln.weight`", "shape [3]", "must have its base"],
+        ),
+        ("duplicate key", Box::new(|v| v[2].key = "A".into()), &["variant `A`", "two variants"]),
+        ("reserved key", Box::new(|v| v[1].key = BASE_VARIANT.into()), &["variant `base`", "reserved"]),
+        ("empty key", Box::new(|v| v[1].key = " ".into()), &["variant 1", "empty key"]),
+        (
+            "replaced twice",
+            Box::new(|v| v[2].replaces.push(Replacement { base: 0, with: 8, added: true })),
+            &["variant `C`", "tensor 0 (`fc.weight@t`) twice"],
+        ),
+        (
+            "base not read",
+            // A's own replacement W is no step's tensor.
+            Box::new(|v| v[1].replaces[0].base = 5),
+            &["variant `B`", "tensor 5 (`fc.weight@t~A`)", "no step reads"],
+        ),
+    ];
+    for (what, edit, wanted) in cases {
+        let msg = refused(edit);
+        for w in wanted {
+            assert!(msg.contains(w), "{what}: `{msg}` does not mention `{w}`");
+        }
+        assert!(msg.contains("<compiled plan>: invalid plan manifest"), "{what}: {msg}");
+    }
+}
+
+#[test]
+fn a_stored_value_may_be_replaced() {
+    // p is read as a value (Storage::Tensor), not by a kernel: replacing it is valid.
+    let (m, tensors) = edited(|v| v.truncate(0));
+    let p = m.tensors.iter().position(|t| t.name == "p").expect("p");
+    let p_a = m.tensors.iter().position(|t| t.name == "p~A").expect("p~A");
+    let mut m = m;
+    m.variants.push(table("only-p", &[(p, p_a)]));
+    let plan = Plan::new(m, tensors).expect("valid");
+    assert_eq!(plan.variant_tensors(1).expect("only-p").resolve(p), p_a);
+}
+
+#[test]
+fn a_plan_file_with_a_bad_variant_table_is_refused_at_load() {
+    let (mut m, tensors) = edited(|_| {});
+    m.variants[1].key = "A".into();
+    // Write the file by hand (Plan::write needs a valid plan), checksum included.
+    let json = serde_json::to_string(&m).expect("json");
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(json.as_bytes());
+    let bytes: Vec<Vec<u8>> = tensors.iter().map(|t| t.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
+    for b in &bytes {
+        crc.update(b);
+    }
+    let views = m.tensors.iter().zip(&bytes).map(|(spec, b)| {
+        let view = safetensors::tensor::TensorView::new(safetensors::tensor::Dtype::F32, spec.shape.clone(), b);
+        (spec.name.clone(), view.expect("view"))
+    });
+    let metadata = HashMap::from([
+        ("readi.format_version".to_string(), FORMAT_VERSION.to_string()),
+        ("readi.manifest".to_string(), json),
+        ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
+    ]);
+    let path = temp("dup-key.plan");
+    std::fs::write(&path, safetensors::serialize(views, Some(metadata)).expect("serialise")).expect("write");
+    let e = Plan::load(&path).expect_err("a duplicate key must not load");
+    let msg = e.to_string();
+    assert!(matches!(e, PlanError::Manifest { .. }), "{msg}");
+    assert!(msg.contains("dup-key.plan") && msg.contains("variant `A`") && msg.contains("two variants"), "{msg}");
+}
+
+#[test]
+fn unknown_keys_and_indices_are_errors_with_suggestions() {
+    let plan = Arc::new(conv_plan(2, 2, 4).plan);
+    let s = Session::new(Arc::clone(&plan), 1).expect("session");
+    s.set_variant("fog=0.05").expect("known key");
+
+    let e = s.set_variant("fog=0.5").expect_err("unknown key");
+    assert_eq!(
+        e,
+        RunError::UnknownVariant {
+            key: "fog=0.5".into(),
+            known: vec!["base".into(), "fog=0.05".into(), "gamma=2".into()],
+            nearest: Some("fog=0.05".into()),
+        }
+    );
+    assert_eq!(
+        e.to_string(),
+        "the plan has no variant `fog=0.5`; did you mean `fog=0.05`? (its variants: base, fog=0.05, gamma=2)"
+    );
+    // A failed switch leaves the active variant alone.
+    assert_eq!(s.variant(), "fog=0.05");
+
+    let far = s.switch_handle().set("snow=10").expect_err("unknown key").to_string();
+    assert_eq!(far, "the plan has no variant `snow=10` (its variants: base, fog=0.05, gamma=2)");
+    let case = s.set_variant("GAMMA=2").expect_err("keys are case-sensitive").to_string();
+    assert!(case.contains("did you mean `gamma=2`?"), "{case}");
+    assert!(s.set_variant("").is_err());
+
+    let e = s.switch_handle().set_index(3).expect_err("out of range");
+    assert_eq!(e, RunError::VariantIndex { index: 3, count: 3 });
+    assert!(e.to_string().contains("variant index 3 is out of range: the plan has 3 variants"), "{e}");
+    assert_eq!(s.variant(), "fog=0.05");
+}
+
+#[test]
+fn a_plan_without_variants_has_only_the_base() {
+    let (m, tensors) = edited(Vec::clear);
+    let plan = Arc::new(Plan::new(m, tensors).expect("valid"));
+    assert_eq!(plan.variant_count(), 1);
+    assert_eq!(plan.variant_keys().collect::<Vec<_>>(), [BASE_VARIANT]);
+    let mut s = Session::new(Arc::clone(&plan), 1).expect("session");
+    assert!(s.set_variant("A").is_err());
+    s.set_variant(BASE_VARIANT).expect("base");
+    let x = data(8, 1);
+    let y = run(&mut s, &x, &[2, 4]);
+    let w = mlp(4, 3).weights[BASE_VARIANT].clone();
+    assert_close(&y, &mlp_reference(&x, 4, 3, &w), "base");
+    assert_eq!(s.last_variant(), Some(0));
+}
+
+// ---------------------------------------------------------------------------------------
+// Checks the executor relies on (plans are untrusted)
+// ---------------------------------------------------------------------------------------
+
+#[test]
+fn a_step_reading_the_buffer_it_writes_is_refused_at_bind() {
+    let (mut m, tensors) = edited(Vec::clear);
+    // `ln` reads value 1 (slot 0); make it write slot 0 too.
+    m.values[2].storage = Storage::Slot(0);
+    let plan = Arc::new(Plan::new(m, tensors).expect("indices are valid"));
+    let mut s = Session::new(plan, 1).expect("session");
+    let x = data(8, 1);
+    let e = s.run(&[Input { name: "x", data: &x, shape: &[2, 4] }]).expect_err("must be refused");
+    assert!(matches!(e, RunError::BadPlan { .. }), "{e}");
+    assert!(e.to_string().contains("`ln`") && e.to_string().contains("reads buffer 0, which it writes"), "{e}");
+}
+
+#[test]
+fn an_input_with_an_undeclared_symbol_is_refused() {
+    let (mut m, tensors) = edited(Vec::clear);
+    m.inputs[0].shape[0] = SymDim { coef: 1, syms: vec!["M".into()] };
+    let e = Plan::new(m, tensors).expect_err("must be refused").to_string();
+    assert!(e.contains("input `x` has an invalid dimension M"), "{e}");
+}
