@@ -61,6 +61,8 @@ fn assert_matches_pytorch(rel: &str, overrides: &[(&str, &str)], reference_name:
         .graph
         .param_table()
         .into_iter()
+        // The base model's state_dict: without the slots adaptation rules add.
+        .filter(|(_, _, slot)| slot.kind != readi_compiler::ir::SlotKind::Added)
         .map(|(name, _, slot)| (name, format!("{}{:?}", slot.dtype.as_str(), slot.shape).replace(' ', "")))
         .collect();
     let missing: Vec<_> = r.params.keys().filter(|k| !ours.contains_key(*k)).collect();

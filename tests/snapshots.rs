@@ -1,7 +1,8 @@
 //! File-driven snapshot tests (`cargo insta review` to inspect and accept changes):
 //!
 //! * every model in models/: the IR text after the whole pipeline, with the verifier
-//!   run after every pass;
+//!   run after every pass, and before `inject_adapt` (so the pair shows what the LoRA
+//!   branches and adapters add);
 //! * every case in tests/cases/ok/: the IR text, with no diagnostics allowed;
 //! * every case in tests/cases/errors/: the rendered diagnostics, which must include at
 //!   least one error with `file:line:col`, the source line and a caret;
@@ -40,7 +41,13 @@ fn ir_snapshot(name: &str, path: &std::path::Path) {
 
 #[test]
 fn model_ir() {
-    insta::glob!("../models", "*.readi", |path| ir_snapshot("model_ir", path));
+    insta::glob!("../models", "*.readi", |path| {
+        ir_snapshot("model_ir", path);
+        let rel = rel_path(path);
+        let (sources, out) = compile(&rel, &[], Some(Pass::ResolveAdapt));
+        assert!(out.diagnostics.is_empty(), "{rel}: {}", sources.render_all(&out.diagnostics, false));
+        insta::assert_snapshot!("model_ir_before_inject_adapt", to_text(&out.module.expect("module")));
+    });
 }
 
 #[test]

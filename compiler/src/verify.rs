@@ -9,18 +9,20 @@
 //!    names; graph outputs have unique names and refer to existing node outputs.
 //! 4. Every node's stored output types equal shape inference run again on its inputs'
 //!    types (shapes agree along every edge).
-//! 5. Every node's parameter slots equal the slots its op derives (names, shapes, dtypes).
+//! 5. Every node's parameter slots equal the slots its op derives (names, shapes, dtypes);
+//!    a trainable slot may be marked added ([`SlotKind::Added`]).
 //! 6. Node paths are unique, so every parameter's full name (`path.slot`) is bound once.
 //! 7. Every node's scope exists, and every scope's parent precedes it.
 //! 8. The adaptation plan, when present, refers only to existing nodes, and each `tune`
-//!    target's slots exist on its node (every variant parameter has a base slot).
+//!    target's slots exist on its node (every variant parameter has a base slot). Exactly
+//!    the slots of nodes the plan's injections added are marked added.
 //!
 //! A violation is a compiler bug, never a user error.
 
 use std::collections::{HashMap, HashSet};
 
 use crate::infer::infer;
-use crate::ir::{Op, TensorType};
+use crate::ir::{Op, SlotKind, TensorType};
 use crate::passes::Module;
 
 /// Checks every invariant; returns the violations found.
@@ -85,7 +87,13 @@ pub fn verify(module: &Module) -> Result<(), Vec<String>> {
         }
 
         // 5.
-        if node.params != node.op.param_slots() {
+        let derived = node.op.param_slots();
+        let same = node.params.len() == derived.len()
+            && node.params.iter().zip(&derived).all(|(p, d)| {
+                let kind_ok = p.kind == d.kind || (p.kind == SlotKind::Added && d.kind == SlotKind::Param);
+                p.name == d.name && p.shape == d.shape && p.dtype == d.dtype && kind_ok
+            });
+        if !same {
             problems.push(format!("{at}: parameter slots differ from those its op derives"));
         }
 
@@ -127,12 +135,31 @@ pub fn verify(module: &Module) -> Result<(), Vec<String>> {
                 }
                 let node = g.node(t.node);
                 for s in &t.slots {
-                    if !node.params.iter().any(|p| p.name == *s) {
+                    if !node.params.iter().any(|p| p.name == *s && p.kind != SlotKind::Added) {
                         problems.push(format!("rule `{}` tunes `{}.{s}`, which has no base slot", r.text, node.path));
                     }
                 }
             }
         }
+        let mut injected: HashSet<crate::ir::NodeId> = HashSet::new();
+        for inj in &plan.injections {
+            for n in inj.nodes() {
+                if !g.contains(n) {
+                    problems.push(format!("an injection refers to removed node {}", n.index()));
+                }
+                injected.insert(n);
+            }
+        }
+        for id in g.node_ids() {
+            let node = g.node(id);
+            let added = node.params.iter().any(|p| p.kind == SlotKind::Added);
+            let all_added = node.params.iter().all(|p| p.kind == SlotKind::Added);
+            if added != injected.contains(&id) && !node.params.is_empty() || (added && !all_added) {
+                problems.push(format!("node `{}`: added slots do not match the injections", node.path));
+            }
+        }
+    } else if g.node_ids().any(|id| g.node(id).params.iter().any(|p| p.kind == SlotKind::Added)) {
+        problems.push("added parameter slots without an adaptation plan".into());
     }
 
     if problems.is_empty() { Ok(()) } else { Err(problems) }

@@ -228,10 +228,20 @@ impl Graph {
 
     /// Points every use of `old` (edges and graph outputs) at `new`.
     pub fn replace_uses(&mut self, old: ValueRef, new: ValueRef) {
+        self.redirect(old, new, None);
+    }
+
+    /// Points every use of `old` at `new`, except uses by `keep` (which goes on reading
+    /// `old`): how a pass wraps a value, `y -> add(y, branch)`.
+    pub fn replace_uses_except(&mut self, old: ValueRef, new: ValueRef, keep: NodeId) {
+        self.redirect(old, new, Some(keep));
+    }
+
+    fn redirect(&mut self, old: ValueRef, new: ValueRef, keep: Option<NodeId>) {
         let uses: Vec<_> = self
             .graph
             .edges_directed(old.node.0, Direction::Outgoing)
-            .filter(|e| e.weight().src_port == old.port)
+            .filter(|e| e.weight().src_port == old.port && Some(NodeId(e.target())) != keep)
             .map(|e| (e.id(), e.target(), e.weight().dst_port))
             .collect();
         for (eid, target, dst_port) in uses {
@@ -243,6 +253,20 @@ impl Graph {
                 o.value = new;
             }
         }
+    }
+
+    /// Makes input port `port` of `node` read `value` instead of what it read.
+    pub fn set_input(&mut self, node: NodeId, port: u16, value: ValueRef) {
+        let old: Vec<_> = self
+            .graph
+            .edges_directed(node.0, Direction::Incoming)
+            .filter(|e| e.weight().dst_port == port)
+            .map(|e| e.id())
+            .collect();
+        for e in old {
+            self.graph.remove_edge(e);
+        }
+        self.graph.add_edge(value.node.0, node.0, Edge { src_port: value.port, dst_port: port });
     }
 
     pub fn node(&self, id: NodeId) -> &Node {

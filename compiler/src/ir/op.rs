@@ -134,6 +134,9 @@ pub enum UpsampleMode {
 pub enum SlotKind {
     Param,
     Buffer,
+    /// A parameter an adaptation rule adds (a LoRA matrix, an adapter weight): not part of
+    /// the base model, zero there, and owned by every variant.
+    Added,
 }
 
 /// A named tensor a node needs besides its inputs: a weight, a bias, a running statistic.

@@ -6,6 +6,7 @@
 //! | `elaborate`      | AST to a fully typed graph                   | no syntax errors         |
 //! | `dead_code`      | removes nodes no output depends on           | a verified graph         |
 //! | `resolve_adapt`  | binds adaptation rules to layers (side table)| dead code removed        |
+//! | `inject_adapt`   | adds LoRA branches and adapters (zero in the base) | rules resolved     |
 //! | `check_variants` | checks the variants section (side table)     | a verified graph         |
 //!
 //! Passes that rewrite the graph return [`Patch`]es; [`apply`] applies them, and the
@@ -16,6 +17,7 @@
 
 pub mod check_variants;
 pub mod dead_code;
+pub mod inject_adapt;
 pub mod resolve_adapt;
 
 use readi_grammar::ast::SourceFile;
@@ -34,6 +36,7 @@ pub enum Pass {
     Elaborate,
     DeadCode,
     ResolveAdapt,
+    InjectAdapt,
     CheckVariants,
 }
 
@@ -43,6 +46,7 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::Elaborate, "elaborate", "evaluate blocks, loops and attributes into a typed graph"),
     (Pass::DeadCode, "dead_code", "remove layers that no output depends on"),
     (Pass::ResolveAdapt, "resolve_adapt", "bind adaptation rules to layers; check conflicts"),
+    (Pass::InjectAdapt, "inject_adapt", "add LoRA branches and adapters to the graph (zero in the base model)"),
     (Pass::CheckVariants, "check_variants", "check axes, selectors, missing-modality and meld rules"),
 ];
 
@@ -163,6 +167,16 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
             Pass::ResolveAdapt => {
                 if let Some(section) = out.ast.adapt_sections().next() {
                     module.adapt = Some(resolve_adapt::run(&module.graph, section, &out.ast, &mut diags));
+                }
+            }
+            Pass::InjectAdapt => {
+                if let Some(plan) = module.adapt.as_mut()
+                    && let Err(e) = inject_adapt::run(&mut module.graph, plan)
+                {
+                    diags.push(
+                        Diagnostic::error(Code::Internal, format!("internal compiler error in `inject_adapt`: {e}"))
+                            .with_primary(Span::new(file, 0, 0), "please report this with the input file"),
+                    );
                 }
             }
             Pass::CheckVariants => {

@@ -21,7 +21,9 @@
 
 use std::collections::HashMap;
 
-use readi_grammar::ast::{AdaptKind, AdaptSection, OptionValue, Pattern, RuleOption, SelItem, Selector, SourceFile};
+use readi_grammar::ast::{
+    AdaptKind, AdaptSection, DType, OptionValue, Pattern, RuleOption, SelItem, Selector, SourceFile,
+};
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
 
 use crate::ir::{Activation, Graph, NodeId, Op, ScopeKind};
@@ -64,6 +66,28 @@ pub const DEFAULT_SQUEEZE: i64 = 2;
 #[derive(Clone, Debug, PartialEq)]
 pub struct AdaptPlan {
     pub rules: Vec<ResolvedRule>,
+    /// The layers `inject_adapt` added, one entry per LoRA or adapter target; empty before
+    /// that pass.
+    pub injections: Vec<Injection>,
+}
+
+/// The nodes `inject_adapt` added for one target. `rule` indexes [`AdaptPlan::rules`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum Injection {
+    /// `base` now feeds `add = base + scale(lora_B(lora_A(x)))`; `factor` is the scale.
+    Lora { rule: usize, base: NodeId, a: NodeId, b: NodeId, scale: NodeId, add: NodeId, factor: f64 },
+    /// `target` now reads `add = x + up(act(down(x)))`.
+    Adapter { rule: usize, target: NodeId, down: NodeId, act: NodeId, up: NodeId, add: NodeId },
+}
+
+impl Injection {
+    /// Every node the injection added.
+    pub fn nodes(&self) -> [NodeId; 4] {
+        match *self {
+            Injection::Lora { a, b, scale, add, .. } => [a, b, scale, add],
+            Injection::Adapter { down, act, up, add, .. } => [down, act, up, add],
+        }
+    }
 }
 
 /// One rule and what it selected.
@@ -109,14 +133,15 @@ pub struct Target {
 }
 
 impl AdaptPlan {
-    /// Existing parameter elements tuned per variant (each slot counted once).
+    /// Existing parameter elements tuned per variant (each f32 slot counted once).
     pub fn tuned_elements(&self, graph: &Graph) -> u64 {
         let mut seen: HashMap<(NodeId, &str), u64> = HashMap::new();
         for r in &self.rules {
             for t in &r.targets {
                 let node = graph.node(t.node);
                 for s in &t.slots {
-                    if let Some(slot) = node.params.iter().find(|p| p.name == *s) {
+                    // num_batches_tracked (an i64 counter) is bookkeeping, not a parameter.
+                    if let Some(slot) = node.params.iter().find(|p| p.name == *s && p.dtype == DType::F32) {
                         seen.insert((t.node, s), slot.numel());
                     }
                 }
@@ -147,7 +172,7 @@ pub fn run(graph: &Graph, section: &AdaptSection, ast: &SourceFile, diags: &mut 
         }
     }
     check_conflicts(graph, &rules, diags);
-    AdaptPlan { rules }
+    AdaptPlan { rules, injections: Vec::new() }
 }
 
 struct Cx<'g> {

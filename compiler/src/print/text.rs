@@ -69,12 +69,14 @@ pub fn to_text(module: &Module) -> String {
                     })
                     .collect()
             };
-            let mut line = format!("      params {}", list(SlotKind::Param).join(", "));
-            let buffers = list(SlotKind::Buffer);
-            if !buffers.is_empty() {
-                let _ = write!(line, "; buffers {}", buffers.join(", "));
-            }
-            let _ = writeln!(out, "{line}");
+            let groups = [(SlotKind::Param, "params"), (SlotKind::Buffer, "buffers"), (SlotKind::Added, "added")];
+            let parts: Vec<String> = groups
+                .iter()
+                .map(|&(kind, label)| (label, list(kind)))
+                .filter(|(_, l)| !l.is_empty())
+                .map(|(label, l)| format!("{label} {}", l.join(", ")))
+                .collect();
+            let _ = writeln!(out, "      {}", parts.join("; "));
         }
     }
     for o in &g.outputs {

@@ -1,0 +1,151 @@
+//! `inject_adapt`: adds the layers of the `lora` and `adapter` rules to the graph.
+//!
+//! Changes: for every LoRA target `y = layer(x)` (PEFT's structure and names):
+//!
+//! ```text
+//! y' = y + scale * lora_B(lora_A(x))        scale = alpha / rank  (alpha / sqrt(rank): rsLoRA)
+//! ```
+//!
+//! * linear `in -> out`: `lora_A` is `linear(in -> rank)`, `lora_B` is `linear(rank -> out)`,
+//!   both without bias;
+//! * conv2d: `lora_A` is a conv to `rank` channels with the layer's kernel, stride, padding
+//!   and dilation, `lora_B` a 1x1 conv from `rank` to the layer's output channels.
+//!
+//! Nodes `<layer>.lora_A`, `<layer>.lora_B` (parameters `<layer>.lora_A.weight`, ...),
+//! `<layer>.lora_scale` and `<layer>.lora_add`; every former use of `y` reads `y'`.
+//!
+//! For every adapter target `t(x)` (before a BatchNorm, say), a residual bottleneck on its
+//! input, `t(x + up(act(down(x))))`: `down` a 1x1 conv `C -> C/squeeze` with bias, `up` a 1x1
+//! conv `C/squeeze -> C` with bias. Nodes `<t>.adapter.down`, `.act`, `.up`, `.add`.
+//!
+//! The new parameter slots are [`SlotKind::Added`]: they are not in the base model, whose
+//! value for them is zero (so `lora_B = 0` and `up = 0` make every branch vanish), and each
+//! variant owns them. The pass records what it built in [`AdaptPlan::injections`], which
+//! the back end uses to merge LoRA into the base weights.
+//!
+//! Assumes: `resolve_adapt` ran without errors (targets are linear/conv2d layers with
+//! known sizes, adapter inputs are NCHW with channels divisible by the squeeze ratio).
+
+use readi_grammar::diag::Span;
+
+use super::resolve_adapt::{AdaptPlan, Injection, RuleKind};
+use crate::infer::infer;
+use crate::ir::{Activation, BinaryKind, Conv2dAttrs, Graph, Node, NodeId, Op, SlotKind, ValueRef};
+
+/// Runs the pass. Returns `Err` with a message only on a broken invariant (a compiler bug).
+pub fn run(graph: &mut Graph, plan: &mut AdaptPlan) -> Result<(), String> {
+    let mut injections = Vec::new();
+    for (rule, r) in plan.rules.iter().enumerate() {
+        for t in &r.targets {
+            match r.kind {
+                RuleKind::Tune => {}
+                RuleKind::Lora { rank, .. } => {
+                    let scale = r.kind.lora_scale().unwrap_or(1.0);
+                    injections.push(lora(graph, t.node, rank, scale, rule, r.span)?);
+                }
+                RuleKind::Adapter { squeeze, act } => {
+                    injections.push(adapter(graph, t.node, squeeze, act, rule, r.span)?);
+                }
+            }
+        }
+    }
+    plan.injections = injections;
+    Ok(())
+}
+
+/// Adds a node computing `op` on `inputs` at `path`, in `like`'s scope, its parameter
+/// slots marked as added.
+fn add(
+    graph: &mut Graph,
+    like: NodeId,
+    path: String,
+    op: Op,
+    inputs: &[ValueRef],
+    span: Span,
+) -> Result<NodeId, String> {
+    let types: Vec<_> = inputs
+        .iter()
+        .map(|v| graph.value_type(*v).cloned())
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| format!("`{path}` reads a missing value"))?;
+    let refs: Vec<_> = types.iter().collect();
+    let outputs = infer(&op, &refs).map_err(|e| format!("`{path}`: {}", e.message))?;
+    let mut params = op.param_slots();
+    for p in &mut params {
+        p.kind = SlotKind::Added;
+    }
+    let scope = graph.node(like).scope;
+    Ok(graph.add_node(Node { op, path, scope, params, outputs, span }, inputs))
+}
+
+fn out(node: NodeId) -> ValueRef {
+    ValueRef { node, port: 0 }
+}
+
+fn lora(graph: &mut Graph, base: NodeId, rank: i64, scale: f64, rule: usize, span: Span) -> Result<Injection, String> {
+    let node = graph.node(base).clone();
+    let x = graph.inputs(base).first().copied().ok_or_else(|| format!("`{}` has no input", node.path))?;
+    let (op_a, op_b) = match &node.op {
+        Op::Linear { in_features, out_features, .. } => (
+            Op::Linear { in_features: *in_features, out_features: rank, bias: false },
+            Op::Linear { in_features: rank, out_features: *out_features, bias: false },
+        ),
+        Op::Conv2d(c) => (
+            Op::Conv2d(Conv2dAttrs { out_channels: rank, groups: 1, bias: false, ..c.clone() }),
+            Op::Conv2d(Conv2dAttrs {
+                in_channels: rank,
+                out_channels: c.out_channels,
+                kernel: [1, 1],
+                stride: [1, 1],
+                padding: [0, 0],
+                dilation: [1, 1],
+                groups: 1,
+                bias: false,
+            }),
+        ),
+        op => return Err(format!("LoRA on a `{}` layer `{}`", op.kind_name(), node.path)),
+    };
+    let p = &node.path;
+    let a = add(graph, base, format!("{p}.lora_A"), op_a, &[x], span)?;
+    let b = add(graph, base, format!("{p}.lora_B"), op_b, &[out(a)], span)?;
+    let scaled = Op::Scalar { kind: BinaryKind::Mul, value: scale, scalar_first: false };
+    let s = add(graph, base, format!("{p}.lora_scale"), scaled, &[out(b)], span)?;
+    let sum = add(graph, base, format!("{p}.lora_add"), Op::Binary(BinaryKind::Add), &[out(base), out(s)], span)?;
+    graph.replace_uses_except(out(base), out(sum), sum);
+    Ok(Injection::Lora { rule, base, a, b, scale: s, add: sum, factor: scale })
+}
+
+fn adapter(
+    graph: &mut Graph,
+    target: NodeId,
+    squeeze: i64,
+    act: Activation,
+    rule: usize,
+    span: Span,
+) -> Result<Injection, String> {
+    let path = graph.node(target).path.clone();
+    let x = graph.inputs(target).first().copied().ok_or_else(|| format!("`{path}` has no input"))?;
+    let c = graph
+        .value_type(x)
+        .and_then(|t| t.known_dim(1))
+        .ok_or_else(|| format!("the input of `{path}` has no known channel count"))?;
+    let conv = |cin: i64, cout: i64| {
+        Op::Conv2d(Conv2dAttrs {
+            in_channels: cin,
+            out_channels: cout,
+            kernel: [1, 1],
+            stride: [1, 1],
+            padding: [0, 0],
+            dilation: [1, 1],
+            groups: 1,
+            bias: true,
+        })
+    };
+    let mid = c / squeeze;
+    let down = add(graph, target, format!("{path}.adapter.down"), conv(c, mid), &[x], span)?;
+    let a = add(graph, target, format!("{path}.adapter.act"), Op::Activation(act), &[out(down)], span)?;
+    let up = add(graph, target, format!("{path}.adapter.up"), conv(mid, c), &[out(a)], span)?;
+    let sum = add(graph, target, format!("{path}.adapter.add"), Op::Binary(BinaryKind::Add), &[x, out(up)], span)?;
+    graph.set_input(target, 0, out(sum));
+    Ok(Injection::Adapter { rule, target, down, act: a, up, add: sum })
+}
