@@ -19,7 +19,7 @@ fn compile_seeded(rel: &str, overrides: &[(&str, &str)]) -> Plan {
     let (sources, out) = common::compile(rel, overrides, None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
-    let bytes = backend::seeded_weights(&module.graph, SEED).to_safetensors();
+    let bytes = backend::seeded_weights(&module.graph, SEED).to_safetensors().expect("serialises");
     let weights = WeightSet::from_safetensors("seeded.safetensors", &bytes).expect("valid safetensors");
     let (plan, warnings) = backend::compile(&module, &weights, "seeded.safetensors", &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));

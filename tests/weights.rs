@@ -20,7 +20,7 @@ fn module() -> (SourceMap, Module) {
 /// Compiles with the given weights; returns the rendered diagnostics (errors or warnings).
 fn attempt(weights: &WeightSet, allow_unused: bool) -> (bool, String) {
     let (sources, m) = module();
-    match backend::compile(&m, weights, "r18.safetensors", &CompileOptions { allow_unused }) {
+    match backend::compile(&m, weights, "r18.safetensors", &CompileOptions { allow_unused, ..Default::default() }) {
         Ok((_, warnings)) => (true, sources.render_all(&warnings, false)),
         Err(d) => (false, sources.render_all(&d, false)),
     }
@@ -103,7 +103,7 @@ fn integer_weights_are_a_dtype_error() {
 
 #[test]
 fn truncated_weights_file_is_an_error() {
-    let bytes = seeded().to_safetensors();
+    let bytes = seeded().to_safetensors().expect("serialises");
     let d = WeightSet::from_safetensors("cut.safetensors", &bytes[..bytes.len() - 3]).expect_err("truncated");
     let text = SourceMap::new().render_all(&d, false);
     assert!(text.contains("cut.safetensors: not a valid safetensors file") && text.contains("truncated"), "{text}");

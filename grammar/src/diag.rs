@@ -147,6 +147,9 @@ pub enum Code {
     BadVariant,
     /// A weights file that does not fit the model (missing, extra, misshapen tensors).
     Weights,
+    /// A variant's parameter files do not fit the adaptation rules (a tensor the rules do
+    /// not make per-variant, an undeclared key, a PEFT config that disagrees with a rule).
+    VariantWeights,
     /// A resource limit (nesting, node count, loop length) was exceeded.
     Limit,
     /// A bug in readi: an invariant of the IR does not hold.
@@ -177,6 +180,7 @@ impl Code {
             Code::BadOption => "E0503",
             Code::BadVariant => "E0601",
             Code::Weights => "E0701",
+            Code::VariantWeights => "E0702",
             Code::Limit => "E0901",
             Code::Internal => "E0999",
         }

@@ -32,6 +32,8 @@ use crate::ir::{self, Activation, Dim, Graph, NodeId, Op, PoolKind, SlotKind, Up
 pub struct Lowered {
     pub manifest: Manifest,
     pub tensors: Vec<Vec<f32>>,
+    /// For each stored tensor, the parameters (full names) its value derives from.
+    pub sources: Vec<Vec<String>>,
 }
 
 fn sym(d: &Dim) -> SymDim {
@@ -50,6 +52,7 @@ struct Lowering<'g> {
     steps: Vec<Step>,
     tensors: Vec<TensorSpec>,
     data: Vec<Vec<f32>>,
+    sources: Vec<Vec<String>>,
     tensor_index: HashMap<String, usize>,
     stored_as: HashMap<String, String>,
     /// Number of uses of each node's output (edges plus graph outputs).
@@ -64,12 +67,13 @@ impl<'g> Lowering<'g> {
         self.bound.get(&name).copied().ok_or_else(|| ice(format!("weight `{name}` was not bound")))
     }
 
-    fn add_tensor(&mut self, name: String, shape: Vec<usize>, data: Vec<f32>) -> usize {
+    fn add_tensor(&mut self, name: String, shape: Vec<usize>, data: Vec<f32>, sources: Vec<String>) -> usize {
         if let Some(&i) = self.tensor_index.get(&name) {
             return i;
         }
         self.tensors.push(TensorSpec { name: name.clone(), shape });
         self.data.push(data);
+        self.sources.push(sources);
         self.tensor_index.insert(name, self.tensors.len() - 1);
         self.tensors.len() - 1
     }
@@ -123,7 +127,11 @@ impl<'g> Lowering<'g> {
     }
 
     /// BatchNorm's folded scale and shift, with an optional preceding bias folded in.
-    fn fold_bn(&mut self, bn: NodeId, prior_bias: Option<&[f32]>) -> Result<(usize, usize), Diagnostics> {
+    fn fold_bn(&mut self, bn: NodeId, prior_bias: Option<(&[f32], String)>) -> Result<(usize, usize), Diagnostics> {
+        let (prior_bias, prior) = match prior_bias {
+            Some((b, name)) => (Some(b), Some(name)),
+            None => (None, None),
+        };
         let node = self.graph.node(bn);
         let Op::BatchNorm { channels, eps, .. } = node.op else { return Err(ice("not a batchnorm".into())) };
         let (w, b, mean, var) = (
@@ -143,11 +151,16 @@ impl<'g> Lowering<'g> {
         }
         let path = node.path.clone();
         let targets = format!("folded into `{path}@scale`, `{path}@shift`");
-        for slot in ["weight", "bias", "running_mean", "running_var"] {
-            self.stored_as.insert(ir::join_path(&path, slot), targets.clone());
+        let slots = ["weight", "bias", "running_mean", "running_var"].map(|slot| ir::join_path(&path, slot));
+        for name in &slots {
+            self.stored_as.insert(name.clone(), targets.clone());
         }
-        let st = self.add_tensor(format!("{path}@scale"), vec![c], scale);
-        let sh = self.add_tensor(format!("{path}@shift"), vec![c], shift);
+        let mut sources = slots.to_vec();
+        if let Some(conv) = prior {
+            sources.push(conv);
+        }
+        let st = self.add_tensor(format!("{path}@scale"), vec![c], scale, slots[..].to_vec());
+        let sh = self.add_tensor(format!("{path}@shift"), vec![c], shift, sources);
         Ok((st, sh))
     }
 
@@ -164,7 +177,8 @@ impl<'g> Lowering<'g> {
             Op::Input(_) => {}
             Op::Parameter { shape } => {
                 let data = self.weight(node, "")?.to_vec();
-                let t = self.add_tensor(node.path.clone(), shape.iter().map(|&d| d as usize).collect(), data);
+                let shape = shape.iter().map(|&d| d as usize).collect();
+                let t = self.add_tensor(node.path.clone(), shape, data, vec![node.path.clone()]);
                 self.stored_as.insert(node.path.clone(), format!("tensor `{}`", node.path));
                 let v = self.new_value(ValueRef { node: id, port: 0 }, Storage::Tensor(t));
                 self.value_of.insert(ValueRef { node: id, port: 0 }, v);
@@ -197,12 +211,12 @@ impl<'g> Lowering<'g> {
                 conv::pack_weight(&s, algo, weight, &mut packed);
                 let wname = format!("{}.weight@{}", node.path, algo.name());
                 self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("packed as `{wname}`"));
-                let wt = self.add_tensor(wname, vec![packed.len()], packed);
+                let wt = self.add_tensor(wname, vec![packed.len()], packed, vec![ir::join_path(&node.path, "weight")]);
                 let bias = if c.bias { Some(self.weight(node, "bias")?) } else { None };
                 let mut ep = EpilogueSpec::default();
                 let bn = self.sole_user(id).filter(|&u| matches!(g.node(u).op, Op::BatchNorm { .. }));
                 if let Some(bn) = bn {
-                    let (st, sh) = self.fold_bn(bn, bias)?;
+                    let (st, sh) = self.fold_bn(bn, bias.map(|b| (b, ir::join_path(&node.path, "bias"))))?;
                     if c.bias {
                         let bname = ir::join_path(&node.path, "bias");
                         self.stored_as.insert(bname, format!("folded into `{}@shift`", g.node(bn).path));
@@ -213,7 +227,7 @@ impl<'g> Lowering<'g> {
                 } else if let Some(b) = bias {
                     let bname = ir::join_path(&node.path, "bias");
                     self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
-                    ep.shift = Some(self.add_tensor(bname, vec![b.len()], b.to_vec()));
+                    ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], b.to_vec(), vec![bname]));
                 }
                 // A ReLU after the conv, or after its folded BatchNorm.
                 ep.relu = self.absorb_relu(bn.unwrap_or(id), id);
@@ -248,13 +262,13 @@ impl<'g> Lowering<'g> {
                 }
                 let wname = format!("{}.weight@t", node.path);
                 self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("transposed as `{wname}`"));
-                let wt = self.add_tensor(wname, vec![fin, fout], t);
+                let wt = self.add_tensor(wname, vec![fin, fout], t, vec![ir::join_path(&node.path, "weight")]);
                 let mut ep = EpilogueSpec::default();
                 if *bias {
                     let b = self.weight(node, "bias")?.to_vec();
                     let bname = ir::join_path(&node.path, "bias");
                     self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
-                    ep.shift = Some(self.add_tensor(bname, vec![b.len()], b));
+                    ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], b, vec![bname]));
                 }
                 ep.relu = self.absorb_relu(id, id);
                 let kernel = Kernel::Linear { out_features: *out_features as usize, weight: wt, epilogue: ep };
@@ -267,7 +281,7 @@ impl<'g> Lowering<'g> {
                         let data = self.weight(node, slot)?.to_vec();
                         let name = ir::join_path(&node.path, slot);
                         self.stored_as.insert(name.clone(), format!("tensor `{name}`"));
-                        *target = Some(self.add_tensor(name, vec![*features as usize], data));
+                        *target = Some(self.add_tensor(name.clone(), vec![*features as usize], data, vec![name]));
                     }
                 }
                 self.emit(id, Kernel::LayerNorm { weight: wt, bias: bt, eps: *eps as f32 }, inputs);
@@ -344,6 +358,7 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         steps: Vec::new(),
         tensors: Vec::new(),
         data: Vec::new(),
+        sources: Vec::new(),
         tensor_index: HashMap::new(),
         stored_as: HashMap::new(),
         uses,
@@ -383,13 +398,13 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         .into_iter()
         .map(|(name, _, slot)| ParamSpec {
             shape: slot.shape.iter().map(|&d| d as usize).collect(),
-            trainable: slot.kind == SlotKind::Param,
+            trainable: slot.kind != SlotKind::Buffer,
             stored_as: l.stored_as.get(&name).cloned().unwrap_or_else(|| "not used by the plan".into()),
-            added: false,
+            added: slot.kind == SlotKind::Added,
             name,
         })
         .collect();
-    let Lowering { mut values, steps, tensors, data, .. } = l;
+    let Lowering { mut values, steps, tensors, data, sources, .. } = l;
     let output_values: Vec<usize> = outputs.iter().map(|o: &OutputSpec| o.value).collect();
     let slots = plan_buffers(&mut values, &steps, &output_values);
     let manifest = Manifest {
@@ -406,5 +421,5 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         params,
         variants: Vec::new(),
     };
-    Ok(Lowered { manifest, tensors: data })
+    Ok(Lowered { manifest, tensors: data, sources })
 }

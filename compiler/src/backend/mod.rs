@@ -1,22 +1,31 @@
 //! The back end: from a checked module and its weights to a runtime plan.
 //!
-//! | pass           | changes                                                   |
-//! |----------------|-----------------------------------------------------------|
-//! | `bind_weights` | binds safetensors tensors to parameter slots by name      |
-//! | `lower`        | schedule of kernel steps; folds BatchNorm, fuses ReLU/bias |
-//! | `plan_buffers` | assigns activation buffers by liveness                    |
+//! | pass            | changes                                                    |
+//! |-----------------|------------------------------------------------------------|
+//! | `bind_weights`  | binds safetensors tensors to parameter slots by name       |
+//! | `bind_variants` | checks each variant's tensors against the adaptation rules |
+//! | `lower`         | schedule of kernel steps; folds BatchNorm, fuses ReLU/bias  |
+//! | `plan_buffers`  | assigns activation buffers by liveness                     |
 //!
 //! [`compile`] runs them and returns a [`Plan`] held in memory; `Plan::write` stores it.
+//! With variants, the base and every variant are lowered to the same schedule and each
+//! variant keeps the stored tensors that differ from the base (see [`variants`]).
 
 pub mod buffers;
 pub mod lower;
+pub mod peft;
+pub mod variants;
 pub mod weights;
+
+use std::collections::HashSet;
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use readi_runtime::plan::Plan;
 
-use crate::ir::Graph;
+use crate::ir::{self, Graph};
 use crate::passes::Module;
+use crate::passes::resolve_adapt::Injection;
+pub use variants::{LoraMode, VariantSource};
 pub use weights::WeightSet;
 
 /// Options of the back end.
@@ -24,31 +33,90 @@ pub use weights::WeightSet;
 pub struct CompileOptions {
     /// Tensors in the weights file that the model does not use are warnings, not errors.
     pub allow_unused: bool,
+    /// How LoRA branches run.
+    pub lora: LoraMode,
+    /// An owned parameter a variant does not give is an error, not a warning.
+    pub strict: bool,
 }
 
-/// Compiles a checked module with its weights. Returns the plan and any warnings.
+fn ice(message: String) -> Diagnostics {
+    Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {message}"))])
+}
+
+/// Compiles a checked module with its base weights and no variants.
 pub fn compile(
     module: &Module,
     weights: &WeightSet,
     weights_name: &str,
     opts: &CompileOptions,
 ) -> Result<(Plan, Diagnostics), Diagnostics> {
-    let (bound, warnings) = weights::bind(&module.graph, weights, weights_name, opts.allow_unused)?;
-    let lowered = lower::lower(&module.graph, &bound)?;
-    let plan = Plan::new(lowered.manifest, lowered.tensors).map_err(|e| {
-        Diagnostics(vec![Diagnostic::error(
-            Code::Internal,
-            format!("internal compiler error: the plan is invalid: {e}"),
-        )])
-    })?;
+    compile_variants(module, weights, weights_name, &[], opts)
+}
+
+/// Compiles a checked module with its base weights and the parameters of each variant.
+/// Returns the plan and any warnings.
+pub fn compile_variants(
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+) -> Result<(Plan, Diagnostics), Diagnostics> {
+    let keys = variants::check_keys(module, sources)?;
+    let (mut bound, mut warnings) = weights::bind(&module.graph, base, base_name, opts.allow_unused)?;
+    let owned = variants::owned_params(module);
+    let zeros = variants::zero_added(&owned);
+    for (name, z) in &zeros {
+        bound.insert(name.clone(), z);
+    }
+    let graph = variants::lowering_graph(module, !sources.is_empty(), opts.lora);
+    let base_lowered = lower::lower(&graph, &bound)?;
+    let mut store = variants::TensorStore::new(&base_lowered);
+    // Tensors derived from these parameters count as added in the budget.
+    let mut added: HashSet<String> = owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.clone()).collect();
+    if opts.lora == LoraMode::Merge {
+        for inj in module.adapt.iter().flat_map(|a| &a.injections) {
+            if let Injection::Lora { base, .. } = inj {
+                added.insert(ir::join_path(&module.graph.node(*base).path, "weight"));
+            }
+        }
+    }
+    let mut tables = Vec::new();
+    let mut errors = Diagnostics::default();
+    for (source, key) in sources.iter().zip(keys) {
+        let bv = match variants::bind_variant(&module.graph, &owned, source, &key, opts.strict) {
+            Ok(v) => v,
+            Err(d) => {
+                errors.extend(d);
+                continue;
+            }
+        };
+        warnings.extend(bv.warnings);
+        let mut vbound = bound.clone();
+        vbound.extend(bv.values);
+        let merged = if opts.lora == LoraMode::Merge { variants::merge_lora(module, &vbound) } else { Vec::new() };
+        for (name, w) in &merged {
+            vbound.insert(name.clone(), w);
+        }
+        let lowered = lower::lower(&graph, &vbound)?;
+        let replaces = store.diff(&key, lowered, &added).map_err(ice)?;
+        tables.push(variants::table(key, replaces, &owned, bv.fallback));
+    }
+    if errors.has_errors() {
+        return Err(errors);
+    }
+    let mut manifest = base_lowered.manifest;
+    manifest.tensors = store.specs;
+    manifest.variants = tables;
+    let plan = Plan::new(manifest, store.data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }
 
-/// Deterministic weights for every parameter of a graph: see [`seeded_tensor`].
+/// Deterministic weights for every parameter of the base model: see [`seeded_tensor`].
 pub fn seeded_weights(graph: &Graph, seed: u64) -> WeightSet {
     let mut set = WeightSet::default();
     for (name, _, slot) in graph.param_table() {
-        if slot.dtype != readi_grammar::ast::DType::F32 {
+        if slot.dtype != readi_grammar::ast::DType::F32 || slot.kind == crate::ir::SlotKind::Added {
             continue;
         }
         let shape: Vec<usize> = slot.shape.iter().map(|&d| d as usize).collect();
@@ -56,6 +124,24 @@ pub fn seeded_weights(graph: &Graph, seed: u64) -> WeightSet {
         set.tensors.insert(name, (shape, data));
     }
     set
+}
+
+/// Deterministic parameters for variants of a module: for the `i`-th key, every parameter
+/// the variants own gets [`seeded_tensor`] with seed `seed + i` (LoRA `B` and adapter `up`
+/// included, so no variant equals the base). For demos, tests and benchmarks.
+pub fn seeded_variants(module: &Module, keys: &[String], seed: u64) -> Vec<VariantSource> {
+    let owned = variants::owned_params(module);
+    keys.iter()
+        .enumerate()
+        .map(|(i, key)| {
+            let mut weights = WeightSet::default();
+            for (name, o) in &owned {
+                let data = seeded_tensor(seed + i as u64, name, &o.shape);
+                weights.tensors.insert(name.clone(), (o.shape.clone(), data));
+            }
+            VariantSource { key: key.clone(), weights, origin: format!("<seeded variant {key}>") }
+        })
+        .collect()
 }
 
 /// The seeded value of one tensor, a function of the seed, the tensor's name and its

@@ -13,7 +13,7 @@ use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
 use safetensors::tensor::{Dtype, SafeTensors};
 
-use crate::ir::{Graph, NodeId};
+use crate::ir::{Graph, NodeId, SlotKind};
 
 /// Tensors by name, as f32.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -60,20 +60,19 @@ impl WeightSet {
     }
 
     /// The set as safetensors bytes (f32), as PyTorch's `save_file(state_dict)` writes.
-    pub fn to_safetensors(&self) -> Vec<u8> {
+    pub fn to_safetensors(&self) -> Result<Vec<u8>, String> {
         use safetensors::tensor::TensorView;
         let bytes: Vec<(&String, &Vec<usize>, Vec<u8>)> = self
             .tensors
             .iter()
             .map(|(name, (shape, data))| (name, shape, data.iter().flat_map(|v| v.to_le_bytes()).collect()))
             .collect();
-        let views: Vec<(String, TensorView<'_>)> = bytes
-            .iter()
-            .filter_map(|(name, shape, b)| {
-                TensorView::new(Dtype::F32, (*shape).clone(), b).ok().map(|v| ((*name).clone(), v))
-            })
-            .collect();
-        safetensors::serialize(views, None).unwrap_or_default()
+        let mut views = Vec::with_capacity(bytes.len());
+        for (name, shape, b) in &bytes {
+            let view = TensorView::new(Dtype::F32, (*shape).clone(), b).map_err(|e| format!("tensor `{name}`: {e}"))?;
+            views.push(((*name).clone(), view));
+        }
+        safetensors::serialize(views, None).map_err(|e| e.to_string())
     }
 }
 
@@ -90,8 +89,11 @@ pub fn bind<'w>(
 ) -> Result<(Bound<'w>, Diagnostics), Diagnostics> {
     let mut diags = Diagnostics::default();
     let mut bound = Bound::new();
+    let table = graph.param_table();
     let expected: std::collections::HashSet<String> =
-        graph.param_table().into_iter().map(|(name, _, _)| name).collect();
+        table.iter().filter(|(_, _, s)| s.kind != SlotKind::Added).map(|(name, _, _)| name.clone()).collect();
+    let added: std::collections::HashSet<&str> =
+        table.iter().filter(|(_, _, s)| s.kind == SlotKind::Added).map(|(name, _, _)| name.as_str()).collect();
     // Tensors no slot claims: the likely intended names when a slot's tensor is missing.
     let unclaimed: Vec<&str> = weights.tensors.keys().filter(|k| !expected.contains(*k)).map(String::as_str).collect();
     let order: Vec<NodeId> = graph.topo_order().unwrap_or_else(|| graph.node_ids().collect());
@@ -99,8 +101,9 @@ pub fn bind<'w>(
         let node = graph.node(id);
         for slot in &node.params {
             let name = node.param_name(slot);
-            if slot.dtype == DType::I64 {
+            if slot.dtype == DType::I64 || slot.kind == SlotKind::Added {
                 // num_batches_tracked: bookkeeping of PyTorch's training, not used here.
+                // Added slots (LoRA, adapters) are zero in the base; variants provide them.
                 continue;
             }
             let layer = format!("{} `{}`", node.op.kind_name(), node.path);
@@ -139,6 +142,17 @@ pub fn bind<'w>(
     }
     for name in weights.tensors.keys() {
         if expected.contains(name) {
+            continue;
+        }
+        if added.contains(name.as_str()) {
+            diags.push(
+                Diagnostic::error(
+                    Code::Weights,
+                    format!("tensor `{name}` in `{weights_name}` belongs to the variants, not to the base model"),
+                )
+                .with_note("an adaptation rule adds it; the base model's value is zero")
+                .with_note("give it in a variant's parameter file or PEFT adapter instead"),
+            );
             continue;
         }
         let message = format!("tensor `{name}` in `{weights_name}` is not a parameter of the model");

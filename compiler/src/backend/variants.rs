@@ -1,0 +1,370 @@
+//! `bind_variants`: each variant's parameters, checked against the adaptation rules, and
+//! the plan's variant tables.
+//!
+//! A variant owns exactly what the rules make per-variant: the slots `tune` rules select
+//! (BatchNorm affine and running statistics, head weights, ...) and every slot
+//! `inject_adapt` added (LoRA matrices, adapter convs). Its files give owned tensors by
+//! PyTorch name. Checks, each an error naming the file and tensor: a key the `variants`
+//! section does not declare (or given twice), a tensor the rules do not make per-variant, a
+//! wrong shape, a NaN or infinity. An owned tensor a variant does not give keeps the base
+//! value (zero for added ones) and is reported: a warning, or an error when strict.
+//!
+//! Each variant is lowered with the base schedule and its own values; every stored tensor
+//! whose bytes differ from the base's becomes one of the variant's replacements, and
+//! identical replacements are stored once. With [`LoraMode::Merge`] LoRA is folded into
+//! the base layer's weight (`W + scale * B A`, PEFT's merge) and the LoRA branches leave the
+//! schedule, so an adapted plan runs as fast as the base; with [`LoraMode::Branch`] the
+//! branches run and a variant stores only the small `A` and `B` matrices.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::hash::{Hash, Hasher};
+
+use readi_grammar::ast::DType;
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
+use readi_runtime::plan::{Replacement, TensorSpec, VariantTable};
+
+use super::lower::Lowered;
+use super::weights::{Bound, WeightSet};
+use crate::ir::{self, Graph, NodeId, SlotKind, ValueRef};
+use crate::passes::Module;
+use crate::passes::check_variants::fmt_level;
+use crate::passes::resolve_adapt::{Injection, RuleKind};
+
+/// How LoRA runs in the plan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LoraMode {
+    /// Folded into the adapted layer's weight per variant: no extra work at run time, but
+    /// each variant stores the whole weight of every LoRA layer.
+    #[default]
+    Merge,
+    /// Kept as a side branch `scale * B(A(x))`: each variant stores only `A` and `B`.
+    Branch,
+}
+
+impl LoraMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            LoraMode::Merge => "merge",
+            LoraMode::Branch => "branch",
+        }
+    }
+}
+
+/// One variant's parameters, by PyTorch name, and where they came from (for messages).
+#[derive(Clone, Debug, Default)]
+pub struct VariantSource {
+    pub key: String,
+    pub weights: WeightSet,
+    pub origin: String,
+}
+
+/// A parameter the variants own.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Owned {
+    pub shape: Vec<usize>,
+    /// Added by a rule (zero in the base) rather than an existing, tuned parameter.
+    pub added: bool,
+    pub node: NodeId,
+}
+
+/// Every parameter a variant owns, by full name.
+pub fn owned_params(module: &Module) -> BTreeMap<String, Owned> {
+    let g = &module.graph;
+    let mut owned = BTreeMap::new();
+    let Some(plan) = &module.adapt else { return owned };
+    let mut add = |node: NodeId, slot: &ir::ParamSlot| {
+        if slot.dtype == DType::F32 {
+            let shape = slot.shape.iter().map(|&d| d as usize).collect();
+            let added = slot.kind == SlotKind::Added;
+            owned.insert(g.node(node).param_name(slot), Owned { shape, added, node });
+        }
+    };
+    for r in plan.rules.iter().filter(|r| r.kind == RuleKind::Tune) {
+        for t in &r.targets {
+            for slot in g.node(t.node).params.iter().filter(|s| t.slots.contains(&s.name)) {
+                add(t.node, slot);
+            }
+        }
+    }
+    for inj in &plan.injections {
+        for n in inj.nodes() {
+            for slot in &g.node(n).params {
+                add(n, slot);
+            }
+        }
+    }
+    owned
+}
+
+/// The graph the back end lowers: without adapters and LoRA branches when there are no
+/// variants (they would compute zeros), and without LoRA branches when LoRA is merged.
+pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode) -> Graph {
+    let mut g = module.graph.clone();
+    let Some(plan) = &module.adapt else { return g };
+    for inj in &plan.injections {
+        match *inj {
+            Injection::Lora { base, add, .. } if !with_variants || lora == LoraMode::Merge => {
+                g.replace_uses(ValueRef { node: add, port: 0 }, ValueRef { node: base, port: 0 });
+            }
+            Injection::Adapter { target, add, .. } if !with_variants => {
+                let x = g.inputs(add)[0];
+                g.set_input(target, 0, x);
+            }
+            _ => continue,
+        }
+        for n in inj.nodes() {
+            g.remove_node(n);
+        }
+    }
+    g
+}
+
+/// Zero values for every added slot: the base model's value of LoRA and adapter weights.
+pub fn zero_added(owned: &BTreeMap<String, Owned>) -> Vec<(String, Vec<f32>)> {
+    owned.iter().filter(|(_, o)| o.added).map(|(n, o)| (n.clone(), vec![0.0; o.shape.iter().product()])).collect()
+}
+
+/// The declared key a written key names: `fog=0.030` names `fog=0.03`.
+pub fn canonical_key(key: &str, declared: &[String]) -> Option<String> {
+    if declared.iter().any(|d| d == key) {
+        return Some(key.to_string());
+    }
+    let (axis, level) = key.split_once('=')?;
+    let level: f64 = level.trim().parse().ok()?;
+    let k = format!("{}={}", axis.trim(), fmt_level(level));
+    declared.contains(&k).then_some(k)
+}
+
+/// Checks the keys of all variants: declared by the spec, each given once.
+pub fn check_keys(module: &Module, variants: &[VariantSource]) -> Result<Vec<String>, Diagnostics> {
+    let declared = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+    let mut diags = Diagnostics::default();
+    let mut keys: Vec<String> = Vec::new();
+    for v in variants {
+        let Some(k) = canonical_key(&v.key, &declared) else {
+            let mut d = Diagnostic::error(
+                Code::VariantWeights,
+                format!("{}: variant key `{}` is not declared by the spec", v.origin, v.key),
+            );
+            d = match suggest(&v.key, declared.iter().map(String::as_str)) {
+                Some(s) => d.with_note(format!("did you mean `{s}`?")),
+                None if declared.is_empty() => d.with_note("the spec has no `variants` section"),
+                None => d.with_note(format!("declared keys: {}", declared.join(", "))),
+            };
+            diags.push(d);
+            continue;
+        };
+        if keys.contains(&k) {
+            diags.push(Diagnostic::error(Code::VariantWeights, format!("{}: variant `{k}` is given twice", v.origin)));
+        }
+        keys.push(k);
+    }
+    if module.adapt.is_none() && !variants.is_empty() {
+        diags.push(
+            Diagnostic::error(Code::VariantWeights, "the spec has no `adapt` section, so variants own no parameters")
+                .with_note("add rules such as `tune batchnorm` to make parameters per-variant"),
+        );
+    }
+    if diags.has_errors() { Err(diags) } else { Ok(keys) }
+}
+
+/// One variant's checked tensors.
+pub struct BoundVariant<'w> {
+    /// The tensors it gives, to bind over the base values.
+    pub values: Vec<(String, &'w [f32])>,
+    /// Owned parameters it does not give (they keep the base value).
+    pub fallback: Vec<String>,
+    pub warnings: Diagnostics,
+}
+
+/// Binds one variant's tensors over the base values.
+pub fn bind_variant<'w>(
+    graph: &Graph,
+    owned: &BTreeMap<String, Owned>,
+    source: &'w VariantSource,
+    key: &str,
+    strict: bool,
+) -> Result<BoundVariant<'w>, Diagnostics> {
+    let mut diags = Diagnostics::default();
+    let mut values = Vec::new();
+    let base_params: HashSet<String> = graph.param_table().into_iter().map(|(n, _, _)| n).collect();
+    let file = &source.origin;
+    for (name, (shape, data)) in &source.weights.tensors {
+        if name.ends_with("num_batches_tracked") {
+            continue;
+        }
+        let Some(o) = owned.get(name) else {
+            let mut d = Diagnostic::error(
+                Code::VariantWeights,
+                format!("{file}: tensor `{name}` is not per-variant: no adaptation rule makes it so"),
+            );
+            d = if base_params.contains(name) {
+                d.with_note("it is a parameter of the base model; a `tune` rule selecting it would make it per-variant")
+            } else {
+                match suggest(name, owned.keys().map(String::as_str)) {
+                    Some(s) => d.with_note(format!("did you mean `{s}`?")),
+                    None => d.with_note("it is not a parameter of the model"),
+                }
+            };
+            diags.push(d);
+            continue;
+        };
+        if *shape != o.shape {
+            diags.push(
+                Diagnostic::error(
+                    Code::VariantWeights,
+                    format!("{file}: tensor `{name}` has shape {shape:?}, but the model needs {:?}", o.shape),
+                )
+                .with_primary(graph.node(o.node).span, format!("expects {:?}", o.shape)),
+            );
+            continue;
+        }
+        if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+            diags.push(Diagnostic::error(
+                Code::VariantWeights,
+                format!("{file}: tensor `{name}` holds {} at flat index {i}; weights must be finite", data[i]),
+            ));
+            continue;
+        }
+        values.push((name.clone(), data.as_slice()));
+    }
+    let fallback: Vec<String> = owned.keys().filter(|n| !source.weights.tensors.contains_key(*n)).cloned().collect();
+    if !fallback.is_empty() && !diags.has_errors() {
+        let shown: Vec<&str> = fallback.iter().take(4).map(String::as_str).collect();
+        let more = if fallback.len() > 4 { format!(" and {} more", fallback.len() - 4) } else { String::new() };
+        let message = format!(
+            "variant `{key}` does not give {} of its {} parameters; they keep the base value: {}{more}",
+            fallback.len(),
+            owned.len(),
+            shown.join(", ")
+        );
+        diags.push(if strict {
+            Diagnostic::error(Code::VariantWeights, message).with_note("without --strict this is a warning")
+        } else {
+            Diagnostic::warning(Code::VariantWeights, message).with_note("--strict makes this an error")
+        });
+    }
+    if diags.has_errors() { Err(diags) } else { Ok(BoundVariant { values, fallback, warnings: diags }) }
+}
+
+/// PEFT's merge of every LoRA branch into its layer's weight: `W + scale * B A` (for a
+/// conv, `A` is `[rank, in * kh * kw]` and `B` is `[out, rank]`). Returns the merged weights
+/// of the layers whose branch is non-zero.
+pub fn merge_lora(module: &Module, bound: &Bound<'_>) -> Vec<(String, Vec<f32>)> {
+    let g = &module.graph;
+    let mut merged = Vec::new();
+    let Some(plan) = &module.adapt else { return merged };
+    for inj in &plan.injections {
+        let Injection::Lora { base, a, b, factor, .. } = *inj else { continue };
+        let name = |n: NodeId| ir::join_path(&g.node(n).path, "weight");
+        let (Some(w), Some(wa), Some(wb)) = (bound.get(&name(base)), bound.get(&name(a)), bound.get(&name(b))) else {
+            continue;
+        };
+        if wa.iter().all(|v| *v == 0.0) || wb.iter().all(|v| *v == 0.0) {
+            continue;
+        }
+        let rank = g.node(a).params[0].shape[0] as usize;
+        let cols = wa.len() / rank;
+        let rows = wb.len() / rank;
+        let mut out = w.to_vec();
+        for o in 0..rows {
+            for c in 0..cols {
+                let delta: f64 = (0..rank).map(|r| wb[o * rank + r] as f64 * wa[r * cols + c] as f64).sum();
+                out[o * cols + c] = (w[o * cols + c] as f64 + factor * delta) as f32;
+            }
+        }
+        merged.push((name(base), out));
+    }
+    merged
+}
+
+/// The plan's tensors: the base's, then each distinct replacement once.
+pub struct TensorStore {
+    pub specs: Vec<TensorSpec>,
+    pub data: Vec<Vec<f32>>,
+    by_hash: HashMap<u64, Vec<usize>>,
+    base_len: usize,
+}
+
+fn bits_hash(shape: &[usize], data: &[f32]) -> u64 {
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    shape.hash(&mut h);
+    for v in data {
+        v.to_bits().hash(&mut h);
+    }
+    h.finish()
+}
+
+fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+}
+
+impl TensorStore {
+    pub fn new(base: &Lowered) -> TensorStore {
+        let mut store = TensorStore {
+            specs: base.manifest.tensors.clone(),
+            data: base.tensors.clone(),
+            by_hash: HashMap::new(),
+            base_len: base.tensors.len(),
+        };
+        for i in 0..store.data.len() {
+            store.by_hash.entry(bits_hash(&store.specs[i].shape, &store.data[i])).or_default().push(i);
+        }
+        store
+    }
+
+    /// The variant's replacements: every tensor of `lowered` whose bytes differ from the
+    /// base's. `added` holds the parameters whose tensors count as added.
+    pub fn diff(&mut self, key: &str, lowered: Lowered, added: &HashSet<String>) -> Result<Vec<Replacement>, String> {
+        if lowered.tensors.len() != self.base_len {
+            return Err(format!(
+                "variant `{key}` lowers to {} tensors, the base to {}",
+                lowered.tensors.len(),
+                self.base_len
+            ));
+        }
+        let mut replaces = Vec::new();
+        for (i, (data, sources)) in lowered.tensors.into_iter().zip(lowered.sources).enumerate() {
+            let spec = &lowered.manifest.tensors[i];
+            if spec.name != self.specs[i].name || spec.shape != self.specs[i].shape {
+                return Err(format!(
+                    "variant `{key}` lowers tensor {i} as `{}`, the base as `{}`",
+                    spec.name, self.specs[i].name
+                ));
+            }
+            if same_bits(&data, &self.data[i]) {
+                continue;
+            }
+            let h = bits_hash(&spec.shape, &data);
+            let found = self.by_hash.get(&h).and_then(|c| {
+                c.iter().copied().find(|&j| self.specs[j].shape == spec.shape && same_bits(&self.data[j], &data))
+            });
+            let with = match found {
+                Some(j) => j,
+                None => {
+                    self.specs.push(TensorSpec { name: format!("{}#{key}", spec.name), shape: spec.shape.clone() });
+                    self.data.push(data);
+                    let j = self.data.len() - 1;
+                    self.by_hash.entry(h).or_default().push(j);
+                    j
+                }
+            };
+            let added = sources.iter().any(|s| added.contains(s));
+            replaces.push(Replacement { base: i, with, added });
+        }
+        Ok(replaces)
+    }
+}
+
+/// A variant's table.
+pub fn table(
+    key: String,
+    replaces: Vec<Replacement>,
+    owned: &BTreeMap<String, Owned>,
+    fallback: Vec<String>,
+) -> VariantTable {
+    let count = |added: bool| -> u64 {
+        owned.values().filter(|o| o.added == added).map(|o| o.shape.iter().product::<usize>() as u64).sum()
+    };
+    VariantTable { key, replaces, tuned_elements: count(false), added_elements: count(true), fallback }
+}

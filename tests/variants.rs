@@ -1,0 +1,313 @@
+//! Variant plans: parity with PyTorch + PEFT, switching, budgets and bad variant files.
+//!
+//! The PyTorch side (tests/fixtures/make_fixtures.py, `--only variants`) seeds the base
+//! model with readi's generator, sets each variant's tuned and adapter parameters from the
+//! generator with the variant's seed, adds a real PEFT LoRA (`init_lora_weights=False`) and
+//! saves it with `save_pretrained`, and records the outputs. Here the same tuned and
+//! adapter values are generated again, the committed PEFT directories are read, and every
+//! variant must match PyTorch to 1e-4, with LoRA merged and as a branch.
+
+mod common;
+
+use std::sync::Arc;
+
+use readi_compiler::backend::variants::owned_params;
+use readi_compiler::backend::{self, CompileOptions, LoraMode, VariantSource, WeightSet, peft, seeded_tensor};
+use readi_compiler::ir::SlotKind;
+use readi_compiler::passes::Module;
+use readi_grammar::diag::{Diagnostics, SourceMap};
+use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::plan::Plan;
+
+const SEED: u64 = 2024;
+
+struct Fixture {
+    tensors: WeightSet,
+    overrides: Vec<(String, String)>,
+    /// Variant keys with their seeds.
+    variants: Vec<(String, u64)>,
+}
+
+fn fixture(model: &str) -> Fixture {
+    let path = common::root().join(format!("tests/fixtures/variants/{model}.safetensors"));
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes).expect("header");
+    let md = meta.metadata().clone().expect("metadata");
+    let pairs = |key: &str, sep: char| -> Vec<(String, String)> {
+        md[key]
+            .split(',')
+            .map(|kv| kv.rsplit_once(sep).map(|(k, v)| (k.to_string(), v.to_string())).expect("pair"))
+            .collect()
+    };
+    let variants = pairs("variants", ':').into_iter().map(|(k, s)| (k, s.parse().expect("seed"))).collect();
+    let overrides = pairs("overrides", '=');
+    assert_eq!(md["seed"], SEED.to_string());
+    Fixture { tensors: WeightSet::from_safetensors(model, &bytes).expect("fixture"), overrides, variants }
+}
+
+fn module(model: &str, overrides: &[(String, String)]) -> (SourceMap, Module) {
+    let ov: Vec<(&str, &str)> = overrides.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
+    let (sources, out) = common::compile(&format!("models/{model}.readi"), &ov, None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    (sources, out.module.expect("module"))
+}
+
+/// The seeded base weights, through a safetensors file.
+fn base_weights(m: &Module) -> WeightSet {
+    let bytes = backend::seeded_weights(&m.graph, SEED).to_safetensors().expect("serialise");
+    WeightSet::from_safetensors("base.safetensors", &bytes).expect("valid")
+}
+
+/// A variant's tuned and adapter values from the generator, as the fixture script made
+/// them, plus the committed PEFT adapter.
+fn variant_source(model: &str, m: &Module, key: &str, seed: u64) -> VariantSource {
+    let mut set = WeightSet::default();
+    for (name, o) in owned_params(m) {
+        if !name.contains(".lora_") {
+            set.tensors.insert(name.clone(), (o.shape.clone(), seeded_tensor(seed, &name, &o.shape)));
+        }
+    }
+    let bytes = set.to_safetensors().expect("serialise");
+    let mut weights = WeightSet::from_safetensors("params.safetensors", &bytes).expect("valid");
+    let dir = common::root().join(format!("tests/fixtures/variants/{model}/{key}"));
+    let config = std::fs::read_to_string(dir.join(peft::CONFIG_FILE)).expect("config");
+    let adapter = std::fs::read(dir.join(peft::WEIGHTS_FILE)).expect("adapter");
+    let lora = peft::read_adapter(&dir.display().to_string(), &config, &adapter, m).expect("adapter reads");
+    assert!(!lora.tensors.is_empty());
+    weights.tensors.extend(lora.tensors);
+    VariantSource { key: key.to_string(), weights, origin: format!("{key} files") }
+}
+
+fn compile(sources: &SourceMap, m: &Module, variants: &[VariantSource], lora: LoraMode) -> Plan {
+    let opts = CompileOptions { lora, strict: true, ..Default::default() };
+    let (plan, warnings) = backend::compile_variants(m, &base_weights(m), "base.safetensors", variants, &opts)
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    assert!(warnings.is_empty(), "{}", sources.render_all(&warnings, false));
+    plan
+}
+
+fn inputs(fx: &WeightSet) -> Vec<Input<'_>> {
+    fx.tensors
+        .iter()
+        .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
+        .collect()
+}
+
+fn max_abs_error(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+fn run_as(session: &mut Session, key: &str, fx: &WeightSet) -> Vec<(String, Tensor)> {
+    session.set_variant(key).expect("known key");
+    session.run(&inputs(fx)).expect("run")
+}
+
+fn check_parity(model: &str) {
+    let fx = fixture(model);
+    let (sources, m) = module(model, &fx.overrides);
+    let variants: Vec<VariantSource> =
+        fx.variants.iter().map(|(k, seed)| variant_source(model, &m, k, *seed)).collect();
+    for lora in [LoraMode::Merge, LoraMode::Branch] {
+        let plan = Arc::new(compile(&sources, &m, &variants, lora));
+        assert_eq!(plan.manifest.variants.len(), variants.len());
+        let mut session = Session::new(plan, 2).expect("session");
+        for key in std::iter::once("base").chain(fx.variants.iter().map(|(k, _)| k.as_str())) {
+            for (name, t) in run_as(&mut session, key, &fx.tensors) {
+                let (shape, want) = &fx.tensors.tensors[&format!("{key}.{name}")];
+                assert_eq!(&t.shape, shape);
+                let err = max_abs_error(&t.data, want);
+                eprintln!("{model} {key} (LoRA {}): `{name}` max abs error vs PyTorch + PEFT {err:e}", lora.name());
+                assert!(err <= 1e-4, "{model} {key}: `{name}` differs from PyTorch by {err:e}");
+            }
+        }
+    }
+}
+
+#[test]
+fn resnet18_variants_match_pytorch_and_peft() {
+    check_parity("resnet18");
+}
+
+#[test]
+fn vit_variants_match_pytorch_and_peft() {
+    check_parity("vit_encoder");
+}
+
+#[test]
+fn switching_back_and_forth_is_bit_identical_to_a_fresh_run() {
+    let fx = fixture("resnet18");
+    let (sources, m) = module("resnet18", &fx.overrides);
+    let variants: Vec<VariantSource> =
+        fx.variants.iter().map(|(k, seed)| variant_source("resnet18", &m, k, *seed)).collect();
+    let plan = Arc::new(compile(&sources, &m, &variants, LoraMode::Branch));
+    let (a, b) = (&fx.variants[0].0, &fx.variants[1].0);
+    let fresh = run_as(&mut Session::new(plan.clone(), 2).expect("session"), a, &fx.tensors);
+    let mut s = Session::new(plan, 2).expect("session");
+    let first = run_as(&mut s, a, &fx.tensors);
+    let other = run_as(&mut s, b, &fx.tensors);
+    let again = run_as(&mut s, a, &fx.tensors);
+    let bits =
+        |r: &[(String, Tensor)]| r.iter().flat_map(|(_, t)| t.data.iter().map(|v| v.to_bits())).collect::<Vec<_>>();
+    assert_eq!(bits(&first), bits(&fresh));
+    assert_eq!(bits(&again), bits(&fresh), "A -> B -> A drifted from a fresh run of A");
+    assert_ne!(bits(&other), bits(&fresh), "the variants should differ");
+}
+
+/// Every bundled model compiles with several variants, and a variant stores only the
+/// tensors its owned parameters reach.
+#[test]
+fn bundled_models_compile_with_variants() {
+    for model in ["resnet18", "vit_encoder", "pointpillars_bev", "bevfusion_tiny"] {
+        let (sources, m) = module(model, &[]);
+        let keys = m.variants.as_ref().expect("variants").variant_keys();
+        let keys: Vec<String> = keys.into_iter().take(3).collect();
+        let variants = backend::seeded_variants(&m, &keys, 100);
+        let plan = compile(&sources, &m, &variants, LoraMode::Branch);
+        let mf = &plan.manifest;
+        assert_eq!(mf.variants.len(), 3, "{model}");
+        // Budgets: tuned elements are the rule-selected slots, added the injected ones,
+        // and the latter follow resolve_adapt's closed-form accounting.
+        let adapt = m.adapt.as_ref().expect("adapt");
+        let added_slots: u64 =
+            m.graph.param_table().iter().filter(|(_, _, s)| s.kind == SlotKind::Added).map(|(_, _, s)| s.numel()).sum();
+        assert_eq!(added_slots, adapt.added_elements(), "{model}: injected slots vs the rules' accounting");
+        for v in &mf.variants {
+            assert_eq!(v.added_elements, added_slots, "{model}");
+            assert_eq!(
+                v.tuned_elements,
+                adapt.tuned_elements(&m.graph),
+                "{model}: the table agrees with `readi params`"
+            );
+            assert!(v.tuned_elements > 0 && !v.replaces.is_empty(), "{model}");
+            // A replacement has its base's shape and is not a base tensor.
+            for r in &v.replaces {
+                assert_eq!(mf.tensors[r.base].shape, mf.tensors[r.with].shape);
+                assert!(r.with >= mf.steps.iter().flat_map(|s| s.kernel.tensors()).max().unwrap_or(0));
+            }
+        }
+    }
+}
+
+#[test]
+fn identical_variants_share_their_tensors_and_zero_variants_store_nothing() {
+    let (sources, m) = module("resnet18", &[("num_classes".into(), "10".into())]);
+    let owned = owned_params(&m);
+    let base = backend::seeded_weights(&m.graph, SEED);
+    let mut same = WeightSet::default();
+    let mut transparent = WeightSet::default();
+    for (name, o) in &owned {
+        same.tensors.insert(name.clone(), (o.shape.clone(), seeded_tensor(7, name, &o.shape)));
+        // Base values for tuned parameters, zeros for added ones: the base model again.
+        let v = if o.added { vec![0.0; o.shape.iter().product()] } else { base.tensors[name].1.clone() };
+        transparent.tensors.insert(name.clone(), (o.shape.clone(), v));
+    }
+    let sources_v = vec![
+        VariantSource { key: "gamma=0.25".into(), weights: same.clone(), origin: "a".into() },
+        VariantSource { key: "gamma=0.5".into(), weights: same, origin: "b".into() },
+        VariantSource { key: "blur=5".into(), weights: transparent, origin: "c".into() },
+    ];
+    let plan = compile(&sources, &m, &sources_v, LoraMode::Merge);
+    let v = &plan.manifest.variants;
+    assert_eq!(v[0].replaces, v[1].replaces, "identical variants point at the same stored tensors");
+    assert!(v[2].replaces.is_empty(), "a variant equal to the base stores nothing: {:?}", v[2].replaces.len());
+    let stored: std::collections::HashSet<usize> = v.iter().flat_map(|t| t.replaces.iter().map(|r| r.with)).collect();
+    assert_eq!(stored.len(), v[0].replaces.len());
+}
+
+/// Compiles resnet18 (10 classes) with one variant and returns the errors.
+fn variant_errors(variant: VariantSource, strict: bool) -> (SourceMap, Diagnostics) {
+    let (sources, m) = module("resnet18", &[("num_classes".into(), "10".into())]);
+    let opts = CompileOptions { strict, ..Default::default() };
+    match backend::compile_variants(&m, &base_weights(&m), "base.safetensors", &[variant], &opts) {
+        Ok((_, warnings)) => (sources, warnings),
+        Err(d) => (sources, d),
+    }
+}
+
+fn one(key: &str, name: &str, shape: Vec<usize>) -> VariantSource {
+    let mut set = WeightSet::default();
+    let n = shape.iter().product();
+    set.tensors.insert(name.into(), (shape, vec![0.5; n]));
+    VariantSource { key: key.into(), weights: set, origin: "v.safetensors".into() }
+}
+
+#[test]
+fn bad_variant_files_are_clear_errors() {
+    let text = |(s, d): (SourceMap, Diagnostics)| (d.has_errors(), s.render_all(&d, false));
+
+    let (err, msg) = text(variant_errors(one("fog=0.03", "fc.bias", vec![10]), false));
+    assert!(err && msg.contains("variant key `fog=0.03` is not declared"), "{msg}");
+
+    let (err, msg) = text(variant_errors(one("gamma=0.25", "conv1.weight", vec![64, 3, 7, 7]), false));
+    assert!(err && msg.contains("`conv1.weight` is not per-variant") && msg.contains("a `tune` rule"), "{msg}");
+
+    let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![11]), false));
+    assert!(err && msg.contains("`fc.bias` has shape [11], but the model needs [10]"), "{msg}");
+
+    // One owned tensor given: the rest keep the base value, reported; an error when strict.
+    let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![10]), false));
+    assert!(!err && msg.contains("warning") && msg.contains("keep the base value"), "{msg}");
+    let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![10]), true));
+    assert!(err && msg.contains("keep the base value"), "{msg}");
+
+    // Keys are matched by value: `gamma=0.250` is `gamma=0.25`.
+    let (err, _) = text(variant_errors(one("gamma=0.250", "fc.bias", vec![10]), false));
+    assert!(!err);
+}
+
+#[test]
+fn a_peft_adapter_that_disagrees_with_the_rule_is_an_error() {
+    let fx = fixture("resnet18");
+    let (sources, m) = module("resnet18", &fx.overrides);
+    let dir = common::root().join("tests/fixtures/variants/resnet18/blur=5");
+    let config = std::fs::read_to_string(dir.join(peft::CONFIG_FILE)).expect("config");
+    let adapter = std::fs::read(dir.join(peft::WEIGHTS_FILE)).expect("adapter");
+    let bad = config.replace("\"r\": 4", "\"r\": 8");
+    assert_ne!(bad, config, "the fixture config has `\"r\": 4`");
+    let d = peft::read_adapter("blur=5", &bad, &adapter, &m).expect_err("r disagrees with the rule");
+    let msg = sources.render_all(&d, false);
+    assert!(msg.contains("r = 8 (the rule's rank = 4)") && msg.contains("lora rank=4"), "{msg}");
+
+    let dora = config.replace("\"use_dora\": false", "\"use_dora\": true");
+    let d = peft::read_adapter("blur=5", &dora, &adapter, &m).expect_err("DoRA");
+    assert!(sources.render_all(&d, false).contains("DoRA"));
+
+    let d = peft::read_adapter("blur=5", "{\"r\": 4,", &adapter, &m).expect_err("bad JSON");
+    assert!(sources.render_all(&d, false).contains("adapter_config.json:1:"), "names line and column");
+}
+
+#[test]
+fn base_weights_must_not_hold_variant_parameters() {
+    let (sources, m) = module("resnet18", &[("num_classes".into(), "10".into())]);
+    let mut base = base_weights(&m);
+    base.tensors.insert("layer1.0.bn2.adapter.up.bias".into(), (vec![64], vec![0.0; 64]));
+    let d = backend::compile(&m, &base, "base.safetensors", &CompileOptions::default()).expect_err("error");
+    let msg = sources.render_all(&d, false);
+    assert!(msg.contains("belongs to the variants"), "{msg}");
+}
+
+/// LoRA merged or as a branch: the same outputs, different costs. The merged plan has the
+/// base's schedule; the branch plan has more steps and smaller variants.
+#[test]
+fn merged_and_branch_lora_agree() {
+    let fx = fixture("vit_encoder");
+    let (sources, m) = module("vit_encoder", &fx.overrides);
+    let variants: Vec<VariantSource> =
+        fx.variants.iter().map(|(k, seed)| variant_source("vit_encoder", &m, k, *seed)).collect();
+    let merged = Arc::new(compile(&sources, &m, &variants, LoraMode::Merge));
+    let branch = Arc::new(compile(&sources, &m, &variants, LoraMode::Branch));
+    let base = Arc::new(compile(&sources, &m, &[], LoraMode::Merge));
+    assert_eq!(merged.manifest.steps.len(), base.manifest.steps.len());
+    assert!(branch.manifest.steps.len() > base.manifest.steps.len());
+    let lora_bytes = |p: &Plan| -> usize {
+        p.manifest.variants[0].replaces.iter().filter(|r| r.added).map(|r| p.manifest.tensors[r.with].numel()).sum()
+    };
+    assert!(lora_bytes(&branch) < lora_bytes(&merged), "branch stores only A and B");
+    let key = &fx.variants[0].0;
+    let a = run_as(&mut Session::new(merged, 1).expect("s"), key, &fx.tensors);
+    let b = run_as(&mut Session::new(branch, 1).expect("s"), key, &fx.tensors);
+    for ((_, x), (_, y)) in a.iter().zip(&b) {
+        assert!(max_abs_error(&x.data, &y.data) <= 1e-4);
+    }
+}
