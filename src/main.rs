@@ -1,5 +1,6 @@
 //! `readi`: the command-line front end of the readi compiler and runtime.
 
+mod deploy;
 mod tensor_io;
 
 use std::io::{IsTerminal, Write};
@@ -9,7 +10,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use clap::{Parser, Subcommand, ValueEnum};
-use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_compiler::backend::{self, CompileOptions, LoraMode, WeightSet};
 use readi_compiler::elaborate::{ElabOptions, Literal};
 use readi_compiler::passes::{self, Options, Outcome, PIPELINE, Pass};
 use readi_compiler::print;
@@ -114,13 +115,35 @@ enum Command {
     },
     /// List the passes of the pipeline.
     Passes,
-    /// Compile a spec and its weights (safetensors, PyTorch names) into a plan file.
-    #[command(after_help = "Example:\n  readi compile models/resnet18.readi --weights r18.safetensors -o r18.plan")]
+    /// Compile a spec, its weights (safetensors, PyTorch names) and its variants into a plan file.
+    #[command(
+        after_help = "Examples:\n  readi compile models/resnet18.readi --weights r18.safetensors -o r18.plan\n  \
+                            readi compile models/resnet18.readi --weights r18.safetensors -o r18.plan \\\n      \
+                            --variant gamma=0.25=g025.safetensors --variant gamma=0.25=adapters/g025\n  \
+                            readi compile --deploy deploy.yaml -o r18.plan"
+    )]
     Compile {
-        spec: PathBuf,
+        /// The spec (not with --deploy).
+        #[arg(required_unless_present = "deploy", conflicts_with = "deploy")]
+        spec: Option<PathBuf>,
         /// Base weights: a safetensors file of the model's state_dict (f32, f16 or bf16).
+        #[arg(long, required_unless_present = "deploy", conflicts_with = "deploy")]
+        weights: Option<PathBuf>,
+        /// A deployment manifest (YAML) naming the spec, the base weights and the variants.
         #[arg(long)]
-        weights: PathBuf,
+        deploy: Option<PathBuf>,
+        /// A variant's parameters, `KEY=PATH` (repeatable): a safetensors file of the tensors
+        /// it owns, or a PEFT adapter directory; give a key twice to combine both.
+        #[arg(long = "variant", value_name = "KEY=PATH", value_parser = parse_variant_arg)]
+        variants: Vec<(String, String)>,
+        /// How LoRA runs: merged into the adapted weights per variant (no run-time cost) or
+        /// as a side branch (smaller variants).
+        #[arg(long, value_enum)]
+        lora: Option<LoraArg>,
+        /// An owned parameter a variant does not give is an error (else a warning; it keeps
+        /// the base value).
+        #[arg(long)]
+        strict: bool,
         /// The plan file to write.
         #[arg(short, long)]
         output: PathBuf,
@@ -145,6 +168,9 @@ enum Command {
         /// Worker threads (default: all cores).
         #[arg(long)]
         threads: Option<usize>,
+        /// The variant to run, by key (`fog=0.03`); default the base model.
+        #[arg(long, value_name = "KEY")]
+        variant: Option<String>,
     },
     /// Time a plan on seeded random inputs: median and p90 latency.
     #[command(after_help = "Example:\n  readi bench r18.plan --threads 2 --runs 50")]
@@ -165,6 +191,9 @@ enum Command {
         /// Also print the time of each step (the slowest first) and per kernel kind.
         #[arg(long)]
         profile: bool,
+        /// The variant to time, by key; default the base model.
+        #[arg(long, value_name = "KEY")]
+        variant: Option<String>,
     },
     /// Describe a plan: inputs, outputs, parameters, bytes, schedule and buffers.
     #[command(after_help = "Example:\n  readi inspect r18.plan")]
@@ -190,6 +219,23 @@ fn parse_set(s: &str) -> Result<(String, String), String> {
         Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_string(), v.trim().to_string())),
         _ => Err(format!("expected NAME=VALUE, got `{s}`")),
     }
+}
+
+/// `KEY=PATH` where the key itself holds a `=` (`fog=0.03=fog.safetensors`): split at the
+/// last `=`.
+fn parse_variant_arg(s: &str) -> Result<(String, String), String> {
+    match s.rsplit_once('=') {
+        Some((k, v)) if !k.trim().is_empty() && !v.trim().is_empty() => {
+            Ok((k.trim().to_string(), v.trim().to_string()))
+        }
+        _ => Err(format!("expected KEY=PATH (for example fog=0.03=fog.safetensors), got `{s}`")),
+    }
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum LoraArg {
+    Merge,
+    Branch,
 }
 
 fn parse_pass(s: &str) -> Result<Pass, String> {
@@ -321,12 +367,15 @@ fn run(cli: Cli) -> ExitCode {
             }
             Ok(())
         }
-        Command::Compile { spec, weights, output, allow_unused, model } => {
-            cmd_compile(&mut s, &spec, &weights, &output, allow_unused, &model)
+        Command::Compile { spec, weights, deploy, variants, lora, strict, output, allow_unused, model } => {
+            let args = CompileArgs { spec, weights, deploy, variants, lora, strict, allow_unused, model };
+            cmd_compile(&mut s, args, &output)
         }
-        Command::Run { plan, inputs, outputs, threads } => cmd_run(&plan, &inputs, &outputs, threads),
-        Command::Bench { plan, threads, runs, warmup, batch, profile } => {
-            cmd_bench(&plan, threads, runs, warmup, batch, profile)
+        Command::Run { plan, inputs, outputs, threads, variant } => {
+            cmd_run(&plan, &inputs, &outputs, threads, variant.as_deref())
+        }
+        Command::Bench { plan, threads, runs, warmup, batch, profile, variant } => {
+            cmd_bench(&plan, threads, runs, warmup, batch, profile, variant.as_deref())
         }
         Command::Inspect { plan, verbose } => cmd_inspect(&plan, verbose),
         Command::Demo { threads, frames } => cmd_demo(&mut s, threads, frames),
@@ -427,42 +476,83 @@ fn load_plan(path: &Path) -> Result<Arc<Plan>, ExitCode> {
     }
 }
 
-fn cmd_compile(
-    s: &mut Frontend,
-    spec: &Path,
-    weights: &Path,
-    output: &Path,
+struct CompileArgs {
+    spec: Option<PathBuf>,
+    weights: Option<PathBuf>,
+    deploy: Option<PathBuf>,
+    variants: Vec<(String, String)>,
+    lora: Option<LoraArg>,
+    strict: bool,
     allow_unused: bool,
-    model: &ModelArgs,
-) -> Result<(), ExitCode> {
+    model: ModelArgs,
+}
+
+fn cmd_compile(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), ExitCode> {
     let start = Instant::now();
-    let (out, _) = s.compile(spec, model, None)?;
+    let fail = |msg: String| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    };
+    let mut model = args.model;
+    let (spec, weights, mut variant_files, mut lora) = match &args.deploy {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read {}: {e}", path.display())))?;
+            let d = deploy::parse(path, &text).map_err(fail)?;
+            model.set.extend(d.set);
+            let lora = match d.lora.as_deref() {
+                None => None,
+                Some("merge") => Some(LoraMode::Merge),
+                Some("branch") => Some(LoraMode::Branch),
+                Some(other) => {
+                    return Err(fail(format!("{}: `lora` is `{other}`; use merge or branch", path.display())));
+                }
+            };
+            (d.spec, d.weights, d.variants, lora)
+        }
+        None => match (args.spec, args.weights) {
+            (Some(spec), Some(weights)) => (spec, weights, Vec::new(), None),
+            _ => return Err(fail("give a spec and --weights, or --deploy".into())),
+        },
+    };
+    variant_files.extend(deploy::variant_args(&args.variants));
+    if let Some(l) = args.lora {
+        lora = Some(match l {
+            LoraArg::Merge => LoraMode::Merge,
+            LoraArg::Branch => LoraMode::Branch,
+        });
+    }
+    let (out, _) = s.compile(&spec, &model, None)?;
     let Some(module) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
         eprintln!("error: {}", summary_line(&spec.display().to_string(), &out.diagnostics));
         return Err(ExitCode::FAILURE);
     };
     let wname = weights.display().to_string();
-    let bytes = std::fs::read(weights).map_err(|e| {
-        eprintln!("error: cannot read {wname}: {e}");
-        ExitCode::FAILURE
-    })?;
-    let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| {
+    let bytes = std::fs::read(&weights).map_err(|e| fail(format!("cannot read {wname}: {e}")))?;
+    let report = |s: &Frontend, d: Diagnostics| {
         s.report(&d);
         ExitCode::FAILURE
-    })?;
-    let (plan, warnings) = backend::compile(&module, &set, &wname, &CompileOptions { allow_unused }).map_err(|d| {
+    };
+    let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| report(s, d))?;
+    let mut sources = Vec::new();
+    for files in &variant_files {
+        sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
+    }
+    let opts = CompileOptions { allow_unused: args.allow_unused, lora: lora.unwrap_or_default(), strict: args.strict };
+    let (plan, warnings) = backend::compile_variants(&module, &set, &wname, &sources, &opts).map_err(|d| {
         s.report(&d);
         eprintln!("error: {}", summary_line(&wname, &d));
         ExitCode::FAILURE
     })?;
     s.report(&warnings);
-    if let Err(e) = plan.write(output) {
-        eprintln!("error: {e}");
-        return Err(ExitCode::FAILURE);
-    }
+    plan.write(output).map_err(|e| fail(e.to_string()))?;
     let m = &plan.manifest;
+    let variants = match m.variants.len() {
+        0 => String::new(),
+        n => format!(", {n} variants (LoRA {})", opts.lora.name()),
+    };
     println!(
-        "wrote {}: {} steps, {} tensors ({}), {} activation buffers, {:.0} ms",
+        "wrote {}: {} steps, {} tensors ({}){variants}, {} activation buffers, {:.0} ms",
         output.display(),
         m.steps.len(),
         m.tensors.len(),
@@ -490,6 +580,7 @@ fn cmd_run(
     inputs: &[(String, String)],
     outputs: &[String],
     threads: Option<usize>,
+    variant: Option<&str>,
 ) -> Result<(), ExitCode> {
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
@@ -501,6 +592,9 @@ fn cmd_run(
         loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file)).map_err(fail)?));
     }
     let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
+    if let Some(key) = variant {
+        session.set_variant(key).map_err(|e| fail(e.to_string()))?;
+    }
     let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
     let start = Instant::now();
     let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
@@ -508,7 +602,12 @@ fn cmd_run(
     for (name, t) in &result {
         println!("{name}: {}", describe(t));
     }
-    println!("ran in {:.2} ms on {} threads", elapsed.as_secs_f64() * 1e3, session.threads());
+    println!(
+        "ran variant {} in {:.2} ms on {} threads",
+        session.last_variant().map_or("base", |v| plan.variant_key(v)),
+        elapsed.as_secs_f64() * 1e3,
+        session.threads()
+    );
     let names: Vec<&str> = result.iter().map(|(n, _)| n.as_str()).collect();
     for spec in outputs {
         match spec.split_once('=').filter(|(n, _)| names.contains(n)) {
@@ -560,6 +659,7 @@ fn cmd_bench(
     warmup: usize,
     batch: usize,
     profile: bool,
+    variant: Option<&str>,
 ) -> Result<(), ExitCode> {
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
@@ -568,6 +668,9 @@ fn cmd_bench(
     };
     let threads = threads_or_default(threads);
     let mut session = Session::new(plan.clone(), threads).map_err(|e| fail(e.to_string()))?;
+    if let Some(key) = variant {
+        session.set_variant(key).map_err(|e| fail(e.to_string()))?;
+    }
     let data = synthetic_inputs(&plan, batch.max(1), 42);
     let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
     for _ in 0..warmup {
@@ -584,8 +687,9 @@ fn cmd_bench(
     }
     times.sort_by(f64::total_cmp);
     println!(
-        "{}: batch {}, {} threads, {} runs: median {:.2} ms, p90 {:.2} ms, min {:.2} ms",
+        "{} ({}): batch {}, {} threads, {} runs: median {:.2} ms, p90 {:.2} ms, min {:.2} ms",
         plan.manifest.model,
+        session.variant(),
         batch.max(1),
         threads,
         times.len(),
@@ -644,13 +748,15 @@ fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
     for o in &m.outputs {
         println!("  {}: f32{}", o.name, show_shape(&m.values[o.value].shape));
     }
-    let trainable: usize = m.params.iter().filter(|p| p.trainable).map(|p| p.shape.iter().product::<usize>()).sum();
+    let trainable: usize =
+        m.params.iter().filter(|p| p.trainable && !p.added).map(|p| p.shape.iter().product::<usize>()).sum();
     println!(
         "parameters: {} in the spec; stored: {} tensors, {}",
         print::thousands(trainable as u64),
         m.tensors.len(),
         print::bytes(plan.tensor_bytes() as u64)
     );
+    print_budget(&plan, trainable as u64);
     if verbose {
         for p in &m.params {
             println!("  {:<40} {:?} {}", p.name, p.shape, p.stored_as);
@@ -697,6 +803,53 @@ fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
     );
     Ok(())
 }
+
+/// The per-variant budget table: parameters each variant owns (the paper's exist and
+/// add budgets, as a share of the base model's parameters) and the bytes it stores.
+fn print_budget(plan: &Plan, base_params: u64) {
+    let m = &plan.manifest;
+    if m.variants.is_empty() {
+        return;
+    }
+    let replacement: std::collections::HashSet<usize> =
+        m.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
+    let bytes_of = |t: usize| m.tensors[t].numel() as u64 * 4;
+    let base_bytes: u64 = (0..m.tensors.len()).filter(|t| !replacement.contains(t)).map(bytes_of).sum();
+    let pct = |a: u64, b: u64| 100.0 * a as f64 / b.max(1) as f64;
+    println!(
+        "variants: {} (base {} stored once; the variants add {}, shared tensors stored once)",
+        m.variants.len(),
+        print::bytes(base_bytes),
+        print::bytes(plan.tensor_bytes() as u64 - base_bytes)
+    );
+    let width = m.variants.iter().map(|v| v.key.len()).max().unwrap_or(0).max(7);
+    println!(
+        "  {:<width$}  {:>20}  {:>20}  {:>28}",
+        "variant", "exist budget (tuned)", "add budget (new)", "stored: tuned + added = % of base"
+    );
+    for v in &m.variants {
+        let (mut tuned, mut added) = (0u64, 0u64);
+        for r in &v.replaces {
+            *(if r.added { &mut added } else { &mut tuned }) += bytes_of(r.with);
+        }
+        let fallback =
+            if v.fallback.is_empty() { String::new() } else { format!("  ({} at base value)", v.fallback.len()) };
+        println!(
+            "  {:<width$}  {:>10} {:>8.2}%  {:>10} {:>8.2}%  {:>9} + {:>9} = {:>5.2}%{fallback}",
+            v.key,
+            print::thousands(v.tuned_elements),
+            pct(v.tuned_elements, base_params),
+            print::thousands(v.added_elements),
+            pct(v.added_elements, base_params),
+            print::bytes(tuned),
+            print::bytes(added),
+            pct(tuned + added, base_bytes),
+        );
+    }
+}
+
+/// Variants the demo compiles (the paper's setting: a dozen conditions).
+const DEMO_VARIANTS: usize = 12;
 
 fn cmd_demo(s: &mut Frontend, threads: Option<usize>, frames: usize) -> Result<(), ExitCode> {
     let (name, text) = DEMO_MODEL;
@@ -748,18 +901,30 @@ fn cmd_demo(s: &mut Frontend, threads: Option<usize>, frames: usize) -> Result<(
 
     let start = Instant::now();
     let weights = backend::seeded_weights(g, 2024);
-    let plan = match backend::compile(&m, &weights, "<seeded weights>", &CompileOptions::default()) {
+    let keys: Vec<String> = m.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+    let keys: Vec<String> = keys.into_iter().take(DEMO_VARIANTS).collect();
+    let sources = backend::seeded_variants(&m, &keys, 2025);
+    let plan = match backend::compile_variants(&m, &weights, "<seeded weights>", &sources, &CompileOptions::default()) {
         Ok((plan, _)) => Arc::new(plan),
         Err(d) => {
             s.report(&d);
             return Err(ExitCode::FAILURE);
         }
     };
+    let variant_bytes: usize = plan
+        .manifest
+        .variants
+        .iter()
+        .flat_map(|v| &v.replaces)
+        .map(|r| plan.manifest.tensors[r.with].numel() * 4)
+        .sum();
     println!(
-        "\ncompiled with seeded weights in {:.0} ms: {} steps, {} of weights, {} activation buffers",
+        "\ncompiled with seeded weights and {} seeded variants in {:.0} ms: {} steps, {} of weights ({} of them variant tensors), {} activation buffers",
+        plan.manifest.variants.len(),
         start.elapsed().as_secs_f64() * 1e3,
         plan.manifest.steps.len(),
         print::bytes(plan.tensor_bytes() as u64),
+        print::bytes(variant_bytes as u64),
         plan.manifest.slots
     );
     let threads = threads_or_default(threads);
@@ -770,10 +935,17 @@ fn cmd_demo(s: &mut Frontend, threads: Option<usize>, frames: usize) -> Result<(
             return Err(ExitCode::FAILURE);
         }
     };
-    println!("running {frames} frames on {threads} threads (seeded sensor data):");
+    println!("running {frames} frames on {threads} threads (seeded sensor data), switching variant every frame:");
     for frame in 0..frames {
         let data = synthetic_inputs(&plan, 1, 7 + frame as u64);
         let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
+        let key = plan.variant_key(frame % plan.variant_count()).to_string();
+        let t = Instant::now();
+        if let Err(e) = session.set_variant(&key) {
+            eprintln!("error: {e}");
+            return Err(ExitCode::FAILURE);
+        }
+        let switch_us = t.elapsed().as_secs_f64() * 1e6;
         let t = Instant::now();
         let result = match session.run(&given) {
             Ok(r) => r,
@@ -784,7 +956,7 @@ fn cmd_demo(s: &mut Frontend, threads: Option<usize>, frames: usize) -> Result<(
         };
         let ms = t.elapsed().as_secs_f64() * 1e3;
         let summary: Vec<String> = result.iter().map(|(n, t)| format!("{n} {}", describe(t))).collect();
-        println!("  frame {frame}: {ms:7.2} ms   {}", summary.join("   "));
+        println!("  frame {frame}: {key:<10} switch {switch_us:5.2} us  run {ms:7.2} ms   {}", summary.join("   "));
     }
     println!("\nnext: `readi ir {name}` for the graph, `readi params {name}` for every tensor");
     Ok(())

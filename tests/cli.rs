@@ -129,7 +129,7 @@ fn help_shows_examples() {
 fn passes_lists_the_pipeline_in_order() {
     let out = stdout(&readi(&["passes"]));
     let names: Vec<&str> = out.lines().filter_map(|l| l.split_whitespace().next()).collect();
-    assert_eq!(names, ["parse", "elaborate", "dead_code", "resolve_adapt", "check_variants"]);
+    assert_eq!(names, ["parse", "elaborate", "dead_code", "resolve_adapt", "inject_adapt", "check_variants"]);
 }
 
 #[test]
@@ -160,7 +160,7 @@ fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (st
     let dir = std::env::temp_dir().join(format!("readi-cli-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let path = dir.join("weights.safetensors");
-    let bytes = readi_compiler::backend::seeded_weights(&module.graph, 11).to_safetensors();
+    let bytes = readi_compiler::backend::seeded_weights(&module.graph, 11).to_safetensors().expect("serialises");
     std::fs::write(&path, bytes).expect("write weights");
     (dir, path)
 }
@@ -260,4 +260,75 @@ fn write_npy(path: &std::path::Path, t: &readi_runtime::exec::Tensor) {
     use ndarray_npy::WriteNpyExt;
     let a = ndarray::ArrayD::from_shape_vec(ndarray::IxDyn(&t.shape), t.data.clone()).expect("shape");
     a.write_npy(std::fs::File::create(path).expect("create")).expect("write npy");
+}
+
+/// A deployment manifest with a parameter file and a PEFT adapter per variant; `inspect`
+/// prints the budget table; `--variant` selects a variant at run time.
+#[test]
+fn compile_a_deployment_with_variants() {
+    use readi_compiler::backend::{WeightSet, seeded_tensor, variants::owned_params};
+    let overrides = [("num_classes", "10"), ("img", "64")];
+    let (dir, weights) = seeded_weights_file("models/resnet18.readi", &overrides, "deploy");
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("models/resnet18.readi")).expect("spec");
+    let opts = readi_compiler::passes::Options {
+        elab: readi_compiler::elaborate::ElabOptions {
+            overrides: overrides
+                .iter()
+                .map(|(k, v)| (k.to_string(), readi_compiler::elaborate::Literal::parse(v)))
+                .collect(),
+        },
+        stop_after: None,
+    };
+    let module = readi_compiler::passes::run(readi_grammar::diag::FileId(0), &text, &opts).module.expect("module");
+    // The tuned and adapter tensors; the LoRA matrices come from the PEFT directory.
+    let mut params = WeightSet::default();
+    for (name, o) in owned_params(&module) {
+        if !name.contains(".lora_") {
+            params.tensors.insert(name.clone(), (o.shape.clone(), seeded_tensor(5, &name, &o.shape)));
+        }
+    }
+    std::fs::write(dir.join("g025.safetensors"), params.to_safetensors().expect("serialises")).expect("write");
+    let peft = root.join("tests/fixtures/variants/resnet18/gamma=0.25");
+    let yaml = format!(
+        "spec: {}\nset: {{num_classes: 10, img: 64}}\nweights: {}\nvariants:\n  - key: gamma=0.25\n    params: g025.safetensors\n    peft: {}\n  - key: blur=5\n    peft: {}\n",
+        root.join("models/resnet18.readi").display(),
+        weights.display(),
+        peft.display(),
+        root.join("tests/fixtures/variants/resnet18/blur=5").display(),
+    );
+    let manifest = dir.join("deploy.yaml");
+    std::fs::write(&manifest, yaml).expect("write yaml");
+    let plan = dir.join("r18v.plan");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let o = readi(&["compile", "--deploy", &p(&manifest), "-o", &p(&plan)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("2 variants (LoRA merge)"), "{}", stdout(&o));
+    // blur=5 gives only its LoRA: the rest keeps the base value, reported.
+    assert!(stderr(&o).contains("variant `blur=5` does not give"), "{}", stderr(&o));
+    let o = readi(&["compile", "--deploy", &p(&manifest), "-o", &p(&plan), "--strict"]);
+    assert_eq!(o.status.code(), Some(1), "--strict refuses the fallback");
+
+    let o = readi(&["compile", "--deploy", &p(&manifest), "-o", &p(&plan), "--lora", "branch"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = readi(&["inspect", &p(&plan)]);
+    let out = stdout(&o);
+    assert!(out.contains("exist budget") && out.contains("add budget"), "{out}");
+    let row = out.lines().find(|l| l.trim_start().starts_with("gamma=0.25")).expect("a row per variant");
+    assert!(row.contains('%'), "{row}");
+
+    let o = readi(&["bench", &p(&plan), "--runs", "1", "--warmup", "0", "--variant", "gamma=0.25"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("(gamma=0.25)"), "{}", stdout(&o));
+    let o = readi(&["bench", &p(&plan), "--runs", "1", "--variant", "gamma=0.3"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("gamma=0.25"), "lists the keys: {}", stderr(&o));
+
+    // A key the spec does not declare.
+    std::fs::write(&manifest, std::fs::read_to_string(&manifest).expect("yaml").replace("key: blur=5", "key: blur=7"))
+        .expect("write");
+    let o = readi(&["compile", "--deploy", &p(&manifest), "-o", &p(&plan)]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("`blur=7` is not declared"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
 }
