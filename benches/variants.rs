@@ -1,0 +1,222 @@
+//! Variant switching and the cost of adaptation, on bevfusion_tiny with 12 variants and on
+//! ResNet-18 (224x224), with seeded weights. Prints one table; every ratio is measured in
+//! this run against its baseline in this run.
+//!
+//!     cargo bench --bench variants            (add `-- --quick` for fewer runs)
+//!
+//! * switch latency: `VariantSwitch::set` by key, median over many switches;
+//! * the first run after a switch against a steady run of the same variant;
+//! * adapted-plan latency against the base plan (no adaptation), LoRA merged and as a
+//!   branch, and without the adapter rules (tuning and merged LoRA fold into the base
+//!   schedule; adapters add layers);
+//! * plan size against the base plus the sum of the variants' deltas;
+//! * reloading a full model copy from disk (read + checksum), for comparison.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use readi_compiler::backend::{self, CompileOptions, LoraMode};
+use readi_compiler::passes::{self, Module, Options};
+use readi_grammar::diag::FileId;
+use readi_runtime::exec::{Input, Session};
+use readi_runtime::plan::Plan;
+
+fn module(src: &str, overrides: &[(&str, &str)]) -> Module {
+    let opts = Options {
+        elab: readi_compiler::elaborate::ElabOptions {
+            overrides: overrides
+                .iter()
+                .map(|(k, v)| (k.to_string(), readi_compiler::elaborate::Literal::parse(v)))
+                .collect(),
+        },
+        stop_after: None,
+    };
+    passes::run(FileId(0), src, &opts).module.expect("the model checks")
+}
+
+fn plan(m: &Module, variants: usize, lora: LoraMode) -> Arc<Plan> {
+    let weights = backend::seeded_weights(&m.graph, 1);
+    let keys: Vec<String> = m.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+    let keys: Vec<String> = keys.into_iter().take(variants).collect();
+    assert_eq!(keys.len(), variants, "the spec declares enough variants");
+    let sources = backend::seeded_variants(m, &keys, 10);
+    let opts = CompileOptions { lora, ..Default::default() };
+    Arc::new(backend::compile_variants(m, &weights, "seeded", &sources, &opts).expect("compiles").0)
+}
+
+fn inputs(plan: &Plan) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+    let ones = plan.manifest.symbols.iter().map(|s| (s.clone(), 1usize)).collect();
+    plan.manifest
+        .inputs
+        .iter()
+        .map(|i| {
+            let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&ones).unwrap_or(1)).collect();
+            let n: usize = shape.iter().product();
+            let data = (0..n).map(|k| ((k * 7919 % 1000) as f32 / 500.0) - 1.0).collect();
+            (i.name.clone(), shape, data)
+        })
+        .collect()
+}
+
+/// The spec without its `adapter` rules: tuning and LoRA only, which fold away.
+fn without_adapters(src: &str) -> String {
+    src.lines().filter(|l| !l.trim_start().starts_with("adapter ")).collect::<Vec<_>>().join("\n")
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+struct Runner {
+    session: Session,
+    data: Vec<(String, Vec<usize>, Vec<f32>)>,
+}
+
+impl Runner {
+    fn new(plan: Arc<Plan>) -> Runner {
+        let data = inputs(&plan);
+        Runner { session: Session::new(plan, 2).expect("session"), data }
+    }
+    fn run(&mut self) -> f64 {
+        let given: Vec<Input<'_>> = self.data.iter().map(|(n, s, d)| Input { name: n, data: d, shape: s }).collect();
+        let t = Instant::now();
+        self.session.run(&given).expect("run");
+        t.elapsed().as_secs_f64() * 1e3
+    }
+}
+
+/// Median latency (ms) of several plans, measured in interleaved rounds so that machine
+/// noise hits them alike. `setup` picks each plan's variant.
+fn interleaved(runners: &mut [(&str, Runner)], rounds: usize, per_round: usize) -> Vec<f64> {
+    let mut times = vec![Vec::new(); runners.len()];
+    for (_, r) in runners.iter_mut() {
+        for _ in 0..3 {
+            r.run();
+        }
+    }
+    for _ in 0..rounds {
+        for (i, (_, r)) in runners.iter_mut().enumerate() {
+            for _ in 0..per_round {
+                times[i].push(r.run());
+            }
+        }
+    }
+    times.into_iter().map(median).collect()
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let (rounds, per_round) = if quick { (3, 3) } else { (10, 5) };
+    let mib = |b: usize| b as f64 / (1024.0 * 1024.0);
+
+    println!("== bevfusion_tiny, 12 variants, 2 threads ==");
+    let m = module(include_str!("../models/bevfusion_tiny.readi"), &[]);
+    let base = plan(&m, 0, LoraMode::Merge);
+    let merged = plan(&m, 12, LoraMode::Merge);
+    let branch = plan(&m, 12, LoraMode::Branch);
+    let key = merged.variant_key(1).to_string();
+    let other = merged.variant_key(2).to_string();
+
+    // Switch latency: a handle, as another thread would hold it.
+    let runner = Runner::new(merged.clone());
+    let switch = runner.session.switch_handle();
+    let keys: Vec<String> = (1..=12).map(|i| merged.variant_key(i).to_string()).collect();
+    let mut lat = Vec::new();
+    for round in 0..if quick { 20 } else { 200 } {
+        let t = Instant::now();
+        for i in 0..500 {
+            switch.set(&keys[(round + i) % keys.len()]).expect("known key");
+        }
+        lat.push(t.elapsed().as_secs_f64() * 1e9 / 500.0);
+    }
+    println!("switch latency (set by key, median of batches of 500): {:.0} ns", median(lat));
+
+    // The first run after a switch against a steady run.
+    let mut r = runner;
+    for _ in 0..3 {
+        r.run();
+    }
+    let (mut first, mut steady) = (Vec::new(), Vec::new());
+    for _ in 0..rounds * per_round {
+        r.session.set_variant(&other).expect("key");
+        r.run();
+        r.session.set_variant(&key).expect("key");
+        first.push(r.run());
+        steady.push(r.run());
+    }
+    let (first, steady) = (median(first), median(steady));
+    println!("first run after a switch {first:.2} ms, steady run {steady:.2} ms: ratio {:.3}", first / steady);
+
+    let folded =
+        plan(&module(&without_adapters(include_str!("../models/bevfusion_tiny.readi")), &[]), 12, LoraMode::Merge);
+    let mut runners = vec![
+        ("base plan (no adaptation)", Runner::new(base.clone())),
+        ("variant, LoRA merged", Runner::new(merged.clone())),
+        ("variant, LoRA branch", Runner::new(branch.clone())),
+        ("variant, tune + LoRA merged", Runner::new(folded)),
+    ];
+    for (_, r) in &mut runners[1..] {
+        r.session.set_variant(&key).expect("key");
+    }
+    let t = interleaved(&mut runners, rounds, per_round);
+    for (i, (name, _)) in runners.iter().enumerate() {
+        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t[i], 100.0 * (t[i] / t[0] - 1.0));
+    }
+
+    for (name, p) in [("merged", &merged), ("branch", &branch)] {
+        let mf = &p.manifest;
+        let with: std::collections::HashSet<usize> =
+            mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
+        let base_bytes: usize =
+            (0..mf.tensors.len()).filter(|t| !with.contains(t)).map(|t| mf.tensors[t].numel() * 4).sum();
+        let deltas: usize =
+            mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| mf.tensors[r.with].numel() * 4)).sum();
+        println!(
+            "plan size ({name}): {:.2} MiB = base {:.2} MiB + {:.2} MiB stored for 12 variants (sum of deltas {:.2} MiB; one variant {:.1}% of the base)",
+            mib(p.tensor_bytes()),
+            mib(base_bytes),
+            mib(p.tensor_bytes() - base_bytes),
+            mib(deltas),
+            100.0 * deltas as f64 / 12.0 / base_bytes as f64
+        );
+    }
+
+    println!("\n== resnet18 224x224, 4 variants, 2 threads ==");
+    let m = module(include_str!("../models/resnet18.readi"), &[]);
+    let base = plan(&m, 0, LoraMode::Merge);
+    let merged = plan(&m, 4, LoraMode::Merge);
+    let branch = plan(&m, 4, LoraMode::Branch);
+    let key = merged.variant_key(1).to_string();
+    let folded = plan(&module(&without_adapters(include_str!("../models/resnet18.readi")), &[]), 4, LoraMode::Merge);
+    let mut runners = vec![
+        ("base plan (no adaptation)", Runner::new(base.clone())),
+        ("variant, LoRA merged", Runner::new(merged)),
+        ("variant, LoRA branch", Runner::new(branch)),
+        ("variant, tune + LoRA merged", Runner::new(folded)),
+    ];
+    for (_, r) in &mut runners[1..] {
+        r.session.set_variant(&key).expect("key");
+    }
+    let t = interleaved(&mut runners, rounds, per_round);
+    for (i, (name, _)) in runners.iter().enumerate() {
+        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t[i], 100.0 * (t[i] / t[0] - 1.0));
+    }
+
+    // Reloading a whole model copy: what a system without variants does on a switch.
+    let path = std::env::temp_dir().join(format!("readi-bench-{}.plan", std::process::id()));
+    base.write(&path).expect("write");
+    let mut reload = Vec::new();
+    for _ in 0..if quick { 3 } else { 10 } {
+        let t = Instant::now();
+        let p = Plan::load(&path).expect("load");
+        std::hint::black_box(&p);
+        reload.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let _ = std::fs::remove_file(&path);
+    println!(
+        "reload of the {:.1} MiB base plan from disk (map + checksum of every byte, page cache warm): {:.1} ms",
+        mib(base.tensor_bytes()),
+        median(reload)
+    );
+}
