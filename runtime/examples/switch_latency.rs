@@ -103,6 +103,7 @@ fn plan() -> Plan {
         tensors: specs,
         params: Vec::new(),
         variants,
+        conditions: None,
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

@@ -118,6 +118,10 @@ pub struct Manifest {
     /// Per-variant tensor tables; empty in format version 1 plans without variants.
     #[serde(default)]
     pub variants: Vec<VariantTable>,
+    /// The spec's conditions (axes, selectors, missing-modality policies, meld rule), for
+    /// choosing a variant from the inputs; `None` for specs without a variants section.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub conditions: Option<crate::conditions::Conditions>,
 }
 
 /// A graph input.

@@ -65,6 +65,7 @@ fn manifest(
     Manifest {
         format_version: FORMAT_VERSION,
         model: "variants-test".into(),
+        conditions: None,
         model_params: Vec::new(),
         symbols: vec!["N".into()],
         inputs,

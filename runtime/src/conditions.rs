@@ -1,0 +1,612 @@
+//! Conditions in the field: choosing the variant from the inputs and run metadata.
+//!
+//! A plan compiled from a spec with a `variants` section carries its [`Conditions`]: the
+//! axes and their levels, how each axis's level is found (a statistic of an input against
+//! thresholds, or a metadata value snapped to the nearest level), the missing-modality
+//! policies and the meld rule. [`Conditions::select`] turns one frame's inputs and metadata
+//! into a variant key and the reasons for it:
+//!
+//! 1. each absent optional input's modality follows its policy: `zero_fill` (the default)
+//!    runs the zero-filled input and ignores the modality's selectors; `variant` selects
+//!    `missing=<modality>`;
+//! 2. every selector of a present modality computes its statistic (or reads its metadata)
+//!    and picks a level; the clear level selects nothing;
+//! 3. no condition selects the base; one selects its variant; several on different meld
+//!    groups (modalities or axes, as the meld rule weighs them) select the melded variant
+//!    `a=x+b=y` when the plan has it, and otherwise the component with the largest lambda
+//!    (said so in the reasons); several without a meld rule covering them are an error.
+//!
+//! Statistics cost one pass over an input ([`statistic`]); a level a plan does not hold a
+//! variant for falls back to the nearest compiled level of the same axis, or the base.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// The checked `variants` section of a spec, as the runtime needs it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Conditions {
+    pub axes: Vec<AxisSpec>,
+    pub selectors: Vec<SelectorSpec>,
+    /// `(modality, policy)` for modalities whose inputs are optional.
+    pub missing: Vec<(String, MissingPolicy)>,
+    pub meld: Option<MeldSpec>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AxisSpec {
+    pub name: String,
+    pub modality: String,
+    pub levels: Vec<f64>,
+    /// The level of the clear condition (the base model), if declared.
+    pub clear: Option<f64>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum MissingPolicy {
+    ZeroFill,
+    Variant,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum KeySource {
+    /// A run metadata value, snapped to the nearest level (or the clear level).
+    Meta(String),
+    /// A statistic of an input.
+    Stat { stat: Statistic, input: String },
+}
+
+/// Statistics of an input tensor a selector may use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Statistic {
+    /// Mean value (images in [0, 1]: mean brightness).
+    Brightness,
+    /// Standard deviation.
+    Contrast,
+    /// Variance of the 4-neighbour Laplacian over the last two axes (low when blurred).
+    LaplacianVar,
+    /// Fraction of non-zero elements (lidar returns, occupied BEV cells).
+    Density,
+    /// Mean of the non-zero elements (the intensity of the returns there are).
+    Intensity,
+}
+
+impl Statistic {
+    pub fn from_name(name: &str) -> Option<Statistic> {
+        Some(match name {
+            "brightness" => Statistic::Brightness,
+            "contrast" => Statistic::Contrast,
+            "laplacian_var" => Statistic::LaplacianVar,
+            "density" => Statistic::Density,
+            "intensity" => Statistic::Intensity,
+            _ => return None,
+        })
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Statistic::Brightness => "brightness",
+            Statistic::Contrast => "contrast",
+            Statistic::LaplacianVar => "laplacian_var",
+            Statistic::Density => "density",
+            Statistic::Intensity => "intensity",
+        }
+    }
+}
+
+/// How one axis's level is found.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SelectorSpec {
+    pub axis: String,
+    pub source: KeySource,
+    /// Threshold arms: the first whose bound the value is below decides; the last has no
+    /// bound. Empty: the nearest level.
+    pub arms: Vec<ArmSpec>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ArmSpec {
+    /// `Some((t, inclusive))`: `< t` (`<= t` when inclusive); `None`: `else`.
+    pub below: Option<(f64, bool)>,
+    /// `None`: the clear condition.
+    pub level: Option<f64>,
+}
+
+/// `meld camera = 0.8, lidar = 0.2`: lambdas by modality, or by axis.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MeldSpec {
+    pub by_axis: bool,
+    pub weights: Vec<(String, f64)>,
+}
+
+/// A level as it appears in a key: `0.03`, `4`.
+pub fn fmt_level(v: f64) -> String {
+    if v.fract() == 0.0 && v.abs() < 1e15 { format!("{}", v as i64) } else { format!("{v}") }
+}
+
+/// Sum and sum of squares in sixteen f32 lanes (so the loop vectorises), folded in f64
+/// every block so long inputs keep their precision; blocks run in parallel.
+fn sums(data: &[f32]) -> (f64, f64) {
+    data.par_chunks(BLOCK).map(block_sums).reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1))
+}
+
+const BLOCK: usize = 1 << 14;
+
+fn block_sums(block: &[f32]) -> (f64, f64) {
+    let (mut s, mut q) = ([0.0f32; 16], [0.0f32; 16]);
+    let mut lanes = block.chunks_exact(16);
+    for c in &mut lanes {
+        for ((s, q), &v) in s.iter_mut().zip(q.iter_mut()).zip(c) {
+            *s += v;
+            *q += v * v;
+        }
+    }
+    for &v in lanes.remainder() {
+        s[0] += v;
+        q[0] += v * v;
+    }
+    (s.iter().map(|&v| v as f64).sum(), q.iter().map(|&v| v as f64).sum())
+}
+
+/// Number of non-zero elements and their sum.
+fn nonzero(data: &[f32]) -> (usize, f64) {
+    let block = |block: &[f32]| {
+        let (mut c, mut s) = ([0u32; 16], [0.0f32; 16]);
+        let mut lanes = block.chunks_exact(16);
+        for l in &mut lanes {
+            for ((c, s), &v) in c.iter_mut().zip(s.iter_mut()).zip(l) {
+                *c += (v != 0.0) as u32;
+                *s += v;
+            }
+        }
+        for &v in lanes.remainder() {
+            c[0] += (v != 0.0) as u32;
+            s[0] += v;
+        }
+        (c.iter().map(|&v| v as usize).sum::<usize>(), s.iter().map(|&v| v as f64).sum::<f64>())
+    };
+    data.par_chunks(BLOCK).map(block).reduce(|| (0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1))
+}
+
+/// Sum and sum of squares of the 4-neighbour Laplacian over the interior of one plane.
+fn laplacian_sums(plane: &[f32], h: usize, w: usize) -> (f64, f64) {
+    let (mut sum, mut sq) = (0.0f64, 0.0f64);
+    let mut lap = vec![0.0f32; w - 2];
+    for y in 1..h - 1 {
+        let row = &plane[y * w..(y + 1) * w];
+        let up = &plane[(y - 1) * w + 1..y * w - 1];
+        let down = &plane[(y + 1) * w + 1..(y + 2) * w - 1];
+        let (left, mid, right) = (&row[..w - 2], &row[1..w - 1], &row[2..]);
+        let neighbours = up.iter().zip(down).zip(left).zip(right);
+        for ((l, &m), (((&u, &d), &a), &b)) in lap.iter_mut().zip(mid).zip(neighbours) {
+            *l = u + d + a + b - 4.0 * m;
+        }
+        let (s, q) = block_sums(&lap);
+        sum += s;
+        sq += q;
+    }
+    (sum, sq)
+}
+
+/// The statistic of a tensor of `shape` (the last two axes are an image's rows and
+/// columns): one vectorised pass, split over the global rayon pool.
+pub fn statistic(stat: Statistic, data: &[f32], shape: &[usize]) -> f64 {
+    if data.is_empty() {
+        return 0.0;
+    }
+    let n = data.len() as f64;
+    match stat {
+        Statistic::Brightness => sums(data).0 / n,
+        Statistic::Contrast => {
+            let (sum, sq) = sums(data);
+            let mean = sum / n;
+            (sq / n - mean * mean).max(0.0).sqrt()
+        }
+        Statistic::Density => nonzero(data).0 as f64 / n,
+        Statistic::Intensity => {
+            let (count, sum) = nonzero(data);
+            if count == 0 { 0.0 } else { sum / count as f64 }
+        }
+        Statistic::LaplacianVar => {
+            let (h, w) = match shape {
+                [.., h, w] if *h >= 3 && *w >= 3 => (*h, *w),
+                _ => return 0.0,
+            };
+            let (sum, sq) = data
+                .par_chunks_exact(h * w)
+                .map(|p| laplacian_sums(p, h, w))
+                .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+            let count = (data.len() / (h * w)) * (h - 2) * (w - 2);
+            if count == 0 {
+                return 0.0;
+            }
+            let mean = sum / count as f64;
+            sq / count as f64 - mean * mean
+        }
+    }
+}
+
+/// One input of a frame, for selection: its data, or absent.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInput<'a> {
+    pub name: &'a str,
+    pub modality: Option<&'a str>,
+    /// `None`: the input is absent (a missing sensor).
+    pub data: Option<(&'a [f32], &'a [usize])>,
+}
+
+/// The outcome of selection: a key the plan holds, and why.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Selection {
+    pub key: String,
+    pub reasons: Vec<String>,
+}
+
+/// Why no variant could be selected.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SelectError {
+    /// Conditions on several meld groups and no meld rule that covers them.
+    NoMeld { conditions: Vec<String> },
+    /// A required input is absent.
+    MissingRequired { input: String },
+}
+
+impl std::fmt::Display for SelectError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SelectError::NoMeld { conditions } => write!(
+                f,
+                "conditions {} hold at once, and the spec has no meld rule combining them; \
+                 add a `meld` rule to the variants section",
+                conditions.join(" and ")
+            ),
+            SelectError::MissingRequired { input } => write!(f, "required input `{input}` is absent"),
+        }
+    }
+}
+
+impl std::error::Error for SelectError {}
+
+impl Conditions {
+    fn axis(&self, name: &str) -> Option<&AxisSpec> {
+        self.axes.iter().find(|a| a.name == name)
+    }
+
+    /// The meld group of a condition on `axis` of `modality`, and its lambda.
+    fn group(&self, axis: &str, modality: &str) -> Option<(String, f64)> {
+        let meld = self.meld.as_ref()?;
+        let g = if meld.by_axis { axis } else { modality };
+        meld.weights.iter().find(|(n, _)| n == g).map(|(n, l)| (n.clone(), *l))
+    }
+
+    /// Chooses the variant for one frame. `has` tells whether the plan holds a key.
+    pub fn select(
+        &self,
+        inputs: &[FrameInput<'_>],
+        meta: &[(String, f64)],
+        has: impl Fn(&str) -> bool,
+    ) -> Result<Selection, SelectError> {
+        let mut reasons = Vec::new();
+        // (axis or "missing", key part, modality)
+        let mut picked: Vec<(String, String, String)> = Vec::new();
+        let mut absent_modalities: Vec<&str> = Vec::new();
+        for i in inputs.iter().filter(|i| i.data.is_none()) {
+            let m = i.modality.unwrap_or("");
+            let policy =
+                self.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p).unwrap_or(MissingPolicy::ZeroFill);
+            if !absent_modalities.contains(&m) {
+                absent_modalities.push(m);
+                match policy {
+                    MissingPolicy::ZeroFill => {
+                        reasons.push(format!("`{}` is absent: zero-filled ({m} policy)", i.name))
+                    }
+                    MissingPolicy::Variant => {
+                        let key = format!("missing={m}");
+                        reasons.push(format!("`{}` is absent: the {m} policy selects `{key}`", i.name));
+                        picked.push(("missing".into(), key, m.to_string()));
+                    }
+                }
+            }
+        }
+        for s in &self.selectors {
+            let Some(axis) = self.axis(&s.axis) else { continue };
+            if absent_modalities.contains(&axis.modality.as_str()) {
+                continue;
+            }
+            let (value, source) = match &s.source {
+                KeySource::Meta(k) => match meta.iter().find(|(n, _)| n == k) {
+                    Some((_, v)) => (*v, format!("meta `{k}` = {}", fmt_value(*v))),
+                    None => {
+                        reasons.push(format!("{}: no metadata `{k}`; clear", s.axis));
+                        continue;
+                    }
+                },
+                KeySource::Stat { stat, input } => match inputs.iter().find(|i| i.name == input).and_then(|i| i.data) {
+                    Some((data, shape)) => {
+                        let v = statistic(*stat, data, shape);
+                        (v, format!("{}({input}) = {}", stat.name(), fmt_value(v)))
+                    }
+                    None => continue,
+                },
+            };
+            let level = if s.arms.is_empty() {
+                nearest(axis, value)
+            } else {
+                s.arms
+                    .iter()
+                    .find(|a| match a.below {
+                        Some((t, inclusive)) => value < t || (inclusive && value == t),
+                        None => true,
+                    })
+                    .and_then(|a| a.level)
+            };
+            match level {
+                None => reasons.push(format!("{}: {source} -> clear", s.axis)),
+                Some(l) => {
+                    let key = format!("{}={}", s.axis, fmt_level(l));
+                    reasons.push(format!("{}: {source} -> {key}", s.axis));
+                    picked.push((s.axis.clone(), key, axis.modality.clone()));
+                }
+            }
+        }
+        // Keys the plan holds: the nearest compiled level of the axis, else nothing.
+        let mut keys: Vec<(String, String, String)> = Vec::new();
+        for (axis, key, modality) in picked {
+            if has(&key) {
+                keys.push((axis, key, modality));
+                continue;
+            }
+            let alt = self.axis(&axis).and_then(|a| {
+                let want: f64 = key.rsplit_once('=').and_then(|(_, l)| l.parse().ok())?;
+                let mut levels: Vec<f64> =
+                    a.levels.iter().copied().filter(|l| has(&format!("{}={}", a.name, fmt_level(*l)))).collect();
+                levels.sort_by(|x, y| (x - want).abs().total_cmp(&(y - want).abs()));
+                levels.first().map(|l| format!("{}={}", a.name, fmt_level(*l)))
+            });
+            match alt {
+                Some(k) => {
+                    reasons.push(format!("the plan has no `{key}`; using the nearest compiled `{k}`"));
+                    keys.push((axis, k, modality));
+                }
+                None => reasons.push(format!("the plan has no `{key}` variant; ignored")),
+            }
+        }
+        match keys.len() {
+            0 => Ok(Selection { key: "base".into(), reasons }),
+            1 => Ok(Selection { key: keys.remove(0).1, reasons }),
+            _ => {
+                let groups: Option<Vec<(String, f64)>> = keys.iter().map(|(a, _, m)| self.group(a, m)).collect();
+                let distinct = groups.as_ref().is_some_and(|g| {
+                    let mut names: Vec<&str> = g.iter().map(|(n, _)| n.as_str()).collect();
+                    names.sort_unstable();
+                    names.windows(2).all(|w| w[0] != w[1])
+                });
+                let conditions: Vec<String> = keys.iter().map(|k| k.1.clone()).collect();
+                let Some(groups) = groups.filter(|_| distinct) else {
+                    return Err(SelectError::NoMeld { conditions });
+                };
+                let melded = meld_key(&conditions);
+                if has(&melded) {
+                    reasons.push(format!("meld rule combines {}", conditions.join(" and ")));
+                    return Ok(Selection { key: melded, reasons });
+                }
+                let best =
+                    groups.iter().enumerate().max_by(|a, b| a.1.1.total_cmp(&b.1.1)).map(|(i, _)| i).unwrap_or(0);
+                reasons.push(format!(
+                    "the plan has no melded `{melded}`; using `{}` (largest lambda, {})",
+                    conditions[best], groups[best].1
+                ));
+                Ok(Selection { key: conditions[best].clone(), reasons })
+            }
+        }
+    }
+}
+
+/// The key of a melded variant: its parts joined by `+` in sorted order.
+pub fn meld_key(parts: &[String]) -> String {
+    let mut p: Vec<&str> = parts.iter().map(String::as_str).collect();
+    p.sort_unstable();
+    p.join("+")
+}
+
+fn nearest(axis: &AxisSpec, value: f64) -> Option<f64> {
+    let mut best: Option<(f64, Option<f64>)> = axis.clear.map(|c| ((value - c).abs(), None));
+    for &l in &axis.levels {
+        let d = (value - l).abs();
+        if best.is_none_or(|(bd, _)| d < bd) {
+            best = Some((d, Some(l)));
+        }
+    }
+    best.and_then(|(_, l)| l)
+}
+
+fn fmt_value(v: f64) -> String {
+    if v != 0.0 && (v.abs() < 1e-3 || v.abs() >= 1e5) { format!("{v:.3e}") } else { format!("{v:.4}") }
+}
+
+impl crate::plan::Plan {
+    /// Chooses this plan's variant for one frame: `inputs` as given to
+    /// [`Session::run`](crate::exec::Session::run) (absent optional inputs left out) and run
+    /// metadata such as a weather service's `fog_density`. A plan without conditions runs
+    /// the base. For a multi-view input (`[N, views, C, H, W]`), statistics are computed over
+    /// the views that are not all zero, so a dropped camera does not read as darkness.
+    pub fn select(&self, inputs: &[crate::exec::Input<'_>], meta: &[(String, f64)]) -> Result<Selection, SelectError> {
+        let m = &self.manifest;
+        for spec in &m.inputs {
+            if !spec.optional && !inputs.iter().any(|i| i.name == spec.name) {
+                return Err(SelectError::MissingRequired { input: spec.name.clone() });
+            }
+        }
+        let Some(c) = &m.conditions else {
+            return Ok(Selection {
+                key: crate::plan::BASE_VARIANT.into(),
+                reasons: vec!["the plan declares no conditions".into()],
+            });
+        };
+        let frame: Vec<FrameInput<'_>> = m
+            .inputs
+            .iter()
+            .map(|spec| FrameInput {
+                name: &spec.name,
+                modality: spec.modality.as_deref(),
+                data: inputs.iter().find(|i| i.name == spec.name).map(|i| (i.data, i.shape)),
+            })
+            .collect();
+        // Multi-view inputs: only the views present, as `[views, C, H, W]`.
+        let views: Vec<Option<std::borrow::Cow<'_, [f32]>>> = frame
+            .iter()
+            .map(|f| match f.data {
+                Some((data, shape)) if shape.len() >= 5 => Some(present_views(data, shape)),
+                _ => None,
+            })
+            .collect();
+        let shapes: Vec<Vec<usize>> = frame
+            .iter()
+            .zip(&views)
+            .map(|(f, v)| match (f.data, v) {
+                (Some((_, shape)), Some(v)) => {
+                    let per_view: usize = shape[2..].iter().product();
+                    let mut s = vec![v.len() / per_view.max(1)];
+                    s.extend_from_slice(&shape[2..]);
+                    s
+                }
+                (Some((_, shape)), None) => shape.to_vec(),
+                (None, _) => Vec::new(),
+            })
+            .collect();
+        let frame: Vec<FrameInput<'_>> = frame
+            .iter()
+            .enumerate()
+            .map(|(i, f)| FrameInput {
+                data: f.data.map(|(d, _)| (views[i].as_deref().unwrap_or(d), shapes[i].as_slice())),
+                ..*f
+            })
+            .collect();
+        c.select(&frame, meta, |k| self.variant_index(k).is_some())
+    }
+}
+
+/// The views (axis 1) of a multi-view tensor that are not all zero, concatenated (batch 0
+/// first); the data itself when no view is dropped (or every view is).
+fn present_views<'a>(data: &'a [f32], shape: &[usize]) -> std::borrow::Cow<'a, [f32]> {
+    use std::borrow::Cow;
+    let per_view: usize = shape[2..].iter().product();
+    if per_view == 0 {
+        return Cow::Borrowed(data);
+    }
+    let present: Vec<&[f32]> = data.chunks_exact(per_view).filter(|v| v.iter().any(|x| *x != 0.0)).collect();
+    if present.is_empty() || present.len() * per_view == data.len() {
+        Cow::Borrowed(data)
+    } else {
+        Cow::Owned(present.concat())
+    }
+}
+
+/// Zeroes views `drop` (axis 1) of a multi-view input `[N, views, ...]`: a dropped camera.
+pub fn drop_views(data: &mut [f32], shape: &[usize], drop: &[usize]) -> Result<(), String> {
+    if shape.len() < 3 {
+        return Err(format!("an input of shape {shape:?} has no view axis (expected [N, views, ...])"));
+    }
+    let views = shape[1];
+    if let Some(v) = drop.iter().find(|v| **v >= views) {
+        return Err(format!("view {v} does not exist (the input has {views} views, 0..{})", views.saturating_sub(1)));
+    }
+    let per_view: usize = shape[2..].iter().product();
+    for (i, chunk) in data.chunks_exact_mut(per_view.max(1)).enumerate() {
+        if drop.contains(&(i % views)) {
+            chunk.fill(0.0);
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec() -> Conditions {
+        Conditions {
+            axes: vec![
+                AxisSpec {
+                    name: "fog".into(),
+                    modality: "lidar".into(),
+                    levels: vec![0.03, 0.06, 0.1],
+                    clear: Some(0.0),
+                },
+                AxisSpec { name: "gamma".into(), modality: "camera".into(), levels: vec![0.5, 2.0], clear: Some(1.0) },
+            ],
+            selectors: vec![
+                SelectorSpec { axis: "fog".into(), source: KeySource::Meta("fog_density".into()), arms: vec![] },
+                SelectorSpec {
+                    axis: "gamma".into(),
+                    source: KeySource::Stat { stat: Statistic::Brightness, input: "cam".into() },
+                    arms: vec![
+                        ArmSpec { below: Some((0.3, false)), level: Some(0.5) },
+                        ArmSpec { below: Some((0.7, false)), level: None },
+                        ArmSpec { below: None, level: Some(2.0) },
+                    ],
+                },
+            ],
+            missing: vec![("lidar".into(), MissingPolicy::Variant)],
+            meld: Some(MeldSpec { by_axis: false, weights: vec![("camera".into(), 0.8), ("lidar".into(), 0.2)] }),
+        }
+    }
+
+    #[test]
+    fn statistics_match_hand_computed_values() {
+        let x = [0.0f32, 1.0, 0.0, 3.0];
+        assert_eq!(statistic(Statistic::Brightness, &x, &[4]), 1.0);
+        assert_eq!(statistic(Statistic::Contrast, &x, &[4]), ((1.0f64 + 0.0 + 1.0 + 4.0) / 4.0).sqrt());
+        assert_eq!(statistic(Statistic::Density, &x, &[4]), 0.5);
+        assert_eq!(statistic(Statistic::Intensity, &x, &[4]), 2.0);
+        // A 3x3 plane has one interior pixel: Laplacian 1+1+1+1-4*5 = -16, variance 0.
+        let p = [1.0f32, 1.0, 1.0, 1.0, 5.0, 1.0, 1.0, 1.0, 1.0];
+        assert_eq!(statistic(Statistic::LaplacianVar, &p, &[3, 3]), 0.0);
+        // A 3x4 plane: two interior pixels with Laplacians -1 - 16 = -17 and 4 + 4 = 8:
+        // mean -4.5, variance 12.5^2 = 156.25.
+        let q = [0.0f32, 0.0, 0.0, 0.0, 0.0, 4.0, -1.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(statistic(Statistic::LaplacianVar, &q, &[3, 4]), 156.25);
+    }
+
+    #[test]
+    fn thresholds_meta_and_meld_choose_the_key() {
+        let s = spec();
+        let dark = vec![0.1f32; 16];
+        let bright = vec![0.5f32; 16];
+        let lidar = vec![1.0f32; 4];
+        let frame = |cam: &'static [f32], lid: Option<&'static [f32]>| {
+            vec![
+                FrameInput { name: "cam", modality: Some("camera"), data: Some((cam, &[4, 4])) },
+                FrameInput { name: "lid", modality: Some("lidar"), data: lid.map(|d| (d, &[4usize][..])) },
+            ]
+        };
+        let leak = |v: Vec<f32>| -> &'static [f32] { Box::leak(v.into_boxed_slice()) };
+        let (dark, bright, lidar) = (leak(dark), leak(bright), leak(lidar));
+        let all = |_: &str| true;
+        let sel = s.select(&frame(bright, Some(lidar)), &[], all).expect("selects");
+        assert_eq!(sel.key, "base");
+        let sel = s.select(&frame(dark, Some(lidar)), &[], all).expect("selects");
+        assert_eq!(sel.key, "gamma=0.5");
+        assert!(sel.reasons.iter().any(|r| r.contains("brightness(cam) = 0.1000 -> gamma=0.5")), "{:?}", sel.reasons);
+        // Metadata snaps to the nearest level; 0.01 is nearer the clear 0.
+        let meta = |v: f64| vec![("fog_density".to_string(), v)];
+        assert_eq!(s.select(&frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key, "fog=0.06");
+        assert_eq!(s.select(&frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key, "base");
+        // Two modalities: the melded key when the plan has it, else the larger lambda.
+        assert_eq!(s.select(&frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key, "fog=0.1+gamma=0.5");
+        let no_meld = |k: &str| !k.contains('+');
+        let sel = s.select(&frame(dark, Some(lidar)), &meta(0.1), no_meld).expect("s");
+        assert_eq!(sel.key, "gamma=0.5");
+        assert!(sel.reasons.iter().any(|r| r.contains("no melded")));
+        // Without a meld rule: an error naming both.
+        let mut plain = s.clone();
+        plain.meld = None;
+        let e = plain.select(&frame(dark, Some(lidar)), &meta(0.1), all).expect_err("no meld");
+        assert!(e.to_string().contains("gamma=0.5") && e.to_string().contains("fog=0.1"), "{e}");
+        // A missing lidar: its policy's variant; the fog selector is skipped.
+        let sel = s.select(&frame(bright, None), &meta(0.1), all).expect("s");
+        assert_eq!(sel.key, "missing=lidar");
+        // A level the plan lacks: the nearest compiled one.
+        let only = |k: &str| k == "fog=0.03";
+        let sel = s.select(&frame(bright, Some(lidar)), &meta(0.1), only).expect("s");
+        assert_eq!(sel.key, "fog=0.03");
+    }
+}
