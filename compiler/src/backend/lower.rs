@@ -420,6 +420,7 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         tensors,
         params,
         variants: Vec::new(),
+        conditions: None,
     };
     Ok(Lowered { manifest, tensors: data, sources })
 }

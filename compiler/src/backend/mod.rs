@@ -37,6 +37,8 @@ pub struct CompileOptions {
     pub lora: LoraMode,
     /// An owned parameter a variant does not give is an error, not a warning.
     pub strict: bool,
+    /// Melded variants to build from the given ones, `fog=0.06+gamma=0.5`.
+    pub melds: Vec<String>,
 }
 
 fn ice(message: String) -> Diagnostics {
@@ -62,6 +64,35 @@ pub fn compile_variants(
     sources: &[VariantSource],
     opts: &CompileOptions,
 ) -> Result<(Plan, Diagnostics), Diagnostics> {
+    // Melded variants: from their parts' parameters, then like any other variant.
+    let mut melded = Vec::new();
+    for key in &opts.melds {
+        let declared = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+        let canonical = variants::canonical_key(key, &declared).filter(|k| k.contains('+')).ok_or_else(|| {
+            Diagnostics(vec![Diagnostic::error(
+                Code::VariantWeights,
+                format!("`{key}` is not a combination of declared keys (write `fog=0.06+gamma=0.5`)"),
+            )])
+        })?;
+        let mut parts = Vec::new();
+        for part in canonical.split('+') {
+            let found = sources.iter().find(|s| variants::canonical_key(&s.key, &declared).as_deref() == Some(part));
+            parts.push(found.ok_or_else(|| {
+                Diagnostics(vec![Diagnostic::error(
+                    Code::VariantWeights,
+                    format!("cannot meld `{canonical}`: no variant `{part}` is given"),
+                )])
+            })?);
+        }
+        melded.push(variants::meld(module, &canonical, &parts, base)?);
+    }
+    let all: Vec<VariantSource>;
+    let sources = if melded.is_empty() {
+        sources
+    } else {
+        all = sources.iter().cloned().chain(melded).collect();
+        &all[..]
+    };
     let keys = variants::check_keys(module, sources)?;
     let (mut bound, mut warnings) = weights::bind(&module.graph, base, base_name, opts.allow_unused)?;
     let owned = variants::owned_params(module);
@@ -108,6 +139,7 @@ pub fn compile_variants(
     let mut manifest = base_lowered.manifest;
     manifest.tensors = store.specs;
     manifest.variants = tables;
+    manifest.conditions = module.variants.as_ref().map(variants::conditions);
     let plan = Plan::new(manifest, store.data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }

@@ -21,13 +21,16 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
+use readi_runtime::conditions::{
+    ArmSpec, AxisSpec, Conditions, KeySource, MeldSpec, MissingPolicy, SelectorSpec, Statistic, meld_key,
+};
 use readi_runtime::plan::{Replacement, TensorSpec, VariantTable};
 
 use super::lower::Lowered;
 use super::weights::{Bound, WeightSet};
 use crate::ir::{self, Graph, NodeId, SlotKind, ValueRef};
 use crate::passes::Module;
-use crate::passes::check_variants::fmt_level;
+use crate::passes::check_variants::{VariantSpec, fmt_level};
 use crate::passes::resolve_adapt::{Injection, RuleKind};
 
 /// How LoRA runs in the plan.
@@ -124,8 +127,112 @@ pub fn zero_added(owned: &BTreeMap<String, Owned>) -> Vec<(String, Vec<f32>)> {
     owned.iter().filter(|(_, o)| o.added).map(|(n, o)| (n.clone(), vec![0.0; o.shape.iter().product()])).collect()
 }
 
-/// The declared key a written key names: `fog=0.030` names `fog=0.03`.
+/// The spec's variants section as the plan carries it, for selection at run time.
+pub fn conditions(spec: &VariantSpec) -> Conditions {
+    use crate::passes::check_variants as cv;
+    Conditions {
+        axes: spec
+            .axes
+            .iter()
+            .map(|a| AxisSpec {
+                name: a.name.clone(),
+                modality: a.modality.clone(),
+                levels: a.levels.clone(),
+                clear: a.clear,
+            })
+            .collect(),
+        selectors: spec
+            .selectors
+            .iter()
+            .filter_map(|s| {
+                let source = match &s.source {
+                    cv::KeySource::Meta(k) => KeySource::Meta(k.clone()),
+                    cv::KeySource::Stat { stat, input } => {
+                        KeySource::Stat { stat: Statistic::from_name(stat)?, input: input.clone() }
+                    }
+                };
+                let arms = s.arms.iter().map(|a| ArmSpec { below: a.below, level: a.level }).collect();
+                Some(SelectorSpec { axis: s.axis.clone(), source, arms })
+            })
+            .collect(),
+        missing: spec
+            .missing
+            .iter()
+            .map(|(m, p)| {
+                let policy = match p {
+                    cv::MissingPolicy::ZeroFill => MissingPolicy::ZeroFill,
+                    cv::MissingPolicy::Variant => MissingPolicy::Variant,
+                };
+                (m.clone(), policy)
+            })
+            .collect(),
+        meld: spec.meld.as_ref().map(|m| MeldSpec { by_axis: m.by == cv::MeldBy::Axis, weights: m.weights.clone() }),
+    }
+}
+
+/// The lambdas of a melded key's parts (`fog=0.06+gamma=0.5`), normalised to sum 1, or why
+/// the key cannot be melded.
+fn meld_weights(spec: &VariantSpec, parts: &[String]) -> Result<Vec<f64>, String> {
+    let meld = spec.meld.as_ref().ok_or("the spec has no `meld` rule")?;
+    let mut groups: Vec<&str> = Vec::new();
+    let mut lambdas = Vec::new();
+    for p in parts {
+        let (axis, _) = p.split_once('=').ok_or(format!("`{p}` is not a key"))?;
+        let group = if axis == "missing" {
+            p.split_once('=').map(|(_, m)| m).unwrap_or("")
+        } else {
+            let a = spec.axes.iter().find(|a| a.name == axis).ok_or(format!("no axis `{axis}`"))?;
+            if meld.by == crate::passes::check_variants::MeldBy::Axis { &a.name } else { &a.modality }
+        };
+        if groups.contains(&group) {
+            return Err(format!("two parts weigh on `{group}`"));
+        }
+        groups.push(group);
+        let l = meld.weights.iter().find(|(n, _)| n == group).map(|(_, l)| *l);
+        lambdas.push(l.ok_or(format!("the meld rule gives no lambda for `{group}`"))?);
+    }
+    let sum: f64 = lambdas.iter().sum();
+    Ok(lambdas.iter().map(|l| l / sum).collect())
+}
+
+/// A melded variant (`fog=0.06+gamma=0.5`) from its parts' parameters: every owned
+/// parameter is `sum(lambda_i * P_i)` (the paper's `lambda_c P_c + lambda_l P_l`), a part
+/// that does not give a parameter contributing the base value (zero for added ones).
+pub fn meld(
+    module: &Module,
+    key: &str,
+    parts: &[&VariantSource],
+    base: &WeightSet,
+) -> Result<VariantSource, Diagnostics> {
+    let err = |m: String| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, m)]);
+    let spec = module.variants.as_ref().ok_or_else(|| err("the spec has no variants section".into()))?;
+    let keys: Vec<String> = parts.iter().map(|p| p.key.clone()).collect();
+    let lambdas = meld_weights(spec, &keys).map_err(|m| err(format!("cannot meld `{key}`: {m}")))?;
+    let mut weights = WeightSet::default();
+    for (name, o) in owned_params(module) {
+        let n: usize = o.shape.iter().product();
+        let mut acc = vec![0.0f64; n];
+        for (part, l) in parts.iter().zip(&lambdas) {
+            let v = part.weights.tensors.get(&name).or_else(|| base.tensors.get(&name)).map(|(_, d)| d.as_slice());
+            if let Some(v) = v.filter(|v| v.len() == n) {
+                for (a, x) in acc.iter_mut().zip(v) {
+                    *a += l * *x as f64;
+                }
+            }
+        }
+        weights.tensors.insert(name, (o.shape.clone(), acc.into_iter().map(|v| v as f32).collect()));
+    }
+    let origin = format!("meld of {}", keys.join(" and "));
+    Ok(VariantSource { key: key.to_string(), weights, origin })
+}
+
+/// The declared key a written key names: `fog=0.030` names `fog=0.03`; a melded key's
+/// parts are canonicalised and sorted (`gamma=0.5+fog=0.06` names `fog=0.06+gamma=0.5`).
 pub fn canonical_key(key: &str, declared: &[String]) -> Option<String> {
+    if key.contains('+') {
+        let parts: Option<Vec<String>> = key.split('+').map(|p| canonical_key(p.trim(), declared)).collect();
+        return parts.map(|p| meld_key(&p));
+    }
     if declared.iter().any(|d| d == key) {
         return Some(key.to_string());
     }
