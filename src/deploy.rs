@@ -11,6 +11,7 @@
 //!     peft: adapters/gamma_0.25      # a PEFT LoRA adapter directory (optional)
 //!   - key: blur=5
 //!     peft: adapters/blur_5
+//! melds: [gamma=0.25+blur=5]          # combined conditions, by the spec's meld rule (optional)
 //! ```
 //!
 //! Unknown fields are errors (a misspelt `varaints` must not silently drop every variant);
@@ -32,6 +33,8 @@ pub struct Deployment {
     pub weights: PathBuf,
     pub lora: Option<String>,
     pub variants: Vec<VariantFiles>,
+    /// Melded variants to build from the listed ones, `fog=0.06+gamma=0.5`.
+    pub melds: Vec<String>,
 }
 
 /// Where one variant's parameters are.
@@ -53,6 +56,8 @@ struct RawDeployment {
     lora: Option<String>,
     #[serde(default)]
     variants: Vec<RawVariant>,
+    #[serde(default)]
+    melds: Vec<String>,
 }
 
 #[derive(Deserialize)]
@@ -91,7 +96,14 @@ pub fn parse(path: &Path, text: &str) -> Result<Deployment, String> {
         }
         variants.push(VariantFiles { key: v.key, params: v.params.map(resolve), peft: v.peft.map(resolve) });
     }
-    Ok(Deployment { spec: resolve(raw.spec), set, weights: resolve(raw.weights), lora: raw.lora, variants })
+    Ok(Deployment {
+        spec: resolve(raw.spec),
+        set,
+        weights: resolve(raw.weights),
+        lora: raw.lora,
+        variants,
+        melds: raw.melds,
+    })
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, Diagnostics> {

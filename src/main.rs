@@ -1,5 +1,6 @@
 //! `readi`: the command-line front end of the readi compiler and runtime.
 
+mod demo;
 mod deploy;
 mod tensor_io;
 
@@ -17,9 +18,6 @@ use readi_compiler::print;
 use readi_grammar::diag::{Diagnostics, FileId, SourceMap};
 use readi_runtime::exec::{Input, Session, Tensor};
 use readi_runtime::plan::{Plan, Storage, show_shape};
-
-/// The bundled default model, used by `readi demo`.
-const DEMO_MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../models/bevfusion_tiny.readi"));
 
 const EXAMPLES: &str = "\
 Examples:
@@ -144,6 +142,10 @@ enum Command {
         /// the base value).
         #[arg(long)]
         strict: bool,
+        /// A melded variant for a combined condition, `fog=0.06+gamma=0.5` (repeatable): the
+        /// spec's meld rule interpolates the given variants' parameters.
+        #[arg(long = "meld", value_name = "KEY+KEY")]
+        melds: Vec<String>,
         /// The plan file to write.
         #[arg(short, long)]
         output: PathBuf,
@@ -169,8 +171,18 @@ enum Command {
         #[arg(long)]
         threads: Option<usize>,
         /// The variant to run, by key (`fog=0.03`); default the base model.
-        #[arg(long, value_name = "KEY")]
+        #[arg(long, value_name = "KEY", conflicts_with = "auto")]
         variant: Option<String>,
+        /// Choose the variant from the inputs and metadata by the spec's selectors, and
+        /// print which and why.
+        #[arg(long)]
+        auto: bool,
+        /// Run metadata for `--auto`, `NAME=VALUE` (repeatable), e.g. `fog_density=0.05`.
+        #[arg(long = "meta", value_name = "NAME=VALUE", value_parser = parse_meta)]
+        meta: Vec<(String, f64)>,
+        /// Dropped views of a multi-view input, `NAME=V,V` (e.g. `camera=1,4`): zero-filled.
+        #[arg(long = "drop-views", value_name = "NAME=V,V", value_parser = parse_views)]
+        drop_views: Vec<(String, Vec<usize>)>,
     },
     /// Time a plan on seeded random inputs: median and p90 latency.
     #[command(after_help = "Example:\n  readi bench r18.plan --threads 2 --runs 50")]
@@ -208,8 +220,8 @@ enum Command {
         /// Worker threads (default: all cores).
         #[arg(long)]
         threads: Option<usize>,
-        /// Frames to run.
-        #[arg(long, default_value_t = 5)]
+        /// Frames of the drive to run (it repeats after 8).
+        #[arg(long, default_value_t = 8)]
         frames: usize,
     },
 }
@@ -230,6 +242,25 @@ fn parse_variant_arg(s: &str) -> Result<(String, String), String> {
         }
         _ => Err(format!("expected KEY=PATH (for example fog=0.03=fog.safetensors), got `{s}`")),
     }
+}
+
+fn parse_meta(s: &str) -> Result<(String, f64), String> {
+    let (k, v) = parse_set(s)?;
+    v.parse::<f64>().ok().filter(|v| v.is_finite()).map(|v| (k, v)).ok_or(format!("`{s}`: the value must be a number"))
+}
+
+fn parse_views(s: &str) -> Result<(String, Vec<usize>), String> {
+    let (k, v) = parse_set(s)?;
+    let views: Result<Vec<usize>, _> = v.split(',').map(|x| x.trim().parse::<usize>()).collect();
+    views.map(|views| (k, views)).map_err(|_| format!("`{s}`: expected NAME=V,V with view numbers, e.g. camera=1,4"))
+}
+
+/// Which variant a run uses.
+enum Choice {
+    Base,
+    Key(String),
+    /// Chosen by the spec's selectors from the inputs and this metadata.
+    Auto(Vec<(String, f64)>),
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -367,18 +398,23 @@ fn run(cli: Cli) -> ExitCode {
             }
             Ok(())
         }
-        Command::Compile { spec, weights, deploy, variants, lora, strict, output, allow_unused, model } => {
-            let args = CompileArgs { spec, weights, deploy, variants, lora, strict, allow_unused, model };
+        Command::Compile { spec, weights, deploy, variants, lora, strict, melds, output, allow_unused, model } => {
+            let args = CompileArgs { spec, weights, deploy, variants, lora, strict, melds, allow_unused, model };
             cmd_compile(&mut s, args, &output)
         }
-        Command::Run { plan, inputs, outputs, threads, variant } => {
-            cmd_run(&plan, &inputs, &outputs, threads, variant.as_deref())
+        Command::Run { plan, inputs, outputs, threads, variant, auto, meta, drop_views } => {
+            let choice = match variant {
+                Some(v) => Choice::Key(v),
+                None if auto => Choice::Auto(meta),
+                None => Choice::Base,
+            };
+            cmd_run(&plan, &inputs, &outputs, threads, choice, &drop_views)
         }
         Command::Bench { plan, threads, runs, warmup, batch, profile, variant } => {
             cmd_bench(&plan, threads, runs, warmup, batch, profile, variant.as_deref())
         }
         Command::Inspect { plan, verbose } => cmd_inspect(&plan, verbose),
-        Command::Demo { threads, frames } => cmd_demo(&mut s, threads, frames),
+        Command::Demo { threads, frames } => demo::run(&mut s, threads_or_default(threads), frames),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -483,6 +519,7 @@ struct CompileArgs {
     variants: Vec<(String, String)>,
     lora: Option<LoraArg>,
     strict: bool,
+    melds: Vec<String>,
     allow_unused: bool,
     model: ModelArgs,
 }
@@ -494,12 +531,14 @@ fn cmd_compile(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(),
         ExitCode::FAILURE
     };
     let mut model = args.model;
+    let mut melds = args.melds.clone();
     let (spec, weights, mut variant_files, mut lora) = match &args.deploy {
         Some(path) => {
             let text =
                 std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read {}: {e}", path.display())))?;
             let d = deploy::parse(path, &text).map_err(fail)?;
             model.set.extend(d.set);
+            melds.extend(d.melds);
             let lora = match d.lora.as_deref() {
                 None => None,
                 Some("merge") => Some(LoraMode::Merge),
@@ -538,7 +577,8 @@ fn cmd_compile(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(),
     for files in &variant_files {
         sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
     }
-    let opts = CompileOptions { allow_unused: args.allow_unused, lora: lora.unwrap_or_default(), strict: args.strict };
+    let opts =
+        CompileOptions { allow_unused: args.allow_unused, lora: lora.unwrap_or_default(), strict: args.strict, melds };
     let (plan, warnings) = backend::compile_variants(&module, &set, &wname, &sources, &opts).map_err(|d| {
         s.report(&d);
         eprintln!("error: {}", summary_line(&wname, &d));
@@ -580,7 +620,8 @@ fn cmd_run(
     inputs: &[(String, String)],
     outputs: &[String],
     threads: Option<usize>,
-    variant: Option<&str>,
+    choice: Choice,
+    drop_views: &[(String, Vec<usize>)],
 ) -> Result<(), ExitCode> {
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
@@ -591,11 +632,28 @@ fn cmd_run(
     for (name, file) in inputs {
         loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file)).map_err(fail)?));
     }
-    let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
-    if let Some(key) = variant {
-        session.set_variant(key).map_err(|e| fail(e.to_string()))?;
+    for (name, views) in drop_views {
+        let Some((_, (shape, data))) = loaded.iter_mut().find(|(n, _)| n == name) else {
+            return Err(fail(format!("--drop-views names `{name}`, which is not given with --input")));
+        };
+        readi_runtime::conditions::drop_views(data, shape, views).map_err(|e| fail(format!("input `{name}`: {e}")))?;
     }
+    let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
     let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
+    match choice {
+        Choice::Base => {}
+        Choice::Key(key) => session.set_variant(&key).map_err(|e| fail(e.to_string()))?,
+        Choice::Auto(meta) => {
+            let t = Instant::now();
+            let sel = plan.select(&given, &meta).map_err(|e| fail(e.to_string()))?;
+            let us = t.elapsed().as_secs_f64() * 1e6;
+            println!("selected variant {} ({us:.0} us):", sel.key);
+            for r in &sel.reasons {
+                println!("  {r}");
+            }
+            session.set_variant(&sel.key).map_err(|e| fail(e.to_string()))?;
+        }
+    }
     let start = Instant::now();
     let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
     let elapsed = start.elapsed();
@@ -846,118 +904,4 @@ fn print_budget(plan: &Plan, base_params: u64) {
             pct(tuned + added, base_bytes),
         );
     }
-}
-
-/// Variants the demo compiles (the paper's setting: a dozen conditions).
-const DEMO_VARIANTS: usize = 12;
-
-fn cmd_demo(s: &mut Frontend, threads: Option<usize>, frames: usize) -> Result<(), ExitCode> {
-    let (name, text) = DEMO_MODEL;
-    let file = s.sources.add(name, text);
-    let start = Instant::now();
-    let out = passes::run(file, text, &Options::default());
-    let check_time = start.elapsed();
-    s.report(&out.diagnostics);
-    let Some(m) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
-        eprintln!("error: the bundled model does not check");
-        return Err(ExitCode::FAILURE);
-    };
-    let g = &m.graph;
-    println!("readi demo: {} ({name}), checked in {:.1} ms", g.name, check_time.as_secs_f64() * 1e3);
-    let inputs: Vec<_> = g
-        .input_nodes()
-        .into_iter()
-        .filter_map(|n| match &g.node(n).op {
-            readi_compiler::ir::Op::Input(a) => Some((a, &g.node(n).outputs[0])),
-            _ => None,
-        })
-        .collect();
-    let width =
-        inputs.iter().map(|(a, _)| a.name.len()).chain(g.outputs.iter().map(|o| o.name.len())).max().unwrap_or(0);
-    for (a, ty) in &inputs {
-        let m = a.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
-        let opt = if a.optional { " (optional)" } else { "" };
-        println!("  input  {:<width$}  {ty}{m}{opt}", a.name);
-    }
-    for o in &g.outputs {
-        println!("  output {:<width$}  {}", o.name, g.value_type(o.value).map(|t| t.to_string()).unwrap_or_default());
-    }
-    println!("  {} nodes, {} parameters", g.node_count(), print::thousands(g.parameter_count()));
-    if let Some(plan) = &m.adapt {
-        let p = g.parameter_count().max(1) as f64;
-        let tuned = plan.tuned_elements(g);
-        let added = plan.added_elements();
-        println!(
-            "  per variant: exist budget {:.2}% ({} elements), add budget {:.2}% ({} elements)",
-            100.0 * tuned as f64 / p,
-            print::thousands(tuned),
-            100.0 * added as f64 / p,
-            print::thousands(added)
-        );
-    }
-    if let Some(v) = &m.variants {
-        println!("  {} variants declared: {}", v.variant_keys().len(), v.variant_keys().join(" "));
-    }
-
-    let start = Instant::now();
-    let weights = backend::seeded_weights(g, 2024);
-    let keys: Vec<String> = m.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
-    let keys: Vec<String> = keys.into_iter().take(DEMO_VARIANTS).collect();
-    let sources = backend::seeded_variants(&m, &keys, 2025);
-    let plan = match backend::compile_variants(&m, &weights, "<seeded weights>", &sources, &CompileOptions::default()) {
-        Ok((plan, _)) => Arc::new(plan),
-        Err(d) => {
-            s.report(&d);
-            return Err(ExitCode::FAILURE);
-        }
-    };
-    let variant_bytes: usize = plan
-        .manifest
-        .variants
-        .iter()
-        .flat_map(|v| &v.replaces)
-        .map(|r| plan.manifest.tensors[r.with].numel() * 4)
-        .sum();
-    println!(
-        "\ncompiled with seeded weights and {} seeded variants in {:.0} ms: {} steps, {} of weights ({} of them variant tensors), {} activation buffers",
-        plan.manifest.variants.len(),
-        start.elapsed().as_secs_f64() * 1e3,
-        plan.manifest.steps.len(),
-        print::bytes(plan.tensor_bytes() as u64),
-        print::bytes(variant_bytes as u64),
-        plan.manifest.slots
-    );
-    let threads = threads_or_default(threads);
-    let mut session = match Session::new(plan.clone(), threads) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return Err(ExitCode::FAILURE);
-        }
-    };
-    println!("running {frames} frames on {threads} threads (seeded sensor data), switching variant every frame:");
-    for frame in 0..frames {
-        let data = synthetic_inputs(&plan, 1, 7 + frame as u64);
-        let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
-        let key = plan.variant_key(frame % plan.variant_count()).to_string();
-        let t = Instant::now();
-        if let Err(e) = session.set_variant(&key) {
-            eprintln!("error: {e}");
-            return Err(ExitCode::FAILURE);
-        }
-        let switch_us = t.elapsed().as_secs_f64() * 1e6;
-        let t = Instant::now();
-        let result = match session.run(&given) {
-            Ok(r) => r,
-            Err(e) => {
-                eprintln!("error: {e}");
-                return Err(ExitCode::FAILURE);
-            }
-        };
-        let ms = t.elapsed().as_secs_f64() * 1e3;
-        let summary: Vec<String> = result.iter().map(|(n, t)| format!("{n} {}", describe(t))).collect();
-        println!("  frame {frame}: {key:<10} switch {switch_us:5.2} us  run {ms:7.2} ms   {}", summary.join("   "));
-    }
-    println!("\nnext: `readi ir {name}` for the graph, `readi params {name}` for every tensor");
-    Ok(())
 }

@@ -324,6 +324,23 @@ fn compile_a_deployment_with_variants() {
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("gamma=0.25"), "lists the keys: {}", stderr(&o));
 
+    // --auto: a dark, textured image selects gamma=0.25 by its brightness; a dark flat one
+    // also reads as blurred, and two camera conditions without a meld rule are an error.
+    let (n, h, w) = (2, 64, 64);
+    let textured: Vec<f32> =
+        (0..n * 3 * h * w).map(|i| 0.1 + if (i / w + i % w) % 2 == 0 { 0.05 } else { -0.05 }).collect();
+    let image = dir.join("dark.npy");
+    write_npy(&image, &readi_runtime::exec::Tensor { shape: vec![n, 3, h, w], data: textured });
+    let o = readi(&["run", &p(&plan), "--auto", "--input", &format!("image={}", p(&image))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("selected variant gamma=0.25") && out.contains("brightness(image) = 0.1000"), "{out}");
+    assert!(out.contains("ran variant gamma=0.25"), "{out}");
+    write_npy(&image, &readi_runtime::exec::Tensor { shape: vec![n, 3, h, w], data: vec![0.1; n * 3 * h * w] });
+    let o = readi(&["run", &p(&plan), "--auto", "--input", &format!("image={}", p(&image))]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("no meld rule"), "{}", stderr(&o));
+
     // A key the spec does not declare.
     std::fs::write(&manifest, std::fs::read_to_string(&manifest).expect("yaml").replace("key: blur=5", "key: blur=7"))
         .expect("write");
