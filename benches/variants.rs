@@ -6,6 +6,7 @@
 //!
 //! * switch latency: `VariantSwitch::set` by key, median over many switches;
 //! * the first run after a switch against a steady run of the same variant;
+//! * choosing the variant from a frame (`Plan::select`) against a run;
 //! * adapted-plan latency against the base plan (no adaptation), LoRA merged and as a
 //!   branch, and without the adapter rules (tuning and merged LoRA fold into the base
 //!   schedule; adapters add layers);
@@ -147,6 +148,23 @@ fn main() {
     }
     let (first, steady) = (median(first), median(steady));
     println!("first run after a switch {first:.2} ms, steady run {steady:.2} ms: ratio {:.3}", first / steady);
+
+    // Choosing the variant from the frame: the spec's statistics (brightness and Laplacian
+    // variance of the six camera views, density of the lidar grid) and metadata.
+    let given: Vec<Input<'_>> = r.data.iter().map(|(n, s, d)| Input { name: n, data: d, shape: s }).collect();
+    let meta = vec![("fog_density".to_string(), 0.05)];
+    let mut sel = Vec::new();
+    for _ in 0..if quick { 10 } else { 50 } {
+        let t = Instant::now();
+        std::hint::black_box(merged.select(&given, &meta).expect("selects"));
+        sel.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let sel = median(sel);
+    println!(
+        "variant selection from the frame (3 statistics + metadata): {:.3} ms = {:.2}% of a steady run",
+        sel,
+        100.0 * sel / steady
+    );
 
     let folded =
         plan(&module(&without_adapters(include_str!("../models/bevfusion_tiny.readi")), &[]), 12, LoraMode::Merge);
