@@ -41,7 +41,8 @@ struct Scene {
     what: &'static str,
     /// The weather service's fog density (the `fog` selector reads it).
     fog: f64,
-    /// Camera exposure gamma (below 1 under-exposed): pixel `v` becomes `v^(1/gamma)`.
+    /// Camera exposure gamma (below 1 under-exposed), applied by `readi simulate`'s camera
+    /// model: pixel `v` becomes `v^(1/gamma)`.
     gamma: f32,
     lidar: bool,
 }
@@ -73,7 +74,9 @@ fn sensors(plan: &Plan, frame: u64, gamma: f32) -> Vec<(String, Vec<usize>, Vec<
             let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&ones).unwrap_or(1)).collect();
             let n: usize = shape.iter().product();
             let data: Vec<f32> = if i.modality.as_deref() == Some("camera") {
-                (0..n).map(|_| (0.3 + 0.4 * uniform()).powf(1.0 / gamma)).collect()
+                let scene: Vec<f32> = (0..n).map(|_| 0.3 + 0.4 * uniform()).collect();
+                // The simulator's exposure model; gamma is one of the paper's levels.
+                readi::simulate::camera::gamma(&scene, gamma as f64).unwrap_or(scene)
             } else {
                 (0..n).map(|_| if uniform() < 0.01 { 0.2 + 0.8 * uniform() } else { 0.0 }).collect()
             };

@@ -31,7 +31,8 @@ Examples:
   readi params models/resnet18.readi --set num_classes=10
   readi ir models/vit_encoder.readi --stop-after elaborate
   readi graph models/resnet18.readi -o resnet18.dot && dot -Tsvg resnet18.dot > resnet18.svg
-  readi ast models/pointpillars_bev.readi    the file as the parser understood it";
+  readi ast models/pointpillars_bev.readi    the file as the parser understood it
+  readi simulate 000042.bin -o fog.bin --fog 0.06 --seed 1    the paper's fog, snow, gamma, blur";
 
 #[derive(Parser)]
 #[command(name = "readi", version, about = "Compiler for adaptive autonomous-driving perception networks (t-READi)", after_help = EXAMPLES)]
@@ -215,6 +216,9 @@ enum Command {
         #[arg(long)]
         verbose: bool,
     },
+    /// Apply the paper's conditions to an input: lidar fog or snow, camera gamma and/or blur.
+    #[command(after_help = readi::simulate::EXAMPLES)]
+    Simulate(readi::simulate::SimulateArgs),
     /// Compile the bundled BEVFusion-tiny model with seeded weights and run a few frames.
     Demo {
         /// Worker threads (default: all cores).
@@ -415,6 +419,7 @@ fn run(cli: Cli) -> ExitCode {
         }
         Command::Inspect { plan, verbose } => cmd_inspect(&plan, verbose),
         Command::Demo { threads, frames } => demo::run(&mut s, threads_or_default(threads), frames),
+        Command::Simulate(args) => cmd_simulate(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -613,6 +618,19 @@ fn describe(t: &Tensor) -> String {
     }
     let mean = if t.data.is_empty() { 0.0 } else { sum / t.data.len() as f64 };
     format!("{:?}  min {lo:.4}  max {hi:.4}  mean {mean:.4}", t.shape)
+}
+
+fn cmd_simulate(args: &readi::simulate::SimulateArgs) -> Result<(), ExitCode> {
+    match readi::simulate::run(args) {
+        Ok(summary) => {
+            println!("{summary}");
+            Ok(())
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            Err(ExitCode::FAILURE)
+        }
+    }
 }
 
 fn cmd_run(
