@@ -87,7 +87,7 @@ fn plan() -> Plan {
                 kernel: Kernel::Linear {
                     out_features: FOUT,
                     weight: base[0],
-                    epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true },
+                    epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true, bn: None },
                 },
                 inputs: vec![0],
                 output: 1,
@@ -103,6 +103,7 @@ fn plan() -> Plan {
         tensors: specs,
         params: Vec::new(),
         variants,
+        declared_variants: Vec::new(),
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

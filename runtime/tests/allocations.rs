@@ -74,7 +74,9 @@ fn plan() -> Plan {
         step("cat", Kernel::Concat { axis: 1 }, vec![0, 1, 0], 2),
         step(
             "bn",
-            Kernel::ChannelAffine { epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false } },
+            Kernel::ChannelAffine {
+                epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false, bn: None },
+            },
             vec![2],
             3,
         ),
@@ -114,6 +116,7 @@ fn plan() -> Plan {
         tensors: specs,
         params: Vec::new(),
         variants,
+        declared_variants: Vec::new(),
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

@@ -108,6 +108,7 @@ pub fn compile_variants(
     let mut manifest = base_lowered.manifest;
     manifest.tensors = store.specs;
     manifest.variants = tables;
+    manifest.declared_variants = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
     let plan = Plan::new(manifest, store.data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }
