@@ -1,5 +1,6 @@
 //! `readi`: the command-line front end of the readi compiler and runtime.
 
+mod adapt_bn;
 mod demo;
 mod deploy;
 mod tensor_io;
@@ -219,6 +220,32 @@ enum Command {
     /// Apply the paper's conditions to an input: lidar fog or snow, camera gamma and/or blur.
     #[command(after_help = readi::simulate::EXAMPLES)]
     Simulate(readi::simulate::SimulateArgs),
+    /// AdaBN: re-estimate every BatchNorm's statistics for a variant by running the base
+    /// model over unlabelled samples of its condition; writes a variant parameter file.
+    #[command(
+        name = "adapt-bn",
+        after_help = "Each sample file is one batch: a .npy (single-input models) or a .safetensors holding the \
+                      inputs by name.\n\nExample:\n  readi adapt-bn r18.plan --variant gamma=0.25 --samples dark/*.npy \
+                      -o gamma_0.25.safetensors\n  \
+                      readi compile models/resnet18.readi --weights r18.safetensors \
+                      --variant gamma=0.25=gamma_0.25.safetensors -o r18.plan"
+    )]
+    AdaptBn {
+        /// The plan, whose base model runs.
+        plan: PathBuf,
+        /// The variant the statistics are for, by key (`gamma=0.25`).
+        #[arg(long, value_name = "KEY")]
+        variant: String,
+        /// Sample files, one batch each, processed in order.
+        #[arg(long, value_name = "FILE", num_args = 1.., required = true)]
+        samples: Vec<PathBuf>,
+        /// The safetensors file to write (`<bn>.running_mean`, `<bn>.running_var`).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+    },
     /// Compile the bundled BEVFusion-tiny model with seeded weights and run a few frames.
     Demo {
         /// Worker threads (default: all cores).
@@ -420,6 +447,9 @@ fn run(cli: Cli) -> ExitCode {
         Command::Inspect { plan, verbose } => cmd_inspect(&plan, verbose),
         Command::Demo { threads, frames } => demo::run(&mut s, threads_or_default(threads), frames),
         Command::Simulate(args) => cmd_simulate(&args),
+        Command::AdaptBn { plan, variant, samples, output, threads } => {
+            cmd_adapt_bn(&plan, &variant, &samples, &output, threads)
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -922,4 +952,18 @@ fn print_budget(plan: &Plan, base_params: u64) {
             pct(tuned + added, base_bytes),
         );
     }
+}
+
+fn cmd_adapt_bn(
+    plan: &Path,
+    variant: &str,
+    samples: &[PathBuf],
+    output: &Path,
+    threads: Option<usize>,
+) -> Result<(), ExitCode> {
+    let args = adapt_bn::Args { plan, variant, samples, output, threads: threads_or_default(threads) };
+    adapt_bn::run(&args).map_err(|msg| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    })
 }

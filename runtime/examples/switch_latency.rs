@@ -87,7 +87,7 @@ fn plan() -> Plan {
                 kernel: Kernel::Linear {
                     out_features: FOUT,
                     weight: base[0],
-                    epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true },
+                    epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true, bn: None },
                 },
                 inputs: vec![0],
                 output: 1,
@@ -104,6 +104,7 @@ fn plan() -> Plan {
         params: Vec::new(),
         variants,
         conditions: None,
+        declared_variants: Vec::new(),
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

@@ -138,14 +138,14 @@ pub struct Session {
 }
 
 /// Everything that depends on the bound symbol values.
-struct Bound {
+pub(crate) struct Bound {
     /// The symbol values the buffers were made for, in `manifest.symbols` order.
     symbols: Vec<usize>,
-    shapes: Vec<Vec<usize>>,
-    slots: Vec<Vec<f32>>,
-    scratch: Vec<f32>,
+    pub(crate) shapes: Vec<Vec<usize>>,
+    pub(crate) slots: Vec<Vec<f32>>,
+    pub(crate) scratch: Vec<f32>,
     /// Per step, the conv parameters (for conv steps).
-    convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
+    pub(crate) convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
     /// Zero-filled buffers for absent optional inputs, by input index.
     zeros: Vec<Vec<f32>>,
 }
@@ -153,15 +153,15 @@ struct Bound {
 /// What one run reads besides its buffers: the stored tensors under the run's variant
 /// and the caller's inputs.
 #[derive(Clone, Copy)]
-struct Run<'a> {
-    plan: &'a Plan,
+pub(crate) struct Run<'a> {
+    pub(crate) plan: &'a Plan,
     weights: VariantTensors<'a>,
     inputs: &'a [Input<'a>],
     /// [`Session::given`].
     given: &'a [Option<usize>],
 }
 
-fn bad(step: &str, detail: impl Into<String>) -> RunError {
+pub(crate) fn bad(step: &str, detail: impl Into<String>) -> RunError {
     RunError::BadPlan { step: step.to_string(), detail: detail.into() }
 }
 
@@ -244,6 +244,45 @@ impl Session {
         let weights = plan
             .variant_tensors(variant)
             .ok_or(RunError::VariantIndex { index: variant, count: plan.variant_count() })?;
+        self.prepare(&plan, inputs)?;
+        let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        let run = Run { plan: &plan, weights, inputs, given: &self.given };
+        let threads = self.threads;
+        let profile = self.profile.as_deref_mut();
+        self.pool.install(|| execute(&run, bound, threads, profile))?;
+        let bound: &Bound = bound;
+        let mut out = Vec::with_capacity(m.outputs.len());
+        for o in &m.outputs {
+            let data = value_slice(&run, bound, o.value).to_vec();
+            out.push((o.name.clone(), Tensor { shape: bound.shapes[o.value].clone(), data }));
+        }
+        self.last_variant = Some(variant);
+        Ok(out)
+    }
+
+    /// Runs `exec` on the session's thread pool in place of the normal executor, under the
+    /// base model, with the inputs matched, checked and the buffers bound as for a run.
+    /// For calibration ([`crate::calibrate`]), which needs to see inside the steps.
+    pub(crate) fn run_custom<T>(
+        &mut self,
+        inputs: &[Input<'_>],
+        exec: impl FnOnce(&Run<'_>, &mut Bound, usize) -> Result<T, RunError> + Send,
+    ) -> Result<T, RunError>
+    where
+        T: Send,
+    {
+        let plan = Arc::clone(&self.plan);
+        self.prepare(&plan, inputs)?;
+        let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        let run = Run { plan: &plan, weights: plan.base_tensors(), inputs, given: &self.given };
+        let threads = self.threads;
+        self.pool.install(|| exec(&run, bound, threads))
+    }
+
+    /// Matches the inputs to the plan's by name, binds the symbols, checks the inputs and
+    /// (re)binds the buffers when the symbol values changed.
+    fn prepare(&mut self, plan: &Plan, inputs: &[Input<'_>]) -> Result<(), RunError> {
+        let m = &plan.manifest;
         // Match inputs to the plan's.
         self.given.clear();
         self.given.resize(m.inputs.len(), None);
@@ -268,21 +307,9 @@ impl Session {
             }
         }
         if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
-            self.bound = Some(bind(&plan, &self.symbols, self.threads)?);
+            self.bound = Some(bind(plan, &self.symbols, self.threads)?);
         }
-        let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
-        let run = Run { plan: &plan, weights, inputs, given: &self.given };
-        let threads = self.threads;
-        let profile = self.profile.as_deref_mut();
-        self.pool.install(|| execute(&run, bound, threads, profile))?;
-        let bound: &Bound = bound;
-        let mut out = Vec::with_capacity(m.outputs.len());
-        for o in &m.outputs {
-            let data = value_slice(&run, bound, o.value).to_vec();
-            out.push((o.name.clone(), Tensor { shape: bound.shapes[o.value].clone(), data }));
-        }
-        self.last_variant = Some(variant);
-        Ok(out)
+        Ok(())
     }
 
     /// Binds the symbols from the given inputs' shapes into `self.symbols` and checks every
@@ -779,7 +806,7 @@ fn execute(run: &Run<'_>, bound: &mut Bound, threads: usize, mut profile: Option
 }
 
 /// Runs one step, its shapes checked at bind time.
-fn run_step(
+pub(crate) fn run_step(
     run: &Run<'_>,
     b: &Bound,
     step: &Step,

@@ -1,5 +1,6 @@
 //! The readi runtime: loads a plan and runs it on CPU in f32.
 
+pub mod calibrate;
 pub mod conditions;
 pub mod exec;
 pub mod kernels;

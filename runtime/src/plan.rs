@@ -122,6 +122,11 @@ pub struct Manifest {
     /// choosing a variant from the inputs; `None` for specs without a variants section.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub conditions: Option<crate::conditions::Conditions>,
+    /// Every variant key the spec declares (`variants` section), compiled into the plan
+    /// or not, so that tools making variant files for the plan can check a key. Absent in
+    /// plans compiled before it was recorded.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub declared_variants: Vec<String>,
 }
 
 /// A graph input.
@@ -229,11 +234,45 @@ pub struct Step {
 }
 
 /// A per-channel epilogue read from stored tensors.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct EpilogueSpec {
     pub scale: Option<usize>,
     pub shift: Option<usize>,
     pub relu: bool,
+    /// Set when `scale` and `shift` are a folded BatchNorm: what re-estimating its
+    /// statistics needs ([`crate::calibrate`]). Absent in plans compiled before it was
+    /// recorded; never read by a normal run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bn: Option<BnInfo>,
+}
+
+/// The BatchNorm a conv or channel-affine epilogue was folded from, so that its running
+/// statistics can be re-estimated (AdaBN) from a plan that holds only the folded affine.
+///
+/// The tensors are the base model's (a variant's own affine is in its `scale`/`shift`
+/// replacements); no kernel reads them and no variant may replace them. Each has the
+/// epilogue's channel count. Cost: two (three with a conv bias) vectors of `C` floats
+/// per BatchNorm, 37.5 KiB for ResNet-18.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BnInfo {
+    /// The BatchNorm's path, its PyTorch module name (`layer1.0.bn1`): its statistics are
+    /// `<name>.running_mean` and `<name>.running_var`.
+    pub name: String,
+    pub eps: f64,
+    /// Stored tensor of its `weight` (gamma).
+    pub weight: usize,
+    /// Stored tensor of its `bias` (beta).
+    pub bias: usize,
+    /// Stored tensor of the conv bias folded into `shift` (conv epilogues only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub conv_bias: Option<usize>,
+}
+
+impl BnInfo {
+    /// The stored tensors it names.
+    pub fn tensors(&self) -> impl Iterator<Item = usize> {
+        [self.weight, self.bias].into_iter().chain(self.conv_bias)
+    }
 }
 
 /// Serialisable names for the kernel enums.
@@ -371,7 +410,18 @@ impl Kernel {
         }
     }
 
-    /// The stored tensors the kernel reads.
+    /// The kernel's per-channel epilogue, if it has one.
+    pub fn epilogue(&self) -> Option<&EpilogueSpec> {
+        match self {
+            Kernel::Conv2d { epilogue, .. } | Kernel::Linear { epilogue, .. } | Kernel::ChannelAffine { epilogue } => {
+                Some(epilogue)
+            }
+            _ => None,
+        }
+    }
+
+    /// The stored tensors the kernel reads (not those of an epilogue's [`BnInfo`], which
+    /// only calibration reads).
     pub fn tensors(&self) -> Vec<usize> {
         let ep = |e: &EpilogueSpec| e.scale.into_iter().chain(e.shift).collect::<Vec<_>>();
         match self {
@@ -809,15 +859,68 @@ impl Plan {
                 return bad(format!("output `{}` is never computed", o.name));
             }
         }
+        Plan::validate_batchnorms(m).map_err(|detail| PlanError::Manifest { path: path.into(), detail })?;
         Plan::validate_variants(m).map_err(|detail| PlanError::Manifest { path: path.into(), detail })
     }
 
-    /// Checks the variant tables of a manifest whose schedule is valid: keys non-empty,
+    /// Checks the [`BnInfo`] of every epilogue: only on conv and channel-affine steps with
+    /// a scale and a shift (a conv bias on conv steps only); names non-empty and unique;
+    /// `eps` finite and not negative; every tensor in range with the scale's shape `[C]`.
+    fn validate_batchnorms(m: &Manifest) -> Result<(), String> {
+        let mut names: HashSet<&str> = HashSet::new();
+        for (k, step) in m.steps.iter().enumerate() {
+            let Some(ep) = step.kernel.epilogue() else { continue };
+            let Some(bn) = &ep.bn else { continue };
+            let at = format!("step {k} (`{}`), BatchNorm `{}`", step.path, bn.name);
+            let conv = matches!(step.kernel, Kernel::Conv2d { .. });
+            if !conv && !matches!(step.kernel, Kernel::ChannelAffine { .. }) {
+                return Err(format!("{at}: only conv2d and channel_affine steps fold a BatchNorm"));
+            }
+            if bn.conv_bias.is_some() && !conv {
+                return Err(format!("{at}: a conv bias on a step without a conv"));
+            }
+            if bn.name.trim().is_empty() || !names.insert(&bn.name) {
+                return Err(format!("{at}: the name is empty or used by another step"));
+            }
+            if !(bn.eps.is_finite() && bn.eps >= 0.0) {
+                return Err(format!("{at}: eps {} is not a finite non-negative number", bn.eps));
+            }
+            let (Some(scale), Some(_)) = (ep.scale, ep.shift) else {
+                return Err(format!("{at}: a folded BatchNorm needs the epilogue's scale and shift"));
+            };
+            let shape = &m.tensors[scale].shape;
+            if shape.len() != 1 {
+                return Err(format!("{at}: the scale has shape {shape:?}, not [C]"));
+            }
+            for t in bn.tensors() {
+                match m.tensors.get(t) {
+                    None => return Err(format!("{at}: reads tensor {t} of {}", m.tensors.len())),
+                    Some(spec) if &spec.shape != shape => {
+                        return Err(format!(
+                            "{at}: tensor {t} (`{}`) has shape {:?}, the scale {shape:?}",
+                            spec.name, spec.shape
+                        ));
+                    }
+                    Some(_) => {}
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks the declared keys (non-empty, unique) and the variant tables of a manifest
+    /// whose schedule is valid: keys non-empty,
     /// unique and not [`BASE_VARIANT`]; every replacement names tensors in range, replaces
     /// a tensor that a step or a value reads, at most once per variant, with a tensor of
     /// exactly its shape (so bind-time checks of the base cover every variant); and the
     /// maps fit [`MAX_MAP_ENTRIES`].
     fn validate_variants(m: &Manifest) -> Result<(), String> {
+        let mut declared: HashSet<&str> = HashSet::with_capacity(m.declared_variants.len());
+        for key in &m.declared_variants {
+            if key.trim().is_empty() || !declared.insert(key) {
+                return Err(format!("declared variant key `{key}` is empty or listed twice"));
+            }
+        }
         let n = m.tensors.len();
         if m.variants.is_empty() {
             return Ok(());

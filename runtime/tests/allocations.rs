@@ -74,7 +74,9 @@ fn plan() -> Plan {
         step("cat", Kernel::Concat { axis: 1 }, vec![0, 1, 0], 2),
         step(
             "bn",
-            Kernel::ChannelAffine { epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false } },
+            Kernel::ChannelAffine {
+                epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false, bn: None },
+            },
             vec![2],
             3,
         ),
@@ -115,6 +117,7 @@ fn plan() -> Plan {
         params: Vec::new(),
         variants,
         conditions: None,
+        declared_variants: Vec::new(),
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

@@ -76,6 +76,7 @@ fn manifest(
         tensors,
         params: Vec::new(),
         variants,
+        declared_variants: Vec::new(),
     }
 }
 
@@ -160,7 +161,7 @@ fn mlp(fin: usize, fout: usize) -> Mlp {
             kernel: Kernel::Linear {
                 out_features: fout,
                 weight: w,
-                epilogue: EpilogueSpec { scale: None, shift: Some(bias), relu: true },
+                epilogue: EpilogueSpec { scale: None, shift: Some(bias), relu: true, bn: None },
             },
             inputs: vec![0],
             output: 1,
@@ -274,7 +275,7 @@ fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                 groups: 1,
                 algo: "im2col".into(),
                 weight: w,
-                epilogue: EpilogueSpec { scale: Some(scale1), shift: Some(shift1), relu: true },
+                epilogue: EpilogueSpec { scale: Some(scale1), shift: Some(shift1), relu: true, bn: None },
             },
             inputs: vec![0],
             output: 1,
@@ -282,7 +283,7 @@ fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
         Step {
             path: "bn2".into(),
             kernel: Kernel::ChannelAffine {
-                epilogue: EpilogueSpec { scale: Some(scale2), shift: Some(shift2), relu: false },
+                epilogue: EpilogueSpec { scale: Some(scale2), shift: Some(shift2), relu: false, bn: None },
             },
             inputs: vec![1],
             output: 2,

@@ -7,7 +7,9 @@
 //!   conv's per-channel epilogue, `scale = gamma / sqrt(var + eps)`,
 //!   `shift = beta - mean * scale (+ conv_bias * scale)`; the conv weight is untouched (so
 //!   a variant can later own the affine alone). An unfused BatchNorm becomes a
-//!   `ChannelAffine` step with the same scale and shift.
+//!   `ChannelAffine` step with the same scale and shift. Either way the epilogue records
+//!   the BatchNorm (`BnInfo`: name, eps, gamma, beta and the folded conv bias, stored as
+//!   themselves) so that `adapt-bn` can re-estimate its statistics from the plan.
 //! * `fuse_relu`: a ReLU whose input is a conv, linear or channel-affine value used by
 //!   nothing else runs in that step's epilogue.
 //! * `bias_epilogue`: conv and linear biases are the epilogue's shift.
@@ -20,8 +22,8 @@ use std::collections::HashMap;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use readi_runtime::kernels::conv::{self, Conv2dShape};
 use readi_runtime::plan::{
-    ActKind, BinaryKind, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec, Step,
-    Storage, SymDim, TensorSpec, ValueSpec,
+    ActKind, BinaryKind, BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec,
+    Step, Storage, SymDim, TensorSpec, ValueSpec,
 };
 
 use super::buffers::plan_buffers;
@@ -126,8 +128,13 @@ impl<'g> Lowering<'g> {
         self.steps.push(Step { path, kernel, inputs, output: out });
     }
 
-    /// BatchNorm's folded scale and shift, with an optional preceding bias folded in.
-    fn fold_bn(&mut self, bn: NodeId, prior_bias: Option<(&[f32], String)>) -> Result<(usize, usize), Diagnostics> {
+    /// BatchNorm's folded scale and shift, with an optional preceding bias folded in, and
+    /// what AdaBN needs to undo the fold: gamma, beta and that bias, stored as themselves.
+    fn fold_bn(
+        &mut self,
+        bn: NodeId,
+        prior_bias: Option<(&[f32], String)>,
+    ) -> Result<(usize, usize, BnInfo), Diagnostics> {
         let (prior_bias, prior) = match prior_bias {
             Some((b, name)) => (Some(b), Some(name)),
             None => (None, None),
@@ -155,13 +162,23 @@ impl<'g> Lowering<'g> {
         for name in &slots {
             self.stored_as.insert(name.clone(), targets.clone());
         }
+        for name in &slots[..2] {
+            self.stored_as.insert(name.clone(), format!("{targets}; kept as `{name}` for adapt-bn"));
+        }
         let mut sources = slots.to_vec();
-        if let Some(conv) = prior {
-            sources.push(conv);
+        if let Some(conv) = &prior {
+            sources.push(conv.clone());
         }
         let st = self.add_tensor(format!("{path}@scale"), vec![c], scale, slots[..].to_vec());
         let sh = self.add_tensor(format!("{path}@shift"), vec![c], shift, sources);
-        Ok((st, sh))
+        let [wn, bname, ..] = slots;
+        let weight = self.add_tensor(wn.clone(), vec![c], w.to_vec(), vec![wn]);
+        let bias = self.add_tensor(bname.clone(), vec![c], b.to_vec(), vec![bname]);
+        let conv_bias = match (prior, prior_bias) {
+            (Some(name), Some(pb)) => Some(self.add_tensor(name.clone(), vec![c], pb.to_vec(), vec![name])),
+            _ => None,
+        };
+        Ok((st, sh, BnInfo { name: path, eps, weight, bias, conv_bias }))
     }
 
     fn lower_node(&mut self, id: NodeId) -> Result<(), Diagnostics> {
@@ -216,13 +233,15 @@ impl<'g> Lowering<'g> {
                 let mut ep = EpilogueSpec::default();
                 let bn = self.sole_user(id).filter(|&u| matches!(g.node(u).op, Op::BatchNorm { .. }));
                 if let Some(bn) = bn {
-                    let (st, sh) = self.fold_bn(bn, bias.map(|b| (b, ir::join_path(&node.path, "bias"))))?;
+                    let (st, sh, info) = self.fold_bn(bn, bias.map(|b| (b, ir::join_path(&node.path, "bias"))))?;
                     if c.bias {
                         let bname = ir::join_path(&node.path, "bias");
-                        self.stored_as.insert(bname, format!("folded into `{}@shift`", g.node(bn).path));
+                        let to = format!("folded into `{}@shift`; kept as `{bname}` for adapt-bn", g.node(bn).path);
+                        self.stored_as.insert(bname, to);
                     }
                     ep.scale = Some(st);
                     ep.shift = Some(sh);
+                    ep.bn = Some(info);
                     self.absorbed.insert(bn, id);
                 } else if let Some(b) = bias {
                     let bname = ir::join_path(&node.path, "bias");
@@ -245,9 +264,9 @@ impl<'g> Lowering<'g> {
                 self.emit(id, kernel, inputs);
             }
             Op::BatchNorm { .. } => {
-                let (st, sh) = self.fold_bn(id, None)?;
+                let (st, sh, info) = self.fold_bn(id, None)?;
                 let relu = self.absorb_relu(id, id);
-                let ep = EpilogueSpec { scale: Some(st), shift: Some(sh), relu };
+                let ep = EpilogueSpec { scale: Some(st), shift: Some(sh), relu, bn: Some(info) };
                 self.emit(id, Kernel::ChannelAffine { epilogue: ep }, inputs);
             }
             Op::Linear { in_features, out_features, bias } => {
@@ -421,6 +440,7 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         params,
         variants: Vec::new(),
         conditions: None,
+        declared_variants: Vec::new(),
     };
     Ok(Lowered { manifest, tensors: data, sources })
 }

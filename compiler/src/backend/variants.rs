@@ -421,7 +421,11 @@ impl TensorStore {
     }
 
     /// The variant's replacements: every tensor of `lowered` whose bytes differ from the
-    /// base's. `added` holds the parameters whose tensors count as added.
+    /// base's, except the tensors recorded for AdaBN (a [`BnInfo`]'s gamma, beta and conv
+    /// bias: no kernel reads them, and AdaBN runs the base). `added` holds the parameters
+    /// whose tensors count as added.
+    ///
+    /// [`BnInfo`]: readi_runtime::plan::BnInfo
     pub fn diff(&mut self, key: &str, lowered: Lowered, added: &HashSet<String>) -> Result<Vec<Replacement>, String> {
         if lowered.tensors.len() != self.base_len {
             return Err(format!(
@@ -430,6 +434,13 @@ impl TensorStore {
                 self.base_len
             ));
         }
+        let bn_only: HashSet<usize> = lowered
+            .manifest
+            .steps
+            .iter()
+            .filter_map(|s| s.kernel.epilogue()?.bn.as_ref())
+            .flat_map(|bn| bn.tensors())
+            .collect();
         let mut replaces = Vec::new();
         for (i, (data, sources)) in lowered.tensors.into_iter().zip(lowered.sources).enumerate() {
             let spec = &lowered.manifest.tensors[i];
@@ -439,7 +450,7 @@ impl TensorStore {
                     spec.name, self.specs[i].name
                 ));
             }
-            if same_bits(&data, &self.data[i]) {
+            if bn_only.contains(&i) || same_bits(&data, &self.data[i]) {
                 continue;
             }
             let h = bits_hash(&spec.shape, &data);

@@ -1,0 +1,182 @@
+//! `readi adapt-bn`: AdaBN. Runs a plan's base model over unlabelled samples of a
+//! condition and writes every BatchNorm's re-estimated running statistics, a variant
+//! parameter file for `readi compile --variant KEY=FILE` (see
+//! `readi_runtime::calibrate` for what is computed).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use readi_compiler::backend::variants::canonical_key;
+use readi_grammar::diag::suggest;
+use readi_runtime::calibrate::{BnCalibrator, BnStats};
+use readi_runtime::exec::Input;
+use readi_runtime::plan::{BASE_VARIANT, Plan};
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+
+use crate::tensor_io;
+
+/// What `readi adapt-bn` was asked to do.
+pub struct Args<'a> {
+    pub plan: &'a Path,
+    pub variant: &'a str,
+    pub samples: &'a [PathBuf],
+    pub output: &'a Path,
+    pub threads: usize,
+}
+
+/// Runs `readi adapt-bn`; the error is the message to print.
+pub fn run(args: &Args<'_>) -> Result<(), String> {
+    let start = Instant::now();
+    let plan = Arc::new(Plan::load(args.plan).map_err(|e| e.to_string())?);
+    let key = check_key(&plan, args.variant)?;
+    let shown = args.plan.display();
+    let mut cal = BnCalibrator::new(plan.clone(), args.threads).map_err(|e| format!("{shown}: {e}"))?;
+    let bar = ProgressBar::new(args.samples.len() as u64);
+    if let Ok(style) = ProgressStyle::with_template("{spinner} adapt-bn [{bar:30}] {pos}/{len} batches {msg}") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    for path in args.samples {
+        bar.set_message(path.display().to_string());
+        // One batch in memory at a time: read, run, drop.
+        let batch = read_batch(&plan, path, &bar)?;
+        let inputs: Vec<Input<'_>> = batch.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
+        cal.add_batch(&inputs).map_err(|e| {
+            bar.abandon();
+            format!("{}: {e}", path.display())
+        })?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let stats = cal.statistics().map_err(|e| e.to_string())?;
+    write_stats(args.output, &stats, &key, &cal, &plan.manifest.model)?;
+    let count = |n: usize, one: &str, many: &str| format!("{n} {}", if n == 1 { one } else { many });
+    println!(
+        "adapt-bn: {} of {} re-estimated over {} ({}) in {:.2} s on {}",
+        count(stats.len(), "BatchNorm layer", "BatchNorm layers"),
+        plan.manifest.model,
+        count(cal.batches(), "batch", "batches"),
+        count(cal.samples(), "sample", "samples"),
+        start.elapsed().as_secs_f64(),
+        count(cal.threads(), "thread", "threads")
+    );
+    println!(
+        "wrote {}: running_mean and running_var of each for variant `{key}` (it keeps the base's BatchNorm weight and bias)",
+        args.output.display()
+    );
+    println!("next: readi compile SPEC --weights BASE.safetensors --variant {key}={} -o PLAN", args.output.display());
+    Ok(())
+}
+
+/// The variant key, checked against the keys the plan's spec declares when the plan lists
+/// them (and written as declared: `fog=0.030` is `fog=0.03`).
+fn check_key(plan: &Plan, key: &str) -> Result<String, String> {
+    let m = &plan.manifest;
+    if key.trim() == BASE_VARIANT {
+        return Err(format!("`{BASE_VARIANT}` is the base model; AdaBN estimates statistics for a variant's key"));
+    }
+    if m.declared_variants.is_empty() {
+        if !m.variants.iter().any(|v| v.key == key) {
+            eprintln!(
+                "note: the plan does not list the variant keys its spec declares; `{key}` is checked when the \
+                 statistics are compiled (`readi compile --variant {key}=FILE`)"
+            );
+        }
+        return Ok(key.to_string());
+    }
+    canonical_key(key, &m.declared_variants).ok_or_else(|| {
+        let hint = match suggest(key, m.declared_variants.iter().map(String::as_str)) {
+            Some(s) => format!("did you mean `{s}`? "),
+            None => String::new(),
+        };
+        format!(
+            "model `{}` declares no variant `{key}`; {hint}(its variants: {})",
+            m.model,
+            m.declared_variants.join(", ")
+        )
+    })
+}
+
+/// A batch: per input, name, shape and data.
+type Batch = Vec<(String, Vec<usize>, Vec<f32>)>;
+
+/// Reads one sample file: a `.npy` for a model with one input, or a `.safetensors` holding
+/// the inputs by name (a single tensor serves a single-input model whatever its name).
+/// Absent optional inputs are left to the runtime (zero-filled).
+fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, String> {
+    let shown = path.display();
+    let inputs = &plan.manifest.inputs;
+    let names: Vec<&str> = inputs.iter().map(|i| i.name.as_str()).collect();
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    if ext == "npy" {
+        let [only] = inputs.as_slice() else {
+            return Err(format!(
+                "{shown}: a .npy sample holds one tensor, but the model has {} inputs ({}); give .safetensors samples \
+                 holding each input by name",
+                inputs.len(),
+                names.join(", ")
+            ));
+        };
+        let (shape, data) = tensor_io::read_input(&only.name, path)?;
+        return Ok(vec![(only.name.clone(), shape, data)]);
+    }
+    if ext != "safetensors" {
+        return Err(format!("{shown}: samples are read from .npy or .safetensors files"));
+    }
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let st = SafeTensors::deserialize(&bytes).map_err(|e| format!("{shown}: not a safetensors file ({e})"))?;
+    let held: Vec<String> = st.names().into_iter().map(String::from).collect();
+    let single = inputs.len() == 1 && held.len() == 1;
+    if !single && let Some(extra) = held.iter().find(|n| !names.contains(&n.as_str())) {
+        return Err(format!(
+            "{shown}: tensor `{extra}` is not an input of model `{}` (its inputs: {})",
+            plan.manifest.model,
+            names.join(", ")
+        ));
+    }
+    drop(st);
+    drop(bytes);
+    let mut batch = Vec::with_capacity(inputs.len());
+    for spec in inputs {
+        if !single && !held.contains(&spec.name) {
+            if spec.optional {
+                bar.println(format!("note: {shown} has no `{}`; the optional input is zero-filled", spec.name));
+                continue;
+            }
+            return Err(format!("{shown}: no tensor for input `{}` (it holds: {})", spec.name, held.join(", ")));
+        }
+        let (shape, data) = tensor_io::read_input(&spec.name, path)?;
+        batch.push((spec.name.clone(), shape, data));
+    }
+    Ok(batch)
+}
+
+/// Writes `<bn>.running_mean` and `<bn>.running_var` of every BatchNorm (f32), with what
+/// made them in the metadata.
+fn write_stats(out: &Path, stats: &[BnStats], key: &str, cal: &BnCalibrator, model: &str) -> Result<(), String> {
+    let bytes = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
+    let data: Vec<(String, Vec<u8>, usize)> = stats
+        .iter()
+        .flat_map(|s| {
+            [
+                (format!("{}.running_mean", s.name), bytes(&s.running_mean), s.running_mean.len()),
+                (format!("{}.running_var", s.name), bytes(&s.running_var), s.running_var.len()),
+            ]
+        })
+        .collect();
+    let mut views = Vec::with_capacity(data.len());
+    for (name, b, n) in &data {
+        let view = TensorView::new(Dtype::F32, vec![*n], b).map_err(|e| format!("{name}: {e}"))?;
+        views.push((name.clone(), view));
+    }
+    let metadata = HashMap::from([
+        ("readi.adapt_bn.model".to_string(), model.to_string()),
+        ("readi.adapt_bn.variant".to_string(), key.to_string()),
+        ("readi.adapt_bn.batches".to_string(), cal.batches().to_string()),
+        ("readi.adapt_bn.samples".to_string(), cal.samples().to_string()),
+    ]);
+    let file = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
+    std::fs::write(out, file).map_err(|e| format!("cannot write {}: {e}", out.display()))
+}

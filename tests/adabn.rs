@@ -1,0 +1,403 @@
+//! AdaBN (`readi adapt-bn`, `readi_runtime::calibrate`): BatchNorm statistics re-estimated
+//! from unlabelled batches must equal PyTorch's, every BatchNorm in train mode with
+//! `momentum=None` after `reset_running_stats()` (tests/fixtures/make_fixtures.py,
+//! `--only adabn`: torchvision ResNet-18 with readi's seeded weights at 48x48, three
+//! batches of two), to 1e-4.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::Arc;
+
+use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_compiler::passes::Module;
+use readi_runtime::calibrate::{BnCalibrator, BnStats, CalibrateError};
+use readi_runtime::exec::{Input, Session};
+use readi_runtime::plan::{Kernel, Plan};
+
+const SEED: u64 = 2024;
+const OVERRIDES: [(&str, &str); 2] = [("num_classes", "10"), ("img", "48")];
+const BATCHES: usize = 3;
+
+fn module() -> Module {
+    module_with(&OVERRIDES)
+}
+
+fn module_with(overrides: &[(&str, &str)]) -> Module {
+    let (sources, out) = common::compile("models/resnet18.readi", overrides, None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    out.module.expect("module")
+}
+
+fn seeded_bytes(m: &Module) -> Vec<u8> {
+    backend::seeded_weights(&m.graph, SEED).to_safetensors().expect("serialises")
+}
+
+/// The seeded plan, with the given seeded variants, written to a file and loaded again so
+/// that what the plan records for AdaBN goes through the file format.
+fn plan(variants: &[&str], tag: &str) -> Arc<Plan> {
+    let m = module();
+    let weights = WeightSet::from_safetensors("seeded.safetensors", &seeded_bytes(&m)).expect("valid");
+    let keys: Vec<String> = variants.iter().map(|k| k.to_string()).collect();
+    let sources = backend::seeded_variants(&m, &keys, SEED + 1);
+    let (plan, _) = backend::compile_variants(&m, &weights, "seeded.safetensors", &sources, &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{d:?}"));
+    let dir = temp_dir(tag);
+    let path = dir.join("r18.plan");
+    plan.write(&path).expect("write plan");
+    let loaded = Plan::load(&path).expect("load plan");
+    assert_eq!(loaded.manifest, plan.manifest);
+    Arc::new(loaded)
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("readi-adabn-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+fn fixture_path(name: &str) -> PathBuf {
+    common::root().join("tests/fixtures/adabn").join(name)
+}
+
+fn read_fixture(name: &str) -> WeightSet {
+    let path = fixture_path(name);
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    WeightSet::from_safetensors(name, &bytes).expect("fixture")
+}
+
+/// The sample batches: `image` of each.
+fn batches() -> Vec<(Vec<usize>, Vec<f32>)> {
+    (0..BATCHES).map(|i| read_fixture(&format!("batch{i}.safetensors")).tensors["image"].clone()).collect()
+}
+
+fn calibrate(plan: Arc<Plan>) -> (BnCalibrator, Vec<BnStats>) {
+    let mut cal = BnCalibrator::new(plan, 2).expect("calibrator");
+    for (shape, data) in &batches() {
+        cal.add_batch(&[Input { name: "image", data, shape }]).expect("batch");
+    }
+    let stats = cal.statistics().expect("statistics");
+    (cal, stats)
+}
+
+fn max_abs_error(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+/// Compares statistics by PyTorch name with the fixture's; returns the max errors of
+/// running_mean and running_var.
+fn compare(label: &str, stats: &[(String, Vec<f32>)]) -> (f32, f32) {
+    let want = read_fixture("expected.safetensors");
+    let mut names: Vec<&str> = stats.iter().map(|(n, _)| n.as_str()).collect();
+    names.sort();
+    let expected: Vec<&str> = want.tensors.keys().map(String::as_str).collect();
+    assert_eq!(names, expected, "{label}: the same BatchNorm statistics as PyTorch");
+    let (mut mean_err, mut var_err) = (0.0f32, 0.0f32);
+    for (name, got) in stats {
+        let err = max_abs_error(got, &want.tensors[name].1);
+        let worst = if name.ends_with(".running_mean") { &mut mean_err } else { &mut var_err };
+        *worst = worst.max(err);
+    }
+    eprintln!("{label}: max abs error vs PyTorch: running_mean {mean_err:e}, running_var {var_err:e}");
+    assert!(mean_err <= 1e-4 && var_err <= 1e-4, "{label}: running_mean {mean_err:e}, running_var {var_err:e}");
+    (mean_err, var_err)
+}
+
+fn by_name(stats: &[BnStats]) -> Vec<(String, Vec<f32>)> {
+    stats
+        .iter()
+        .flat_map(|s| {
+            [
+                (format!("{}.running_mean", s.name), s.running_mean.clone()),
+                (format!("{}.running_var", s.name), s.running_var.clone()),
+            ]
+        })
+        .collect()
+}
+
+#[test]
+fn adabn_matches_pytorch_train_mode_statistics() {
+    let plan = plan(&[], "base");
+    let (cal, stats) = calibrate(plan.clone());
+    assert_eq!(cal.layers().len(), 20, "every BatchNorm of ResNet-18, each folded into its conv");
+    assert_eq!((cal.batches(), cal.samples()), (BATCHES, 2 * BATCHES));
+    assert!(plan.manifest.steps.iter().all(|s| !matches!(s.kernel, Kernel::ChannelAffine { .. })));
+    compare("adabn, folded BatchNorms", &by_name(&stats));
+}
+
+/// With variants the adapters run before every `bn2`, so those BatchNorms are
+/// channel-affine steps: the other path of the calibrator. The base's adapters are zero,
+/// so PyTorch's statistics are the same.
+#[test]
+fn adabn_matches_pytorch_with_unfused_batchnorms() {
+    let plan = plan(&["gamma=0.25"], "variants");
+    let affine = plan.manifest.steps.iter().filter(|s| matches!(s.kernel, Kernel::ChannelAffine { .. })).count();
+    assert_eq!(affine, 8, "the bn2 of every block is unfused");
+    let (_, stats) = calibrate(plan);
+    compare("adabn, with channel-affine BatchNorms", &by_name(&stats));
+}
+
+#[test]
+fn calibrating_leaves_normal_runs_unchanged() {
+    let plan = plan(&[], "unchanged");
+    let data = batches();
+    let (shape, x) = &data[0];
+    let inputs = [Input { name: "image", data: x, shape }];
+    let mut session = Session::new(plan.clone(), 2).expect("session");
+    let before = session.run(&inputs).expect("run");
+    let _ = calibrate(plan.clone());
+    let after = session.run(&inputs).expect("run");
+    let fresh = Session::new(plan, 2).expect("session").run(&inputs).expect("run");
+    for out in [&after, &fresh] {
+        let same = before[0].1.data.iter().zip(&out[0].1.data).all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(same, "calibration changed a normal run's outputs");
+    }
+}
+
+/// A batch that fails adds nothing; later batches calibrate as before.
+#[test]
+fn a_failed_batch_adds_nothing() {
+    let plan = plan(&[], "failed");
+    let data = batches();
+    let mut cal = BnCalibrator::new(plan, 2).expect("calibrator");
+    for (k, (shape, x)) in data.iter().enumerate() {
+        if k == 1 {
+            let mut bad = x.clone();
+            bad[7] = f32::NAN;
+            let e = cal.add_batch(&[Input { name: "image", data: &bad, shape }]).expect_err("NaN");
+            assert!(e.to_string().contains("input `image` holds NaN at flat index 7"), "{e}");
+            let e = cal.add_batch(&[Input { name: "img", data: x, shape }]).expect_err("name");
+            assert!(e.to_string().contains("no input `img`"), "{e}");
+        }
+        cal.add_batch(&[Input { name: "image", data: x, shape }]).expect("batch");
+    }
+    assert_eq!(cal.batches(), BATCHES);
+    compare("adabn after failed batches", &by_name(&cal.statistics().expect("stats")));
+}
+
+/// At 32x32 `layer4` is 1x1: a batch of one gives its BatchNorms one value per channel,
+/// which PyTorch refuses in train mode too.
+#[test]
+fn one_value_per_channel_is_refused() {
+    let m = module_with(&[("num_classes", "10"), ("img", "32")]);
+    let w = backend::seeded_weights(&m.graph, SEED);
+    let (plan, _) = backend::compile(&m, &w, "seeded", &CompileOptions::default()).expect("compiles");
+    let mut cal = BnCalibrator::new(Arc::new(plan), 1).expect("calibrator");
+    let x = vec![0.5; 3 * 32 * 32];
+    let e = cal.add_batch(&[Input { name: "image", data: &x, shape: &[1, 3, 32, 32] }]).expect_err("n = 1");
+    assert!(matches!(&e, CalibrateError::OneValue { layer, .. } if layer == "layer4.0.bn1"), "{e}");
+    assert!(e.to_string().contains("one value per channel (input shape [1, 512, 1, 1])"), "{e}");
+    assert_eq!(cal.batches(), 0);
+    assert_eq!(cal.statistics().err(), Some(CalibrateError::NoBatches));
+    let x = vec![0.5; 2 * 3 * 32 * 32];
+    cal.add_batch(&[Input { name: "image", data: &x, shape: &[2, 3, 32, 32] }]).expect("two samples");
+}
+
+#[test]
+fn plans_without_batchnorm_records_ask_for_recompiling() {
+    let plan = plan(&[], "old");
+    let mut manifest = plan.manifest.clone();
+    for step in &mut manifest.steps {
+        match &mut step.kernel {
+            Kernel::Conv2d { epilogue, .. } | Kernel::ChannelAffine { epilogue } => epilogue.bn = None,
+            _ => {}
+        }
+    }
+    let tensors = (0..manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    let old = Plan::new(manifest, tensors).expect("a valid plan without BatchNorm records");
+    let e = BnCalibrator::new(Arc::new(old), 1).err().expect("refused");
+    assert!(matches!(e, CalibrateError::NotRecorded { ref missing } if missing.len() == 20), "{e}");
+    assert!(e.to_string().contains("recompile the plan") && e.to_string().contains("bn1"), "{e}");
+
+    // A model without BatchNorm.
+    let small = [("img", "32"), ("patch", "8"), ("width", "32"), ("depth", "1"), ("heads", "2")];
+    let (_, out) = common::compile("models/vit_encoder.readi", &small, None);
+    let vit = out.module.expect("module");
+    let w = backend::seeded_weights(&vit.graph, 1);
+    let (p, _) = backend::compile(&vit, &w, "seeded", &CompileOptions::default()).expect("compiles");
+    let e = BnCalibrator::new(Arc::new(p), 1).err().expect("refused");
+    assert_eq!(e.to_string(), "model `vit_encoder` has no BatchNorm layer: there are no statistics to estimate");
+}
+
+/// The BatchNorm records are validated at load like every index of a plan.
+#[test]
+fn bad_batchnorm_records_are_refused() {
+    let plan = plan(&[], "bad");
+    let tensors = || (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect::<Vec<_>>();
+    let edit = |f: &dyn Fn(&mut readi_runtime::plan::BnInfo)| {
+        let mut m = plan.manifest.clone();
+        for step in &mut m.steps {
+            if let Kernel::Conv2d { epilogue, .. } = &mut step.kernel
+                && let Some(bn) = &mut epilogue.bn
+                && bn.name == "layer1.0.bn1"
+            {
+                f(bn);
+            }
+        }
+        Plan::new(m, tensors()).err().map(|e| e.to_string()).unwrap_or_default()
+    };
+    let n = plan.manifest.tensors.len();
+    assert!(edit(&|bn| bn.weight = n + 3).contains(&format!("reads tensor {} of {n}", n + 3)));
+    assert!(edit(&|bn| bn.bias = 0).contains("has shape"), "conv1's packed weight is not [64]");
+    assert!(edit(&|bn| bn.eps = f64::NAN).contains("eps NaN"));
+    assert!(edit(&|bn| bn.name = "bn1".into()).contains("used by another step"));
+    assert!(edit(&|_| {}).is_empty(), "unchanged records are valid");
+}
+
+// --- The CLI ------------------------------------------------------------------------
+
+fn readi(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_readi"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("NO_COLOR", "1")
+        .output()
+        .expect("run readi")
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+fn p(path: &Path) -> String {
+    path.to_str().expect("utf-8 path").to_string()
+}
+
+/// `readi compile` -> `readi adapt-bn` -> `readi compile --variant KEY=stats` -> `readi run
+/// --variant KEY`: the statistics equal PyTorch's, and the variant's outputs equal
+/// PyTorch's adapted model in eval mode.
+#[test]
+fn cli_adapt_bn_end_to_end() {
+    let dir = temp_dir("cli");
+    let weights = dir.join("r18.safetensors");
+    std::fs::write(&weights, seeded_bytes(&module())).expect("write weights");
+    let set = ["--set", "num_classes=10", "--set", "img=48"];
+    let base = dir.join("base.plan");
+    let o =
+        readi(&[&["compile", "models/resnet18.readi", "--weights", &p(&weights), "-o", &p(&base)], &set[..]].concat());
+    assert!(o.status.success(), "{}", text(&o.stderr));
+
+    let samples: Vec<String> = (0..BATCHES).map(|i| p(&fixture_path(&format!("batch{i}.safetensors")))).collect();
+    let stats = dir.join("gamma_0.25.safetensors");
+    // The key as written by hand (`0.250`) names the declared `gamma=0.25`.
+    let (base_s, stats_s) = (p(&base), p(&stats));
+    let mut args = vec!["adapt-bn", &base_s, "--variant", "gamma=0.250", "-o", &stats_s, "--threads", "2", "--samples"];
+    args.extend(samples.iter().map(String::as_str));
+    let o = readi(&args);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let out = text(&o.stdout);
+    assert!(out.contains("20 BatchNorm layers of resnet18 re-estimated over 3 batches (6 samples)"), "{out}");
+    assert!(out.contains("for variant `gamma=0.25`"), "the key as declared: {out}");
+
+    let got = WeightSet::from_safetensors("stats", &std::fs::read(&stats).expect("stats written")).expect("valid");
+    let got: Vec<(String, Vec<f32>)> = got.tensors.into_iter().map(|(k, (_, v))| (k, v)).collect();
+    compare("readi adapt-bn", &got);
+
+    let adapted = dir.join("adapted.plan");
+    let variant = format!("gamma=0.25={}", p(&stats));
+    let o = readi(
+        &[
+            &["compile", "models/resnet18.readi", "--weights", &p(&weights), "-o", &p(&adapted), "--variant", &variant],
+            &set[..],
+        ]
+        .concat(),
+    );
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    // Only the statistics: the rest of what the variant owns keeps the base value.
+    assert!(text(&o.stderr).contains("variant `gamma=0.25` does not give"), "{}", text(&o.stderr));
+
+    let logits = dir.join("logits.npy");
+    let input = format!("image={}", samples[0]);
+    let o = readi(&["run", &p(&adapted), "--variant", "gamma=0.25", "--input", &input, "--output", &p(&logits)]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let want = &read_fixture("adapted_logits.safetensors").tensors["logits"];
+    let got = {
+        use ndarray_npy::ReadNpyExt;
+        let a = ndarray::ArrayD::<f32>::read_npy(std::fs::File::open(&logits).expect("logits")).expect("npy");
+        (a.shape().to_vec(), a.iter().copied().collect::<Vec<f32>>())
+    };
+    assert_eq!(got.0, want.0);
+    let err = max_abs_error(&got.1, &want.1);
+    eprintln!("adapted variant logits: max abs error vs PyTorch eval with the new statistics {err:e}");
+    assert!(err <= 1e-4, "the adapted variant differs from PyTorch by {err:e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn cli_adapt_bn_errors_name_the_file() {
+    let dir = temp_dir("cli-errors");
+    let weights = dir.join("r18.safetensors");
+    std::fs::write(&weights, seeded_bytes(&module())).expect("write weights");
+    let plan_path = dir.join("base.plan");
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "-o",
+        &p(&plan_path),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=48",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let out = p(&dir.join("stats.safetensors"));
+    let good = p(&fixture_path("batch0.safetensors"));
+    let adapt = |variant: &str, sample: &str, plan: &str| {
+        let o = readi(&["adapt-bn", plan, "--variant", variant, "--samples", &good, sample, "-o", &out]);
+        assert_eq!(o.status.code(), Some(1), "{}", text(&o.stdout));
+        text(&o.stderr)
+    };
+    let plan = p(&plan_path);
+
+    let e = adapt("gama=0.25", &good, &plan);
+    assert!(e.contains("declares no variant `gama=0.25`; did you mean `gamma=0.25`?"), "{e}");
+    let e = adapt("base", &good, &plan);
+    assert!(e.contains("`base` is the base model"), "{e}");
+
+    // Wrong shape (.npy), NaN, a file without the input, a missing file.
+    let npy = dir.join("small.npy");
+    write_npy(&npy, &[2, 3, 16, 16], &[0.5; 2 * 3 * 16 * 16]);
+    let e = adapt("gamma=0.25", &p(&npy), &plan);
+    assert!(e.contains(&format!("{}: input `image` has shape [2, 3, 16, 16]", p(&npy))), "{e}");
+    let nan = dir.join("nan.npy");
+    let mut data = vec![0.5; 2 * 3 * 48 * 48];
+    data[5] = f32::NAN;
+    write_npy(&nan, &[2, 3, 48, 48], &data);
+    let e = adapt("gamma=0.25", &p(&nan), &plan);
+    assert!(e.contains(&format!("{}: input `image` holds NaN at flat index 5", p(&nan))), "{e}");
+    let two = dir.join("two.safetensors");
+    let mut set = WeightSet::default();
+    set.tensors.insert("image".into(), (vec![2], vec![0.0; 2]));
+    set.tensors.insert("label".into(), (vec![2], vec![0.0; 2]));
+    std::fs::write(&two, set.to_safetensors().expect("serialises")).expect("write");
+    let e = adapt("gamma=0.25", &p(&two), &plan);
+    assert!(e.contains(&format!("{}: tensor `label` is not an input of model `resnet18`", p(&two))), "{e}");
+    let e = adapt("gamma=0.25", "no/such/batch.npy", &plan);
+    assert!(e.contains("cannot read no/such/batch.npy"), "{e}");
+    assert!(!Path::new(&out).exists(), "nothing is written on error");
+
+    // A plan from before BatchNorm records: written as this readi would, without them.
+    let loaded = Plan::load(&plan_path).expect("load");
+    let mut manifest = loaded.manifest.clone();
+    for step in &mut manifest.steps {
+        if let Kernel::Conv2d { epilogue, .. } = &mut step.kernel {
+            epilogue.bn = None;
+        }
+    }
+    let tensors = (0..manifest.tensors.len()).map(|i| loaded.tensor(i).to_vec()).collect();
+    let old_path = dir.join("old.plan");
+    Plan::new(manifest, tensors).expect("valid").write(&old_path).expect("write");
+    let e = adapt("gamma=0.25", &good, &p(&old_path));
+    assert!(e.contains("recompile the plan"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn write_npy(path: &Path, shape: &[usize], data: &[f32]) {
+    use ndarray_npy::WriteNpyExt;
+    let a = ndarray::ArrayD::from_shape_vec(ndarray::IxDyn(shape), data.to_vec()).expect("shape");
+    a.write_npy(std::fs::File::create(path).expect("create")).expect("write npy");
+}
