@@ -77,7 +77,8 @@ fn check_key(plan: &Plan, key: &str) -> Result<String, String> {
     if key.trim() == BASE_VARIANT {
         return Err(format!("`{BASE_VARIANT}` is the base model; AdaBN estimates statistics for a variant's key"));
     }
-    if m.declared_variants.is_empty() {
+    let declared = m.conditions.as_ref().map(|c| c.keys()).unwrap_or_default();
+    if declared.is_empty() {
         if !m.variants.iter().any(|v| v.key == key) {
             eprintln!(
                 "note: the plan does not list the variant keys its spec declares; `{key}` is checked when the \
@@ -86,16 +87,12 @@ fn check_key(plan: &Plan, key: &str) -> Result<String, String> {
         }
         return Ok(key.to_string());
     }
-    canonical_key(key, &m.declared_variants).ok_or_else(|| {
-        let hint = match suggest(key, m.declared_variants.iter().map(String::as_str)) {
+    canonical_key(key, &declared).ok_or_else(|| {
+        let hint = match suggest(key, declared.iter().map(String::as_str)) {
             Some(s) => format!("did you mean `{s}`? "),
             None => String::new(),
         };
-        format!(
-            "model `{}` declares no variant `{key}`; {hint}(its variants: {})",
-            m.model,
-            m.declared_variants.join(", ")
-        )
+        format!("model `{}` declares no variant `{key}`; {hint}(its variants: {})", m.model, declared.join(", "))
     })
 }
 

@@ -246,7 +246,7 @@ enum Command {
         #[arg(long)]
         threads: Option<usize>,
     },
-    /// Compile the bundled BEVFusion-tiny model with seeded weights and run a few frames.
+    /// Compile the bundled BEVFusion-tiny model with seeded weights and variants; drive through changing conditions.
     Demo {
         /// Worker threads (default: all cores).
         #[arg(long)]

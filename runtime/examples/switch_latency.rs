@@ -104,7 +104,6 @@ fn plan() -> Plan {
         params: Vec::new(),
         variants,
         conditions: None,
-        declared_variants: Vec::new(),
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

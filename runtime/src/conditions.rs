@@ -266,6 +266,15 @@ impl std::fmt::Display for SelectError {
 impl std::error::Error for SelectError {}
 
 impl Conditions {
+    /// Every variant key the spec declares: one per axis level, one per missing modality
+    /// served by a variant (compiled into the plan or not).
+    pub fn keys(&self) -> Vec<String> {
+        let levels = self.axes.iter().flat_map(|a| a.levels.iter().map(|l| format!("{}={}", a.name, fmt_level(*l))));
+        let missing =
+            self.missing.iter().filter(|(_, p)| *p == MissingPolicy::Variant).map(|(m, _)| format!("missing={m}"));
+        levels.chain(missing).collect()
+    }
+
     fn axis(&self, name: &str) -> Option<&AxisSpec> {
         self.axes.iter().find(|a| a.name == name)
     }

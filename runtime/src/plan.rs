@@ -122,11 +122,6 @@ pub struct Manifest {
     /// choosing a variant from the inputs; `None` for specs without a variants section.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub conditions: Option<crate::conditions::Conditions>,
-    /// Every variant key the spec declares (`variants` section), compiled into the plan
-    /// or not, so that tools making variant files for the plan can check a key. Absent in
-    /// plans compiled before it was recorded.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub declared_variants: Vec<String>,
 }
 
 /// A graph input.
@@ -908,19 +903,12 @@ impl Plan {
         Ok(())
     }
 
-    /// Checks the declared keys (non-empty, unique) and the variant tables of a manifest
-    /// whose schedule is valid: keys non-empty,
+    /// Checks the variant tables of a manifest whose schedule is valid: keys non-empty,
     /// unique and not [`BASE_VARIANT`]; every replacement names tensors in range, replaces
     /// a tensor that a step or a value reads, at most once per variant, with a tensor of
     /// exactly its shape (so bind-time checks of the base cover every variant); and the
     /// maps fit [`MAX_MAP_ENTRIES`].
     fn validate_variants(m: &Manifest) -> Result<(), String> {
-        let mut declared: HashSet<&str> = HashSet::with_capacity(m.declared_variants.len());
-        for key in &m.declared_variants {
-            if key.trim().is_empty() || !declared.insert(key) {
-                return Err(format!("declared variant key `{key}` is empty or listed twice"));
-            }
-        }
         let n = m.tensors.len();
         if m.variants.is_empty() {
             return Ok(());

@@ -76,7 +76,6 @@ fn manifest(
         tensors,
         params: Vec::new(),
         variants,
-        declared_variants: Vec::new(),
     }
 }
 

@@ -440,7 +440,6 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         params,
         variants: Vec::new(),
         conditions: None,
-        declared_variants: Vec::new(),
     };
     Ok(Lowered { manifest, tensors: data, sources })
 }

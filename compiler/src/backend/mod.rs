@@ -140,7 +140,6 @@ pub fn compile_variants(
     manifest.tensors = store.specs;
     manifest.variants = tables;
     manifest.conditions = module.variants.as_ref().map(variants::conditions);
-    manifest.declared_variants = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
     let plan = Plan::new(manifest, store.data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }

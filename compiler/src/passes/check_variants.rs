@@ -116,10 +116,9 @@ impl VariantSpec {
     }
 }
 
-/// A level as it appears in a key: `0.03`, `4`.
-pub fn fmt_level(v: f64) -> String {
-    if v.fract() == 0.0 && v.abs() < 1e15 { format!("{}", v as i64) } else { format!("{v}") }
-}
+/// A level as it appears in a key: `0.03`, `4` (the runtime's formatting, so that keys
+/// the compiler writes are the keys the runtime selects).
+pub use readi_runtime::conditions::fmt_level;
 
 struct InputInfo {
     name: String,
