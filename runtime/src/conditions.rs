@@ -200,7 +200,10 @@ pub fn statistic(stat: Statistic, data: &[f32], shape: &[usize]) -> f64 {
             let mean = sum / n;
             (sq / n - mean * mean).max(0.0).sqrt()
         }
-        Statistic::Density => nonzero(data).0 as f64 / n,
+        Statistic::Density => {
+            let count = |b: &[f32]| b.iter().fold(0u32, |c, &v| c + (v != 0.0) as u32) as usize;
+            data.par_chunks(BLOCK).map(count).sum::<usize>() as f64 / n
+        }
         Statistic::Intensity => {
             let (count, sum) = nonzero(data);
             if count == 0 { 0.0 } else { sum / count as f64 }
