@@ -6,35 +6,12 @@
 //! For the side-by-side with ONNX Runtime on the same weights, run
 //! `python3 benches/ort_models.py` (it prints readi / ORT latency ratios).
 
-use std::sync::Arc;
+#[path = "common.rs"]
+mod common;
 
+use common::{inputs, plan};
 use criterion::{Criterion, criterion_group, criterion_main};
-use readi_compiler::backend::{self, CompileOptions};
-use readi_compiler::passes::{self, Options};
-use readi_grammar::diag::FileId;
 use readi_runtime::exec::{Input, Session};
-use readi_runtime::plan::Plan;
-
-fn plan(src: &str) -> Arc<Plan> {
-    let out = passes::run(FileId(0), src, &Options::default());
-    let module = out.module.expect("the model checks");
-    let weights = backend::seeded_weights(&module.graph, 1);
-    Arc::new(backend::compile(&module, &weights, "seeded", &CompileOptions::default()).expect("compiles").0)
-}
-
-fn inputs(plan: &Plan) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let ones = plan.manifest.symbols.iter().map(|s| (s.clone(), 1usize)).collect();
-    plan.manifest
-        .inputs
-        .iter()
-        .map(|i| {
-            let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&ones).unwrap_or(1)).collect();
-            let n: usize = shape.iter().product();
-            let data = (0..n).map(|k| ((k * 7919 % 1000) as f32 / 500.0) - 1.0).collect();
-            (i.name.clone(), shape, data)
-        })
-        .collect()
-}
 
 fn models(c: &mut Criterion) {
     let mut group = c.benchmark_group("models");

@@ -16,6 +16,10 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+#[path = "common.rs"]
+mod common;
+
+use common::inputs;
 use readi_compiler::backend::{self, CompileOptions, LoraMode};
 use readi_compiler::passes::{self, Module, Options};
 use readi_grammar::diag::FileId;
@@ -43,20 +47,6 @@ fn plan(m: &Module, variants: usize, lora: LoraMode) -> Arc<Plan> {
     let sources = backend::seeded_variants(m, &keys, 10);
     let opts = CompileOptions { lora, ..Default::default() };
     Arc::new(backend::compile_variants(m, &weights, "seeded", &sources, &opts).expect("compiles").0)
-}
-
-fn inputs(plan: &Plan) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let ones = plan.manifest.symbols.iter().map(|s| (s.clone(), 1usize)).collect();
-    plan.manifest
-        .inputs
-        .iter()
-        .map(|i| {
-            let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&ones).unwrap_or(1)).collect();
-            let n: usize = shape.iter().product();
-            let data = (0..n).map(|k| ((k * 7919 % 1000) as f32 / 500.0) - 1.0).collect();
-            (i.name.clone(), shape, data)
-        })
-        .collect()
 }
 
 /// The spec without its `adapter` rules: tuning and LoRA only, which fold away.
@@ -104,6 +94,33 @@ fn interleaved(runners: &mut [(&str, Runner)], rounds: usize, per_round: usize) 
         }
     }
     times.into_iter().map(median).collect()
+}
+
+/// Latency of a variant against the base plan: LoRA merged, as a branch, and without the
+/// spec's adapter rules (tuning and merged LoRA only), in interleaved rounds.
+fn adaptation_cost(
+    src: &str,
+    base: &Arc<Plan>,
+    merged: &Arc<Plan>,
+    branch: &Arc<Plan>,
+    variants: usize,
+    rounds: (usize, usize),
+) {
+    let key = merged.variant_key(1).to_string();
+    let folded = plan(&module(&without_adapters(src), &[]), variants, LoraMode::Merge);
+    let mut runners = vec![
+        ("base plan (no adaptation)", Runner::new(base.clone())),
+        ("variant, LoRA merged", Runner::new(merged.clone())),
+        ("variant, LoRA branch", Runner::new(branch.clone())),
+        ("variant, tune + LoRA merged", Runner::new(folded)),
+    ];
+    for (_, r) in &mut runners[1..] {
+        r.session.set_variant(&key).expect("key");
+    }
+    let t = interleaved(&mut runners, rounds.0, rounds.1);
+    for (i, (name, _)) in runners.iter().enumerate() {
+        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t[i], 100.0 * (t[i] / t[0] - 1.0));
+    }
 }
 
 fn main() {
@@ -176,21 +193,7 @@ fn main() {
         100.0 * sel / steady
     );
 
-    let folded =
-        plan(&module(&without_adapters(include_str!("../models/bevfusion_tiny.readi")), &[]), 12, LoraMode::Merge);
-    let mut runners = vec![
-        ("base plan (no adaptation)", Runner::new(base.clone())),
-        ("variant, LoRA merged", Runner::new(merged.clone())),
-        ("variant, LoRA branch", Runner::new(branch.clone())),
-        ("variant, tune + LoRA merged", Runner::new(folded)),
-    ];
-    for (_, r) in &mut runners[1..] {
-        r.session.set_variant(&key).expect("key");
-    }
-    let t = interleaved(&mut runners, rounds, per_round);
-    for (i, (name, _)) in runners.iter().enumerate() {
-        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t[i], 100.0 * (t[i] / t[0] - 1.0));
-    }
+    adaptation_cost(include_str!("../models/bevfusion_tiny.readi"), &base, &merged, &branch, 12, (rounds, per_round));
 
     for (name, p) in [("merged", &merged), ("branch", &branch)] {
         let mf = &p.manifest;
@@ -215,21 +218,7 @@ fn main() {
     let base = plan(&m, 0, LoraMode::Merge);
     let merged = plan(&m, 4, LoraMode::Merge);
     let branch = plan(&m, 4, LoraMode::Branch);
-    let key = merged.variant_key(1).to_string();
-    let folded = plan(&module(&without_adapters(include_str!("../models/resnet18.readi")), &[]), 4, LoraMode::Merge);
-    let mut runners = vec![
-        ("base plan (no adaptation)", Runner::new(base.clone())),
-        ("variant, LoRA merged", Runner::new(merged)),
-        ("variant, LoRA branch", Runner::new(branch)),
-        ("variant, tune + LoRA merged", Runner::new(folded)),
-    ];
-    for (_, r) in &mut runners[1..] {
-        r.session.set_variant(&key).expect("key");
-    }
-    let t = interleaved(&mut runners, rounds, per_round);
-    for (i, (name, _)) in runners.iter().enumerate() {
-        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t[i], 100.0 * (t[i] / t[0] - 1.0));
-    }
+    adaptation_cost(include_str!("../models/resnet18.readi"), &base, &merged, &branch, 4, (rounds, per_round));
 
     // Reloading a whole model copy: what a system without variants does on a switch.
     let path = std::env::temp_dir().join(format!("readi-bench-{}.plan", std::process::id()));

@@ -61,17 +61,16 @@ const DRIVE: &[Scene] = &[
 /// A camera frame: six views of a seeded, textured scene in [0, 1] seen with `gamma`, and a
 /// lidar BEV grid with about 1% of its cells occupied.
 fn sensors(plan: &Plan, frame: u64, gamma: f32) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let ones = plan.manifest.symbols.iter().map(|s| (s.clone(), 1usize)).collect();
     let mut state = 0x9E37_79B9_7F4A_7C15u64 ^ frame;
     let mut uniform = move || {
         state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         (state >> 40) as f32 / (1u64 << 24) as f32
     };
-    plan.manifest
-        .inputs
-        .iter()
-        .map(|i| {
-            let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&ones).unwrap_or(1)).collect();
+    let m = &plan.manifest;
+    m.input_shapes(1)
+        .into_iter()
+        .zip(&m.inputs)
+        .map(|((name, shape), i)| {
             let n: usize = shape.iter().product();
             let data: Vec<f32> = if i.modality.as_deref() == Some("camera") {
                 let scene: Vec<f32> = (0..n).map(|_| 0.3 + 0.4 * uniform()).collect();
@@ -80,7 +79,7 @@ fn sensors(plan: &Plan, frame: u64, gamma: f32) -> Vec<(String, Vec<usize>, Vec<
             } else {
                 (0..n).map(|_| if uniform() < 0.01 { 0.2 + 0.8 * uniform() } else { 0.0 }).collect()
             };
-            (i.name.clone(), shape, data)
+            (name.to_string(), shape, data)
         })
         .collect()
 }

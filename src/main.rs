@@ -731,13 +731,11 @@ fn cmd_run(
 
 /// Seeded inputs for every input of a plan at the given batch size.
 fn synthetic_inputs(plan: &Plan, batch: usize, seed: u64) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let bindings = plan.manifest.symbols.iter().map(|s| (s.clone(), batch)).collect();
     let mut state = seed;
     plan.manifest
-        .inputs
-        .iter()
-        .map(|i| {
-            let shape: Vec<usize> = i.shape.iter().map(|d| d.eval(&bindings).unwrap_or(1)).collect();
+        .input_shapes(batch)
+        .into_iter()
+        .map(|(name, shape)| {
             let n = shape.iter().product();
             let data = (0..n)
                 .map(|_| {
@@ -745,7 +743,7 @@ fn synthetic_inputs(plan: &Plan, batch: usize, seed: u64) -> Vec<(String, Vec<us
                     ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
                 })
                 .collect();
-            (i.name.clone(), shape, data)
+            (name.to_string(), shape, data)
         })
         .collect()
 }
@@ -890,7 +888,7 @@ fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
             );
         }
     }
-    let ones = m.symbols.iter().map(|s| (s.clone(), 1usize)).collect();
+    let ones = m.batch_bindings(1);
     let mut slot_len = vec![0usize; m.slots];
     let mut total_values = 0usize;
     for v in &m.values {

@@ -6,8 +6,8 @@
 
 mod common;
 
+use common::readi;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::sync::Arc;
 
 use readi_compiler::backend::{self, CompileOptions, WeightSet};
@@ -247,15 +247,6 @@ fn bad_batchnorm_records_are_refused() {
 }
 
 // --- The CLI ------------------------------------------------------------------------
-
-fn readi(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_readi"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .env("NO_COLOR", "1")
-        .output()
-        .expect("run readi")
-}
 
 fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()

@@ -1,15 +1,10 @@
 //! The `readi` binary: exit codes, outputs and help, run as a user would.
 
+mod common;
+
 use std::process::{Command, Output};
 
-fn readi(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_readi"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .env("NO_COLOR", "1")
-        .output()
-        .expect("run readi")
-}
+use common::readi;
 
 fn stdout(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()

@@ -1,8 +1,10 @@
 //! The condition simulators (`readi simulate`): physical sanity of fog, snow, gamma and
 //! blur, determinism, file formats and errors, and the CLI on real files.
 
+mod common;
+
+use common::readi;
 use std::path::PathBuf;
-use std::process::{Command, Output};
 
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
@@ -402,10 +404,6 @@ fn png_round_trip_keeps_pixels_and_alpha() {
     let back = image::open(&out).expect("open").to_rgba8();
     assert_eq!(back.into_raw(), raw, "gamma 1 through PNG is lossless, alpha included");
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-fn readi(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_readi")).args(args).env("NO_COLOR", "1").output().expect("run readi")
 }
 
 #[test]

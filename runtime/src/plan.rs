@@ -124,6 +124,22 @@ pub struct Manifest {
     pub conditions: Option<crate::conditions::Conditions>,
 }
 
+impl Manifest {
+    /// Every symbol bound to `batch` (a plan's symbols are batch sizes, `N`).
+    pub fn batch_bindings(&self, batch: usize) -> HashMap<String, usize> {
+        self.symbols.iter().map(|s| (s.clone(), batch)).collect()
+    }
+
+    /// Each input's name and shape at batch size `batch`.
+    pub fn input_shapes(&self, batch: usize) -> Vec<(&str, Vec<usize>)> {
+        let b = self.batch_bindings(batch);
+        self.inputs
+            .iter()
+            .map(|i| (i.name.as_str(), i.shape.iter().map(|d| d.eval(&b).unwrap_or(1)).collect()))
+            .collect()
+    }
+}
+
 /// A graph input.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct InputSpec {

@@ -7,6 +7,16 @@ use readi_compiler::elaborate::{ElabOptions, Literal};
 use readi_compiler::passes::{self, Options, Outcome, Pass};
 use readi_grammar::diag::SourceMap;
 
+/// Runs the `readi` binary from the repository root, without colour.
+pub fn readi(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_readi"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("NO_COLOR", "1")
+        .output()
+        .expect("run readi")
+}
+
 /// The repository root.
 pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
