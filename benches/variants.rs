@@ -27,15 +27,7 @@ use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;
 
 fn module(src: &str, overrides: &[(&str, &str)]) -> Module {
-    let opts = Options {
-        elab: readi_compiler::elaborate::ElabOptions {
-            overrides: overrides
-                .iter()
-                .map(|(k, v)| (k.to_string(), readi_compiler::elaborate::Literal::parse(v)))
-                .collect(),
-        },
-        stop_after: None,
-    };
+    let opts = Options::with_overrides(overrides);
     passes::run(FileId(0), src, &opts).module.expect("the model checks")
 }
 

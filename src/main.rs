@@ -13,7 +13,6 @@ use std::time::Instant;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use readi_compiler::backend::{self, CompileOptions, LoraMode, WeightSet};
-use readi_compiler::elaborate::{ElabOptions, Literal};
 use readi_compiler::passes::{self, Options, Outcome, PIPELINE, Pass};
 use readi_compiler::print;
 use readi_grammar::diag::{Diagnostics, FileId, SourceMap};
@@ -368,10 +367,7 @@ impl Frontend {
 }
 
 fn options(model: &ModelArgs, stop_after: Option<Pass>) -> Options {
-    Options {
-        elab: ElabOptions { overrides: model.set.iter().map(|(k, v)| (k.clone(), Literal::parse(v))).collect() },
-        stop_after,
-    }
+    Options { stop_after, ..Options::with_overrides(&model.set) }
 }
 
 fn summary_line(path: &str, diags: &Diagnostics) -> String {

@@ -142,16 +142,7 @@ fn demo_runs_on_the_embedded_model() {
 
 /// Writes seeded weights for a spec to a temp safetensors file; returns (dir, weights path).
 fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (std::path::PathBuf, std::path::PathBuf) {
-    use readi_compiler::elaborate::{ElabOptions, Literal};
-    use readi_compiler::passes::{self, Options};
-    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let text = std::fs::read_to_string(root.join(spec)).expect("spec");
-    let opts = Options {
-        elab: ElabOptions { overrides: overrides.iter().map(|(k, v)| (k.to_string(), Literal::parse(v))).collect() },
-        stop_after: None,
-    };
-    let out = passes::run(readi_grammar::diag::FileId(0), &text, &opts);
-    let module = out.module.expect("module");
+    let module = common::compile(spec, overrides, None).1.module.expect("module");
     let dir = std::env::temp_dir().join(format!("readi-cli-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let path = dir.join("weights.safetensors");
@@ -264,18 +255,8 @@ fn compile_a_deployment_with_variants() {
     use readi_compiler::backend::{WeightSet, seeded_tensor, variants::owned_params};
     let overrides = [("num_classes", "10"), ("img", "64")];
     let (dir, weights) = seeded_weights_file("models/resnet18.readi", &overrides, "deploy");
-    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let text = std::fs::read_to_string(root.join("models/resnet18.readi")).expect("spec");
-    let opts = readi_compiler::passes::Options {
-        elab: readi_compiler::elaborate::ElabOptions {
-            overrides: overrides
-                .iter()
-                .map(|(k, v)| (k.to_string(), readi_compiler::elaborate::Literal::parse(v)))
-                .collect(),
-        },
-        stop_after: None,
-    };
-    let module = readi_compiler::passes::run(readi_grammar::diag::FileId(0), &text, &opts).module.expect("module");
+    let root = common::root();
+    let module = common::compile("models/resnet18.readi", &overrides, None).1.module.expect("module");
     // The tuned and adapter tensors; the LoRA matrices come from the PEFT directory.
     let mut params = WeightSet::default();
     for (name, o) in owned_params(&module) {

@@ -3,7 +3,6 @@
 
 use std::path::{Path, PathBuf};
 
-use readi_compiler::elaborate::{ElabOptions, Literal};
 use readi_compiler::passes::{self, Options, Outcome, Pass};
 use readi_grammar::diag::SourceMap;
 
@@ -37,10 +36,7 @@ pub fn compile_text(
 ) -> (SourceMap, Outcome) {
     let mut sources = SourceMap::new();
     let file = sources.add(name, text);
-    let opts = Options {
-        elab: ElabOptions { overrides: overrides.iter().map(|(k, v)| (k.to_string(), Literal::parse(v))).collect() },
-        stop_after,
-    };
+    let opts = Options { stop_after, ..Options::with_overrides(overrides) };
     let out = passes::run(file, text, &opts);
     (sources, out)
 }

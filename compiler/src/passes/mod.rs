@@ -98,6 +98,16 @@ pub struct Options {
     pub stop_after: Option<Pass>,
 }
 
+impl Options {
+    /// The whole pipeline with model parameters set from `name=value` text, as the
+    /// command line's `--set` gives them.
+    pub fn with_overrides<K: AsRef<str>, V: AsRef<str>>(pairs: &[(K, V)]) -> Options {
+        let overrides =
+            pairs.iter().map(|(k, v)| (k.as_ref().to_string(), crate::elaborate::Literal::parse(v.as_ref()))).collect();
+        Options { elab: ElabOptions { overrides }, stop_after: None }
+    }
+}
+
 /// The outcome of a pipeline run: the module as far as it got, and every diagnostic.
 #[derive(Debug)]
 pub struct Outcome {
