@@ -685,7 +685,12 @@ fn cmd_run(
     let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
     let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
     match choice {
-        Choice::Base => {}
+        Choice::Base => {
+            if let Some((key, why)) = plan.missing_variant(&given) {
+                println!("{why}");
+                session.set_variant(&key).map_err(|e| fail(e.to_string()))?;
+            }
+        }
         Choice::Key(key) => session.set_variant(&key).map_err(|e| fail(e.to_string()))?,
         Choice::Auto(meta) => {
             let t = Instant::now();

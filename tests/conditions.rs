@@ -82,6 +82,12 @@ fn selectors_choose_variants_and_say_why() {
     assert_eq!(s.key, MELD, "fog and dark at once: the melded variant: {:?}", s.reasons);
     let s = select(&clear_cam, None, 0.06);
     assert_eq!(s.key, "missing=lidar", "a lost lidar; its fog selector is skipped: {:?}", s.reasons);
+    // Without selection, the missing-modality policy still holds.
+    let (key, why) = plan.missing_variant(&inputs(Some(&clear_cam), None)).expect("the policy's variant");
+    assert_eq!(key, "missing=lidar");
+    assert!(why.contains("`lidar_bev` is absent"), "{why}");
+    assert_eq!(plan.missing_variant(&inputs(Some(&clear_cam), Some(&lidar))), None);
+    assert_eq!(plan.missing_variant(&inputs(None, Some(&lidar))), None, "camera's policy is zero_fill");
     // A level the plan has no variant for falls back to the nearest compiled one.
     let s = select(&clear_cam, Some(&lidar), 0.15);
     assert_eq!(s.key, "fog=0.06");

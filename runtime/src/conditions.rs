@@ -496,6 +496,23 @@ impl crate::plan::Plan {
     }
 }
 
+impl crate::plan::Plan {
+    /// The missing-modality variant the spec's policy asks for when an optional input is
+    /// absent (`missing lidar: variant` and no `lidar_bev` given), if the plan holds it,
+    /// with the reason. Selectors are not consulted: this is what a run without automatic
+    /// selection still owes the spec.
+    pub fn missing_variant(&self, inputs: &[crate::exec::Input<'_>]) -> Option<(String, String)> {
+        let c = self.manifest.conditions.as_ref()?;
+        self.manifest.inputs.iter().filter(|i| !inputs.iter().any(|g| g.name == i.name)).find_map(|i| {
+            let m = i.modality.as_deref()?;
+            let policy = c.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p)?;
+            let key = format!("missing={m}");
+            (policy == MissingPolicy::Variant && self.variant_index(&key).is_some())
+                .then(|| (key.clone(), format!("`{}` is absent: the {m} policy selects `{key}`", i.name)))
+        })
+    }
+}
+
 /// The views (axis 1) of a multi-view tensor that are not all zero, concatenated (batch 0
 /// first); the data itself when no view is dropped (or every view is).
 fn present_views<'a>(data: &'a [f32], shape: &[usize]) -> std::borrow::Cow<'a, [f32]> {
