@@ -10,7 +10,7 @@ use common::readi;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_compiler::backend::{self, CompileOptions, VariantSource, WeightSet};
 use readi_compiler::passes::Module;
 use readi_runtime::calibrate::{BnCalibrator, BnStats, CalibrateError};
 use readi_runtime::exec::{Input, Session};
@@ -37,10 +37,16 @@ fn seeded_bytes(m: &Module) -> Vec<u8> {
 /// The seeded plan, with the given seeded variants, written to a file and loaded again so
 /// that what the plan records for AdaBN goes through the file format.
 fn plan(variants: &[&str], tag: &str) -> Arc<Plan> {
+    plan_with(variants, tag, |_| {})
+}
+
+/// [`plan`], with the variants' parameters edited first.
+fn plan_with(variants: &[&str], tag: &str, edit: impl Fn(&mut Vec<VariantSource>)) -> Arc<Plan> {
     let m = module();
     let weights = WeightSet::from_safetensors("seeded.safetensors", &seeded_bytes(&m)).expect("valid");
     let keys: Vec<String> = variants.iter().map(|k| k.to_string()).collect();
-    let sources = backend::seeded_variants(&m, &keys, SEED + 1);
+    let mut sources = backend::seeded_variants(&m, &keys, SEED + 1);
+    edit(&mut sources);
     let (plan, _) = backend::compile_variants(&m, &weights, "seeded.safetensors", &sources, &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{d:?}"));
     let dir = temp_dir(tag);
@@ -127,14 +133,25 @@ fn adabn_matches_pytorch_train_mode_statistics() {
     compare("adabn, folded BatchNorms", &by_name(&stats));
 }
 
-/// With variants the adapters run before every `bn2`, so those BatchNorms are
+/// With variants the adapters run before every `bn2`. The back end moves an adapter behind
+/// its BatchNorm (so the BatchNorm folds into the conv) only when no variant's BatchNorm
+/// scale is near zero; a variant with `bn2.weight = 0` keeps all eight unfused, as
 /// channel-affine steps: the other path of the calibrator. The base's adapters are zero,
 /// so PyTorch's statistics are the same.
 #[test]
 fn adabn_matches_pytorch_with_unfused_batchnorms() {
-    let plan = plan(&["gamma=0.25"], "variants");
-    let affine = plan.manifest.steps.iter().filter(|s| matches!(s.kernel, Kernel::ChannelAffine { .. })).count();
-    assert_eq!(affine, 8, "the bn2 of every block is unfused");
+    let folded = plan(&["gamma=0.25"], "variants-folded");
+    let affine =
+        |p: &Plan| p.manifest.steps.iter().filter(|s| matches!(s.kernel, Kernel::ChannelAffine { .. })).count();
+    assert_eq!(affine(&folded), 0, "adapters move behind their BatchNorms");
+    let plan = plan_with(&["gamma=0.25"], "variants", |sources| {
+        for (name, (_, data)) in sources[0].weights.tensors.iter_mut() {
+            if name.ends_with(".bn2.weight") {
+                data.fill(0.0);
+            }
+        }
+    });
+    assert_eq!(affine(&plan), 8, "the bn2 of every block is unfused");
     let (_, stats) = calibrate(plan);
     compare("adabn, with channel-affine BatchNorms", &by_name(&stats));
 }

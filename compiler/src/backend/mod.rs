@@ -100,8 +100,40 @@ pub fn compile_variants(
     for (name, z) in &zeros {
         bound.insert(name.clone(), z);
     }
-    let graph = variants::lowering_graph(module, !sources.is_empty(), opts.lora);
-    let base_lowered = lower::lower(&graph, &bound)?;
+    // Bind every variant first: whether an adapter can move behind its BatchNorm depends on
+    // the values of all of them.
+    let mut bound_variants = Vec::new();
+    let mut errors = Diagnostics::default();
+    for (source, key) in sources.iter().zip(keys) {
+        match variants::bind_variant(&module.graph, &owned, source, &key, opts.strict) {
+            Ok(bv) => bound_variants.push((key, bv)),
+            Err(d) => errors.extend(d),
+        }
+    }
+    if errors.has_errors() {
+        return Err(errors);
+    }
+    let vbounds: Vec<weights::Bound<'_>> = bound_variants
+        .iter_mut()
+        .map(|(_, bv)| {
+            warnings.extend(std::mem::take(&mut bv.warnings));
+            let mut vb = bound.clone();
+            vb.extend(bv.values.iter().map(|(n, v)| (n.clone(), *v)));
+            vb
+        })
+        .collect();
+    let commuted = if sources.is_empty() {
+        Vec::new()
+    } else {
+        variants::commutable_adapters(module, std::iter::once(&bound).chain(&vbounds))
+    };
+    let graph = variants::lowering_graph(module, !sources.is_empty(), opts.lora, &commuted);
+    let base_commuted = variants::commute_adapter_weights(module, &commuted, &bound);
+    let mut base_bound = bound.clone();
+    for (name, w) in &base_commuted {
+        base_bound.insert(name.clone(), w);
+    }
+    let base_lowered = lower::lower(&graph, &base_bound)?;
     let mut store = variants::TensorStore::new(&base_lowered);
     // Tensors derived from these parameters count as added in the budget.
     let mut added: HashSet<String> = owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.clone()).collect();
@@ -113,20 +145,10 @@ pub fn compile_variants(
         }
     }
     let mut tables = Vec::new();
-    let mut errors = Diagnostics::default();
-    for (source, key) in sources.iter().zip(keys) {
-        let bv = match variants::bind_variant(&module.graph, &owned, source, &key, opts.strict) {
-            Ok(v) => v,
-            Err(d) => {
-                errors.extend(d);
-                continue;
-            }
-        };
-        warnings.extend(bv.warnings);
-        let mut vbound = bound.clone();
-        vbound.extend(bv.values);
+    for ((key, bv), mut vbound) in bound_variants.into_iter().zip(vbounds) {
         let merged = if opts.lora == LoraMode::Merge { variants::merge_lora(module, &vbound) } else { Vec::new() };
-        for (name, w) in &merged {
+        let moved = variants::commute_adapter_weights(module, &commuted, &vbound);
+        for (name, w) in merged.iter().chain(&moved) {
             vbound.insert(name.clone(), w);
         }
         let lowered = lower::lower(&graph, &vbound)?;

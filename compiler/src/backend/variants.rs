@@ -101,7 +101,8 @@ pub fn owned_params(module: &Module) -> BTreeMap<String, Owned> {
 
 /// The graph the back end lowers: without adapters and LoRA branches when there are no
 /// variants (they would compute zeros), and without LoRA branches when LoRA is merged.
-pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode) -> Graph {
+/// Adapters in `commuted` move behind their BatchNorm (see [`commute_adapter_weights`]).
+pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode, commuted: &[Injection]) -> Graph {
     let mut g = module.graph.clone();
     let Some(plan) = &module.adapt else { return g };
     for inj in &plan.injections {
@@ -113,6 +114,16 @@ pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode) -> G
                 let x = g.inputs(add)[0];
                 g.set_input(target, 0, x);
             }
+            Injection::Adapter { target, down, add, .. } if commuted.contains(inj) => {
+                // bn(x + up(down(x)))  ->  bn(x) + up'(down'(bn(x))), weights transformed.
+                let x = g.inputs(add)[0];
+                let (bn, sum) = (ValueRef { node: target, port: 0 }, ValueRef { node: add, port: 0 });
+                g.replace_uses(bn, sum);
+                g.set_input(target, 0, x);
+                g.set_input(down, 0, bn);
+                g.set_input(add, 0, bn);
+                continue;
+            }
             _ => continue,
         }
         for n in inj.nodes() {
@@ -120,6 +131,79 @@ pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode) -> G
         }
     }
     g
+}
+
+/// The BatchNorm affine `y = s * x + t` of a node, from bound values.
+fn bn_affine(module: &Module, bn: NodeId, bound: &Bound<'_>) -> Option<(Vec<f64>, Vec<f64>)> {
+    let node = module.graph.node(bn);
+    let ir::Op::BatchNorm { eps, .. } = node.op else { return None };
+    let get = |slot: &str| bound.get(&ir::join_path(&node.path, slot)).copied();
+    let (w, b, mean, var) = (get("weight")?, get("bias")?, get("running_mean")?, get("running_var")?);
+    let s: Vec<f64> = w.iter().zip(var).map(|(&w, &v)| w as f64 / (v as f64 + eps).sqrt()).collect();
+    let t = b.iter().zip(mean).zip(&s).map(|((&b, &m), s)| b as f64 - m as f64 * s).collect();
+    Some((s, t))
+}
+
+/// Adapters before a BatchNorm that can move behind it for every one of `bounds` (the
+/// base's and each variant's values): its scale is nowhere near zero. Moving it lets the
+/// BatchNorm fold into the conv before it again, which saves a pass over the activation.
+pub fn commutable_adapters<'a, 'w: 'a>(
+    module: &Module,
+    bounds: impl IntoIterator<Item = &'a Bound<'w>> + Clone,
+) -> Vec<Injection> {
+    let Some(plan) = &module.adapt else { return Vec::new() };
+    plan.injections
+        .iter()
+        .filter(|inj| match inj {
+            Injection::Adapter { target, .. } => bounds.clone().into_iter().all(|b| {
+                bn_affine(module, *target, b).is_some_and(|(s, _)| s.iter().all(|v| v.abs() >= 1e-3 && v.is_finite()))
+            }),
+            Injection::Lora { .. } => false,
+        })
+        .cloned()
+        .collect()
+}
+
+/// The adapter weights that make the move exact: with the BatchNorm `y = s x + t`,
+/// `bn(x + up(down(x))) = bn(x) + s * up(down((bn(x) - t) / s))`, so `down` takes
+/// `W / s` (per input channel) and bias `b - (W / s) t`, and `up` takes `s * W`, `s * b`
+/// (per output channel).
+pub fn commute_adapter_weights(module: &Module, commuted: &[Injection], bound: &Bound<'_>) -> Vec<(String, Vec<f32>)> {
+    let g = &module.graph;
+    let mut out = Vec::new();
+    for inj in commuted {
+        let Injection::Adapter { target, down, up, .. } = *inj else { continue };
+        let Some((s, t)) = bn_affine(module, target, bound) else { continue };
+        let name = |n: NodeId, slot: &str| ir::join_path(&g.node(n).path, slot);
+        let get = |n: NodeId, slot: &str| bound.get(&name(n, slot)).copied();
+        let (Some(wd), Some(bd), Some(wu), Some(bu)) =
+            (get(down, "weight"), get(down, "bias"), get(up, "weight"), get(up, "bias"))
+        else {
+            continue;
+        };
+        let c = s.len();
+        let mid = bd.len();
+        let mut wd2 = vec![0.0f32; wd.len()];
+        let mut bd2 = vec![0.0f32; mid];
+        for o in 0..mid {
+            let mut shift = bd[o] as f64;
+            for ci in 0..c {
+                let w = wd[o * c + ci] as f64 / s[ci];
+                wd2[o * c + ci] = w as f32;
+                shift -= w * t[ci];
+            }
+            bd2[o] = shift as f32;
+        }
+        let wu2: Vec<f32> = wu.iter().enumerate().map(|(i, &w)| (w as f64 * s[i / mid]) as f32).collect();
+        let bu2: Vec<f32> = bu.iter().zip(&s).map(|(&b, s)| (b as f64 * s) as f32).collect();
+        out.extend([
+            (name(down, "weight"), wd2),
+            (name(down, "bias"), bd2),
+            (name(up, "weight"), wu2),
+            (name(up, "bias"), bu2),
+        ]);
+    }
+    out
 }
 
 /// Zero values for every added slot: the base model's value of LoRA and adapter weights.
