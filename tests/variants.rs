@@ -111,13 +111,10 @@ fn check_parity(model: &str) {
     for lora in [LoraMode::Merge, LoraMode::Branch] {
         let plan = Arc::new(compile(&sources, &m, &variants, lora));
         assert_eq!(plan.manifest.variants.len(), variants.len());
-        // Adapters before a BatchNorm move behind it, so with merged LoRA every BatchNorm
-        // folds into its conv (the parity below checks that the move is exact); a LoRA branch
-        // still stands between its conv and BatchNorm.
+        // Adapters and LoRA branches before a BatchNorm move behind it, so every BatchNorm
+        // folds into its conv (the parity below checks that the moves are exact).
         let affine = plan.manifest.steps.iter().filter(|s| s.kernel.name() == "channel_affine").count();
-        if lora == LoraMode::Merge {
-            assert_eq!(affine, 0, "{model}: unfused BatchNorms");
-        }
+        assert_eq!(affine, 0, "{model} (LoRA {}): unfused BatchNorms", lora.name());
         let mut session = Session::new(plan, 2).expect("session");
         for key in std::iter::once("base").chain(fx.variants.iter().map(|(k, _)| k.as_str())) {
             for (name, t) in run_as(&mut session, key, &fx.tensors) {

@@ -125,10 +125,10 @@ pub fn compile_variants(
     let commuted = if sources.is_empty() {
         Vec::new()
     } else {
-        variants::commutable_adapters(module, std::iter::once(&bound).chain(&vbounds))
+        variants::commutable(module, opts.lora, std::iter::once(&bound).chain(&vbounds))
     };
     let graph = variants::lowering_graph(module, !sources.is_empty(), opts.lora, &commuted);
-    let base_commuted = variants::commute_adapter_weights(module, &commuted, &bound);
+    let base_commuted = variants::commute_weights(module, &commuted, &bound);
     let mut base_bound = bound.clone();
     for (name, w) in &base_commuted {
         base_bound.insert(name.clone(), w);
@@ -147,7 +147,7 @@ pub fn compile_variants(
     let mut tables = Vec::new();
     for ((key, bv), mut vbound) in bound_variants.into_iter().zip(vbounds) {
         let merged = if opts.lora == LoraMode::Merge { variants::merge_lora(module, &vbound) } else { Vec::new() };
-        let moved = variants::commute_adapter_weights(module, &commuted, &vbound);
+        let moved = variants::commute_weights(module, &commuted, &vbound);
         for (name, w) in merged.iter().chain(&moved) {
             vbound.insert(name.clone(), w);
         }

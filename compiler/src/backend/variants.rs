@@ -101,7 +101,7 @@ pub fn owned_params(module: &Module) -> BTreeMap<String, Owned> {
 
 /// The graph the back end lowers: without adapters and LoRA branches when there are no
 /// variants (they would compute zeros), and without LoRA branches when LoRA is merged.
-/// Adapters in `commuted` move behind their BatchNorm (see [`commute_adapter_weights`]).
+/// Injections in `commuted` move behind their BatchNorm (see [`commute_weights`]).
 pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode, commuted: &[Injection]) -> Graph {
     let mut g = module.graph.clone();
     let Some(plan) = &module.adapt else { return g };
@@ -113,6 +113,15 @@ pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode, comm
             Injection::Adapter { target, add, .. } if !with_variants => {
                 let x = g.inputs(add)[0];
                 g.set_input(target, 0, x);
+            }
+            Injection::Lora { base, add, .. } if commuted.contains(inj) => {
+                // bn(y + branch)  ->  bn(y) + s * branch, with lora_B scaled.
+                let bn_node = g.users(add)[0];
+                let (bn, sum) = (ValueRef { node: bn_node, port: 0 }, ValueRef { node: add, port: 0 });
+                g.replace_uses(bn, sum);
+                g.set_input(bn_node, 0, ValueRef { node: base, port: 0 });
+                g.set_input(add, 0, bn);
+                continue;
             }
             Injection::Adapter { target, down, add, .. } if commuted.contains(inj) => {
                 // bn(x + up(down(x)))  ->  bn(x) + up'(down'(bn(x))), weights transformed.
@@ -144,11 +153,22 @@ fn bn_affine(module: &Module, bn: NodeId, bound: &Bound<'_>) -> Option<(Vec<f64>
     Some((s, t))
 }
 
-/// Adapters before a BatchNorm that can move behind it for every one of `bounds` (the
-/// base's and each variant's values): its scale is nowhere near zero. Moving it lets the
-/// BatchNorm fold into the conv before it again, which saves a pass over the activation.
-pub fn commutable_adapters<'a, 'w: 'a>(
+/// The BatchNorm right after a LoRA branch's sum, if that is the sum's only use.
+fn bn_after(module: &Module, add: NodeId) -> Option<NodeId> {
+    let g = &module.graph;
+    let users = g.users(add);
+    let only = users.len() == 1 && !g.outputs.iter().any(|o| o.value.node == add);
+    only.then(|| users[0]).filter(|&u| matches!(g.node(u).op, ir::Op::BatchNorm { .. }))
+}
+
+/// Injections that can move behind the BatchNorm after them for every one of `bounds`
+/// (the base's and each variant's values), so that the BatchNorm folds into the conv
+/// before it again, saving a pass over the activation: an adapter before a BatchNorm whose
+/// scale is nowhere near zero, and (with LoRA as a branch) a LoRA branch whose sum only
+/// feeds a BatchNorm.
+pub fn commutable<'a, 'w: 'a>(
     module: &Module,
+    lora: LoraMode,
     bounds: impl IntoIterator<Item = &'a Bound<'w>> + Clone,
 ) -> Vec<Injection> {
     let Some(plan) = &module.adapt else { return Vec::new() };
@@ -158,23 +178,35 @@ pub fn commutable_adapters<'a, 'w: 'a>(
             Injection::Adapter { target, .. } => bounds.clone().into_iter().all(|b| {
                 bn_affine(module, *target, b).is_some_and(|(s, _)| s.iter().all(|v| v.abs() >= 1e-3 && v.is_finite()))
             }),
-            Injection::Lora { .. } => false,
+            Injection::Lora { add, .. } => lora == LoraMode::Branch && bn_after(module, *add).is_some(),
         })
         .cloned()
         .collect()
 }
 
-/// The adapter weights that make the move exact: with the BatchNorm `y = s x + t`,
-/// `bn(x + up(down(x))) = bn(x) + s * up(down((bn(x) - t) / s))`, so `down` takes
-/// `W / s` (per input channel) and bias `b - (W / s) t`, and `up` takes `s * W`, `s * b`
-/// (per output channel).
-pub fn commute_adapter_weights(module: &Module, commuted: &[Injection], bound: &Bound<'_>) -> Vec<(String, Vec<f32>)> {
+/// The weights that make the moves exact. With the BatchNorm `y = s x + t`:
+/// `bn(x + up(down(x))) = bn(x) + s * up(down((bn(x) - t) / s))`, so an adapter's `down`
+/// takes `W / s` (per input channel) and bias `b - (W / s) t`, and its `up` takes `s * W`,
+/// `s * b` (per output channel); `bn(y + scale * B(A(x))) = bn(y) + scale * (s B)(A(x))`,
+/// so a LoRA branch's `lora_B` takes `s * B`.
+pub fn commute_weights(module: &Module, commuted: &[Injection], bound: &Bound<'_>) -> Vec<(String, Vec<f32>)> {
     let g = &module.graph;
     let mut out = Vec::new();
+    let name = |n: NodeId, slot: &str| ir::join_path(&g.node(n).path, slot);
     for inj in commuted {
+        if let Injection::Lora { b, add, .. } = *inj {
+            let scaled = bn_after(module, add).and_then(|bn| bn_affine(module, bn, bound)).and_then(|(s, _)| {
+                let w = bound.get(&name(b, "weight"))?;
+                let rank = w.len() / s.len();
+                Some(w.iter().enumerate().map(|(i, &v)| (v as f64 * s[i / rank]) as f32).collect::<Vec<f32>>())
+            });
+            if let Some(w) = scaled {
+                out.push((name(b, "weight"), w));
+            }
+            continue;
+        }
         let Injection::Adapter { target, down, up, .. } = *inj else { continue };
         let Some((s, t)) = bn_affine(module, target, bound) else { continue };
-        let name = |n: NodeId, slot: &str| ir::join_path(&g.node(n).path, slot);
         let get = |n: NodeId, slot: &str| bound.get(&name(n, slot)).copied();
         let (Some(wd), Some(bd), Some(wu), Some(bu)) =
             (get(down, "weight"), get(down, "bias"), get(up, "weight"), get(up, "bias"))
