@@ -158,3 +158,22 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
     let e = variants::meld(&m, "blur=30+gamma=0.25", &[&cam[0], &cam[1]], &base).expect_err("same modality");
     assert!(e.0[0].message.contains("two parts weigh on `camera`"), "{:?}", e.0[0].message);
 }
+
+#[test]
+fn a_meld_needs_its_parts_and_declared_keys() {
+    let m = module();
+    let keys: Vec<String> = ["gamma=0.25", "fog=0.06"].iter().map(|k| k.to_string()).collect();
+    let sources = backend::seeded_variants(&m, &keys, 50);
+    let weights = backend::seeded_weights(&m.graph, 1);
+    let compile = |meld: &str| {
+        let opts = CompileOptions { melds: vec![meld.into()], ..Default::default() };
+        backend::compile_variants(&m, &weights, "seeded", &sources, &opts)
+    };
+    let e = compile("fog=0.1+gamma=0.25").expect_err("fog=0.1 is not given");
+    assert!(e.0[0].message.contains("no variant `fog=0.1` is given"), "{}", e.0[0].message);
+    let e = compile("fog=0.07+gamma=0.25").expect_err("fog=0.07 is not declared");
+    assert!(e.0[0].message.contains("not a combination of declared keys"), "{}", e.0[0].message);
+    // Parts in any order and spelling name the canonical key.
+    let plan = compile("gamma=0.250+fog=0.06").expect("melds").0;
+    assert!(plan.variant_index(MELD).is_some());
+}

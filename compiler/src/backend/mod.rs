@@ -65,27 +65,7 @@ pub fn compile_variants(
     opts: &CompileOptions,
 ) -> Result<(Plan, Diagnostics), Diagnostics> {
     // Melded variants: from their parts' parameters, then like any other variant.
-    let mut melded = Vec::new();
-    for key in &opts.melds {
-        let declared = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
-        let canonical = variants::canonical_key(key, &declared).filter(|k| k.contains('+')).ok_or_else(|| {
-            Diagnostics(vec![Diagnostic::error(
-                Code::VariantWeights,
-                format!("`{key}` is not a combination of declared keys (write `fog=0.06+gamma=0.5`)"),
-            )])
-        })?;
-        let mut parts = Vec::new();
-        for part in canonical.split('+') {
-            let found = sources.iter().find(|s| variants::canonical_key(&s.key, &declared).as_deref() == Some(part));
-            parts.push(found.ok_or_else(|| {
-                Diagnostics(vec![Diagnostic::error(
-                    Code::VariantWeights,
-                    format!("cannot meld `{canonical}`: no variant `{part}` is given"),
-                )])
-            })?);
-        }
-        melded.push(variants::meld(module, &canonical, &parts, base)?);
-    }
+    let melded = variants::melded_sources(module, sources, &opts.melds, base)?;
     let all: Vec<VariantSource>;
     let sources = if melded.is_empty() {
         sources

@@ -342,6 +342,31 @@ pub fn meld(
     Ok(VariantSource { key: key.to_string(), weights, origin })
 }
 
+/// The melded variants `keys` asks for (`fog=0.06+gamma=0.5`), each from the given
+/// variants that are its parts.
+pub fn melded_sources(
+    module: &Module,
+    sources: &[VariantSource],
+    keys: &[String],
+    base: &WeightSet,
+) -> Result<Vec<VariantSource>, Diagnostics> {
+    let err = |m: String| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, m)]);
+    let declared = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+    let mut melded = Vec::new();
+    for key in keys {
+        let canonical = canonical_key(key, &declared).filter(|k| k.contains('+')).ok_or_else(|| {
+            err(format!("`{key}` is not a combination of declared keys (write `fog=0.06+gamma=0.5`)"))
+        })?;
+        let mut parts = Vec::new();
+        for part in canonical.split('+') {
+            let found = sources.iter().find(|s| canonical_key(&s.key, &declared).as_deref() == Some(part));
+            parts.push(found.ok_or_else(|| err(format!("cannot meld `{canonical}`: no variant `{part}` is given")))?);
+        }
+        melded.push(meld(module, &canonical, &parts, base)?);
+    }
+    Ok(melded)
+}
+
 /// The declared key a written key names: `fog=0.030` names `fog=0.03`; a melded key's
 /// parts are canonicalised and sorted (`gamma=0.5+fog=0.06` names `fog=0.06+gamma=0.5`).
 pub fn canonical_key(key: &str, declared: &[String]) -> Option<String> {
