@@ -263,14 +263,13 @@ fn parse_set(s: &str) -> Result<(String, String), String> {
     }
 }
 
-/// `KEY=PATH` where the key itself holds a `=` (`fog=0.03=fog.safetensors`): split at the
-/// last `=`.
+/// `KEY=PATH`, where the key is itself `name=value` (`fog=0.03=fog.safetensors`): the path
+/// starts after the key's second `=`, so paths may hold `=` too.
 fn parse_variant_arg(s: &str) -> Result<(String, String), String> {
-    match s.rsplit_once('=') {
-        Some((k, v)) if !k.trim().is_empty() && !v.trim().is_empty() => {
-            Ok((k.trim().to_string(), v.trim().to_string()))
-        }
-        _ => Err(format!("expected KEY=PATH (for example fog=0.03=fog.safetensors), got `{s}`")),
+    let split = s.find('=').and_then(|first| s[first + 1..].find('=').map(|second| first + 1 + second));
+    match split.map(|at| (s[..at].trim(), s[at + 1..].trim())) {
+        Some((k, v)) if !k.is_empty() && !v.is_empty() => Ok((k.to_string(), v.to_string())),
+        _ => Err(format!("expected KEY=PATH with KEY like fog=0.03 (for example fog=0.03=fog.safetensors), got `{s}`")),
     }
 }
 
@@ -620,6 +619,7 @@ fn cmd_compile(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(),
     let m = &plan.manifest;
     let variants = match m.variants.len() {
         0 => String::new(),
+        1 => format!(", 1 variant (LoRA {})", opts.lora.name()),
         n => format!(", {n} variants (LoRA {})", opts.lora.name()),
     };
     println!(

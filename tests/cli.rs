@@ -282,6 +282,26 @@ fn compile_a_deployment_with_variants() {
     assert!(stdout(&o).contains("2 variants (LoRA merge)"), "{}", stdout(&o));
     // blur=5 gives only its LoRA: the rest keeps the base value, reported.
     assert!(stderr(&o).contains("variant `blur=5` does not give"), "{}", stderr(&o));
+    // The same from the command line; the PEFT directory's name holds `=` itself.
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=64",
+        "--variant",
+        &format!("gamma=0.25={}", p(&dir.join("g025.safetensors"))),
+        "--variant",
+        &format!("gamma=0.25={}", p(&peft)),
+        "-o",
+        &p(&plan),
+        "--strict",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("1 variant (LoRA merge)"), "{}", stdout(&o));
     let o = readi(&["compile", "--deploy", &p(&manifest), "-o", &p(&plan), "--strict"]);
     assert_eq!(o.status.code(), Some(1), "--strict refuses the fallback");
 
