@@ -307,16 +307,31 @@ fn parse_pass(s: &str) -> Result<Pass, String> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Printing to a closed pipe panics in `println!`; that is reported below, not as a crash.
+    let default_hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        if !info.payload_as_str().is_some_and(|m| m.contains("Broken pipe")) {
+            default_hook(info);
+        }
+    }));
     // Elaboration recurses with the model's nesting; give it room whatever the platform's
     // main-thread stack is.
     let worker = std::thread::Builder::new().stack_size(64 << 20).spawn(move || run(cli));
     match worker.map(|h| h.join()) {
         Ok(Ok(code)) => code,
+        // `readi ... | head`: the reader went away; stop quietly, as Unix tools do.
+        Ok(Err(panic)) if panic_message(panic.as_ref()).is_some_and(|m| m.contains("Broken pipe")) => {
+            ExitCode::from(141)
+        }
         _ => {
             eprintln!("error: internal failure (please report this with the input file)");
             ExitCode::from(3)
         }
     }
+}
+
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> Option<&str> {
+    payload.downcast_ref::<String>().map(String::as_str).or_else(|| payload.downcast_ref::<&str>().copied())
 }
 
 /// A loaded source file, its pipeline outcome, and how to show its diagnostics.

@@ -108,6 +108,9 @@ fn a_dropped_camera_is_not_read_as_darkness() {
     let s = plan.select(&inputs(Some(&cam), Some(&lidar)), &[]).expect("selects");
     assert_eq!(s.key, "base", "brightness over the four views present is 0.5: {:?}", s.reasons);
     assert!(readi_runtime::conditions::drop_views(&mut cam, &CAMERA, &[6]).is_err());
+    let e =
+        readi_runtime::conditions::drop_views(&mut cam, &[6, 3, 128, 352], &[1]).expect_err("4-D is not multi-view");
+    assert!(e.contains("not multi-view"), "{e}");
 }
 
 fn run(plan: &Arc<Plan>, key: &str, given: &[Input<'_>]) -> Result<Vec<(String, Tensor)>, RunError> {

@@ -531,8 +531,8 @@ fn present_views<'a>(data: &'a [f32], shape: &[usize]) -> std::borrow::Cow<'a, [
 
 /// Zeroes views `drop` (axis 1) of a multi-view input `[N, views, ...]`: a dropped camera.
 pub fn drop_views(data: &mut [f32], shape: &[usize], drop: &[usize]) -> Result<(), String> {
-    if shape.len() < 3 {
-        return Err(format!("an input of shape {shape:?} has no view axis (expected [N, views, ...])"));
+    if shape.len() < 5 {
+        return Err(format!("an input of shape {shape:?} is not multi-view (expected [N, views, C, H, W])"));
     }
     let views = shape[1];
     if let Some(v) = drop.iter().find(|v| **v >= views) {
