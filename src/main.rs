@@ -310,7 +310,7 @@ fn main() -> ExitCode {
     // Printing to a closed pipe panics in `println!`; that is reported below, not as a crash.
     let default_hook = std::panic::take_hook();
     std::panic::set_hook(Box::new(move |info| {
-        if !info.payload_as_str().is_some_and(|m| m.contains("Broken pipe")) {
+        if !panic_message(info.payload()).is_some_and(|m| m.contains("Broken pipe")) {
             default_hook(info);
         }
     }));
