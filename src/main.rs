@@ -876,7 +876,7 @@ fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
         m.tensors.len(),
         print::bytes(plan.tensor_bytes() as u64)
     );
-    print_budget(&plan, trainable as u64);
+    print_budget(&plan, trainable as u64, verbose);
     if verbose {
         for p in &m.params {
             println!("  {:<40} {:?} {}", p.name, p.shape, p.stored_as);
@@ -926,7 +926,8 @@ fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
 
 /// The per-variant budget table: parameters each variant owns (the paper's exist and
 /// add budgets, as a share of the base model's parameters) and the bytes it stores.
-fn print_budget(plan: &Plan, base_params: u64) {
+/// With `verbose`, also each variant's replaced tensors.
+fn print_budget(plan: &Plan, base_params: u64, verbose: bool) {
     let m = &plan.manifest;
     if m.variants.is_empty() {
         return;
@@ -944,8 +945,8 @@ fn print_budget(plan: &Plan, base_params: u64) {
     );
     let width = m.variants.iter().map(|v| v.key.len()).max().unwrap_or(0).max(7);
     println!(
-        "  {:<width$}  {:>20}  {:>20}  {:>28}",
-        "variant", "exist budget (tuned)", "add budget (new)", "stored: tuned + added = % of base"
+        "  {:<width$}  {:>20}  {:>20}  {:>30}",
+        "variant", "exist budget (tuned)", "add budget (new)", "stored: tuned + added = % base"
     );
     for v in &m.variants {
         let (mut tuned, mut added) = (0u64, 0u64);
@@ -965,6 +966,16 @@ fn print_budget(plan: &Plan, base_params: u64) {
             print::bytes(added),
             pct(tuned + added, base_bytes),
         );
+        if verbose {
+            for r in &v.replaces {
+                let shared = if m.variants.iter().filter(|o| o.replaces.iter().any(|x| x.with == r.with)).count() > 1 {
+                    " (shared)"
+                } else {
+                    ""
+                };
+                println!("      {} -> {}{shared}", m.tensors[r.base].name, m.tensors[r.with].name);
+            }
+        }
     }
 }
 

@@ -315,3 +315,25 @@ fn merged_and_branch_lora_agree() {
         assert!(max_abs_error(&x.data, &y.data) <= 1e-4);
     }
 }
+
+/// Adapters no variant gives values for compute zeros: they leave the schedule, so a set
+/// of LoRA-only variants runs the base model's schedule.
+#[test]
+fn unused_adapters_leave_the_schedule() {
+    let fx = fixture("resnet18");
+    let (sources, m) = module("resnet18", &fx.overrides);
+    let dir = common::root().join("tests/fixtures/variants/resnet18/blur=5");
+    let config = std::fs::read_to_string(dir.join(peft::CONFIG_FILE)).expect("config");
+    let adapter = std::fs::read(dir.join(peft::WEIGHTS_FILE)).expect("adapter");
+    let lora = peft::read_adapter("blur=5", &config, &adapter, &m).expect("adapter reads");
+    let only_lora = VariantSource { key: "blur=5".into(), weights: lora, origin: "peft".into() };
+    let opts = CompileOptions::default();
+    let base_w = base_weights(&m);
+    let (with_lora, warnings) =
+        backend::compile_variants(&m, &base_w, "base", &[only_lora], &opts).unwrap_or_else(|d| panic!("{d:?}"));
+    assert!(sources.render_all(&warnings, false).contains("keep the base value"));
+    let base = compile(&sources, &m, &[], LoraMode::Merge);
+    assert_eq!(with_lora.manifest.steps.len(), base.manifest.steps.len());
+    let with_adapters = compile(&sources, &m, &[variant_source("resnet18", &m, "blur=5", 7)], LoraMode::Merge);
+    assert!(with_adapters.manifest.steps.len() > base.manifest.steps.len());
+}

@@ -102,12 +102,12 @@ pub fn compile_variants(
             vb
         })
         .collect();
-    let commuted = if sources.is_empty() {
-        Vec::new()
-    } else {
-        variants::commutable(module, opts.lora, std::iter::once(&bound).chain(&vbounds))
-    };
-    let graph = variants::lowering_graph(module, !sources.is_empty(), opts.lora, &commuted);
+    // Adapters and LoRA branches no variant uses leave the schedule (without variants, all).
+    let all_bounds = std::iter::once(&bound).chain(&vbounds);
+    let dropped = variants::inactive(module, all_bounds.clone());
+    let commuted: Vec<Injection> =
+        variants::commutable(module, opts.lora, all_bounds).into_iter().filter(|inj| !dropped.contains(inj)).collect();
+    let graph = variants::lowering_graph(module, opts.lora, &dropped, &commuted);
     let base_commuted = variants::commute_weights(module, &commuted, &bound);
     let mut base_bound = bound.clone();
     for (name, w) in &base_commuted {

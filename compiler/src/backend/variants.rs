@@ -99,18 +99,19 @@ pub fn owned_params(module: &Module) -> BTreeMap<String, Owned> {
     owned
 }
 
-/// The graph the back end lowers: without adapters and LoRA branches when there are no
-/// variants (they would compute zeros), and without LoRA branches when LoRA is merged.
-/// Injections in `commuted` move behind their BatchNorm (see [`commute_weights`]).
-pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode, commuted: &[Injection]) -> Graph {
+/// The graph the back end lowers: without the injections in `dropped` (those that are
+/// zero in the base and every variant, see [`inactive`]: they would compute zeros), and
+/// without LoRA branches when LoRA is merged. Injections in `commuted` move behind their
+/// BatchNorm (see [`commute_weights`]).
+pub fn lowering_graph(module: &Module, lora: LoraMode, dropped: &[Injection], commuted: &[Injection]) -> Graph {
     let mut g = module.graph.clone();
     let Some(plan) = &module.adapt else { return g };
     for inj in &plan.injections {
         match *inj {
-            Injection::Lora { base, add, .. } if !with_variants || lora == LoraMode::Merge => {
+            Injection::Lora { base, add, .. } if dropped.contains(inj) || lora == LoraMode::Merge => {
                 g.replace_uses(ValueRef { node: add, port: 0 }, ValueRef { node: base, port: 0 });
             }
-            Injection::Adapter { target, add, .. } if !with_variants => {
+            Injection::Adapter { target, add, .. } if dropped.contains(inj) => {
                 let x = g.inputs(add)[0];
                 g.set_input(target, 0, x);
             }
@@ -140,6 +141,26 @@ pub fn lowering_graph(module: &Module, with_variants: bool, lora: LoraMode, comm
         }
     }
     g
+}
+
+/// The injections whose added parameters are zero in every one of `bounds` (the base's
+/// and each variant's values; all of them when there are no variants): no variant uses them.
+pub fn inactive<'a, 'w: 'a>(
+    module: &Module,
+    bounds: impl IntoIterator<Item = &'a Bound<'w>> + Clone,
+) -> Vec<Injection> {
+    let g = &module.graph;
+    let Some(plan) = &module.adapt else { return Vec::new() };
+    let zero = |inj: &Injection| {
+        inj.nodes().iter().all(|&n| {
+            let node = g.node(n);
+            node.params.iter().all(|slot| {
+                let name = node.param_name(slot);
+                bounds.clone().into_iter().all(|b| b.get(&name).is_none_or(|v| v.iter().all(|x| *x == 0.0)))
+            })
+        })
+    };
+    plan.injections.iter().filter(|inj| zero(inj)).cloned().collect()
 }
 
 /// The BatchNorm affine `y = s * x + t` of a node, from bound values.
