@@ -17,7 +17,7 @@
 //! Conv weights are packed for the algorithm the runtime's `conv::choose` picks (at batch
 //! size 1), here, once. Folded values are computed in f64 and stored as f32.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use readi_runtime::kernels::conv::{self, Conv2dShape};
@@ -33,6 +33,7 @@ use crate::ir::{self, Activation, Dim, Graph, NodeId, Op, PoolKind, SlotKind, Up
 /// A manifest and its tensors, ready to become a plan.
 pub struct Lowered {
     pub manifest: Manifest,
+    /// One per manifest tensor; empty for a tensor [`lower_only`] did not compute.
     pub tensors: Vec<Vec<f32>>,
     /// For each stored tensor, the parameters (full names) its value derives from.
     pub sources: Vec<Vec<String>>,
@@ -55,6 +56,8 @@ struct Lowering<'g> {
     tensors: Vec<TensorSpec>,
     data: Vec<Vec<f32>>,
     sources: Vec<Vec<String>>,
+    /// Compute only the tensors derived from these parameters (the rest stay empty).
+    only: Option<&'g HashSet<String>>,
     tensor_index: HashMap<String, usize>,
     stored_as: HashMap<String, String>,
     /// Number of uses of each node's output (edges plus graph outputs).
@@ -69,12 +72,21 @@ impl<'g> Lowering<'g> {
         self.bound.get(&name).copied().ok_or_else(|| ice(format!("weight `{name}` was not bound")))
     }
 
-    fn add_tensor(&mut self, name: String, shape: Vec<usize>, data: Vec<f32>, sources: Vec<String>) -> usize {
+    /// Adds a stored tensor derived from the parameters `sources`; `data` computes its
+    /// value, unless the lowering is restricted to other parameters.
+    fn add_tensor(
+        &mut self,
+        name: String,
+        shape: Vec<usize>,
+        sources: Vec<String>,
+        data: impl FnOnce() -> Vec<f32>,
+    ) -> usize {
         if let Some(&i) = self.tensor_index.get(&name) {
             return i;
         }
+        let wanted = self.only.is_none_or(|only| sources.iter().any(|s| only.contains(s)));
         self.tensors.push(TensorSpec { name: name.clone(), shape });
-        self.data.push(data);
+        self.data.push(if wanted { data() } else { Vec::new() });
         self.sources.push(sources);
         self.tensor_index.insert(name, self.tensors.len() - 1);
         self.tensors.len() - 1
@@ -148,14 +160,12 @@ impl<'g> Lowering<'g> {
             self.weight(node, "running_var")?,
         );
         let c = channels as usize;
-        let mut scale = Vec::with_capacity(c);
-        let mut shift = Vec::with_capacity(c);
-        for i in 0..c {
-            let s = w[i] as f64 / (var[i] as f64 + eps).sqrt();
-            let pre = prior_bias.map_or(0.0, |pb| pb[i] as f64);
-            scale.push(s as f32);
-            shift.push((b[i] as f64 + (pre - mean[i] as f64) * s) as f32);
-        }
+        let scale_of = move |i: usize| w[i] as f64 / (var[i] as f64 + eps).sqrt();
+        let scale = move || (0..c).map(|i| scale_of(i) as f32).collect();
+        let shift = move || {
+            let pre = |i: usize| prior_bias.map_or(0.0, |pb| pb[i] as f64);
+            (0..c).map(|i| (b[i] as f64 + (pre(i) - mean[i] as f64) * scale_of(i)) as f32).collect()
+        };
         let path = node.path.clone();
         let targets = format!("folded into `{path}@scale`, `{path}@shift`");
         let slots = ["weight", "bias", "running_mean", "running_var"].map(|slot| ir::join_path(&path, slot));
@@ -169,13 +179,13 @@ impl<'g> Lowering<'g> {
         if let Some(conv) = &prior {
             sources.push(conv.clone());
         }
-        let st = self.add_tensor(format!("{path}@scale"), vec![c], scale, slots[..].to_vec());
-        let sh = self.add_tensor(format!("{path}@shift"), vec![c], shift, sources);
+        let st = self.add_tensor(format!("{path}@scale"), vec![c], slots[..].to_vec(), scale);
+        let sh = self.add_tensor(format!("{path}@shift"), vec![c], sources, shift);
         let [wn, bname, ..] = slots;
-        let weight = self.add_tensor(wn.clone(), vec![c], w.to_vec(), vec![wn]);
-        let bias = self.add_tensor(bname.clone(), vec![c], b.to_vec(), vec![bname]);
+        let weight = self.add_tensor(wn.clone(), vec![c], vec![wn], || w.to_vec());
+        let bias = self.add_tensor(bname.clone(), vec![c], vec![bname], || b.to_vec());
         let conv_bias = match (prior, prior_bias) {
-            (Some(name), Some(pb)) => Some(self.add_tensor(name.clone(), vec![c], pb.to_vec(), vec![name])),
+            (Some(name), Some(pb)) => Some(self.add_tensor(name.clone(), vec![c], vec![name], || pb.to_vec())),
             _ => None,
         };
         Ok((st, sh, BnInfo { name: path, eps, weight, bias, conv_bias }))
@@ -193,9 +203,9 @@ impl<'g> Lowering<'g> {
         match &node.op {
             Op::Input(_) => {}
             Op::Parameter { shape } => {
-                let data = self.weight(node, "")?.to_vec();
+                let data = self.weight(node, "")?;
                 let shape = shape.iter().map(|&d| d as usize).collect();
-                let t = self.add_tensor(node.path.clone(), shape, data, vec![node.path.clone()]);
+                let t = self.add_tensor(node.path.clone(), shape, vec![node.path.clone()], || data.to_vec());
                 self.stored_as.insert(node.path.clone(), format!("tensor `{}`", node.path));
                 let v = self.new_value(ValueRef { node: id, port: 0 }, Storage::Tensor(t));
                 self.value_of.insert(ValueRef { node: id, port: 0 }, v);
@@ -224,11 +234,15 @@ impl<'g> Lowering<'g> {
                 };
                 let algo = conv::choose(&s);
                 let weight = self.weight(node, "weight")?;
-                let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
-                conv::pack_weight(&s, algo, weight, &mut packed);
+                let len = conv::packed_weight_len(&s, algo);
+                let pack = || {
+                    let mut packed = vec![0.0; len];
+                    conv::pack_weight(&s, algo, weight, &mut packed);
+                    packed
+                };
                 let wname = format!("{}.weight@{}", node.path, algo.name());
                 self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("packed as `{wname}`"));
-                let wt = self.add_tensor(wname, vec![packed.len()], packed, vec![ir::join_path(&node.path, "weight")]);
+                let wt = self.add_tensor(wname, vec![len], vec![ir::join_path(&node.path, "weight")], pack);
                 let bias = if c.bias { Some(self.weight(node, "bias")?) } else { None };
                 let mut ep = EpilogueSpec::default();
                 let bn = self.sole_user(id).filter(|&u| matches!(g.node(u).op, Op::BatchNorm { .. }));
@@ -246,7 +260,7 @@ impl<'g> Lowering<'g> {
                 } else if let Some(b) = bias {
                     let bname = ir::join_path(&node.path, "bias");
                     self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
-                    ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], b.to_vec(), vec![bname]));
+                    ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], vec![bname], || b.to_vec()));
                 }
                 // A ReLU after the conv, or after its folded BatchNorm.
                 ep.relu = self.absorb_relu(bn.unwrap_or(id), id);
@@ -273,21 +287,24 @@ impl<'g> Lowering<'g> {
                 // Stored transposed, [in, out]: the layout GEMM reads fastest.
                 let (fin, fout) = (*in_features as usize, *out_features as usize);
                 let w = self.weight(node, "weight")?;
-                let mut t = vec![0.0f32; w.len()];
-                for o in 0..fout {
-                    for i in 0..fin {
-                        t[i * fout + o] = w[o * fin + i];
+                let transpose = || {
+                    let mut t = vec![0.0f32; w.len()];
+                    for o in 0..fout {
+                        for i in 0..fin {
+                            t[i * fout + o] = w[o * fin + i];
+                        }
                     }
-                }
+                    t
+                };
                 let wname = format!("{}.weight@t", node.path);
                 self.stored_as.insert(ir::join_path(&node.path, "weight"), format!("transposed as `{wname}`"));
-                let wt = self.add_tensor(wname, vec![fin, fout], t, vec![ir::join_path(&node.path, "weight")]);
+                let wt = self.add_tensor(wname, vec![fin, fout], vec![ir::join_path(&node.path, "weight")], transpose);
                 let mut ep = EpilogueSpec::default();
                 if *bias {
-                    let b = self.weight(node, "bias")?.to_vec();
+                    let b = self.weight(node, "bias")?;
                     let bname = ir::join_path(&node.path, "bias");
                     self.stored_as.insert(bname.clone(), format!("tensor `{bname}`"));
-                    ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], b, vec![bname]));
+                    ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], vec![bname], || b.to_vec()));
                 }
                 ep.relu = self.absorb_relu(id, id);
                 let kernel = Kernel::Linear { out_features: *out_features as usize, weight: wt, epilogue: ep };
@@ -297,10 +314,11 @@ impl<'g> Lowering<'g> {
                 let (mut wt, mut bt) = (None, None);
                 if *affine {
                     for (slot, target) in [("weight", &mut wt), ("bias", &mut bt)] {
-                        let data = self.weight(node, slot)?.to_vec();
+                        let data = self.weight(node, slot)?;
                         let name = ir::join_path(&node.path, slot);
                         self.stored_as.insert(name.clone(), format!("tensor `{name}`"));
-                        *target = Some(self.add_tensor(name.clone(), vec![*features as usize], data, vec![name]));
+                        *target =
+                            Some(self.add_tensor(name.clone(), vec![*features as usize], vec![name], || data.to_vec()));
                     }
                 }
                 self.emit(id, Kernel::LayerNorm { weight: wt, bias: bt, eps: *eps as f32 }, inputs);
@@ -359,6 +377,17 @@ fn simple_kernel(op: &Op) -> Option<Kernel> {
 
 /// Lowers a verified graph with all its weights bound.
 pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
+    lower_with(graph, bound, None)
+}
+
+/// [`lower`], computing only the stored tensors derived from the parameters in `only`;
+/// the others are left empty (a variant's lowering: the schedule and tensor table are the
+/// base's, and only what the variant changes needs values).
+pub fn lower_only(graph: &Graph, bound: &Bound<'_>, only: &HashSet<String>) -> Result<Lowered, Diagnostics> {
+    lower_with(graph, bound, Some(only))
+}
+
+fn lower_with(graph: &Graph, bound: &Bound<'_>, only: Option<&HashSet<String>>) -> Result<Lowered, Diagnostics> {
     let order = graph.topo_order().ok_or_else(|| ice("the graph has a cycle".into()))?;
     let mut uses: HashMap<NodeId, usize> = HashMap::new();
     for id in graph.node_ids() {
@@ -378,6 +407,7 @@ pub fn lower(graph: &Graph, bound: &Bound<'_>) -> Result<Lowered, Diagnostics> {
         tensors: Vec::new(),
         data: Vec::new(),
         sources: Vec::new(),
+        only,
         tensor_index: HashMap::new(),
         stored_as: HashMap::new(),
         uses,

@@ -113,8 +113,8 @@ pub fn compile_variants(
     for (name, w) in &base_commuted {
         base_bound.insert(name.clone(), w);
     }
-    let base_lowered = lower::lower(&graph, &base_bound)?;
-    let mut store = variants::TensorStore::new(&base_lowered);
+    let lower::Lowered { mut manifest, tensors: base_tensors, .. } = lower::lower(&graph, &base_bound)?;
+    let mut store = variants::TensorStore::new(std::mem::take(&mut manifest.tensors), base_tensors);
     // Tensors derived from these parameters count as added in the budget.
     let mut added: HashSet<String> = owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.clone()).collect();
     if opts.lora == LoraMode::Merge {
@@ -131,14 +131,16 @@ pub fn compile_variants(
         for (name, w) in merged.iter().chain(&moved) {
             vbound.insert(name.clone(), w);
         }
-        let lowered = lower::lower(&graph, &vbound)?;
+        // Only tensors derived from what the variant changes need computing.
+        let changed: HashSet<String> =
+            bv.values.iter().map(|(n, _)| n).chain(merged.iter().chain(&moved).map(|(n, _)| n)).cloned().collect();
+        let lowered = lower::lower_only(&graph, &vbound, &changed)?;
         let replaces = store.diff(&key, lowered, &added).map_err(ice)?;
         tables.push(variants::table(key, replaces, &owned, bv.fallback));
     }
     if errors.has_errors() {
         return Err(errors);
     }
-    let mut manifest = base_lowered.manifest;
     manifest.tensors = store.specs;
     manifest.variants = tables;
     manifest.conditions = module.variants.as_ref().map(variants::conditions);

@@ -27,6 +27,8 @@ use readi_runtime::conditions::{
 use readi_runtime::plan::{Replacement, TensorSpec, VariantTable};
 
 use super::lower::Lowered;
+#[cfg(doc)]
+use super::lower::lower_only;
 use super::weights::{Bound, WeightSet};
 use crate::ir::{self, Graph, NodeId, SlotKind, ValueRef};
 use crate::passes::Module;
@@ -569,21 +571,17 @@ fn same_bits(a: &[f32], b: &[f32]) -> bool {
 }
 
 impl TensorStore {
-    pub fn new(base: &Lowered) -> TensorStore {
-        let mut store = TensorStore {
-            specs: base.manifest.tensors.clone(),
-            data: base.tensors.clone(),
-            by_hash: HashMap::new(),
-            base_len: base.tensors.len(),
-        };
-        for i in 0..store.data.len() {
-            store.by_hash.entry(bits_hash(&store.specs[i].shape, &store.data[i])).or_default().push(i);
+    /// The store of a plan whose base tensors are `specs` and `data` (taken, not copied).
+    pub fn new(specs: Vec<TensorSpec>, data: Vec<Vec<f32>>) -> TensorStore {
+        let mut by_hash: HashMap<u64, Vec<usize>> = HashMap::new();
+        for (i, (spec, d)) in specs.iter().zip(&data).enumerate() {
+            by_hash.entry(bits_hash(&spec.shape, d)).or_default().push(i);
         }
-        store
+        TensorStore { base_len: data.len(), specs, data, by_hash }
     }
 
-    /// The variant's replacements: every tensor of `lowered` whose bytes differ from the
-    /// base's, except the tensors recorded for AdaBN (a [`BnInfo`]'s gamma, beta and conv
+    /// The variant's replacements: every tensor of `lowered` (from [`lower_only`]: the
+    /// tensors it did not compute are the base's) whose bytes differ from the base's, except the tensors recorded for AdaBN (a [`BnInfo`]'s gamma, beta and conv
     /// bias: no kernel reads them, and AdaBN runs the base). `added` holds the parameters
     /// whose tensors count as added.
     ///
@@ -612,7 +610,8 @@ impl TensorStore {
                     spec.name, self.specs[i].name
                 ));
             }
-            if bn_only.contains(&i) || same_bits(&data, &self.data[i]) {
+            let computed = !data.is_empty() || spec.numel() == 0;
+            if !computed || bn_only.contains(&i) || same_bits(&data, &self.data[i]) {
                 continue;
             }
             let h = bits_hash(&spec.shape, &data);
