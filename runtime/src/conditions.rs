@@ -19,6 +19,8 @@
 //! Statistics cost one pass over an input ([`statistic`]); a level a plan does not hold a
 //! variant for falls back to the nearest compiled level of the same axis, or the base.
 
+use std::borrow::Cow;
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -453,50 +455,36 @@ impl crate::plan::Plan {
                 reasons: vec!["the plan declares no conditions".into()],
             });
         };
+        // Each input as selection reads it: a multi-view input only with the views present,
+        // as `[views, C, H, W]`.
+        let given: Vec<Option<ViewedInput<'_>>> = m
+            .inputs
+            .iter()
+            .map(|spec| {
+                let i = inputs.iter().find(|i| i.name == spec.name)?;
+                if i.shape.len() < 5 {
+                    return Some((Cow::Borrowed(i.data), i.shape.to_vec()));
+                }
+                let views = present_views(i.data, i.shape);
+                let per_view: usize = i.shape[2..].iter().product();
+                let mut shape = vec![views.len() / per_view.max(1)];
+                shape.extend_from_slice(&i.shape[2..]);
+                Some((views, shape))
+            })
+            .collect();
         let frame: Vec<FrameInput<'_>> = m
             .inputs
             .iter()
-            .map(|spec| FrameInput {
+            .zip(&given)
+            .map(|(spec, g)| FrameInput {
                 name: &spec.name,
                 modality: spec.modality.as_deref(),
-                data: inputs.iter().find(|i| i.name == spec.name).map(|i| (i.data, i.shape)),
-            })
-            .collect();
-        // Multi-view inputs: only the views present, as `[views, C, H, W]`.
-        let views: Vec<Option<std::borrow::Cow<'_, [f32]>>> = frame
-            .iter()
-            .map(|f| match f.data {
-                Some((data, shape)) if shape.len() >= 5 => Some(present_views(data, shape)),
-                _ => None,
-            })
-            .collect();
-        let shapes: Vec<Vec<usize>> = frame
-            .iter()
-            .zip(&views)
-            .map(|(f, v)| match (f.data, v) {
-                (Some((_, shape)), Some(v)) => {
-                    let per_view: usize = shape[2..].iter().product();
-                    let mut s = vec![v.len() / per_view.max(1)];
-                    s.extend_from_slice(&shape[2..]);
-                    s
-                }
-                (Some((_, shape)), None) => shape.to_vec(),
-                (None, _) => Vec::new(),
-            })
-            .collect();
-        let frame: Vec<FrameInput<'_>> = frame
-            .iter()
-            .enumerate()
-            .map(|(i, f)| FrameInput {
-                data: f.data.map(|(d, _)| (views[i].as_deref().unwrap_or(d), shapes[i].as_slice())),
-                ..*f
+                data: g.as_ref().map(|(d, shape)| (d.as_ref(), shape.as_slice())),
             })
             .collect();
         c.select(&frame, meta, |k| self.variant_index(k).is_some())
     }
-}
 
-impl crate::plan::Plan {
     /// The missing-modality variant the spec's policy asks for when an optional input is
     /// absent (`missing lidar: variant` and no `lidar_bev` given), if the plan holds it,
     /// with the reason. Selectors are not consulted: this is what a run without automatic
@@ -513,10 +501,12 @@ impl crate::plan::Plan {
     }
 }
 
+/// An input's data and shape as selection reads it.
+type ViewedInput<'a> = (Cow<'a, [f32]>, Vec<usize>);
+
 /// The views (axis 1) of a multi-view tensor that are not all zero, concatenated (batch 0
 /// first); the data itself when no view is dropped (or every view is).
-fn present_views<'a>(data: &'a [f32], shape: &[usize]) -> std::borrow::Cow<'a, [f32]> {
-    use std::borrow::Cow;
+fn present_views<'a>(data: &'a [f32], shape: &[usize]) -> Cow<'a, [f32]> {
     let per_view: usize = shape[2..].iter().product();
     if per_view == 0 {
         return Cow::Borrowed(data);
