@@ -181,11 +181,13 @@ impl<'g> Lowering<'g> {
         }
         let st = self.add_tensor(format!("{path}@scale"), vec![c], slots[..].to_vec(), scale);
         let sh = self.add_tensor(format!("{path}@shift"), vec![c], sources, shift);
+        // The records for AdaBN, which runs the base: derived from no parameter a variant
+        // changes, so a variant's lowering never recomputes them.
         let [wn, bname, ..] = slots;
-        let weight = self.add_tensor(wn.clone(), vec![c], vec![wn], || w.to_vec());
-        let bias = self.add_tensor(bname.clone(), vec![c], vec![bname], || b.to_vec());
+        let weight = self.add_tensor(wn, vec![c], Vec::new(), || w.to_vec());
+        let bias = self.add_tensor(bname, vec![c], Vec::new(), || b.to_vec());
         let conv_bias = match (prior, prior_bias) {
-            (Some(name), Some(pb)) => Some(self.add_tensor(name.clone(), vec![c], vec![name], || pb.to_vec())),
+            (Some(name), Some(pb)) => Some(self.add_tensor(name, vec![c], Vec::new(), || pb.to_vec())),
             _ => None,
         };
         Ok((st, sh, BnInfo { name: path, eps, weight, bias, conv_bias }))

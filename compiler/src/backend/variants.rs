@@ -580,12 +580,10 @@ impl TensorStore {
         TensorStore { base_len: data.len(), specs, data, by_hash }
     }
 
-    /// The variant's replacements: every tensor of `lowered` (from [`lower_only`]: the
-    /// tensors it did not compute are the base's) whose bytes differ from the base's, except the tensors recorded for AdaBN (a [`BnInfo`]'s gamma, beta and conv
-    /// bias: no kernel reads them, and AdaBN runs the base). `added` holds the parameters
+    /// The variant's replacements: every tensor of `lowered` (from [`lower_only`], which
+    /// leaves the tensors the variant does not change empty, among them the base-only
+    /// records for AdaBN) whose bytes differ from the base's. `added` holds the parameters
     /// whose tensors count as added.
-    ///
-    /// [`BnInfo`]: readi_runtime::plan::BnInfo
     pub fn diff(&mut self, key: &str, lowered: Lowered, added: &HashSet<String>) -> Result<Vec<Replacement>, String> {
         if lowered.tensors.len() != self.base_len {
             return Err(format!(
@@ -594,13 +592,6 @@ impl TensorStore {
                 self.base_len
             ));
         }
-        let bn_only: HashSet<usize> = lowered
-            .manifest
-            .steps
-            .iter()
-            .filter_map(|s| s.kernel.epilogue()?.bn.as_ref())
-            .flat_map(|bn| bn.tensors())
-            .collect();
         let mut replaces = Vec::new();
         for (i, (data, sources)) in lowered.tensors.into_iter().zip(lowered.sources).enumerate() {
             let spec = &lowered.manifest.tensors[i];
@@ -611,7 +602,7 @@ impl TensorStore {
                 ));
             }
             let computed = !data.is_empty() || spec.numel() == 0;
-            if !computed || bn_only.contains(&i) || same_bits(&data, &self.data[i]) {
+            if !computed || same_bits(&data, &self.data[i]) {
                 continue;
             }
             let h = bits_hash(&spec.shape, &data);
