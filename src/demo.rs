@@ -118,7 +118,7 @@ fn describe_model(m: &Module, name: &str, check_ms: f64) {
         );
     }
     if let Some(v) = &m.variants {
-        println!("  {} variants declared: {}", v.variant_keys().len(), v.variant_keys().join(" "));
+        println!("  {} variants declared: {}", v.keys().len(), v.keys().join(" "));
     }
 }
 

@@ -512,7 +512,7 @@ fn cmd_check(s: &mut Frontend, files: &[PathBuf], model: &ModelArgs, deny_warnin
         }
         let m = out.module.as_ref();
         let (nodes, params) = m.map(|m| (m.graph.node_count(), m.graph.parameter_count())).unwrap_or((0, 0));
-        let variants = m.and_then(|m| m.variants.as_ref()).map(|v| v.variant_keys().len()).unwrap_or(0);
+        let variants = m.and_then(|m| m.variants.as_ref()).map(|v| v.keys().len()).unwrap_or(0);
         let warn = if out.diagnostics.is_empty() {
             String::new()
         } else {

@@ -164,7 +164,7 @@ fn switching_back_and_forth_is_bit_identical_to_a_fresh_run() {
 fn bundled_models_compile_with_variants() {
     for model in ["resnet18", "vit_encoder", "pointpillars_bev", "bevfusion_tiny"] {
         let (sources, m) = module(model, &[]);
-        let keys = m.variants.as_ref().expect("variants").variant_keys();
+        let keys = m.variants.as_ref().expect("variants").keys();
         let keys: Vec<String> = keys.into_iter().take(3).collect();
         let variants = backend::seeded_variants(&m, &keys, 100);
         let plan = compile(&sources, &m, &variants, LoraMode::Branch);

@@ -73,15 +73,23 @@ pub enum Statistic {
 }
 
 impl Statistic {
+    /// Every statistic, in the order the language reference lists them.
+    pub const ALL: [Statistic; 5] =
+        [Statistic::Brightness, Statistic::Contrast, Statistic::LaplacianVar, Statistic::Density, Statistic::Intensity];
+
     pub fn from_name(name: &str) -> Option<Statistic> {
-        Some(match name {
-            "brightness" => Statistic::Brightness,
-            "contrast" => Statistic::Contrast,
-            "laplacian_var" => Statistic::LaplacianVar,
-            "density" => Statistic::Density,
-            "intensity" => Statistic::Intensity,
-            _ => return None,
-        })
+        Statistic::ALL.into_iter().find(|s| s.name() == name)
+    }
+
+    /// What it measures, for listings and messages.
+    pub fn description(self) -> &'static str {
+        match self {
+            Statistic::Brightness => "mean value of an image",
+            Statistic::Contrast => "standard deviation of an image",
+            Statistic::LaplacianVar => "variance of the Laplacian of an image (low when blurred)",
+            Statistic::Density => "fraction of non-zero cells or returns",
+            Statistic::Intensity => "mean of the non-zero values (the intensity of the returns)",
+        }
     }
     pub fn name(self) -> &'static str {
         match self {
@@ -112,11 +120,20 @@ pub struct ArmSpec {
     pub level: Option<f64>,
 }
 
-/// `meld camera = 0.8, lidar = 0.2`: lambdas by modality, or by axis.
+/// `meld camera = 0.8, lidar = 0.2`: how a combined condition interpolates two
+/// mono-domain variants (the paper's `lambda_c * P_c + lambda_l * P_l`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct MeldSpec {
-    pub by_axis: bool,
+    pub by: MeldBy,
+    /// Lambda per modality or axis; they sum to 1.
     pub weights: Vec<(String, f64)>,
+}
+
+/// Whether a meld rule weighs modalities or axes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum MeldBy {
+    Modality,
+    Axis,
 }
 
 /// A level as it appears in a key: `0.03`, `4`.
@@ -287,7 +304,7 @@ impl Conditions {
     /// The meld group of a condition on `axis` of `modality`, and its lambda.
     fn group(&self, axis: &str, modality: &str) -> Option<(String, f64)> {
         let meld = self.meld.as_ref()?;
-        let g = if meld.by_axis { axis } else { modality };
+        let g = if meld.by == MeldBy::Axis { axis } else { modality };
         meld.weights.iter().find(|(n, _)| n == g).map(|(n, l)| (n.clone(), *l))
     }
 
@@ -565,7 +582,7 @@ mod tests {
                 },
             ],
             missing: vec![("lidar".into(), MissingPolicy::Variant)],
-            meld: Some(MeldSpec { by_axis: false, weights: vec![("camera".into(), 0.8), ("lidar".into(), 0.2)] }),
+            meld: Some(MeldSpec { by: MeldBy::Modality, weights: vec![("camera".into(), 0.8), ("lidar".into(), 0.2)] }),
         }
     }
 

@@ -143,7 +143,7 @@ pub fn compile_variants(
     }
     manifest.tensors = store.specs;
     manifest.variants = tables;
-    manifest.conditions = module.variants.as_ref().map(variants::conditions);
+    manifest.conditions = module.variants.clone();
     let plan = Plan::new(manifest, store.data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }

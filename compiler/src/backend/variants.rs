@@ -21,9 +21,7 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
-use readi_runtime::conditions::{
-    ArmSpec, AxisSpec, Conditions, KeySource, MeldSpec, MissingPolicy, SelectorSpec, Statistic, meld_key,
-};
+use readi_runtime::conditions::{MeldBy, meld_key};
 use readi_runtime::plan::{Replacement, TensorSpec, VariantTable};
 
 use super::lower::Lowered;
@@ -266,49 +264,6 @@ pub fn zero_added(owned: &BTreeMap<String, Owned>) -> Vec<(String, Vec<f32>)> {
     owned.iter().filter(|(_, o)| o.added).map(|(n, o)| (n.clone(), vec![0.0; o.shape.iter().product()])).collect()
 }
 
-/// The spec's variants section as the plan carries it, for selection at run time.
-pub fn conditions(spec: &VariantSpec) -> Conditions {
-    use crate::passes::check_variants as cv;
-    Conditions {
-        axes: spec
-            .axes
-            .iter()
-            .map(|a| AxisSpec {
-                name: a.name.clone(),
-                modality: a.modality.clone(),
-                levels: a.levels.clone(),
-                clear: a.clear,
-            })
-            .collect(),
-        selectors: spec
-            .selectors
-            .iter()
-            .filter_map(|s| {
-                let source = match &s.source {
-                    cv::KeySource::Meta(k) => KeySource::Meta(k.clone()),
-                    cv::KeySource::Stat { stat, input } => {
-                        KeySource::Stat { stat: Statistic::from_name(stat)?, input: input.clone() }
-                    }
-                };
-                let arms = s.arms.iter().map(|a| ArmSpec { below: a.below, level: a.level }).collect();
-                Some(SelectorSpec { axis: s.axis.clone(), source, arms })
-            })
-            .collect(),
-        missing: spec
-            .missing
-            .iter()
-            .map(|(m, p)| {
-                let policy = match p {
-                    cv::MissingPolicy::ZeroFill => MissingPolicy::ZeroFill,
-                    cv::MissingPolicy::Variant => MissingPolicy::Variant,
-                };
-                (m.clone(), policy)
-            })
-            .collect(),
-        meld: spec.meld.as_ref().map(|m| MeldSpec { by_axis: m.by == cv::MeldBy::Axis, weights: m.weights.clone() }),
-    }
-}
-
 /// The lambdas of a melded key's parts (`fog=0.06+gamma=0.5`), normalised to sum 1, or why
 /// the key cannot be melded.
 fn meld_weights(spec: &VariantSpec, parts: &[String]) -> Result<Vec<f64>, String> {
@@ -321,7 +276,7 @@ fn meld_weights(spec: &VariantSpec, parts: &[String]) -> Result<Vec<f64>, String
             p.split_once('=').map(|(_, m)| m).unwrap_or("")
         } else {
             let a = spec.axes.iter().find(|a| a.name == axis).ok_or(format!("no axis `{axis}`"))?;
-            if meld.by == crate::passes::check_variants::MeldBy::Axis { &a.name } else { &a.modality }
+            if meld.by == MeldBy::Axis { &a.name } else { &a.modality }
         };
         if groups.contains(&group) {
             return Err(format!("two parts weigh on `{group}`"));
@@ -374,7 +329,7 @@ pub fn melded_sources(
     base: &WeightSet,
 ) -> Result<Vec<VariantSource>, Diagnostics> {
     let err = |m: String| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, m)]);
-    let declared = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+    let declared = module.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
     let mut melded = Vec::new();
     for key in keys {
         let canonical = canonical_key(key, &declared).filter(|k| k.contains('+')).ok_or_else(|| {
@@ -408,7 +363,7 @@ pub fn canonical_key(key: &str, declared: &[String]) -> Option<String> {
 
 /// Checks the keys of all variants: declared by the spec, each given once.
 pub fn check_keys(module: &Module, variants: &[VariantSource]) -> Result<Vec<String>, Diagnostics> {
-    let declared = module.variants.as_ref().map(|v| v.variant_keys()).unwrap_or_default();
+    let declared = module.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
     let mut diags = Diagnostics::default();
     let mut keys: Vec<String> = Vec::new();
     for v in variants {

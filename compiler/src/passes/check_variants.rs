@@ -20,105 +20,18 @@ use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
 
 use crate::ir::{Graph, Op};
 
-/// Statistics a selector can compute from an input tensor.
-pub const STATISTICS: &[(&str, &str)] = &[
-    ("brightness", "mean value of an image"),
-    ("contrast", "standard deviation of an image"),
-    ("laplacian_var", "variance of the Laplacian of an image (low when blurred)"),
-    ("density", "fraction of non-zero cells or returns"),
-    ("intensity", "mean of the intensity channel of lidar returns"),
-];
-
 /// Missing-modality policies.
 pub const POLICIES: &[&str] = &["zero_fill", "variant"];
-
-/// The checked variants section.
-#[derive(Clone, Debug, PartialEq)]
-pub struct VariantSpec {
-    pub axes: Vec<Axis>,
-    pub missing: Vec<(String, MissingPolicy)>,
-    pub selectors: Vec<KeySelector>,
-    /// The meld rule, if any.
-    pub meld: Option<Meld>,
-}
-
-/// `meld camera = 0.8, lidar = 0.2`: how a combined condition interpolates two
-/// mono-domain variants (the paper's `lambda_c * P_c + lambda_l * P_l`).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Meld {
-    pub by: MeldBy,
-    /// Lambda per modality or axis; they sum to 1.
-    pub weights: Vec<(String, f64)>,
-}
-
-/// Whether a meld rule weighs modalities or axes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MeldBy {
-    Modality,
-    Axis,
-}
-
-#[derive(Clone, Debug, PartialEq)]
-pub struct Axis {
-    pub name: String,
-    pub modality: String,
-    pub levels: Vec<f64>,
-    pub clear: Option<f64>,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MissingPolicy {
-    ZeroFill,
-    Variant,
-}
-
-/// How the key of one axis is found at run time.
-#[derive(Clone, Debug, PartialEq)]
-pub struct KeySelector {
-    pub axis: String,
-    pub source: KeySource,
-    /// The first arm whose bound the value is below decides; the last arm has no bound.
-    /// Empty: the nearest level.
-    pub arms: Vec<Arm>,
-}
-
-/// One arm of a threshold map.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Arm {
-    /// `Some((t, inclusive))` for `< t` (`<= t` when inclusive); `None` for `else`.
-    pub below: Option<(f64, bool)>,
-    /// The level selected; `None` for the clear condition (the base model).
-    pub level: Option<f64>,
-}
-
-#[derive(Clone, Debug, PartialEq)]
-pub enum KeySource {
-    Meta(String),
-    Stat { stat: String, input: String },
-}
-
-impl VariantSpec {
-    /// The key of every variant the section declares: one per axis level, one per
-    /// missing modality served by a variant.
-    pub fn variant_keys(&self) -> Vec<String> {
-        let mut keys = Vec::new();
-        for a in &self.axes {
-            for l in &a.levels {
-                keys.push(format!("{}={}", a.name, fmt_level(*l)));
-            }
-        }
-        for (m, p) in &self.missing {
-            if *p == MissingPolicy::Variant {
-                keys.push(format!("missing={m}"));
-            }
-        }
-        keys
-    }
-}
 
 /// A level as it appears in a key: `0.03`, `4` (the runtime's formatting, so that keys
 /// the compiler writes are the keys the runtime selects).
 pub use readi_runtime::conditions::fmt_level;
+/// The checked variants section is the runtime's [`Conditions`]: what the compiler checks
+/// is what the plan carries and the runtime selects by.
+pub use readi_runtime::conditions::{
+    ArmSpec as Arm, AxisSpec as Axis, Conditions as VariantSpec, KeySource, MeldBy, MeldSpec as Meld, MissingPolicy,
+    SelectorSpec as KeySelector, Statistic,
+};
 
 struct InputInfo {
     name: String,
@@ -288,20 +201,18 @@ pub fn run(graph: &Graph, section: &VariantSection, diags: &mut Diagnostics) -> 
                         KeySource::Meta(key.clone())
                     }
                     SelectSource::Stat { stat, input } => {
-                        if !STATISTICS.iter().any(|(s, _)| *s == stat.name) {
+                        let Some(statistic) = Statistic::from_name(&stat.name) else {
                             let mut d =
                                 Diagnostic::error(Code::BadVariant, format!("unknown statistic `{}`", stat.name))
                                     .with_primary(stat.span, "not a statistic");
-                            d = match suggest(&stat.name, STATISTICS.iter().map(|s| s.0)) {
+                            let names = Statistic::ALL.map(Statistic::name);
+                            d = match suggest(&stat.name, names) {
                                 Some(s) => d.with_note(format!("did you mean `{s}`?")),
-                                None => d.with_note(format!(
-                                    "statistics: {}",
-                                    STATISTICS.iter().map(|s| s.0).collect::<Vec<_>>().join(", ")
-                                )),
+                                None => d.with_note(format!("statistics: {}", names.join(", "))),
                             };
                             diags.push(d);
                             continue;
-                        }
+                        };
                         let Some(inp) = inputs.iter().find(|i| i.name == input.name) else {
                             let mut d = Diagnostic::error(Code::UnknownName, format!("unknown input `{}`", input.name))
                                 .with_primary(input.span, "not an input of the model");
@@ -331,7 +242,7 @@ pub fn run(graph: &Graph, section: &VariantSection, diags: &mut Diagnostics) -> 
                             );
                             continue;
                         }
-                        KeySource::Stat { stat: stat.name.clone(), input: input.name.clone() }
+                        KeySource::Stat { stat: statistic, input: input.name.clone() }
                     }
                 };
                 let arms = match mapping {

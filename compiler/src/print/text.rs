@@ -140,7 +140,7 @@ pub fn to_text(module: &Module) -> String {
         for s in &v.selectors {
             let src = match &s.source {
                 KeySource::Meta(k) => format!("meta(\"{k}\")"),
-                KeySource::Stat { stat, input } => format!("{stat}({input})"),
+                KeySource::Stat { stat, input } => format!("{}({input})", stat.name()),
             };
             let arms: Vec<String> = s
                 .arms
@@ -160,7 +160,7 @@ pub fn to_text(module: &Module) -> String {
             let w: Vec<String> = meld.weights.iter().map(|(m, l)| format!("{m} = {l}")).collect();
             let _ = writeln!(out, "  meld {}", w.join(", "));
         }
-        let keys = v.variant_keys();
+        let keys = v.keys();
         let _ = writeln!(out, "  {} variants:", keys.len());
         wrap(&mut out, "    ", &keys, 100);
     }
