@@ -301,11 +301,30 @@ impl Conditions {
         self.axes.iter().find(|a| a.name == name)
     }
 
-    /// The meld group of a condition on `axis` of `modality`, and its lambda.
-    fn group(&self, axis: &str, modality: &str) -> Option<(String, f64)> {
-        let meld = self.meld.as_ref()?;
-        let g = if meld.by == MeldBy::Axis { axis } else { modality };
-        meld.weights.iter().find(|(n, _)| n == g).map(|(n, l)| (n.clone(), *l))
+    /// The lambdas of a melded key's parts (`fog=0.06`, `missing=lidar`), normalised to sum
+    /// 1, or why the spec's meld rule does not combine them (each part must fall in its own
+    /// meld group, a modality or an axis, that the rule weighs).
+    pub fn meld_weights(&self, parts: &[String]) -> Result<Vec<f64>, String> {
+        let meld = self.meld.as_ref().ok_or("the spec has no `meld` rule")?;
+        let mut groups: Vec<&str> = Vec::new();
+        let mut lambdas = Vec::new();
+        for p in parts {
+            let (axis, level) = p.split_once('=').ok_or(format!("`{p}` is not a key"))?;
+            let group = if axis == "missing" {
+                level
+            } else {
+                let a = self.axis(axis).ok_or(format!("no axis `{axis}`"))?;
+                if meld.by == MeldBy::Axis { &a.name } else { &a.modality }
+            };
+            if groups.contains(&group) {
+                return Err(format!("two parts weigh on `{group}`"));
+            }
+            groups.push(group);
+            let l = meld.weights.iter().find(|(n, _)| n == group).map(|(_, l)| *l);
+            lambdas.push(l.ok_or(format!("the meld rule gives no lambda for `{group}`"))?);
+        }
+        let sum: f64 = lambdas.iter().sum();
+        Ok(lambdas.iter().map(|l| l / sum).collect())
     }
 
     /// Chooses the variant for one frame. `has` tells whether the plan holds a key.
@@ -404,14 +423,8 @@ impl Conditions {
             0 => Ok(Selection { key: "base".into(), reasons }),
             1 => Ok(Selection { key: keys.remove(0).1, reasons }),
             _ => {
-                let groups: Option<Vec<(String, f64)>> = keys.iter().map(|(a, _, m)| self.group(a, m)).collect();
-                let distinct = groups.as_ref().is_some_and(|g| {
-                    let mut names: Vec<&str> = g.iter().map(|(n, _)| n.as_str()).collect();
-                    names.sort_unstable();
-                    names.windows(2).all(|w| w[0] != w[1])
-                });
                 let conditions: Vec<String> = keys.iter().map(|k| k.1.clone()).collect();
-                let Some(groups) = groups.filter(|_| distinct) else {
+                let Ok(lambdas) = self.meld_weights(&conditions) else {
                     return Err(SelectError::NoMeld { conditions });
                 };
                 let melded = meld_key(&conditions);
@@ -419,11 +432,10 @@ impl Conditions {
                     reasons.push(format!("meld rule combines {}", conditions.join(" and ")));
                     return Ok(Selection { key: melded, reasons });
                 }
-                let best =
-                    groups.iter().enumerate().max_by(|a, b| a.1.1.total_cmp(&b.1.1)).map(|(i, _)| i).unwrap_or(0);
+                let best = lambdas.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
                 reasons.push(format!(
                     "the plan has no melded `{melded}`; using `{}` (largest lambda, {})",
-                    conditions[best], groups[best].1
+                    conditions[best], lambdas[best]
                 ));
                 Ok(Selection { key: conditions[best].clone(), reasons })
             }

@@ -21,7 +21,7 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
-use readi_runtime::conditions::{MeldBy, meld_key};
+use readi_runtime::conditions::meld_key;
 use readi_runtime::plan::{Replacement, TensorSpec, VariantTable};
 
 use super::lower::Lowered;
@@ -30,7 +30,7 @@ use super::lower::lower_only;
 use super::weights::{Bound, WeightSet};
 use crate::ir::{self, Graph, NodeId, SlotKind, ValueRef};
 use crate::passes::Module;
-use crate::passes::check_variants::{VariantSpec, fmt_level};
+use crate::passes::check_variants::fmt_level;
 use crate::passes::resolve_adapt::{Injection, RuleKind};
 
 /// How LoRA runs in the plan.
@@ -264,31 +264,6 @@ pub fn zero_added(owned: &BTreeMap<String, Owned>) -> Vec<(String, Vec<f32>)> {
     owned.iter().filter(|(_, o)| o.added).map(|(n, o)| (n.clone(), vec![0.0; o.shape.iter().product()])).collect()
 }
 
-/// The lambdas of a melded key's parts (`fog=0.06+gamma=0.5`), normalised to sum 1, or why
-/// the key cannot be melded.
-fn meld_weights(spec: &VariantSpec, parts: &[String]) -> Result<Vec<f64>, String> {
-    let meld = spec.meld.as_ref().ok_or("the spec has no `meld` rule")?;
-    let mut groups: Vec<&str> = Vec::new();
-    let mut lambdas = Vec::new();
-    for p in parts {
-        let (axis, _) = p.split_once('=').ok_or(format!("`{p}` is not a key"))?;
-        let group = if axis == "missing" {
-            p.split_once('=').map(|(_, m)| m).unwrap_or("")
-        } else {
-            let a = spec.axes.iter().find(|a| a.name == axis).ok_or(format!("no axis `{axis}`"))?;
-            if meld.by == MeldBy::Axis { &a.name } else { &a.modality }
-        };
-        if groups.contains(&group) {
-            return Err(format!("two parts weigh on `{group}`"));
-        }
-        groups.push(group);
-        let l = meld.weights.iter().find(|(n, _)| n == group).map(|(_, l)| *l);
-        lambdas.push(l.ok_or(format!("the meld rule gives no lambda for `{group}`"))?);
-    }
-    let sum: f64 = lambdas.iter().sum();
-    Ok(lambdas.iter().map(|l| l / sum).collect())
-}
-
 /// A melded variant (`fog=0.06+gamma=0.5`) from its parts' parameters: every owned
 /// parameter is `sum(lambda_i * P_i)` (the paper's `lambda_c P_c + lambda_l P_l`), a part
 /// that does not give a parameter contributing the base value (zero for added ones).
@@ -301,7 +276,7 @@ pub fn meld(
     let err = |m: String| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, m)]);
     let spec = module.variants.as_ref().ok_or_else(|| err("the spec has no variants section".into()))?;
     let keys: Vec<String> = parts.iter().map(|p| p.key.clone()).collect();
-    let lambdas = meld_weights(spec, &keys).map_err(|m| err(format!("cannot meld `{key}`: {m}")))?;
+    let lambdas = spec.meld_weights(&keys).map_err(|m| err(format!("cannot meld `{key}`: {m}")))?;
     let mut weights = WeightSet::default();
     for (name, o) in owned_params(module) {
         let n: usize = o.shape.iter().product();
