@@ -17,7 +17,7 @@ use readi_compiler::passes::{self, Options, Outcome, PIPELINE, Pass};
 use readi_compiler::print;
 use readi_grammar::diag::{Diagnostics, FileId, SourceMap};
 use readi_runtime::exec::{Input, Session, Tensor};
-use readi_runtime::plan::{Plan, Storage, show_shape};
+use readi_runtime::plan::Plan;
 
 const EXAMPLES: &str = "\
 Examples:
@@ -818,165 +818,15 @@ fn cmd_bench(
         times[0]
     );
     if let Some(p) = session.profile() {
-        print_profile(&plan, p, times.len());
+        print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));
     }
     Ok(())
-}
-
-/// Per-step and per-kernel time from a profiled session, averaged over `runs`.
-fn print_profile(plan: &Plan, seconds: &[f64], runs: usize) {
-    let total: f64 = seconds.iter().sum();
-    let ms = |s: f64| s * 1e3 / runs.max(1) as f64;
-    let mut kinds: Vec<(String, f64)> = Vec::new();
-    for (st, &t) in plan.manifest.steps.iter().zip(seconds) {
-        let kind = match &st.kernel {
-            readi_runtime::plan::Kernel::Conv2d { algo, .. } => format!("conv2d/{algo}"),
-            k => k.name().to_string(),
-        };
-        match kinds.iter_mut().find(|(k, _)| *k == kind) {
-            Some(e) => e.1 += t,
-            None => kinds.push((kind, t)),
-        }
-    }
-    kinds.sort_by(|a, b| b.1.total_cmp(&a.1));
-    println!("time per kernel kind (mean per run):");
-    for (k, t) in &kinds {
-        println!("  {k:<20} {:8.3} ms  {:5.1}%", ms(*t), 100.0 * t / total.max(1e-12));
-    }
-    let mut steps: Vec<(usize, f64)> = seconds.iter().copied().enumerate().collect();
-    steps.sort_by(|a, b| b.1.total_cmp(&a.1));
-    println!("slowest steps:");
-    for (k, t) in steps.iter().take(12) {
-        let st = &plan.manifest.steps[*k];
-        println!("  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), st.path);
-    }
 }
 
 fn cmd_inspect(plan_path: &Path, verbose: bool) -> Result<(), ExitCode> {
     let plan = load_plan(plan_path)?;
-    let m = &plan.manifest;
-    let params: Vec<String> = m.model_params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
-    println!("plan {} (format version {}, checksum ok)", plan_path.display(), m.format_version);
-    println!("model {}({})", m.model, params.join(", "));
-    println!("inputs:");
-    for i in &m.inputs {
-        let modality = i.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
-        let opt = if i.optional { " optional" } else { "" };
-        println!("  {}: f32{}{modality}{opt}", i.name, show_shape(&i.shape));
-    }
-    println!("outputs:");
-    for o in &m.outputs {
-        println!("  {}: f32{}", o.name, show_shape(&m.values[o.value].shape));
-    }
-    let trainable: usize =
-        m.params.iter().filter(|p| p.trainable && !p.added).map(|p| p.shape.iter().product::<usize>()).sum();
-    println!(
-        "parameters: {} in the spec; stored: {} tensors, {}",
-        print::thousands(trainable as u64),
-        m.tensors.len(),
-        print::bytes(plan.tensor_bytes() as u64)
-    );
-    print_budget(&plan, trainable as u64, verbose);
-    if verbose {
-        for p in &m.params {
-            println!("  {:<40} {:?} {}", p.name, p.shape, p.stored_as);
-        }
-    }
-    let mut kinds: Vec<(&str, usize)> = Vec::new();
-    for st in &m.steps {
-        match kinds.iter_mut().find(|(k, _)| *k == st.kernel.name()) {
-            Some(e) => e.1 += 1,
-            None => kinds.push((st.kernel.name(), 1)),
-        }
-    }
-    let kinds: Vec<String> = kinds.iter().map(|(k, n)| format!("{n} {k}")).collect();
-    println!("schedule: {} steps ({})", m.steps.len(), kinds.join(", "));
-    if verbose {
-        for (k, st) in m.steps.iter().enumerate() {
-            let ins: Vec<String> = st.inputs.iter().map(|i| format!("%{i}")).collect();
-            println!(
-                "  {k:>4} %{} = {}({}) {}  {}",
-                st.output,
-                st.kernel.name(),
-                ins.join(", "),
-                show_shape(&m.values[st.output].shape),
-                st.path
-            );
-        }
-    }
-    let ones = m.batch_bindings(1);
-    let mut slot_len = vec![0usize; m.slots];
-    let mut total_values = 0usize;
-    for v in &m.values {
-        if let Storage::Slot(s) = v.storage {
-            let n: usize = v.shape.iter().map(|d| d.eval(&ones).unwrap_or(0)).product();
-            slot_len[s] = slot_len[s].max(n);
-            total_values += n;
-        }
-    }
-    let planned: usize = slot_len.iter().sum();
-    println!(
-        "buffers: {} slots, {} at batch 1 ({} without reuse)",
-        m.slots,
-        print::bytes(planned as u64 * 4),
-        print::bytes(total_values as u64 * 4)
-    );
+    print!("{}", readi::inspect::plan(&plan, plan_path, verbose));
     Ok(())
-}
-
-/// The per-variant budget table: parameters each variant owns (the paper's exist and
-/// add budgets, as a share of the base model's parameters) and the bytes it stores.
-/// With `verbose`, also each variant's replaced tensors.
-fn print_budget(plan: &Plan, base_params: u64, verbose: bool) {
-    let m = &plan.manifest;
-    if m.variants.is_empty() {
-        return;
-    }
-    let replacement: std::collections::HashSet<usize> =
-        m.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
-    let bytes_of = |t: usize| m.tensors[t].numel() as u64 * 4;
-    let base_bytes: u64 = (0..m.tensors.len()).filter(|t| !replacement.contains(t)).map(bytes_of).sum();
-    let pct = |a: u64, b: u64| 100.0 * a as f64 / b.max(1) as f64;
-    println!(
-        "variants: {} (base {} stored once; the variants add {}, shared tensors stored once)",
-        m.variants.len(),
-        print::bytes(base_bytes),
-        print::bytes(plan.tensor_bytes() as u64 - base_bytes)
-    );
-    let width = m.variants.iter().map(|v| v.key.len()).max().unwrap_or(0).max(7);
-    println!(
-        "  {:<width$}  {:>20}  {:>20}  {:>30}",
-        "variant", "exist budget (tuned)", "add budget (new)", "stored: tuned + added = % base"
-    );
-    for v in &m.variants {
-        let (mut tuned, mut added) = (0u64, 0u64);
-        for r in &v.replaces {
-            *(if r.added { &mut added } else { &mut tuned }) += bytes_of(r.with);
-        }
-        let fallback =
-            if v.fallback.is_empty() { String::new() } else { format!("  ({} at base value)", v.fallback.len()) };
-        println!(
-            "  {:<width$}  {:>10} {:>8.2}%  {:>10} {:>8.2}%  {:>9} + {:>9} = {:>5.2}%{fallback}",
-            v.key,
-            print::thousands(v.tuned_elements),
-            pct(v.tuned_elements, base_params),
-            print::thousands(v.added_elements),
-            pct(v.added_elements, base_params),
-            print::bytes(tuned),
-            print::bytes(added),
-            pct(tuned + added, base_bytes),
-        );
-        if verbose {
-            for r in &v.replaces {
-                let shared = if m.variants.iter().filter(|o| o.replaces.iter().any(|x| x.with == r.with)).count() > 1 {
-                    " (shared)"
-                } else {
-                    ""
-                };
-                println!("      {} -> {}{shared}", m.tensors[r.base].name, m.tensors[r.with].name);
-            }
-        }
-    }
 }
 
 fn cmd_adapt_bn(
