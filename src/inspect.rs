@@ -231,3 +231,64 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
         Ok(())
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use readi_compiler::backend::{self, CompileOptions};
+    use readi_compiler::passes::{self, Options};
+    use readi_grammar::diag::SourceMap;
+
+    use super::*;
+
+    const TWO_LAYERS: &str = "\
+model two(hidden: int = 8) {
+  input x: f32[N, 3, 8, 8] @camera
+  conv = conv2d(x, hidden, kernel=3, padding=1)
+  let a = relu(conv)
+  pool = global_avgpool(a)
+  fc = linear(flatten(pool, start=1), 4)
+  output y = fc
+}
+";
+
+    fn compile(text: &str) -> Plan {
+        let mut sources = SourceMap::new();
+        let file = sources.add("two.readi", text);
+        let out = passes::run(file, text, &Options::default());
+        assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+        let module = out.module.expect("a module");
+        let weights = backend::seeded_weights(&module.graph, 3);
+        backend::compile(&module, &weights, "seeded", &CompileOptions::default())
+            .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)))
+            .0
+    }
+
+    /// The listing names every step's kernel and spec path, in execution order, with the
+    /// fused ReLU in the conv's path; without `verbose` only the summary line.
+    #[test]
+    fn schedule_lists_each_step_in_order() {
+        let plan = compile(TWO_LAYERS);
+        let listing = schedule(&plan.manifest, true);
+        let mut lines = listing.lines();
+        assert_eq!(
+            lines.next(),
+            Some("schedule: 4 steps (1 conv2d, 1 global_avgpool, 1 reshape, 1 linear)"),
+            "{listing}"
+        );
+        let expected = [
+            ("conv2d", "[N, 8, 8, 8]", "conv (+relu#0)"),
+            ("global_avgpool", "[N, 8, 1, 1]", "pool"),
+            ("reshape", "[N, 8]", "reshape#0"),
+            ("linear", "[N, 4]", "fc"),
+        ];
+        let steps: Vec<&str> = lines.collect();
+        assert_eq!(steps.len(), expected.len(), "{listing}");
+        for (k, (line, (kernel, shape, path))) in steps.iter().zip(expected).enumerate() {
+            let head = format!("{k:>4} %{} = {kernel}(%{k}) {shape}", k + 1);
+            assert!(line.trim_start().starts_with(head.trim_start()), "step {k}: want `{head}`, got `{line}`");
+            assert!(line.ends_with(&format!("  {path}")), "step {k}: want path `{path}`, got `{line}`");
+        }
+        assert!(listing.ends_with('\n'));
+        assert_eq!(schedule(&plan.manifest, false), format!("{}\n", listing.lines().next().unwrap_or_default()));
+    }
+}
