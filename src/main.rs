@@ -1,9 +1,6 @@
 //! `readi`: the command-line front end of the readi compiler and runtime.
 
-mod adapt_bn;
-mod demo;
-mod deploy;
-mod tensor_io;
+mod cli;
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -12,6 +9,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use cli::{adapt_bn, demo, deploy, tensor_io};
 use readi_compiler::backend::{self, CompileOptions, LoraMode, WeightSet};
 use readi_compiler::passes::{self, Options, Outcome, PIPELINE, Pass};
 use readi_compiler::print;

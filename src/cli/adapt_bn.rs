@@ -16,7 +16,7 @@ use readi_runtime::exec::Input;
 use readi_runtime::plan::{BASE_VARIANT, Plan};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use crate::tensor_io;
+use super::tensor_io;
 
 /// What `readi adapt-bn` was asked to do.
 pub struct Args<'a> {

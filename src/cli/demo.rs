@@ -18,7 +18,7 @@ use readi_runtime::plan::Plan;
 use crate::Frontend;
 
 /// The embedded model.
-pub const MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../models/bevfusion_tiny.readi"));
+pub const MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../../models/bevfusion_tiny.readi"));
 
 /// The variants the demo compiles: every fog level, two exposures, the lost lidar.
 const VARIANTS: &[&str] = &[
