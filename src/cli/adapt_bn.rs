@@ -5,6 +5,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -16,7 +17,7 @@ use readi_runtime::exec::Input;
 use readi_runtime::plan::{BASE_VARIANT, Plan};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use crate::tensor_io;
+use super::{tensor_io, threads_or_default};
 
 /// What `readi adapt-bn` was asked to do.
 pub struct Args<'a> {
@@ -28,7 +29,7 @@ pub struct Args<'a> {
 }
 
 /// Runs `readi adapt-bn`; the error is the message to print.
-pub fn run(args: &Args<'_>) -> Result<(), String> {
+pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     let start = Instant::now();
     let plan = Arc::new(Plan::load(args.plan).map_err(|e| e.to_string())?);
     let key = check_key(&plan, args.variant)?;
@@ -176,4 +177,19 @@ fn write_stats(out: &Path, stats: &[BnStats], key: &str, cal: &BnCalibrator, mod
     ]);
     let file = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
     std::fs::write(out, file).map_err(|e| format!("cannot write {}: {e}", out.display()))
+}
+
+/// `readi adapt-bn` as dispatched: [`adapt`], its error printed.
+pub fn run(
+    plan: &Path,
+    variant: &str,
+    samples: &[PathBuf],
+    output: &Path,
+    threads: Option<usize>,
+) -> Result<(), ExitCode> {
+    let args = Args { plan, variant, samples, output, threads: threads_or_default(threads) };
+    adapt(&args).map_err(|msg| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    })
 }

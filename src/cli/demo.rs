@@ -15,10 +15,10 @@ use readi_compiler::print;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;
 
-use crate::Frontend;
+use super::frontend::Frontend;
 
 /// The embedded model.
-pub const MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../models/bevfusion_tiny.readi"));
+pub const MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../../models/bevfusion_tiny.readi"));
 
 /// The variants the demo compiles: every fog level, two exposures, the lost lidar.
 const VARIANTS: &[&str] = &[

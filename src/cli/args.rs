@@ -1,0 +1,285 @@
+//! The command line: `Cli`, one `Command` variant per command with its arguments and help
+//! text, and the parsers of `NAME=VALUE`-style arguments.
+
+use std::path::PathBuf;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use readi_compiler::passes::{PIPELINE, Pass};
+
+const EXAMPLES: &str = "\
+Examples:
+  readi demo                                 compile and run the bundled BEVFusion-tiny model
+  readi compile models/resnet18.readi --weights resnet18.safetensors -o resnet18.plan
+  readi run resnet18.plan --input image=img.npy --output logits.npy
+  readi bench resnet18.plan --threads 2 --runs 50
+  readi inspect resnet18.plan
+  readi check models/*.readi                 check specs; exit status 1 on errors
+  readi params models/resnet18.readi         parameter table with the total
+  readi params models/resnet18.readi --set num_classes=10
+  readi ir models/vit_encoder.readi --stop-after elaborate
+  readi graph models/resnet18.readi -o resnet18.dot && dot -Tsvg resnet18.dot > resnet18.svg
+  readi ast models/pointpillars_bev.readi    the file as the parser understood it
+  readi simulate 000042.bin -o fog.bin --fog 0.06 --seed 1    the paper's fog, snow, gamma, blur";
+
+#[derive(Parser)]
+#[command(name = "readi", version, about = "Compiler for adaptive autonomous-driving perception networks (t-READi)", after_help = EXAMPLES)]
+pub struct Cli {
+    /// Colour diagnostics.
+    #[arg(long, value_enum, default_value_t = ColorWhen::Auto, global = true)]
+    pub color: ColorWhen,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum ColorWhen {
+    Auto,
+    Always,
+    Never,
+}
+
+#[derive(clap::Args, Clone, Default)]
+pub struct ModelArgs {
+    /// Set a model parameter, overriding its default (repeatable): `--set num_classes=10`.
+    #[arg(long = "set", value_name = "NAME=VALUE", value_parser = parse_set)]
+    pub set: Vec<(String, String)>,
+}
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// Parse, elaborate and check spec files; report every error.
+    #[command(after_help = "Example:\n  readi check models/*.readi")]
+    Check {
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        #[command(flatten)]
+        model: ModelArgs,
+        /// Treat warnings as errors.
+        #[arg(long)]
+        deny_warnings: bool,
+    },
+    /// Print the file as the parser understood it (canonical source, precedence made explicit).
+    #[command(after_help = "Example:\n  readi ast models/resnet18.readi")]
+    Ast {
+        file: PathBuf,
+        /// Print the raw syntax tree (Rust debug form, with byte spans).
+        #[arg(long)]
+        debug: bool,
+    },
+    /// Print the graph IR after the pipeline, or after one pass.
+    #[command(after_help = "Example:\n  readi ir models/resnet18.readi --stop-after elaborate")]
+    Ir {
+        file: PathBuf,
+        /// Stop after this pass (see `readi passes`).
+        #[arg(long, value_name = "PASS", value_parser = parse_pass)]
+        stop_after: Option<Pass>,
+        #[command(flatten)]
+        model: ModelArgs,
+    },
+    /// Write the graph as Graphviz DOT (to stdout, or to a file with -o).
+    #[command(after_help = "Example:\n  readi graph models/resnet18.readi -o r18.dot && dot -Tsvg r18.dot > r18.svg")]
+    Graph {
+        file: PathBuf,
+        /// Output file (default: stdout).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+        /// Stop after this pass (see `readi passes`).
+        #[arg(long, value_name = "PASS", value_parser = parse_pass)]
+        stop_after: Option<Pass>,
+        #[command(flatten)]
+        model: ModelArgs,
+    },
+    /// Print every parameter (name, shape, count) and the total.
+    #[command(after_help = "Example:\n  readi params models/resnet18.readi --set num_classes=10")]
+    Params {
+        file: PathBuf,
+        /// Also list buffers (BatchNorm running statistics).
+        #[arg(long)]
+        buffers: bool,
+        #[command(flatten)]
+        model: ModelArgs,
+    },
+    /// List the passes of the pipeline.
+    Passes,
+    /// Compile a spec, its weights (safetensors, PyTorch names) and its variants into a plan file.
+    #[command(
+        after_help = "Examples:\n  readi compile models/resnet18.readi --weights r18.safetensors -o r18.plan\n  \
+                            readi compile models/resnet18.readi --weights r18.safetensors -o r18.plan \\\n      \
+                            --variant gamma=0.25=g025.safetensors --variant gamma=0.25=adapters/g025\n  \
+                            readi compile --deploy deploy.yaml -o r18.plan"
+    )]
+    Compile {
+        /// The spec (not with --deploy).
+        #[arg(required_unless_present = "deploy", conflicts_with = "deploy")]
+        spec: Option<PathBuf>,
+        /// Base weights: a safetensors file of the model's state_dict (f32, f16 or bf16).
+        #[arg(long, required_unless_present = "deploy", conflicts_with = "deploy")]
+        weights: Option<PathBuf>,
+        /// A deployment manifest (YAML) naming the spec, the base weights and the variants.
+        #[arg(long)]
+        deploy: Option<PathBuf>,
+        /// A variant's parameters, `KEY=PATH` (repeatable): a safetensors file of the tensors
+        /// it owns, or a PEFT adapter directory; give a key twice to combine both.
+        #[arg(long = "variant", value_name = "KEY=PATH", value_parser = parse_variant_arg)]
+        variants: Vec<(String, String)>,
+        /// How LoRA runs: merged into the adapted weights per variant (no run-time cost) or
+        /// as a side branch (smaller variants).
+        #[arg(long, value_enum)]
+        lora: Option<LoraArg>,
+        /// An owned parameter a variant does not give is an error (else a warning; it keeps
+        /// the base value).
+        #[arg(long)]
+        strict: bool,
+        /// A melded variant for a combined condition, `fog=0.06+gamma=0.5` (repeatable): the
+        /// spec's meld rule interpolates the given variants' parameters.
+        #[arg(long = "meld", value_name = "KEY+KEY")]
+        melds: Vec<String>,
+        /// The plan file to write.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Warn about tensors the model does not use instead of failing.
+        #[arg(long)]
+        allow_unused: bool,
+        #[command(flatten)]
+        model: ModelArgs,
+    },
+    /// Run a plan on inputs from .npy or .safetensors files.
+    #[command(after_help = "Examples:\n  readi run r18.plan --input image=img.npy --output logits.npy\n  \
+                            readi run bev.plan --input camera=cams.npy --input lidar_bev=bev.npy --output out.safetensors")]
+    Run {
+        plan: PathBuf,
+        /// An input, `NAME=FILE` (repeatable). Absent `optional` inputs are zeros.
+        #[arg(long = "input", value_name = "NAME=FILE", value_parser = parse_set)]
+        inputs: Vec<(String, String)>,
+        /// Where to write outputs: a .safetensors file (all outputs), a .npy file (the
+        /// only output), or `NAME=FILE.npy` for one output (repeatable).
+        #[arg(long = "output", value_name = "FILE")]
+        outputs: Vec<String>,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// The variant to run, by key (`fog=0.03`); default the base model.
+        #[arg(long, value_name = "KEY", conflicts_with = "auto")]
+        variant: Option<String>,
+        /// Choose the variant from the inputs and metadata by the spec's selectors, and
+        /// print which and why.
+        #[arg(long)]
+        auto: bool,
+        /// Run metadata for `--auto`, `NAME=VALUE` (repeatable), e.g. `fog_density=0.05`.
+        #[arg(long = "meta", value_name = "NAME=VALUE", value_parser = parse_meta)]
+        meta: Vec<(String, f64)>,
+        /// Dropped views of a multi-view input, `NAME=V,V` (e.g. `camera=1,4`): zero-filled.
+        #[arg(long = "drop-views", value_name = "NAME=V,V", value_parser = parse_views)]
+        drop_views: Vec<(String, Vec<usize>)>,
+    },
+    /// Time a plan on seeded random inputs: median and p90 latency.
+    #[command(after_help = "Example:\n  readi bench r18.plan --threads 2 --runs 50")]
+    Bench {
+        plan: PathBuf,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Timed runs.
+        #[arg(long, default_value_t = 20)]
+        runs: usize,
+        /// Untimed runs first.
+        #[arg(long, default_value_t = 3)]
+        warmup: usize,
+        /// Batch size bound to the plan's symbolic batch dimension.
+        #[arg(long, default_value_t = 1)]
+        batch: usize,
+        /// Also print the time of each step (the slowest first) and per kernel kind.
+        #[arg(long)]
+        profile: bool,
+        /// The variant to time, by key; default the base model.
+        #[arg(long, value_name = "KEY")]
+        variant: Option<String>,
+    },
+    /// Describe a plan: inputs, outputs, parameters, bytes, schedule and buffers.
+    #[command(after_help = "Example:\n  readi inspect r18.plan")]
+    Inspect {
+        plan: PathBuf,
+        /// Also list every parameter and every step.
+        #[arg(long)]
+        verbose: bool,
+    },
+    /// Apply the paper's conditions to an input: lidar fog or snow, camera gamma and/or blur.
+    #[command(after_help = readi::simulate::EXAMPLES)]
+    Simulate(readi::simulate::SimulateArgs),
+    /// AdaBN: re-estimate every BatchNorm's statistics for a variant by running the base
+    /// model over unlabelled samples of its condition; writes a variant parameter file.
+    #[command(
+        name = "adapt-bn",
+        after_help = "Each sample file is one batch: a .npy (single-input models) or a .safetensors holding the \
+                      inputs by name.\n\nExample:\n  readi adapt-bn r18.plan --variant gamma=0.25 --samples dark/*.npy \
+                      -o gamma_0.25.safetensors\n  \
+                      readi compile models/resnet18.readi --weights r18.safetensors \
+                      --variant gamma=0.25=gamma_0.25.safetensors -o r18.plan"
+    )]
+    AdaptBn {
+        /// The plan, whose base model runs.
+        plan: PathBuf,
+        /// The variant the statistics are for, by key (`gamma=0.25`).
+        #[arg(long, value_name = "KEY")]
+        variant: String,
+        /// Sample files, one batch each, processed in order.
+        #[arg(long, value_name = "FILE", num_args = 1.., required = true)]
+        samples: Vec<PathBuf>,
+        /// The safetensors file to write (`<bn>.running_mean`, `<bn>.running_var`).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+    },
+    /// Compile the bundled BEVFusion-tiny model with seeded weights and variants; drive through changing conditions.
+    Demo {
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Frames of the drive to run (it repeats after 8).
+        #[arg(long, default_value_t = 8)]
+        frames: usize,
+    },
+}
+
+fn parse_set(s: &str) -> Result<(String, String), String> {
+    match s.split_once('=') {
+        Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_string(), v.trim().to_string())),
+        _ => Err(format!("expected NAME=VALUE, got `{s}`")),
+    }
+}
+
+/// `KEY=PATH`, where the key is itself `name=value` (`fog=0.03=fog.safetensors`): the path
+/// starts after the key's second `=`, so paths may hold `=` too.
+fn parse_variant_arg(s: &str) -> Result<(String, String), String> {
+    let split = s.find('=').and_then(|first| s[first + 1..].find('=').map(|second| first + 1 + second));
+    match split.map(|at| (s[..at].trim(), s[at + 1..].trim())) {
+        Some((k, v)) if !k.is_empty() && !v.is_empty() => Ok((k.to_string(), v.to_string())),
+        _ => Err(format!("expected KEY=PATH with KEY like fog=0.03 (for example fog=0.03=fog.safetensors), got `{s}`")),
+    }
+}
+
+fn parse_meta(s: &str) -> Result<(String, f64), String> {
+    let (k, v) = parse_set(s)?;
+    v.parse::<f64>().ok().filter(|v| v.is_finite()).map(|v| (k, v)).ok_or(format!("`{s}`: the value must be a number"))
+}
+
+fn parse_views(s: &str) -> Result<(String, Vec<usize>), String> {
+    let (k, v) = parse_set(s)?;
+    let views: Result<Vec<usize>, _> = v.split(',').map(|x| x.trim().parse::<usize>()).collect();
+    views.map(|views| (k, views)).map_err(|_| format!("`{s}`: expected NAME=V,V with view numbers, e.g. camera=1,4"))
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum LoraArg {
+    Merge,
+    Branch,
+}
+
+fn parse_pass(s: &str) -> Result<Pass, String> {
+    Pass::from_name(s).ok_or_else(|| {
+        let names: Vec<&str> = PIPELINE.iter().map(|p| p.1).collect();
+        format!("unknown pass `{s}`; passes: {}", names.join(", "))
+    })
+}

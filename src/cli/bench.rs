@@ -1,0 +1,88 @@
+//! `readi bench`: a plan's latency on seeded inputs, and with `--profile` where the time goes.
+
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use readi_runtime::exec::{Input, Session};
+use readi_runtime::plan::Plan;
+
+use super::{load_plan, threads_or_default};
+
+/// Seeded inputs for every input of a plan at the given batch size.
+fn synthetic_inputs(plan: &Plan, batch: usize, seed: u64) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+    let mut state = seed;
+    plan.manifest
+        .input_shapes(batch)
+        .into_iter()
+        .map(|(name, shape)| {
+            let n = shape.iter().product();
+            let data = (0..n)
+                .map(|_| {
+                    state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                    ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+                })
+                .collect();
+            (name.to_string(), shape, data)
+        })
+        .collect()
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+pub fn run(
+    plan_path: &Path,
+    threads: Option<usize>,
+    runs: usize,
+    warmup: usize,
+    batch: usize,
+    profile: bool,
+    variant: Option<&str>,
+) -> Result<(), ExitCode> {
+    let plan = load_plan(plan_path)?;
+    let fail = |msg: String| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    };
+    let threads = threads_or_default(threads);
+    let mut session = Session::new(plan.clone(), threads).map_err(|e| fail(e.to_string()))?;
+    if let Some(key) = variant {
+        session.set_variant(key).map_err(|e| fail(e.to_string()))?;
+    }
+    let data = synthetic_inputs(&plan, batch.max(1), 42);
+    let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
+    for _ in 0..warmup {
+        session.run(&given).map_err(|e| fail(e.to_string()))?;
+    }
+    if profile {
+        session.enable_profiling();
+    }
+    let mut times = Vec::with_capacity(runs.max(1));
+    for _ in 0..runs.max(1) {
+        let t = Instant::now();
+        session.run(&given).map_err(|e| fail(e.to_string()))?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    println!(
+        "{} ({}): batch {}, {} threads, {} runs: median {:.2} ms, p90 {:.2} ms, min {:.2} ms",
+        plan.manifest.model,
+        session.variant(),
+        batch.max(1),
+        threads,
+        times.len(),
+        percentile(&times, 0.5),
+        percentile(&times, 0.9),
+        times[0]
+    );
+    if let Some(p) = session.profile() {
+        print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));
+    }
+    Ok(())
+}

@@ -1,0 +1,107 @@
+//! `readi compile`: a spec, its weights and its variants (from the command line or a
+//! deployment manifest) into a plan file.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use readi_compiler::backend::{self, CompileOptions, LoraMode, WeightSet};
+use readi_compiler::print;
+use readi_grammar::diag::Diagnostics;
+
+use super::args::{LoraArg, ModelArgs};
+use super::deploy;
+use super::frontend::{Frontend, summary_line};
+
+/// The arguments of `readi compile` but the output file.
+pub struct CompileArgs {
+    pub spec: Option<PathBuf>,
+    pub weights: Option<PathBuf>,
+    pub deploy: Option<PathBuf>,
+    pub variants: Vec<(String, String)>,
+    pub lora: Option<LoraArg>,
+    pub strict: bool,
+    pub melds: Vec<String>,
+    pub allow_unused: bool,
+    pub model: ModelArgs,
+}
+
+pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), ExitCode> {
+    let start = Instant::now();
+    let fail = |msg: String| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    };
+    let mut model = args.model;
+    let mut melds = args.melds.clone();
+    let (spec, weights, mut variant_files, mut lora) = match &args.deploy {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read {}: {e}", path.display())))?;
+            let d = deploy::parse(path, &text).map_err(fail)?;
+            model.set.extend(d.set);
+            melds.extend(d.melds);
+            let lora = match d.lora.as_deref() {
+                None => None,
+                Some("merge") => Some(LoraMode::Merge),
+                Some("branch") => Some(LoraMode::Branch),
+                Some(other) => {
+                    return Err(fail(format!("{}: `lora` is `{other}`; use merge or branch", path.display())));
+                }
+            };
+            (d.spec, d.weights, d.variants, lora)
+        }
+        None => match (args.spec, args.weights) {
+            (Some(spec), Some(weights)) => (spec, weights, Vec::new(), None),
+            _ => return Err(fail("give a spec and --weights, or --deploy".into())),
+        },
+    };
+    variant_files.extend(deploy::variant_args(&args.variants));
+    if let Some(l) = args.lora {
+        lora = Some(match l {
+            LoraArg::Merge => LoraMode::Merge,
+            LoraArg::Branch => LoraMode::Branch,
+        });
+    }
+    let (out, _) = s.compile(&spec, &model, None)?;
+    let Some(module) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
+        eprintln!("error: {}", summary_line(&spec.display().to_string(), &out.diagnostics));
+        return Err(ExitCode::FAILURE);
+    };
+    let wname = weights.display().to_string();
+    let bytes = std::fs::read(&weights).map_err(|e| fail(format!("cannot read {wname}: {e}")))?;
+    let report = |s: &Frontend, d: Diagnostics| {
+        s.report(&d);
+        ExitCode::FAILURE
+    };
+    let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| report(s, d))?;
+    let mut sources = Vec::new();
+    for files in &variant_files {
+        sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
+    }
+    let opts =
+        CompileOptions { allow_unused: args.allow_unused, lora: lora.unwrap_or_default(), strict: args.strict, melds };
+    let (plan, warnings) = backend::compile_variants(&module, &set, &wname, &sources, &opts).map_err(|d| {
+        s.report(&d);
+        eprintln!("error: {}", summary_line(&wname, &d));
+        ExitCode::FAILURE
+    })?;
+    s.report(&warnings);
+    plan.write(output).map_err(|e| fail(e.to_string()))?;
+    let m = &plan.manifest;
+    let variants = match m.variants.len() {
+        0 => String::new(),
+        1 => format!(", 1 variant (LoRA {})", opts.lora.name()),
+        n => format!(", {n} variants (LoRA {})", opts.lora.name()),
+    };
+    println!(
+        "wrote {}: {} steps, {} tensors ({}){variants}, {} activation buffers, {:.0} ms",
+        output.display(),
+        m.steps.len(),
+        m.tensors.len(),
+        print::bytes(plan.tensor_bytes() as u64),
+        m.slots,
+        start.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(())
+}

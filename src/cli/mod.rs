@@ -1,0 +1,40 @@
+//! The commands of `readi`, one module per command (`ir` also holds `graph` and
+//! `passes`); `main.rs` parses the command line and dispatches to them.
+
+use std::path::Path;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use readi_runtime::plan::Plan;
+
+pub mod adapt_bn;
+pub mod args;
+pub mod ast;
+pub mod bench;
+pub mod check;
+pub mod compile;
+pub mod demo;
+pub mod deploy;
+pub mod frontend;
+pub mod inspect;
+pub mod ir;
+pub mod params;
+pub mod run;
+pub mod simulate;
+pub mod tensor_io;
+
+/// `--threads`, or every core.
+pub fn threads_or_default(threads: Option<usize>) -> usize {
+    threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)).max(1)
+}
+
+/// Loads a plan file; the error is printed.
+pub fn load_plan(path: &Path) -> Result<Arc<Plan>, ExitCode> {
+    match Plan::load(path) {
+        Ok(p) => Ok(Arc::new(p)),
+        Err(e) => {
+            eprintln!("error: {e}");
+            Err(ExitCode::FAILURE)
+        }
+    }
+}

@@ -1,0 +1,101 @@
+//! `readi run`: a plan on inputs from files, with the base model, a variant by key, or the
+//! variant the spec's selectors choose; outputs summarised and written to files.
+
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use readi_runtime::exec::{Input, Session, Tensor};
+
+use super::{load_plan, tensor_io, threads_or_default};
+
+/// Which variant a run uses.
+pub enum Choice {
+    Base,
+    Key(String),
+    /// Chosen by the spec's selectors from the inputs and this metadata.
+    Auto(Vec<(String, f64)>),
+}
+
+/// Summary of a tensor for terminal output: shape, min, max, mean.
+fn describe(t: &Tensor) -> String {
+    let (mut lo, mut hi, mut sum) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f64);
+    for &v in &t.data {
+        lo = lo.min(v);
+        hi = hi.max(v);
+        sum += v as f64;
+    }
+    let mean = if t.data.is_empty() { 0.0 } else { sum / t.data.len() as f64 };
+    format!("{:?}  min {lo:.4}  max {hi:.4}  mean {mean:.4}", t.shape)
+}
+
+pub fn run(
+    plan_path: &Path,
+    inputs: &[(String, String)],
+    outputs: &[String],
+    threads: Option<usize>,
+    choice: Choice,
+    drop_views: &[(String, Vec<usize>)],
+) -> Result<(), ExitCode> {
+    let plan = load_plan(plan_path)?;
+    let fail = |msg: String| {
+        eprintln!("error: {msg}");
+        ExitCode::FAILURE
+    };
+    let mut loaded = Vec::new();
+    for (name, file) in inputs {
+        loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file)).map_err(fail)?));
+    }
+    for (name, views) in drop_views {
+        let Some((_, (shape, data))) = loaded.iter_mut().find(|(n, _)| n == name) else {
+            return Err(fail(format!("--drop-views names `{name}`, which is not given with --input")));
+        };
+        readi_runtime::conditions::drop_views(data, shape, views).map_err(|e| fail(format!("input `{name}`: {e}")))?;
+    }
+    let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
+    let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
+    match choice {
+        Choice::Base => {
+            if let Some((key, why)) = plan.missing_variant(&given) {
+                println!("{why}");
+                session.set_variant(&key).map_err(|e| fail(e.to_string()))?;
+            }
+        }
+        Choice::Key(key) => session.set_variant(&key).map_err(|e| fail(e.to_string()))?,
+        Choice::Auto(meta) => {
+            let t = Instant::now();
+            let sel = plan.select(&given, &meta).map_err(|e| fail(e.to_string()))?;
+            let us = t.elapsed().as_secs_f64() * 1e6;
+            println!("selected variant {} ({us:.0} us):", sel.key);
+            for r in &sel.reasons {
+                println!("  {r}");
+            }
+            session.set_variant(&sel.key).map_err(|e| fail(e.to_string()))?;
+        }
+    }
+    let start = Instant::now();
+    let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
+    let elapsed = start.elapsed();
+    for (name, t) in &result {
+        println!("{name}: {}", describe(t));
+    }
+    println!(
+        "ran variant {} in {:.2} ms on {} threads",
+        session.last_variant().map_or("base", |v| plan.variant_key(v)),
+        elapsed.as_secs_f64() * 1e3,
+        session.threads()
+    );
+    let names: Vec<&str> = result.iter().map(|(n, _)| n.as_str()).collect();
+    for spec in outputs {
+        match spec.split_once('=').filter(|(n, _)| names.contains(n)) {
+            Some((name, file)) => {
+                let t = result.iter().find(|(n, _)| n == name).map(|(_, t)| t);
+                if let Some(t) = t {
+                    tensor_io::write_npy(Path::new(file), t).map_err(fail)?;
+                }
+            }
+            None => tensor_io::write_outputs(Path::new(spec), &result).map_err(fail)?,
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,294 @@
+//! A compiled plan as text: what `readi inspect` and `readi bench --profile` print, as
+//! functions that return the text instead of printing it, so that other code (snapshot
+//! tests, a listing of the lowered schedule) shows a plan exactly as the CLI does.
+//!
+//! Every function returns whole lines, each ending in `\n`; [`plan`] is `readi inspect`'s
+//! output, the others its sections. The ones that need only the manifest take a
+//! [`Manifest`], so they also serve a schedule that is not yet a stored plan.
+
+use std::collections::HashSet;
+use std::fmt::{self, Write};
+use std::path::Path;
+
+use readi_compiler::print;
+use readi_runtime::plan::{Kernel, Manifest, Plan, Storage, show_shape};
+
+/// Runs a writer into a new string.
+fn render(f: impl FnOnce(&mut String) -> fmt::Result) -> String {
+    let mut out = String::new();
+    // Writing to a `String` cannot fail.
+    let _ = f(&mut out);
+    out
+}
+
+/// `readi inspect`: the [`header`], the [`budget`] table, with `verbose` every
+/// [`parameter`](params), the [`schedule`] (with `verbose`, every step) and the [`buffers`].
+/// `path` is the file the plan was loaded from (and its checksum checked).
+pub fn plan(plan: &Plan, path: &Path, verbose: bool) -> String {
+    let m = &plan.manifest;
+    let mut out = header(plan, path);
+    out += &budget(plan, spec_parameters(m), verbose);
+    if verbose {
+        out += &params(m);
+    }
+    out += &schedule(m, verbose);
+    out += &buffers(m);
+    out
+}
+
+/// The parameters the spec declares (trainable, not added by adaptation): the base model's
+/// size, which the variants' budgets are shares of.
+pub fn spec_parameters(m: &Manifest) -> u64 {
+    m.params.iter().filter(|p| p.trainable && !p.added).map(|p| p.shape.iter().product::<usize>()).sum::<usize>() as u64
+}
+
+/// The plan file, the model and its parameter values, the inputs and outputs with their
+/// shapes, and the parameter count and stored bytes.
+pub fn header(plan: &Plan, path: &Path) -> String {
+    render(|out| {
+        let m = &plan.manifest;
+        let params: Vec<String> = m.model_params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+        writeln!(out, "plan {} (format version {}, checksum ok)", path.display(), m.format_version)?;
+        writeln!(out, "model {}({})", m.model, params.join(", "))?;
+        writeln!(out, "inputs:")?;
+        for i in &m.inputs {
+            let modality = i.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
+            let opt = if i.optional { " optional" } else { "" };
+            writeln!(out, "  {}: f32{}{modality}{opt}", i.name, show_shape(&i.shape))?;
+        }
+        writeln!(out, "outputs:")?;
+        for o in &m.outputs {
+            writeln!(out, "  {}: f32{}", o.name, show_shape(&m.values[o.value].shape))?;
+        }
+        writeln!(
+            out,
+            "parameters: {} in the spec; stored: {} tensors, {}",
+            print::thousands(spec_parameters(m)),
+            m.tensors.len(),
+            print::bytes(plan.tensor_bytes() as u64)
+        )
+    })
+}
+
+/// Every parameter the spec declares: name, shape and how the plan stores it.
+pub fn params(m: &Manifest) -> String {
+    render(|out| {
+        for p in &m.params {
+            writeln!(out, "  {:<40} {:?} {}", p.name, p.shape, p.stored_as)?;
+        }
+        Ok(())
+    })
+}
+
+/// The per-variant budget table: parameters each variant owns (the paper's exist and
+/// add budgets, as a share of `base_params`, the base model's parameters) and the bytes it
+/// stores. With `verbose`, also each variant's replaced tensors. Empty without variants.
+pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
+    render(|out| {
+        let m = &plan.manifest;
+        if m.variants.is_empty() {
+            return Ok(());
+        }
+        let replacement: HashSet<usize> = m.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
+        let bytes_of = |t: usize| m.tensors[t].numel() as u64 * 4;
+        let base_bytes: u64 = (0..m.tensors.len()).filter(|t| !replacement.contains(t)).map(bytes_of).sum();
+        let pct = |a: u64, b: u64| 100.0 * a as f64 / b.max(1) as f64;
+        writeln!(
+            out,
+            "variants: {} (base {} stored once; the variants add {}, shared tensors stored once)",
+            m.variants.len(),
+            print::bytes(base_bytes),
+            print::bytes(plan.tensor_bytes() as u64 - base_bytes)
+        )?;
+        let width = m.variants.iter().map(|v| v.key.len()).max().unwrap_or(0).max(7);
+        writeln!(
+            out,
+            "  {:<width$}  {:>20}  {:>20}  {:>30}",
+            "variant", "exist budget (tuned)", "add budget (new)", "stored: tuned + added = % base"
+        )?;
+        for v in &m.variants {
+            let (mut tuned, mut added) = (0u64, 0u64);
+            for r in &v.replaces {
+                *(if r.added { &mut added } else { &mut tuned }) += bytes_of(r.with);
+            }
+            let fallback =
+                if v.fallback.is_empty() { String::new() } else { format!("  ({} at base value)", v.fallback.len()) };
+            writeln!(
+                out,
+                "  {:<width$}  {:>10} {:>8.2}%  {:>10} {:>8.2}%  {:>9} + {:>9} = {:>5.2}%{fallback}",
+                v.key,
+                print::thousands(v.tuned_elements),
+                pct(v.tuned_elements, base_params),
+                print::thousands(v.added_elements),
+                pct(v.added_elements, base_params),
+                print::bytes(tuned),
+                print::bytes(added),
+                pct(tuned + added, base_bytes),
+            )?;
+            if verbose {
+                for r in &v.replaces {
+                    let shared =
+                        if m.variants.iter().filter(|o| o.replaces.iter().any(|x| x.with == r.with)).count() > 1 {
+                            " (shared)"
+                        } else {
+                            ""
+                        };
+                    writeln!(out, "      {} -> {}{shared}", m.tensors[r.base].name, m.tensors[r.with].name)?;
+                }
+            }
+        }
+        Ok(())
+    })
+}
+
+/// The schedule: its step count by kernel kind, in order of first use; with `verbose`,
+/// then one line per step: index, output value, kernel, input values, output shape and the
+/// spec path of the nodes it computes.
+pub fn schedule(m: &Manifest, verbose: bool) -> String {
+    render(|out| {
+        let mut kinds: Vec<(&str, usize)> = Vec::new();
+        for st in &m.steps {
+            match kinds.iter_mut().find(|(k, _)| *k == st.kernel.name()) {
+                Some(e) => e.1 += 1,
+                None => kinds.push((st.kernel.name(), 1)),
+            }
+        }
+        let kinds: Vec<String> = kinds.iter().map(|(k, n)| format!("{n} {k}")).collect();
+        writeln!(out, "schedule: {} steps ({})", m.steps.len(), kinds.join(", "))?;
+        if verbose {
+            for (k, st) in m.steps.iter().enumerate() {
+                let ins: Vec<String> = st.inputs.iter().map(|i| format!("%{i}")).collect();
+                writeln!(
+                    out,
+                    "  {k:>4} %{} = {}({}) {}  {}",
+                    st.output,
+                    st.kernel.name(),
+                    ins.join(", "),
+                    show_shape(&m.values[st.output].shape),
+                    st.path
+                )?;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// The activation buffers: how many, and their bytes at batch 1 with and without the
+/// planned reuse.
+pub fn buffers(m: &Manifest) -> String {
+    render(|out| {
+        let ones = m.batch_bindings(1);
+        let mut slot_len = vec![0usize; m.slots];
+        let mut total_values = 0usize;
+        for v in &m.values {
+            if let Storage::Slot(s) = v.storage {
+                let n: usize = v.shape.iter().map(|d| d.eval(&ones).unwrap_or(0)).product();
+                slot_len[s] = slot_len[s].max(n);
+                total_values += n;
+            }
+        }
+        let planned: usize = slot_len.iter().sum();
+        writeln!(
+            out,
+            "buffers: {} slots, {} at batch 1 ({} without reuse)",
+            m.slots,
+            print::bytes(planned as u64 * 4),
+            print::bytes(total_values as u64 * 4)
+        )
+    })
+}
+
+/// Per-kernel-kind and per-step time from a profiled session (`seconds`, one per step,
+/// summed over `runs`), as the mean per run: the kinds by total time, then the twelve
+/// slowest steps.
+pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
+    render(|out| {
+        let total: f64 = seconds.iter().sum();
+        let ms = |s: f64| s * 1e3 / runs.max(1) as f64;
+        let mut kinds: Vec<(String, f64)> = Vec::new();
+        for (st, &t) in m.steps.iter().zip(seconds) {
+            let kind = match &st.kernel {
+                Kernel::Conv2d { algo, .. } => format!("conv2d/{algo}"),
+                k => k.name().to_string(),
+            };
+            match kinds.iter_mut().find(|(k, _)| *k == kind) {
+                Some(e) => e.1 += t,
+                None => kinds.push((kind, t)),
+            }
+        }
+        kinds.sort_by(|a, b| b.1.total_cmp(&a.1));
+        writeln!(out, "time per kernel kind (mean per run):")?;
+        for (k, t) in &kinds {
+            writeln!(out, "  {k:<20} {:8.3} ms  {:5.1}%", ms(*t), 100.0 * t / total.max(1e-12))?;
+        }
+        let mut steps: Vec<(usize, f64)> = seconds.iter().copied().enumerate().collect();
+        steps.sort_by(|a, b| b.1.total_cmp(&a.1));
+        writeln!(out, "slowest steps:")?;
+        for (k, t) in steps.iter().take(12) {
+            let st = &m.steps[*k];
+            writeln!(out, "  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), st.path)?;
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use readi_compiler::backend::{self, CompileOptions};
+    use readi_compiler::passes::{self, Options};
+    use readi_grammar::diag::SourceMap;
+
+    use super::*;
+
+    const TWO_LAYERS: &str = "\
+model two(hidden: int = 8) {
+  input x: f32[N, 3, 8, 8] @camera
+  conv = conv2d(x, hidden, kernel=3, padding=1)
+  let a = relu(conv)
+  pool = global_avgpool(a)
+  fc = linear(flatten(pool, start=1), 4)
+  output y = fc
+}
+";
+
+    fn compile(text: &str) -> Plan {
+        let mut sources = SourceMap::new();
+        let file = sources.add("two.readi", text);
+        let out = passes::run(file, text, &Options::default());
+        assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+        let module = out.module.expect("a module");
+        let weights = backend::seeded_weights(&module.graph, 3);
+        backend::compile(&module, &weights, "seeded", &CompileOptions::default())
+            .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)))
+            .0
+    }
+
+    /// The listing names every step's kernel and spec path, in execution order, with the
+    /// fused ReLU in the conv's path; without `verbose` only the summary line.
+    #[test]
+    fn schedule_lists_each_step_in_order() {
+        let plan = compile(TWO_LAYERS);
+        let listing = schedule(&plan.manifest, true);
+        let mut lines = listing.lines();
+        assert_eq!(
+            lines.next(),
+            Some("schedule: 4 steps (1 conv2d, 1 global_avgpool, 1 reshape, 1 linear)"),
+            "{listing}"
+        );
+        let expected = [
+            ("conv2d", "[N, 8, 8, 8]", "conv (+relu#0)"),
+            ("global_avgpool", "[N, 8, 1, 1]", "pool"),
+            ("reshape", "[N, 8]", "reshape#0"),
+            ("linear", "[N, 4]", "fc"),
+        ];
+        let steps: Vec<&str> = lines.collect();
+        assert_eq!(steps.len(), expected.len(), "{listing}");
+        for (k, (line, (kernel, shape, path))) in steps.iter().zip(expected).enumerate() {
+            let head = format!("{k:>4} %{} = {kernel}(%{k}) {shape}", k + 1);
+            assert!(line.trim_start().starts_with(head.trim_start()), "step {k}: want `{head}`, got `{line}`");
+            assert!(line.ends_with(&format!("  {path}")), "step {k}: want path `{path}`, got `{line}`");
+        }
+        assert!(listing.ends_with('\n'));
+        assert_eq!(schedule(&plan.manifest, false), format!("{}\n", listing.lines().next().unwrap_or_default()));
+    }
+}
