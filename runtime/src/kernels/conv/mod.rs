@@ -22,10 +22,15 @@
 //! epilogue while copying a finished tile from its scratch to the output, while the tile
 //! is still in cache.
 //!
-//! Only `gemm.rs` may use `unsafe`, so the transforms here are plain Rust written to
+//! Only `gemm.rs` may use `unsafe`, so the Winograd transforms are plain Rust written to
 //! auto-vectorise (fixed-size lane arrays), compiled for the widest SIMD the CPU has
 //! through pulp (see the [module doc](super)): the input transform uses 16, 8 or 4
 //! lanes as the tiles per row allow, the output transform 16.
+//!
+//! This file holds the geometry, the choice of algorithm, the weight packing, the
+//! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
+//! paths (Gemm1x1, Im2col), `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
+//! `tests.rs` the tests of every algorithm against one reference.
 
 use rayon::prelude::*;
 
