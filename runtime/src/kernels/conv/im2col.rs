@@ -1,0 +1,151 @@
+//! The GEMM paths, [`ConvAlgo::Gemm1x1`] and [`ConvAlgo::Im2col`]: per tile of output
+//! pixels (of one image and group), the input as it is or unfolded by [`im2col`], one GEMM
+//! into scratch, and the epilogue into the part's output planes.
+
+use super::split::Part;
+use super::{Conv2dShape, ConvAlgo, finish};
+use crate::kernels::Epilogue;
+use crate::kernels::gemm::{MatMut, MatRef, sgemm};
+
+/// Pixels per GEMM tile: the unfolded tile plus the result tile fill up to 1.5 MiB, in
+/// multiples of 16 pixels (the GEMM's vector width). Larger than L2, but each GEMM call
+/// packs the weight again, so fewer, larger tiles measured faster.
+pub(super) fn gemm_tile(s: &Conv2dShape, algo: ConvAlgo) -> usize {
+    let per_pixel = s.cout_g() + if algo == ConvAlgo::Im2col { s.k() } else { 0 };
+    let tile = (384 * 1024 / per_pixel.max(1)).clamp(16, 4096) / 16 * 16;
+    tile.min((s.oh * s.ow).div_ceil(16) * 16)
+}
+
+/// Gemm1x1 / Im2col over one part: per image, per tile of pixels, per group: (unfold,)
+/// GEMM into scratch, epilogue into the output.
+pub(super) fn gemm_part(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    w: &[f32],
+    ep: &Epilogue,
+    x: &[f32],
+    part: &mut Part,
+    scratch: &mut [f32],
+) {
+    let (cin_g, cout_g, k) = (s.cin_g(), s.cout_g(), s.k());
+    let plane_in = s.h * s.w;
+    let tile = gemm_tile(s, algo);
+    let (acc, col) = scratch.split_at_mut(tile * cout_g);
+    let last = (part.r1 - 1) / s.oh;
+    for n in part.n0..=last {
+        let (lo, hi) = part.rows_of(n, s.oh);
+        let (p_lo, p_hi) = (lo * s.ow, hi * s.ow);
+        let mut p0 = p_lo;
+        while p0 < p_hi {
+            let tp = tile.min(p_hi - p0);
+            for g in 0..s.groups {
+                let chans = part.channels_of(g, cout_g);
+                let mrows = chans.len();
+                if mrows == 0 {
+                    continue;
+                }
+                let xg = &x[(n * s.cin + g * cin_g) * plane_in..][..cin_g * plane_in];
+                let rhs = if algo == ConvAlgo::Gemm1x1 {
+                    MatRef { data: &xg[p0..], rows: cin_g, cols: tp, row_stride: plane_in, col_stride: 1 }
+                } else {
+                    im2col_simd(s, xg, p0, tp, &mut col[..k * tp]);
+                    MatRef::row_major(&col[..k * tp], k, tp)
+                };
+                let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
+                sgemm(lhs, rhs, MatMut::row_major(&mut acc[..mrows * tp], mrows, tp), false, 1);
+                finish_tile(part, n, chans, p0 - p_lo, acc, tp, ep);
+            }
+            p0 += tp;
+        }
+    }
+}
+
+simd_fn! {
+    /// The epilogue of one GEMM tile: row `c - chans.start` of `acc` (rows of `tp`) into
+    /// the part's plane of image `n`, channel `c`, from offset `off`.
+    fn finish_tile(
+        part: &mut Part<'_>,
+        n: usize,
+        chans: std::ops::Range<usize>,
+        off: usize,
+        acc: &[f32],
+        tp: usize,
+        ep: &Epilogue<'_>,
+    ) {
+        for (c, acc_row) in chans.zip(acc.chunks(tp)) {
+            finish(&mut part.plane(n, c)[off..], acc_row, c, ep);
+        }
+    }
+}
+
+simd_fn! {
+    /// [`im2col`], vectorised.
+    fn im2col_simd(s: &Conv2dShape, xg: &[f32], p0: usize, tp: usize, col: &mut [f32]) {
+        im2col(s, xg, p0, tp, col)
+    }
+}
+
+/// Unfolds output pixels `p0..p0 + tp` of one image and group into `col`, a row-major
+/// `(cin_g·kh·kw) × tp` matrix: `col[(ci, ky, kx)][p] = x[ci, iy, ix]` (0 in the padding).
+#[inline(always)]
+fn im2col(s: &Conv2dShape, xg: &[f32], p0: usize, tp: usize, col: &mut [f32]) {
+    let (h, w) = (s.h as isize, s.w as isize);
+    let mut row = 0;
+    for ci in 0..s.cin_g() {
+        let xc = &xg[ci * s.h * s.w..][..s.h * s.w];
+        for ky in 0..s.kh {
+            for kx in 0..s.kw {
+                let dst = &mut col[row * tp..][..tp];
+                row += 1;
+                let dy = (ky * s.dil_h) as isize - s.pad_h as isize;
+                let dx = (kx * s.dil_w) as isize - s.pad_w as isize;
+                // Output columns whose input column is inside the image: ox in ox_lo..ox_hi.
+                let ox_lo = ((-dx).max(0) as usize).div_ceil(s.stride_w).min(s.ow);
+                let ox_hi = if w - dx <= 0 { 0 } else { ((w - dx) as usize).div_ceil(s.stride_w).min(s.ow) };
+                let mut p = p0;
+                let mut off = 0;
+                while off < tp {
+                    let (oy, ox0) = (p / s.ow, p % s.ow);
+                    let run = (s.ow - ox0).min(tp - off);
+                    let seg = &mut dst[off..off + run];
+                    let iy = (oy * s.stride_h) as isize + dy;
+                    if iy < 0 || iy >= h {
+                        seg.fill(0.0);
+                    } else {
+                        let src = &xc[iy as usize * s.w..][..s.w];
+                        let (a, b) = (ox_lo.clamp(ox0, ox0 + run), ox_hi.clamp(ox0, ox0 + run));
+                        let (a, b) = (a, b.max(a));
+                        seg[..a - ox0].fill(0.0);
+                        seg[b - ox0..].fill(0.0);
+                        let ix0 = (a * s.stride_w) as isize + dx;
+                        let body = &mut seg[a - ox0..b - ox0];
+                        if !body.is_empty() {
+                            let ix0 = ix0 as usize;
+                            strided_copy(body, &src[ix0..], s.stride_w);
+                        }
+                    }
+                    p += run;
+                    off += run;
+                }
+            }
+        }
+    }
+}
+
+/// `dst[i] = src[i · stride]`, vectorised for the common strides.
+#[inline(always)]
+fn strided_copy(dst: &mut [f32], src: &[f32], stride: usize) {
+    let n = dst.len();
+    match stride {
+        1 => dst.copy_from_slice(&src[..n]),
+        2 => {
+            // All but the last element as pairs (the last may have no partner in `src`).
+            let (head, last) = dst.split_at_mut(n - 1);
+            for (d, pair) in head.iter_mut().zip(src.chunks_exact(2)) {
+                *d = pair[0];
+            }
+            last[0] = src[2 * (n - 1)];
+        }
+        _ => dst.iter_mut().zip(src.iter().step_by(stride)).for_each(|(d, &v)| *d = v),
+    }
+}

@@ -1,0 +1,346 @@
+//! 2-D convolution, NCHW, with a fused per-channel epilogue.
+//!
+//! The compiler picks an algorithm per layer with [`choose`] and stores the weight packed
+//! for it ([`pack_weight`]); at run time [`conv2d`] reads that packed weight. Algorithms:
+//!
+//! * [`ConvAlgo::Gemm1x1`]: 1x1, stride 1, no padding: the input already is the GEMM's
+//!   right-hand matrix, so each tile of output pixels is one GEMM, no copy.
+//! * [`ConvAlgo::Im2col`]: any shape: a tile of output pixels is unfolded into a
+//!   `(cin/groups·kh·kw) × tile` matrix, multiplied by the weight in one GEMM.
+//! * [`ConvAlgo::Winograd4`], [`ConvAlgo::Winograd2`]: 3x3, stride 1, no dilation:
+//!   Winograd F(4x4,3x3) / F(2x2,3x3). The weight is transformed once, in `pack_weight`;
+//!   per block of tiles the input is transformed, 36 (16) GEMMs run over the channels, and
+//!   the output transform writes the result. 4x (2.25x) fewer multiplications than a direct
+//!   conv, at the cost of 4x (1.8x) more weight memory; rounding error relative to the
+//!   output's scale ≈1e-5 for F(4x4) (about 5x im2col's), like im2col for F(2x2).
+//! * [`ConvAlgo::Depthwise`]: one input channel per group: a direct loop, no GEMM.
+//!
+//! Threads split a layer by ranges of output rows, or, for small images with many output
+//! channels, by ranges of output channels (see `split_shape`); each thread owns its slice
+//! of the output planes, so threads never synchronise within a layer, and each runs its
+//! GEMMs single-threaded on its own part of the scratch. Every algorithm applies the
+//! epilogue while copying a finished tile from its scratch to the output, while the tile
+//! is still in cache.
+//!
+//! Only `gemm.rs` may use `unsafe`, so the Winograd transforms are plain Rust written to
+//! auto-vectorise (fixed-size lane arrays), compiled for the widest SIMD the CPU has
+//! through pulp (see the [module doc](super)): the input transform uses 16, 8 or 4
+//! lanes as the tiles per row allow, the output transform 16.
+//!
+//! This file holds the geometry, the choice of algorithm, the weight packing, the
+//! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
+//! paths (Gemm1x1, Im2col), `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
+//! `tests.rs` the tests of every algorithm against one reference.
+
+use rayon::prelude::*;
+
+use super::Epilogue;
+
+mod depthwise;
+mod im2col;
+mod split;
+mod winograd;
+
+use self::depthwise::depthwise;
+use self::im2col::{gemm_part, gemm_tile};
+use self::split::{Part, parts, split};
+use self::winograd::{F2, F2_G, F4, F4_G, Wino, pack_winograd, winograd_part};
+
+/// The geometry of one conv layer: input `[n, cin, h, w]`, weight (PyTorch layout)
+/// `[cout, cin/groups, kh, kw]`, output `[n, cout, oh, ow]` with PyTorch's
+/// `oh = (h + 2·pad_h − dil_h·(kh − 1) − 1) / stride_h + 1` (likewise `ow`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Conv2dShape {
+    /// Batch size.
+    pub n: usize,
+    /// Input channels.
+    pub cin: usize,
+    /// Input height.
+    pub h: usize,
+    /// Input width.
+    pub w: usize,
+    /// Output channels.
+    pub cout: usize,
+    /// Kernel height.
+    pub kh: usize,
+    /// Kernel width.
+    pub kw: usize,
+    /// Vertical stride.
+    pub stride_h: usize,
+    /// Horizontal stride.
+    pub stride_w: usize,
+    /// Zero padding above and below.
+    pub pad_h: usize,
+    /// Zero padding left and right.
+    pub pad_w: usize,
+    /// Vertical dilation.
+    pub dil_h: usize,
+    /// Horizontal dilation.
+    pub dil_w: usize,
+    /// Channel groups; divides `cin` and `cout`.
+    pub groups: usize,
+    /// Output height.
+    pub oh: usize,
+    /// Output width.
+    pub ow: usize,
+}
+
+impl Conv2dShape {
+    fn cin_g(&self) -> usize {
+        self.cin / self.groups
+    }
+
+    fn cout_g(&self) -> usize {
+        self.cout / self.groups
+    }
+
+    /// Rows of the im2col matrix: one per (input channel of a group, ky, kx).
+    fn k(&self) -> usize {
+        self.cin_g() * self.kh * self.kw
+    }
+
+    fn is_winograd_shape(&self) -> bool {
+        self.kh == 3 && self.kw == 3 && self.stride_h == 1 && self.stride_w == 1 && self.dil_h == 1 && self.dil_w == 1
+    }
+}
+
+/// How a conv layer is computed; see the module doc. Chosen once per layer by [`choose`];
+/// the packed weight is specific to it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvAlgo {
+    /// 1x1, stride 1, no padding: GEMM straight on the input. Weight as PyTorch's.
+    Gemm1x1,
+    /// General: unfold a tile of pixels, one GEMM, epilogue. Weight as PyTorch's.
+    Im2col,
+    /// Winograd F(2x2, 3x3) for 3x3 stride-1 undilated convs. Weight `[16, cout, cin/groups]`.
+    Winograd2,
+    /// Winograd F(4x4, 3x3) for 3x3 stride-1 undilated convs. Weight `[36, cout, cin/groups]`.
+    Winograd4,
+    /// Direct loop for one input channel per group (depthwise). Weight as PyTorch's.
+    Depthwise,
+}
+
+impl Conv2dShape {
+    /// A square layer without dilation: `n x cin x hw x hw` to `cout` channels with a
+    /// `k x k` kernel; the output size follows PyTorch's formula.
+    #[allow(clippy::too_many_arguments)]
+    pub fn square(
+        n: usize,
+        cin: usize,
+        hw: usize,
+        cout: usize,
+        k: usize,
+        stride: usize,
+        pad: usize,
+        groups: usize,
+    ) -> Self {
+        let o = (hw + 2 * pad - k) / stride + 1;
+        Conv2dShape {
+            n,
+            cin,
+            h: hw,
+            w: hw,
+            cout,
+            kh: k,
+            kw: k,
+            stride_h: stride,
+            stride_w: stride,
+            pad_h: pad,
+            pad_w: pad,
+            dil_h: 1,
+            dil_w: 1,
+            groups,
+            oh: o,
+            ow: o,
+        }
+    }
+}
+
+impl ConvAlgo {
+    /// Every algorithm, for listings and tests.
+    pub const ALL: [ConvAlgo; 5] =
+        [ConvAlgo::Gemm1x1, ConvAlgo::Im2col, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Depthwise];
+
+    /// The name stored in plan files.
+    pub fn name(self) -> &'static str {
+        match self {
+            ConvAlgo::Gemm1x1 => "gemm1x1",
+            ConvAlgo::Im2col => "im2col",
+            ConvAlgo::Winograd2 => "winograd2",
+            ConvAlgo::Winograd4 => "winograd4",
+            ConvAlgo::Depthwise => "depthwise",
+        }
+    }
+
+    /// The algorithm called `name` (as [`ConvAlgo::name`] spells it).
+    pub fn from_name(name: &str) -> Option<ConvAlgo> {
+        ConvAlgo::ALL.into_iter().find(|a| a.name() == name)
+    }
+
+    /// Whether the algorithm can compute this layer.
+    pub fn supports(self, s: &Conv2dShape) -> bool {
+        match self {
+            ConvAlgo::Gemm1x1 => {
+                s.kh == 1 && s.kw == 1 && s.stride_h == 1 && s.stride_w == 1 && s.pad_h == 0 && s.pad_w == 0
+            }
+            ConvAlgo::Im2col => true,
+            ConvAlgo::Winograd2 | ConvAlgo::Winograd4 => s.is_winograd_shape(),
+            ConvAlgo::Depthwise => s.cin_g() == 1,
+        }
+    }
+}
+
+/// Picks the algorithm for a layer (at compile time; the batch size does not matter).
+///
+/// For 3x3 stride-1 undilated convs with at least 32 channels in and out per group (with
+/// fewer, the transforms cost about what they save): Winograd F(4x4) when the output is
+/// at least 12 wide and high and its weight (4x the original) stays within 16 MiB, else
+/// F(2x2) when the output is at least 5 wide and high and its weight (1.8x) within
+/// 32 MiB; a plain GEMM for 1x1 stride-1 convs; the direct loop for depthwise convs;
+/// im2col for everything else. (Thresholds measured on ResNet-18's layers, 2 threads.)
+pub fn choose(s: &Conv2dShape) -> ConvAlgo {
+    let (cin_g, cout_g) = (s.cin_g(), s.cout_g());
+    if cin_g == 1 && s.groups > 1 {
+        return ConvAlgo::Depthwise;
+    }
+    if ConvAlgo::Gemm1x1.supports(s) {
+        return ConvAlgo::Gemm1x1;
+    }
+    if s.is_winograd_shape() && cin_g >= 32 && cout_g >= 32 {
+        let side = s.oh.min(s.ow);
+        let weight = s.cout * cin_g;
+        if side >= 12 && 36 * weight <= 4 << 20 {
+            return ConvAlgo::Winograd4;
+        }
+        if side >= 5 && 16 * weight <= 8 << 20 {
+            return ConvAlgo::Winograd2;
+        }
+    }
+    ConvAlgo::Im2col
+}
+
+/// Length of the weight packed for `algo`.
+pub fn packed_weight_len(s: &Conv2dShape, algo: ConvAlgo) -> usize {
+    match algo {
+        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => s.cout * s.k(),
+        ConvAlgo::Winograd2 => 16 * s.cout * s.cin_g(),
+        ConvAlgo::Winograd4 => 36 * s.cout * s.cin_g(),
+    }
+}
+
+/// Converts a PyTorch-layout weight `[cout, cin/groups, kh, kw]` to the layout `algo`
+/// reads, into `out` (of [`packed_weight_len`] floats).
+///
+/// # Panics
+/// If `algo` does not support the shape or a length is wrong.
+pub fn pack_weight(s: &Conv2dShape, algo: ConvAlgo, weight: &[f32], out: &mut [f32]) {
+    assert!(algo.supports(s), "conv: {} cannot compute {s:?}", algo.name());
+    assert_eq!(weight.len(), s.cout * s.k(), "conv: weight length");
+    assert_eq!(out.len(), packed_weight_len(s, algo), "conv: packed weight length");
+    match algo {
+        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => out.copy_from_slice(weight),
+        ConvAlgo::Winograd2 => pack_winograd::<4>(s, &F2_G, weight, out),
+        ConvAlgo::Winograd4 => pack_winograd::<6>(s, &F4_G, weight, out),
+    }
+}
+
+/// Scratch floats [`conv2d`] needs for this layer at this thread count.
+pub fn scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
+    parts(s, algo, threads) * part_scratch(s, algo)
+}
+
+/// Computes one conv layer: `out = epilogue(conv(x, weight))`, where `packed_weight` came
+/// from [`pack_weight`] for the same `algo`, `scratch` holds at least [`scratch_len`]
+/// floats, and the epilogue's `scale`/`shift` (if any) have `cout` values.
+///
+/// # Panics
+/// If a length disagrees with the shape, the output size is not PyTorch's, or `algo` does
+/// not support the shape.
+#[allow(clippy::too_many_arguments)]
+pub fn conv2d(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    packed_weight: &[f32],
+    ep: &Epilogue,
+    x: &[f32],
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    check_shape(s);
+    assert!(algo.supports(s), "conv: {} cannot compute {s:?}", algo.name());
+    assert_eq!(packed_weight.len(), packed_weight_len(s, algo), "conv: packed weight length");
+    assert_eq!(x.len(), s.n * s.cin * s.h * s.w, "conv: input length");
+    assert_eq!(out.len(), s.n * s.cout * s.oh * s.ow, "conv: output length");
+    for v in [ep.scale, ep.shift].into_iter().flatten() {
+        assert_eq!(v.len(), s.cout, "conv: epilogue length");
+    }
+    let need = scratch_len(s, algo, threads);
+    assert!(scratch.len() >= need, "conv: scratch has {} floats, needs {need}", scratch.len());
+    if out.is_empty() {
+        return;
+    }
+    if algo == ConvAlgo::Depthwise {
+        return depthwise(s, packed_weight, ep, x, out, threads);
+    }
+    let per = part_scratch(s, algo);
+    let mut jobs: Vec<(Part, &mut [f32])> =
+        split(out, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
+    let run = |(part, scratch): &mut (Part, &mut [f32])| match algo {
+        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => gemm_part(s, algo, packed_weight, ep, x, part, scratch),
+        ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, ep, x, part, scratch),
+        ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, ep, x, part, scratch),
+        ConvAlgo::Depthwise => unreachable!("handled above"),
+    };
+    if jobs.len() == 1 {
+        run(&mut jobs[0]);
+    } else {
+        jobs.par_iter_mut().for_each(run);
+    }
+}
+
+#[track_caller]
+fn check_shape(s: &Conv2dShape) {
+    assert!(
+        s.groups > 0 && s.cin.is_multiple_of(s.groups) && s.cout.is_multiple_of(s.groups),
+        "conv: groups must divide channels"
+    );
+    assert!(s.kh > 0 && s.kw > 0 && s.stride_h > 0 && s.stride_w > 0 && s.dil_h > 0 && s.dil_w > 0, "conv: {s:?}");
+    let out = |len: usize, k: usize, st: usize, p: usize, d: usize| {
+        (len + 2 * p).checked_sub(d * (k - 1) + 1).map(|v| v / st + 1)
+    };
+    assert!(
+        out(s.h, s.kh, s.stride_h, s.pad_h, s.dil_h) == Some(s.oh)
+            && out(s.w, s.kw, s.stride_w, s.pad_w, s.dil_w) == Some(s.ow),
+        "conv: output size {}x{} is not PyTorch's for {s:?}",
+        s.oh,
+        s.ow
+    );
+}
+
+/// Writes `act(acc · scale[c] + shift[c])` into `dst`.
+#[inline(always)]
+fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
+    let scale = ep.scale.map_or(1.0, |v| v[c]);
+    let shift = ep.shift.map_or(0.0, |v| v[c]);
+    let dst = &mut dst[..acc.len()];
+    match (ep.scale.is_some(), ep.relu) {
+        (true, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a * scale + shift).max(0.0)),
+        (true, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a * scale + shift),
+        (false, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a + shift).max(0.0)),
+        (false, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a + shift),
+    }
+}
+
+fn part_scratch(s: &Conv2dShape, algo: ConvAlgo) -> usize {
+    match algo {
+        ConvAlgo::Gemm1x1 => gemm_tile(s, algo) * s.cout_g(),
+        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k()),
+        ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(),
+        ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(),
+        ConvAlgo::Depthwise => 0,
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,117 @@
+//! How the threads share one conv layer: by ranges of output rows (in whole Winograd tile
+//! rows) or of output channels ([`split_shape`]); [`split`] hands each thread its [`Part`],
+//! its own slices of the output planes, so threads never synchronise within a layer.
+
+use super::{Conv2dShape, ConvAlgo};
+
+/// Output rows move between threads in units of this many rows (a Winograd tile row).
+fn row_unit(algo: ConvAlgo) -> usize {
+    match algo {
+        ConvAlgo::Winograd2 => 2,
+        ConvAlgo::Winograd4 => 4,
+        _ => 1,
+    }
+}
+
+/// How the threads share a layer: `(row parts, channel parts)`, one of them 1.
+///
+/// By output rows (in whole row units) when each thread gets enough pixels or tiles for
+/// an efficient GEMM; by output channels when the image is small and the weight large
+/// (late layers at small batch): then each thread reads only its rows of the weight,
+/// at the price of unfolding or transforming the whole input itself.
+pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (usize, usize) {
+    let threads = threads.max(1);
+    let unit = row_unit(algo);
+    let units = s.n * s.oh.div_ceil(unit);
+    // GEMM columns (pixels or tiles) per thread under a row split.
+    let cols = units * s.ow.div_ceil(unit) / threads;
+    if threads > 1 && s.groups == 1 && cols < 64 && s.cout >= 32 * threads {
+        (1, threads)
+    } else {
+        (threads.min(units.max(1)), 1)
+    }
+}
+
+/// How many threads share the layer.
+pub(super) fn parts(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
+    let (r, c) = split_shape(s, algo, threads);
+    r * c
+}
+
+/// `parts + 1` boundaries splitting `0..units` evenly.
+fn split_bounds(units: usize, parts: usize) -> Vec<usize> {
+    (0..=parts).map(|i| i * units / parts).collect()
+}
+
+/// One thread's share of the output: output channels `c0..c1` of the global output rows
+/// `r0..r1` (global row = `image · oh + oy`; row units never straddle images), as one
+/// slice per (image, channel) plane.
+pub(super) struct Part<'a> {
+    pub(super) r0: usize,
+    pub(super) r1: usize,
+    c0: usize,
+    c1: usize,
+    /// First image touched.
+    pub(super) n0: usize,
+    /// Planes of images `n0..`, channel-major within an image: `planes[(n − n0)·(c1 − c0)
+    /// + c − c0]` holds rows `max(r0 − n·oh, 0)..min(r1 − n·oh, oh)` of that plane.
+    planes: Vec<&'a mut [f32]>,
+}
+
+impl Part<'_> {
+    /// The rows of image `n` this part owns, as `(first, end)` within the image.
+    pub(super) fn rows_of(&self, n: usize, oh: usize) -> (usize, usize) {
+        (self.r0.saturating_sub(n * oh).min(oh), self.r1.saturating_sub(n * oh).min(oh))
+    }
+
+    /// The part's slice of the plane of image `n`, channel `c`.
+    pub(super) fn plane(&mut self, n: usize, c: usize) -> &mut [f32] {
+        let i = (n - self.n0) * (self.c1 - self.c0) + c - self.c0;
+        self.planes[i]
+    }
+
+    /// The channels of group `g` this part computes.
+    pub(super) fn channels_of(&self, g: usize, cout_g: usize) -> std::ops::Range<usize> {
+        self.c0.max(g * cout_g)..self.c1.min((g + 1) * cout_g)
+    }
+}
+
+/// Splits the output `[n, cout, oh, ow]` into the parts [`split_shape`] asks for.
+pub(super) fn split<'a>(out: &'a mut [f32], s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> Vec<Part<'a>> {
+    let (row_parts, chan_parts) = split_shape(s, algo, threads);
+    let unit = row_unit(algo);
+    let per_image = s.oh.div_ceil(unit);
+    let rows: Vec<usize> = split_bounds(s.n * per_image, row_parts)
+        .iter()
+        .map(|&u| (u / per_image) * s.oh + ((u % per_image) * unit).min(s.oh))
+        .collect();
+    let chans: Vec<usize> = if chan_parts == 1 {
+        vec![0, s.cout]
+    } else {
+        split_bounds(s.cout / 8, chan_parts).iter().map(|c| c * 8).collect()
+    };
+    let chans = {
+        let mut c = chans;
+        *c.last_mut().expect("bounds") = s.cout;
+        c
+    };
+    let mut parts: Vec<Part<'a>> = Vec::new();
+    for r in rows.windows(2) {
+        for c in chans.windows(2) {
+            parts.push(Part { r0: r[0], r1: r[1], c0: c[0], c1: c[1], n0: r[0] / s.oh, planes: Vec::new() });
+        }
+    }
+    for (idx, plane) in out.chunks_mut(s.oh * s.ow).enumerate() {
+        let (n, c) = (idx / s.cout, idx % s.cout);
+        let mut rest = plane;
+        for part in parts.iter_mut().filter(|p| (p.c0..p.c1).contains(&c)) {
+            let (lo, hi) = part.rows_of(n, s.oh);
+            if lo < hi {
+                let (mine, tail) = std::mem::take(&mut rest).split_at_mut((hi - lo) * s.ow);
+                part.planes.push(mine);
+                rest = tail;
+            }
+        }
+    }
+    parts
+}

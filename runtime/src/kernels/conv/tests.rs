@@ -1,0 +1,264 @@
+//! Every algorithm against a plain f64 reference, on odd shapes, batches, groups,
+//! dilation and each thread count and epilogue kind; plus the choices of [`choose`] on
+//! ResNet-18's layers and the measured rounding error of each algorithm.
+
+use super::split::split_shape;
+use super::*;
+use crate::kernels::testutil::{assert_close, data};
+
+/// Shape with PyTorch's output size.
+#[allow(clippy::too_many_arguments)]
+fn shape(
+    n: usize,
+    cin: usize,
+    (h, w): (usize, usize),
+    cout: usize,
+    (kh, kw): (usize, usize),
+    (stride_h, stride_w): (usize, usize),
+    (pad_h, pad_w): (usize, usize),
+    (dil_h, dil_w): (usize, usize),
+    groups: usize,
+) -> Conv2dShape {
+    let oh = (h + 2 * pad_h - dil_h * (kh - 1) - 1) / stride_h + 1;
+    let ow = (w + 2 * pad_w - dil_w * (kw - 1) - 1) / stride_w + 1;
+    Conv2dShape { n, cin, h, w, cout, kh, kw, stride_h, stride_w, pad_h, pad_w, dil_h, dil_w, groups, oh, ow }
+}
+
+/// Plain 7-loop convolution in f64, PyTorch weight layout, then the epilogue.
+fn reference(s: &Conv2dShape, x: &[f32], w: &[f32], ep: &Epilogue) -> Vec<f32> {
+    let (cin_g, cout_g) = (s.cin / s.groups, s.cout / s.groups);
+    let mut out = vec![0.0; s.n * s.cout * s.oh * s.ow];
+    for n in 0..s.n {
+        for co in 0..s.cout {
+            let g = co / cout_g;
+            for oy in 0..s.oh {
+                for ox in 0..s.ow {
+                    let mut acc = 0.0f64;
+                    for ci in 0..cin_g {
+                        for ky in 0..s.kh {
+                            for kx in 0..s.kw {
+                                let iy = (oy * s.stride_h + ky * s.dil_h) as isize - s.pad_h as isize;
+                                let ix = (ox * s.stride_w + kx * s.dil_w) as isize - s.pad_w as isize;
+                                if iy < 0 || ix < 0 || iy >= s.h as isize || ix >= s.w as isize {
+                                    continue;
+                                }
+                                let xv = x[((n * s.cin + g * cin_g + ci) * s.h + iy as usize) * s.w + ix as usize];
+                                let wv = w[((co * cin_g + ci) * s.kh + ky) * s.kw + kx];
+                                acc += f64::from(xv) * f64::from(wv);
+                            }
+                        }
+                    }
+                    let mut y =
+                        acc * ep.scale.map_or(1.0, |v| f64::from(v[co])) + ep.shift.map_or(0.0, |v| f64::from(v[co]));
+                    if ep.relu {
+                        y = y.max(0.0);
+                    }
+                    out[((n * s.cout + co) * s.oh + oy) * s.ow + ox] = y as f32;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Runs `algo` on `s` with each thread count and epilogue kind, against the reference.
+fn check(s: &Conv2dShape, algo: ConvAlgo) {
+    assert!(algo.supports(s), "{} does not support {s:?}", algo.name());
+    let x = data(s.n * s.cin * s.h * s.w, 1);
+    // Weights at a trained layer's scale (~1/sqrt(fan-in)), so outputs are O(1) and the
+    // tolerance is relative to the output's scale; `error_levels` checks unscaled data.
+    let fan_in = s.cin / s.groups * s.kh * s.kw;
+    let w: Vec<f32> = data(fan_in * s.cout, 2).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
+    let scale: Vec<f32> = data(s.cout, 3).iter().map(|v| 0.5 + v).collect();
+    let shift = data(s.cout, 4);
+    let mut packed = vec![0.0; packed_weight_len(s, algo)];
+    pack_weight(s, algo, &w, &mut packed);
+    let eps = [
+        Epilogue::default(),
+        Epilogue { scale: None, shift: Some(&shift), relu: false },
+        Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true },
+    ];
+    for ep in &eps {
+        let want = reference(s, &x, &w, ep);
+        for threads in [1, 2, 3] {
+            let mut out = vec![f32::NAN; want.len()];
+            let mut scratch = vec![f32::NAN; scratch_len(s, algo, threads)];
+            conv2d(s, algo, &packed, ep, &x, &mut out, &mut scratch, threads);
+            assert_close(&out, &want, 1e-4);
+        }
+    }
+}
+
+/// Checks every algorithm that supports the shape; returns how many did.
+fn check_all(s: &Conv2dShape) -> usize {
+    let algos: Vec<ConvAlgo> = ConvAlgo::ALL.into_iter().filter(|a| a.supports(s)).collect();
+    for &algo in &algos {
+        check(s, algo);
+    }
+    algos.len()
+}
+
+#[test]
+fn plain_3x3() {
+    assert_eq!(check_all(&shape(1, 5, (9, 11), 7, (3, 3), (1, 1), (1, 1), (1, 1), 1)), 3);
+}
+
+#[test]
+fn stride_2_padding_batch() {
+    check_all(&shape(2, 3, (10, 7), 4, (3, 3), (2, 2), (1, 1), (1, 1), 1));
+    check_all(&shape(3, 6, (9, 9), 5, (3, 3), (2, 1), (0, 2), (1, 1), 1));
+}
+
+#[test]
+fn groups() {
+    check_all(&shape(1, 4, (8, 9), 6, (3, 3), (1, 1), (1, 1), (1, 1), 2));
+    check_all(&shape(2, 8, (9, 8), 8, (3, 3), (2, 2), (1, 1), (1, 1), 4));
+    // Winograd per group, with enough channels per group.
+    check(&shape(1, 34, (12, 10), 36, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Winograd4);
+}
+
+#[test]
+fn depthwise() {
+    assert_eq!(check_all(&shape(2, 6, (9, 10), 6, (3, 3), (1, 1), (1, 1), (1, 1), 6)), 4);
+    check_all(&shape(1, 3, (11, 8), 6, (3, 3), (2, 2), (1, 1), (1, 1), 3));
+    check_all(&shape(1, 4, (10, 10), 4, (5, 5), (2, 2), (2, 2), (2, 2), 4));
+}
+
+#[test]
+fn dilation() {
+    check_all(&shape(1, 5, (13, 12), 6, (3, 3), (1, 1), (2, 2), (2, 2), 1));
+    check_all(&shape(2, 3, (12, 15), 4, (3, 2), (2, 1), (1, 0), (2, 3), 1));
+}
+
+#[test]
+fn one_by_one() {
+    assert_eq!(check_all(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1)), 2);
+    check_all(&shape(1, 16, (14, 13), 24, (1, 1), (2, 2), (0, 0), (1, 1), 1));
+    check_all(&shape(1, 8, (5, 6), 8, (1, 1), (1, 1), (1, 1), (1, 1), 2));
+}
+
+#[test]
+fn non_square() {
+    check_all(&shape(1, 4, (6, 17), 5, (1, 3), (1, 1), (0, 1), (1, 1), 1));
+    check_all(&shape(2, 3, (15, 5), 5, (3, 1), (1, 1), (1, 0), (1, 1), 1));
+    check_all(&shape(1, 7, (11, 14), 9, (2, 5), (1, 2), (0, 2), (1, 1), 1));
+}
+
+#[test]
+fn tiny_outputs() {
+    // oh = ow = 1, and a 1-row output with more threads than rows.
+    check_all(&shape(1, 19, (3, 3), 17, (3, 3), (1, 1), (0, 0), (1, 1), 1));
+    check_all(&shape(1, 5, (1, 6), 3, (1, 3), (1, 1), (0, 0), (1, 1), 1));
+    check_all(&shape(2, 3, (4, 4), 4, (3, 3), (4, 4), (1, 1), (1, 1), 1));
+}
+
+#[test]
+fn first_layer_7x7() {
+    check_all(&shape(1, 3, (23, 17), 8, (7, 7), (2, 2), (3, 3), (1, 1), 1));
+}
+
+#[test]
+fn winograd_edges() {
+    // Output sizes not multiples of the tile, padding 0 and 2, batch > 1.
+    for s in [
+        shape(2, 17, (13, 10), 19, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        shape(1, 16, (9, 7), 16, (3, 3), (1, 1), (0, 0), (1, 1), 1),
+        shape(3, 16, (5, 6), 20, (3, 3), (1, 1), (2, 2), (1, 1), 1),
+        shape(1, 18, (6, 30), 16, (3, 3), (1, 1), (1, 0), (1, 1), 1),
+    ] {
+        assert_eq!(check_all(&s), 3);
+    }
+}
+
+#[test]
+fn many_tiles_and_blocks() {
+    // Several im2col tiles per image, tiles crossing rows, several Winograd blocks.
+    let s = shape(1, 128, (30, 29), 128, (3, 3), (1, 1), (1, 1), (1, 1), 1);
+    assert!(gemm_tile(&s, ConvAlgo::Im2col) < s.oh * s.ow / 2);
+    assert!(Wino::new::<6, 4>(&s).rows < s.oh.div_ceil(4));
+    assert!(Wino::new::<4, 2>(&s).rows < s.oh.div_ceil(2));
+    assert_eq!(check_all(&s), 3);
+    check_all(&shape(1, 48, (20, 20), 40, (1, 1), (1, 1), (0, 0), (1, 1), 1));
+}
+
+#[test]
+fn channel_split() {
+    // Small images with many output channels split the channels over the threads.
+    for s in [
+        shape(2, 20, (6, 5), 100, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        shape(1, 24, (7, 7), 96, (1, 1), (1, 1), (0, 0), (1, 1), 1),
+        shape(1, 16, (8, 8), 128, (3, 3), (2, 2), (1, 1), (1, 1), 1),
+    ] {
+        for algo in ConvAlgo::ALL.into_iter().filter(|a| a.supports(&s) && *a != ConvAlgo::Depthwise) {
+            assert_eq!(split_shape(&s, algo, 2), (1, 2), "{} {s:?}", algo.name());
+        }
+        check_all(&s);
+    }
+}
+
+/// Worst error relative to the output's RMS, unscaled data in [-1, 1): Winograd F(4x4)
+/// rounds about 5x more than im2col (measured ≈1e-5 vs ≈3e-6 at 64..512 input
+/// channels), F(2x2) like im2col.
+#[test]
+fn error_levels() {
+    for (cin, hw) in [(64, 28), (256, 14), (512, 7)] {
+        let s = shape(1, cin, (hw, hw), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1);
+        let x = data(s.n * s.cin * s.h * s.w, 1);
+        let w = data(s.cout * s.cin * 9, 2);
+        let want = reference(&s, &x, &w, &Epilogue::default());
+        let rms = (want.iter().map(|v| v * v).sum::<f32>() / want.len() as f32).sqrt();
+        for (algo, bound) in [(ConvAlgo::Im2col, 1e-5), (ConvAlgo::Winograd2, 1e-5), (ConvAlgo::Winograd4, 4e-5)] {
+            let mut packed = vec![0.0; packed_weight_len(&s, algo)];
+            pack_weight(&s, algo, &w, &mut packed);
+            let mut out = vec![0.0; want.len()];
+            let mut scratch = vec![0.0; scratch_len(&s, algo, 1)];
+            conv2d(&s, algo, &packed, &Epilogue::default(), &x, &mut out, &mut scratch, 1);
+            let max = out.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+            println!("cin {cin} {}: rms {rms:.3} max err {max:.2e} relative {:.2e}", algo.name(), max / rms);
+            assert!(max / rms < bound, "cin {cin} {}: relative error {:.2e}", algo.name(), max / rms);
+        }
+    }
+}
+
+#[test]
+fn names_round_trip_and_choose_supports() {
+    for a in ConvAlgo::ALL {
+        assert_eq!(ConvAlgo::from_name(a.name()), Some(a));
+    }
+    assert_eq!(ConvAlgo::from_name("fft"), None);
+    let resnet = [
+        (shape(1, 3, (224, 224), 64, (7, 7), (2, 2), (3, 3), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 64, (56, 56), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
+        (shape(1, 64, (56, 56), 128, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 64, (56, 56), 128, (1, 1), (2, 2), (0, 0), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 64, (56, 56), 256, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(1, 256, (14, 14), 256, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
+        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 512, (28, 28), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 512, (4, 4), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 16, (56, 56), 16, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 32, (56, 56), 32, (3, 3), (1, 1), (1, 1), (1, 1), 32), ConvAlgo::Depthwise),
+    ];
+    for (s, want) in resnet {
+        assert_eq!(choose(&s), want, "{s:?}");
+        assert!(choose(&s).supports(&s));
+    }
+}
+
+#[test]
+#[should_panic(expected = "scratch")]
+fn short_scratch_panics() {
+    let s = shape(1, 4, (8, 8), 4, (3, 3), (1, 1), (1, 1), (1, 1), 1);
+    let w = vec![0.0; packed_weight_len(&s, ConvAlgo::Im2col)];
+    let x = vec![0.0; 4 * 64];
+    let mut out = vec![0.0; 4 * 64];
+    conv2d(&s, ConvAlgo::Im2col, &w, &Epilogue::default(), &x, &mut out, &mut [], 1);
+}
+
+#[test]
+#[should_panic(expected = "cannot compute")]
+fn unsupported_algo_panics() {
+    let s = shape(1, 4, (8, 8), 4, (3, 3), (2, 2), (1, 1), (1, 1), 1);
+    let mut packed = vec![0.0; packed_weight_len(&s, ConvAlgo::Winograd4)];
+    pack_weight(&s, ConvAlgo::Winograd4, &vec![0.0; 4 * 4 * 9], &mut packed);
+}

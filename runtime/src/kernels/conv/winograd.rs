@@ -1,0 +1,536 @@
+//! Winograd F(2x2, 3x3) and F(4x4, 3x3),
+//! [`ConvAlgo::Winograd2`](super::ConvAlgo::Winograd2) and
+//! [`ConvAlgo::Winograd4`](super::ConvAlgo::Winograd4): the weight transform
+//! ([`pack_winograd`], once, at packing), and per block of tile rows the input transform,
+//! one GEMM per transformed position and the output transform with the epilogue
+//! ([`winograd_part`]).
+//!
+//! The transforms are plain Rust on fixed-size lane arrays ([`Lanes`]), run inside pulp
+//! `WithSimd` bodies ([`InputTransform`], [`OutputTransform`]) so that they are compiled
+//! for the widest SIMD the CPU has: everything they call is `#[inline(always)]`.
+
+use std::marker::PhantomData;
+
+use super::split::Part;
+use super::{Conv2dShape, finish};
+use crate::kernels::Epilogue;
+use crate::kernels::gemm::{MatMut, MatRef, sgemm};
+
+/// F(2x2, 3x3) weight transform `G` (4x3).
+pub(super) const F2_G: [[f64; 3]; 4] = [[1.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0.0, 0.0, 1.0]];
+
+/// F(4x4, 3x3) weight transform `G` (6x3). Interpolation points 0, 1, −1, 1/2, −2, ∞
+/// rather than the usual 0, ±1, ±2, ∞: in f32 their rounding error is about a third
+/// (Barabasz et al., "Error analysis and improving the accuracy of Winograd convolution
+/// for deep neural networks", 2020). Rows are scaled so that `Bᵀ` has small integers.
+pub(super) const F4_G: [[f64; 3]; 6] = [
+    [1.0 / 2.0, 0.0, 0.0],
+    [1.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0],
+    [1.0 / 6.0, -1.0 / 6.0, 1.0 / 6.0],
+    [16.0 / 15.0, 8.0 / 15.0, 4.0 / 15.0],
+    [1.0 / 30.0, -2.0 / 30.0, 4.0 / 30.0],
+    [0.0, 0.0, 1.0 / 2.0],
+];
+
+/// `L` floats processed as one unit by the transforms; fixed-size array arithmetic that
+/// the compiler turns into SIMD instructions.
+#[derive(Clone, Copy)]
+pub(super) struct Lanes<const L: usize>([f32; L]);
+
+impl<const L: usize> Lanes<L> {
+    #[inline(always)]
+    fn load(s: &[f32]) -> Self {
+        Lanes(s[..L].try_into().expect("L floats"))
+    }
+    #[inline(always)]
+    fn store(&self, s: &mut [f32]) {
+        s[..L].copy_from_slice(&self.0);
+    }
+    #[inline(always)]
+    fn zip(self, o: Self, f: impl Fn(f32, f32) -> f32) -> Self {
+        Lanes(std::array::from_fn(|i| f(self.0[i], o.0[i])))
+    }
+}
+
+impl<const L: usize> std::ops::Add for Lanes<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        self.zip(o, |a, b| a + b)
+    }
+}
+
+impl<const L: usize> std::ops::Sub for Lanes<L> {
+    type Output = Self;
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        self.zip(o, |a, b| a - b)
+    }
+}
+
+impl<const L: usize> std::ops::Mul<Lanes<L>> for f32 {
+    type Output = Lanes<L>;
+    #[inline(always)]
+    fn mul(self, o: Lanes<L>) -> Lanes<L> {
+        Lanes(o.0.map(|v| self * v))
+    }
+}
+
+/// The 1-D input (`Bᵀ d`) and output (`Aᵀ m`) transforms of F(M, 3), `A = M + 2`, applied
+/// lane-wise.
+pub(super) trait WinoTf<const A: usize, const M: usize> {
+    fn bt<const L: usize>(d: [Lanes<L>; A]) -> [Lanes<L>; A];
+    fn at<const L: usize>(m: [Lanes<L>; A]) -> [Lanes<L>; M];
+}
+
+pub(super) struct F2;
+pub(super) struct F4;
+
+impl WinoTf<4, 2> for F2 {
+    #[inline(always)]
+    fn bt<const L: usize>(d: [Lanes<L>; 4]) -> [Lanes<L>; 4] {
+        [d[0] - d[2], d[1] + d[2], d[2] - d[1], d[1] - d[3]]
+    }
+    #[inline(always)]
+    fn at<const L: usize>(m: [Lanes<L>; 4]) -> [Lanes<L>; 2] {
+        [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]
+    }
+}
+
+impl WinoTf<6, 4> for F4 {
+    #[inline(always)]
+    fn bt<const L: usize>(d: [Lanes<L>; 6]) -> [Lanes<L>; 6] {
+        let (p14, m13, m24) = (d[1] + d[4], d[1] - d[3], d[2] - d[4]);
+        [
+            2.0 * (d[0] + d[4]) - 3.0 * m13 - 4.0 * d[2],
+            2.0 * (d[4] - d[1]) + d[2] + 5.0 * d[3],
+            5.0 * d[2] - 2.0 * p14 - d[3],
+            2.0 * m13 + d[2] - d[4],
+            d[1] - d[3] - 2.0 * m24,
+            2.0 * (d[1] + d[5]) - 3.0 * m24 - 4.0 * d[3],
+        ]
+    }
+    #[inline(always)]
+    fn at<const L: usize>(m: [Lanes<L>; 6]) -> [Lanes<L>; 4] {
+        let (p, n) = (m[1] + m[2], m[1] - m[2]);
+        [
+            m[0] + p + m[3] + m[4],
+            n + 0.5 * m[3] - 2.0 * m[4],
+            p + 0.25 * m[3] + 4.0 * m[4],
+            n + 0.125 * m[3] - 8.0 * m[4] + m[5],
+        ]
+    }
+}
+
+/// `U[ξ][co][ci] = (G g Gᵀ)[ξ]` for each 3x3 kernel `g`, computed in f64.
+pub(super) fn pack_winograd<const A: usize>(s: &Conv2dShape, g_mat: &[[f64; 3]; A], weight: &[f32], out: &mut [f32]) {
+    let cin_g = s.cin_g();
+    let plane = s.cout * cin_g;
+    for co in 0..s.cout {
+        for ci in 0..cin_g {
+            let k = &weight[(co * cin_g + ci) * 9..][..9];
+            // t = G g (A x 3), then u = t Gᵀ (A x A).
+            let mut t = [[0.0f64; 3]; A];
+            for (i, ti) in t.iter_mut().enumerate() {
+                for (j, tij) in ti.iter_mut().enumerate() {
+                    *tij = (0..3).map(|r| g_mat[i][r] * f64::from(k[r * 3 + j])).sum();
+                }
+            }
+            for i in 0..A {
+                for j in 0..A {
+                    let u: f64 = (0..3).map(|r| t[i][r] * g_mat[j][r]).sum();
+                    out[(i * A + j) * plane + co * cin_g + ci] = u as f32;
+                }
+            }
+        }
+    }
+}
+
+/// Lanes of the input transform for `tx` tiles across, the widest that wastes at most a
+/// quarter (it works one tile row at a time, and small images have few tiles per row).
+fn in_lanes(tx: usize) -> usize {
+    match tx {
+        12.. => 16,
+        6.. => 8,
+        _ => 4,
+    }
+}
+
+/// Lanes of the output transform (all tiles of a block at once): one AVX-512 register.
+const OUT_LANES: usize = 16;
+
+/// Sizes of one thread's Winograd scratch.
+pub(super) struct Wino {
+    /// Tiles across a row of the output.
+    tx: usize,
+    /// Tile rows per block (one block = one set of GEMMs).
+    pub(super) rows: usize,
+    /// Lanes of the input transform, [`in_lanes`].
+    lanes: usize,
+    /// Length of one input-phase row: room for whole-lane loads at offset 1.
+    plen: usize,
+    alpha: usize,
+    cin_g: usize,
+    cout_g: usize,
+}
+
+impl Wino {
+    pub(super) fn new<const A: usize, const M: usize>(s: &Conv2dShape) -> Wino {
+        let tx = s.ow.div_ceil(M);
+        let (cin_g, cout_g) = (s.cin_g(), s.cout_g());
+        // V and M of a block fill up to 2 MiB (larger blocks make for fewer, larger GEMMs;
+        // this costs more than L2 but measured faster); at least one tile row per block.
+        let per_tile = (cin_g + cout_g) * A * A;
+        let tiles = (512 * 1024 / per_tile.max(1)).max(16);
+        let rows = (tiles / tx).clamp(1, s.oh.div_ceil(M));
+        let lanes = in_lanes(tx);
+        // Whole-lane loads reach one past the last whole-lane group of tiles; M·plen is a
+        // whole number of lanes, for the vertical pass.
+        let plen = (tx.div_ceil(lanes) * lanes + 1).next_multiple_of((lanes / M).max(1));
+        Wino { tx, rows, lanes, plen, alpha: A, cin_g, cout_g }
+    }
+
+    /// Tiles per block.
+    fn block(&self) -> usize {
+        self.rows * self.tx
+    }
+
+    /// Row stride of V and M: the block plus room for whole-lane stores past its end.
+    fn stride(&self) -> usize {
+        self.block() + OUT_LANES.max(self.lanes)
+    }
+
+    /// Transform work space: the input transform's A·M phase rows and their A·M vertical
+    /// transforms; the output transform's A·M + M·M rows of a block.
+    fn work(&self) -> usize {
+        let (a, m) = (self.alpha, self.alpha - 2);
+        let input = 2 * a * m * self.plen;
+        let output = (a * m + m * m) * self.stride();
+        input.max(output)
+    }
+
+    pub(super) fn scratch(&self) -> usize {
+        (self.cin_g + self.cout_g) * self.alpha * self.alpha * self.stride() + self.work()
+    }
+}
+
+/// Winograd over one part: its tile rows in blocks; per block and group: input transform
+/// into `V[ci][ξ][t]`, one GEMM per ξ into `Mt[co][ξ][t]`, output transform + epilogue.
+pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
+    s: &Conv2dShape,
+    u: &[f32],
+    ep: &Epilogue,
+    x: &[f32],
+    part: &mut Part,
+    scratch: &mut [f32],
+) {
+    let wz = Wino::new::<A, M>(s);
+    let (cin_g, cout_g, tx) = (s.cin_g(), s.cout_g(), wz.tx);
+    let ty_n = s.oh.div_ceil(M);
+    let (aa, ts) = (A * A, wz.stride());
+    let (v, rest) = scratch.split_at_mut(cin_g * aa * ts);
+    let (mt, work) = rest.split_at_mut(cout_g * aa * ts);
+    // Global tile rows (image · ty_n + ty) of this part; its boundaries are whole tile rows.
+    let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
+    let (u0, u1) = (tile_row(part.r0), tile_row(part.r1));
+    let mut b0 = u0;
+    while b0 < u1 {
+        let b1 = (b0 + wz.rows).min(u1);
+        let tb = (b1 - b0) * tx;
+        for g in 0..s.groups {
+            let chans = part.channels_of(g, cout_g);
+            let mrows = chans.len();
+            if mrows == 0 {
+                continue;
+            }
+            let blocks = b0..b1;
+            pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
+                s,
+                wz: &wz,
+                x,
+                g,
+                blocks,
+                v,
+                work,
+                tf: PhantomData,
+            });
+            // One GEMM per transformed position.
+            for xi in 0..aa {
+                let lhs = MatRef::row_major(&u[(xi * s.cout + chans.start) * cin_g..][..mrows * cin_g], mrows, cin_g);
+                let rhs = MatRef { data: &v[xi * ts..], rows: cin_g, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                let dst =
+                    MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                sgemm(lhs, rhs, dst, false, 1);
+            }
+            let (wz, mt, work) = (&wz, &*mt, &mut *work);
+            pulp::Arch::new().dispatch(OutputTransform::<T, A, M> {
+                s,
+                wz,
+                mt,
+                tb,
+                b0,
+                chans,
+                part,
+                ep,
+                work,
+                tf: PhantomData,
+            });
+        }
+        b0 = b1;
+    }
+}
+
+/// The input transform of tile rows `blocks` (of a block), every input channel of group
+/// `g`, into `v[ci][ξ][t]`; compiled for the widest SIMD the CPU has.
+struct InputTransform<'a, T, const A: usize, const M: usize> {
+    s: &'a Conv2dShape,
+    wz: &'a Wino,
+    x: &'a [f32],
+    g: usize,
+    blocks: std::ops::Range<usize>,
+    v: &'a mut [f32],
+    work: &'a mut [f32],
+    tf: PhantomData<T>,
+}
+
+impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for InputTransform<'_, T, A, M> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        match self.wz.lanes {
+            16 => self.run::<16>(),
+            8 => self.run::<8>(),
+            _ => self.run::<4>(),
+        }
+    }
+}
+
+impl<T: WinoTf<A, M>, const A: usize, const M: usize> InputTransform<'_, T, A, M> {
+    #[inline(always)]
+    fn run<const L: usize>(self) {
+        let InputTransform { s, wz, x, g, blocks, v, work, .. } = self;
+        let (cin_g, ty_n) = (s.cin_g(), s.oh.div_ceil(M));
+        for (ci, vc) in v.chunks_mut(A * A * wz.stride()).take(cin_g).enumerate() {
+            for gu in blocks.clone() {
+                let (n, ty) = (gu / ty_n, gu % ty_n);
+                let xc = &x[(n * s.cin + g * cin_g + ci) * s.h * s.w..][..s.h * s.w];
+                input_row::<T, A, M, L>(s, wz, xc, ty, vc, (gu - blocks.start) * wz.tx, work);
+            }
+        }
+    }
+}
+
+/// The output transform and epilogue of a block (`tb` tiles from global tile row `b0`)
+/// for output channels `chans`, from `mt[co][ξ][t]`; compiled for the widest SIMD the
+/// CPU has.
+struct OutputTransform<'a, 'p, T, const A: usize, const M: usize> {
+    s: &'a Conv2dShape,
+    wz: &'a Wino,
+    mt: &'a [f32],
+    tb: usize,
+    b0: usize,
+    chans: std::ops::Range<usize>,
+    part: &'a mut Part<'p>,
+    ep: &'a Epilogue<'a>,
+    work: &'a mut [f32],
+    tf: PhantomData<T>,
+}
+
+impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for OutputTransform<'_, '_, T, A, M> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let OutputTransform { s, wz, mt, tb, b0, chans, part, ep, work, .. } = self;
+        for (c, mc) in chans.zip(mt.chunks(A * A * wz.stride())) {
+            output_block::<T, A, M>(s, wz, mc, tb, b0, c, part, ep, work);
+        }
+    }
+}
+
+/// Input transform of one tile row `ty` of one channel plane `xc`, into `vc[ξ][t0 + tx]`
+/// (row stride `wz.stride()`). Vectorised across the tiles of the row: the padded input
+/// rows are split into M phases (phase q holds columns q, q+M, ..), so that column j of
+/// every tile is the contiguous run `phase[j % M][j / M..]`.
+#[inline(always)]
+fn input_row<T: WinoTf<A, M>, const A: usize, const M: usize, const L: usize>(
+    s: &Conv2dShape,
+    wz: &Wino,
+    xc: &[f32],
+    ty: usize,
+    vc: &mut [f32],
+    t0: usize,
+    work: &mut [f32],
+) {
+    let (plen, ts) = (wz.plen, wz.stride());
+    let (ph, rest) = work.split_at_mut(A * M * plen);
+    let tv = &mut rest[..A * M * plen];
+    // ph[j][q][u] = padded input (row ty·M + j, column u·M + q), straight from the input
+    // row: through a padded copy of the row, the next loop's loads stalled on forwarding
+    // from the copy's stores.
+    for (j, phj) in ph.chunks_mut(M * plen).enumerate() {
+        let iy = (ty * M + j) as isize - s.pad_h as isize;
+        if iy < 0 || iy as usize >= s.h {
+            phj.fill(0.0);
+            continue;
+        }
+        let row = iy as usize * s.w;
+        let src = &xc[row..][..s.w];
+        // Tiles u whose M columns u·M + q − pad all lie inside the row: ua..ub. They are
+        // copied in groups of L tiles, which LLVM unrolls into straight-line moves (rows
+        // have fewer tiles than its 16-lane vector loop needs, which left them to a
+        // slower remainder loop; the vector loop itself, forced, measured slower still).
+        // A group may read past the row (into the next; not past the plane) and past
+        // `ub`: the edges below then overwrite what it wrote there.
+        let ua = s.pad_w.div_ceil(M).min(plen);
+        let ub = ((s.w + s.pad_w) / M).clamp(ua, plen);
+        let mut u = ua;
+        while u < ub && u + L <= plen && row + u * M - s.pad_w + L * M <= xc.len() {
+            let start = row + u * M - s.pad_w;
+            deinterleave::<M>(&xc[start..start + L * M], phj, plen, u);
+            u += L;
+        }
+        deinterleave::<M>(&src[u.min(ub) * M - s.pad_w..ub * M - s.pad_w], phj, plen, u.min(ub));
+        // The edges. Phase columns past `tx` only feed lanes past the last tile, whose
+        // results are overwritten or never read: left as they are.
+        for u in (0..ua).chain(ub..(wz.tx + 1).min(plen)) {
+            for q in 0..M {
+                let col = (u * M + q).checked_sub(s.pad_w).filter(|&c| c < s.w);
+                phj[q * plen + u] = col.map_or(0.0, |c| src[c]);
+            }
+        }
+    }
+    // Vertical, column-wise (phases are just a column order): tv[i] = Σ_j Bᵀ[i][j] ph[j].
+    for c in (0..M * plen).step_by(L) {
+        let o = T::bt::<L>(std::array::from_fn(|j| Lanes::load(&ph[j * M * plen + c..])));
+        for (i, oi) in o.iter().enumerate() {
+            oi.store(&mut tv[i * M * plen + c..]);
+        }
+    }
+    // Horizontal, L tiles at a time: column j of tile t is tv[i][j % M][t + j / M].
+    // Lanes past the row's last tile spill into the next tile row's columns, which are
+    // written after this one, or into the slack at the end of V's rows.
+    for i in 0..A {
+        let tvi = &tv[i * M * plen..][..M * plen];
+        for t in (0..wz.tx).step_by(L) {
+            let o = T::bt::<L>(std::array::from_fn(|j| Lanes::load(&tvi[(j % M) * plen + t + j / M..])));
+            for (k, ok) in o.iter().enumerate() {
+                ok.store(&mut vc[(i * A + k) * ts + t0 + t..]);
+            }
+        }
+    }
+}
+
+/// `ph[q·plen + u0 + u] = row[u·M + q]` for the M phases (a transpose the compiler
+/// vectorises, with shuffles, when each phase is its own slice; only whole vectors of
+/// tiles, the rest is scalar).
+#[inline(always)]
+fn deinterleave<const M: usize>(row: &[f32], ph: &mut [f32], plen: usize, u0: usize) {
+    let n = row.len() / M;
+    match M {
+        2 => {
+            let (p0, p1) = ph.split_at_mut(plen);
+            let (p0, p1) = (&mut p0[u0..u0 + n], &mut p1[u0..u0 + n]);
+            for (u, c) in row.chunks_exact(2).enumerate() {
+                p0[u] = c[0];
+                p1[u] = c[1];
+            }
+        }
+        4 => {
+            let (p0, rest) = ph.split_at_mut(plen);
+            let (p1, rest) = rest.split_at_mut(plen);
+            let (p2, p3) = rest.split_at_mut(plen);
+            let (p0, p1) = (&mut p0[u0..u0 + n], &mut p1[u0..u0 + n]);
+            let (p2, p3) = (&mut p2[u0..u0 + n], &mut p3[u0..u0 + n]);
+            let row = &row[..4 * n];
+            for u in 0..n {
+                p0[u] = row[4 * u];
+                p1[u] = row[4 * u + 1];
+                p2[u] = row[4 * u + 2];
+                p3[u] = row[4 * u + 3];
+            }
+        }
+        _ => unreachable!("Winograd tiles are 2 or 4 wide"),
+    }
+}
+
+/// `row[t·M + col] = y[col·stride + t]`, the inverse of [`deinterleave`].
+#[inline(always)]
+fn interleave<const M: usize>(y: &[f32], stride: usize, row: &mut [f32]) {
+    let n = row.len() / M;
+    match M {
+        2 => {
+            let (y0, y1) = (&y[..n], &y[stride..stride + n]);
+            for (u, c) in row.chunks_exact_mut(2).enumerate() {
+                c[0] = y0[u];
+                c[1] = y1[u];
+            }
+        }
+        4 => {
+            let (y0, y1, y2, y3) = (&y[..n], &y[stride..][..n], &y[2 * stride..][..n], &y[3 * stride..][..n]);
+            let row = &mut row[..4 * n];
+            for u in 0..n {
+                row[4 * u] = y0[u];
+                row[4 * u + 1] = y1[u];
+                row[4 * u + 2] = y2[u];
+                row[4 * u + 3] = y3[u];
+            }
+        }
+        _ => unreachable!("Winograd tiles are 2 or 4 wide"),
+    }
+}
+
+/// Output transform of one output channel over a whole block (`tb` tiles starting at
+/// global tile row `b0`), from `mc[ξ][t]`, then the epilogue into the part's plane.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
+    s: &Conv2dShape,
+    wz: &Wino,
+    mc: &[f32],
+    tb: usize,
+    b0: usize,
+    c: usize,
+    part: &mut Part,
+    ep: &Epilogue,
+    work: &mut [f32],
+) {
+    const L: usize = OUT_LANES;
+    let ts = wz.stride();
+    let (sbuf, rest) = work.split_at_mut(A * M * ts);
+    let ybuf = &mut rest[..M * M * ts];
+    // Horizontal: sbuf[i][col][t] = Σ_k Aᵀ[col][k] m[i][k][t].
+    for i in 0..A {
+        for t in (0..tb).step_by(L) {
+            let o = T::at::<L>(std::array::from_fn(|k| Lanes::load(&mc[(i * A + k) * ts + t..])));
+            for (col, oc) in o.iter().enumerate() {
+                oc.store(&mut sbuf[(i * M + col) * ts + t..]);
+            }
+        }
+    }
+    // Vertical: ybuf[r][col][t] = Σ_i Aᵀ[r][i] sbuf[i][col][t].
+    for col in 0..M {
+        for t in (0..tb).step_by(L) {
+            let o = T::at::<L>(std::array::from_fn(|i| Lanes::load(&sbuf[(i * M + col) * ts + t..])));
+            for (r, or) in o.iter().enumerate() {
+                or.store(&mut ybuf[(r * M + col) * ts + t..]);
+            }
+        }
+    }
+    // Interleave the M columns of each tile into output rows, then the epilogue. The
+    // interleaved row reuses sbuf.
+    let (tx, ty_n) = (wz.tx, s.oh.div_ceil(M));
+    let row = &mut sbuf[..tx * M];
+    for (k, gu) in (b0..b0 + tb / tx).enumerate() {
+        let (n, ty) = (gu / ty_n, gu % ty_n);
+        let (lo, _) = part.rows_of(n, s.oh);
+        let plane = part.plane(n, c);
+        for r in 0..M {
+            let oy = ty * M + r;
+            if oy >= s.oh {
+                break;
+            }
+            interleave::<M>(&ybuf[r * M * ts + k * tx..], ts, row);
+            finish(&mut plane[(oy - lo) * s.ow..][..s.ow], &row[..s.ow], c, ep);
+        }
+    }
+}
