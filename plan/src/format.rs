@@ -1,0 +1,305 @@
+//! The plan format: everything a plan file holds besides the tensor bytes.
+//!
+//! A plan is a [safetensors] file whose tensors are the stored weights (f32, each stored
+//! once) and whose metadata holds the [`Manifest`] as JSON: inputs, outputs, the schedule
+//! of [`Step`]s, every value's shape, the buffer plan, the stored tensors, the model's
+//! parameter table, the variant tables and the conditions. The runtime's `plan` module
+//! reads and writes the container; [`crate::validate`] checks a manifest before anything
+//! runs it.
+//!
+//! Each [`Kernel`] holds its operator's attributes as [`crate::ops`] defines them, so the
+//! runtime checks a plan's shapes with the same rules the compiler inferred them with.
+//!
+//! [safetensors]: https://huggingface.co/docs/safetensors
+
+use std::collections::HashMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::conditions::Conditions;
+use crate::dim::Dim;
+use crate::key::VariantKey;
+use crate::ops::{ChannelAffine, Conv2d, LayerNorm, Linear, Operator, Pure};
+
+/// Version of the plan format this crate describes. Version 2: kernels hold their
+/// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
+pub const FORMAT_VERSION: u32 = 2;
+
+/// The key of variant 0, the base model; no variant table may use it.
+pub const BASE_VARIANT: &str = crate::key::BASE_KEY;
+
+/// Everything about a plan except the tensor bytes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format_version: u32,
+    /// The model's name and the parameter values it was compiled with.
+    pub model: String,
+    pub model_params: Vec<(String, String)>,
+    /// Symbolic dimensions, bound from the input shapes at run time.
+    pub symbols: Vec<String>,
+    pub inputs: Vec<InputSpec>,
+    pub outputs: Vec<OutputSpec>,
+    /// Every value the schedule reads or writes.
+    pub values: Vec<ValueSpec>,
+    /// The schedule, in execution order.
+    pub steps: Vec<Step>,
+    /// Number of activation buffers; a value stored in slot `s` shares buffer `s` with
+    /// the values whose lifetimes do not overlap it.
+    pub slots: usize,
+    /// The stored tensors, in checksum order.
+    pub tensors: Vec<TensorSpec>,
+    /// The model's parameters as the spec declares them (PyTorch names) and where each
+    /// went (a folded BatchNorm lives on in its conv's epilogue).
+    pub params: Vec<ParamSpec>,
+    /// Per-variant tensor tables; empty in format version 1 plans without variants.
+    #[serde(default)]
+    pub variants: Vec<VariantTable>,
+    /// The spec's conditions (axes, selectors, missing-modality policies, meld rule), for
+    /// choosing a variant from the inputs; `None` for specs without a variants section.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub conditions: Option<Conditions>,
+}
+
+impl Manifest {
+    /// Every symbol bound to `batch` (a plan's symbols are batch sizes, `N`).
+    pub fn batch_bindings(&self, batch: usize) -> HashMap<String, usize> {
+        self.symbols.iter().map(|s| (s.clone(), batch)).collect()
+    }
+
+    /// Each input's name and shape at batch size `batch`.
+    pub fn input_shapes(&self, batch: usize) -> Vec<(&str, Vec<usize>)> {
+        let b = self.batch_bindings(batch);
+        self.inputs
+            .iter()
+            .map(|i| (i.name.as_str(), i.shape.iter().map(|d| d.eval(&b).unwrap_or(1)).collect()))
+            .collect()
+    }
+}
+
+/// A graph input.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct InputSpec {
+    pub name: String,
+    pub shape: Vec<Dim>,
+    pub modality: Option<String>,
+    pub optional: bool,
+    pub value: usize,
+}
+
+/// A graph output.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OutputSpec {
+    pub name: String,
+    pub value: usize,
+}
+
+/// A value (tensor) of the schedule.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ValueSpec {
+    pub shape: Vec<Dim>,
+    pub storage: Storage,
+}
+
+/// Where a value lives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Storage {
+    /// The caller's buffer for input `i`.
+    Input(usize),
+    /// Activation buffer `s`.
+    Slot(usize),
+    /// Stored tensor `t` (a `parameter` used as a value).
+    Tensor(usize),
+}
+
+/// A stored tensor: its name in the container and its shape.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TensorSpec {
+    pub name: String,
+    pub shape: Vec<usize>,
+}
+
+impl TensorSpec {
+    pub fn numel(&self) -> usize {
+        self.shape.iter().product()
+    }
+}
+
+/// A parameter of the model as declared in the spec.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ParamSpec {
+    /// PyTorch `state_dict` name.
+    pub name: String,
+    pub shape: Vec<usize>,
+    /// A trainable parameter (`true`) or a buffer such as a running statistic.
+    pub trainable: bool,
+    /// How it is stored: `tensor <name>`, `folded into <tensor>`, `unused`.
+    pub stored_as: String,
+    /// Added by an adaptation rule (a LoRA matrix, an adapter weight): zero in the base
+    /// model, owned by the variants.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub added: bool,
+}
+
+/// One variant: the stored tensors it reads instead of the base's, and its budget.
+///
+/// A run under the variant reads tensor `with` wherever a step names tensor `base`; every
+/// other tensor is the base's. Replacements are ordinary entries of
+/// [`Manifest::tensors`] (stored once however many variants share them) and have their
+/// base tensor's shape.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VariantTable {
+    /// The variant's key, `fog=0.03` or `missing=lidar`.
+    pub key: VariantKey,
+    pub replaces: Vec<Replacement>,
+    /// Elements of existing parameters the variant owns (the paper's "exist budget").
+    pub tuned_elements: u64,
+    /// Elements of parameters the variant adds: LoRA matrices, adapters ("add budget").
+    pub added_elements: u64,
+    /// Owned parameters the variant's files did not provide; they keep the base value.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fallback: Vec<String>,
+}
+
+/// A base tensor a variant replaces, and with which.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Replacement {
+    pub base: usize,
+    pub with: usize,
+    /// Derived from parameters the adaptation rules add (LoRA, adapters), rather than
+    /// from tuned existing parameters.
+    pub added: bool,
+}
+
+/// One step of the schedule: a kernel applied to values.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Step {
+    /// The node path in the spec, for messages and profiles.
+    pub path: String,
+    pub kernel: Kernel,
+    pub inputs: Vec<usize>,
+    pub output: usize,
+}
+
+/// A per-channel epilogue read from stored tensors.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EpilogueSpec {
+    pub scale: Option<usize>,
+    pub shift: Option<usize>,
+    pub relu: bool,
+    /// Set when `scale` and `shift` are a folded BatchNorm: what re-estimating its
+    /// statistics needs ([`crate::calibrate`]). Absent in plans compiled before it was
+    /// recorded; never read by a normal run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bn: Option<BnInfo>,
+}
+
+/// The BatchNorm a conv or channel-affine epilogue was folded from, so that its running
+/// statistics can be re-estimated (AdaBN) from a plan that holds only the folded affine.
+///
+/// The tensors are the base model's (a variant's own affine is in its `scale`/`shift`
+/// replacements); no kernel reads them and no variant may replace them. Each has the
+/// epilogue's channel count. Cost: two (three with a conv bias) vectors of `C` floats
+/// per BatchNorm, 37.5 KiB for ResNet-18.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BnInfo {
+    /// The BatchNorm's path, its PyTorch module name (`layer1.0.bn1`): its statistics are
+    /// `<name>.running_mean` and `<name>.running_var`.
+    pub name: String,
+    pub eps: f64,
+    /// Stored tensor of its `weight` (gamma).
+    pub weight: usize,
+    /// Stored tensor of its `bias` (beta).
+    pub bias: usize,
+    /// Stored tensor of the conv bias folded into `shift` (conv epilogues only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub conv_bias: Option<usize>,
+}
+
+impl BnInfo {
+    /// The stored tensors it names.
+    pub fn tensors(&self) -> impl Iterator<Item = usize> {
+        [self.weight, self.bias].into_iter().chain(self.conv_bias)
+    }
+}
+
+/// What a step computes. Sizes that depend on the batch come from the values' shapes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Kernel {
+    /// 2-D convolution with a fused per-channel epilogue. `weight` is the packed weight
+    /// for `algo` (see `readi_runtime::kernels::conv`).
+    Conv2d {
+        conv: Conv2d,
+        algo: String,
+        weight: usize,
+        epilogue: EpilogueSpec,
+    },
+    /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
+    /// stored transposed, `[in, out]`.
+    Linear {
+        linear: Linear,
+        weight: usize,
+        epilogue: EpilogueSpec,
+    },
+    /// Per-channel affine over axis 1 (an unfused BatchNorm, folded to scale and shift).
+    ChannelAffine {
+        affine: ChannelAffine,
+        epilogue: EpilogueSpec,
+    },
+    LayerNorm {
+        norm: LayerNorm,
+        weight: Option<usize>,
+        bias: Option<usize>,
+    },
+    /// An operator without stored tensors, as the IR holds it.
+    Pure(Pure),
+}
+
+impl Kernel {
+    /// The operator the step computes: its name, attributes and shape rule.
+    pub fn op(&self) -> &dyn Operator {
+        match self {
+            Kernel::Conv2d { conv, .. } => conv,
+            Kernel::Linear { linear, .. } => linear,
+            Kernel::ChannelAffine { affine, .. } => affine,
+            Kernel::LayerNorm { norm, .. } => norm,
+            Kernel::Pure(p) => p.op(),
+        }
+    }
+
+    /// Short name for listings.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Kernel::Pure(Pure::Binary(_)) => "binary",
+            Kernel::Pure(Pure::Scalar(_)) => "scalar",
+            Kernel::Pure(Pure::Activation(_)) => "activation",
+            Kernel::Pure(Pure::Pool(_)) => "pool",
+            k => k.op().kind_name(),
+        }
+    }
+
+    /// The kernel's per-channel epilogue, if it has one.
+    pub fn epilogue(&self) -> Option<&EpilogueSpec> {
+        match self {
+            Kernel::Conv2d { epilogue, .. }
+            | Kernel::Linear { epilogue, .. }
+            | Kernel::ChannelAffine { epilogue, .. } => Some(epilogue),
+            _ => None,
+        }
+    }
+
+    /// The stored tensors the kernel reads (not those of an epilogue's [`BnInfo`], which
+    /// only calibration reads).
+    pub fn tensors(&self) -> Vec<usize> {
+        let ep = |e: &EpilogueSpec| e.scale.into_iter().chain(e.shift).collect::<Vec<_>>();
+        match self {
+            Kernel::Conv2d { weight, epilogue, .. } | Kernel::Linear { weight, epilogue, .. } => {
+                let mut v = vec![*weight];
+                v.extend(ep(epilogue));
+                v
+            }
+            Kernel::ChannelAffine { epilogue, .. } => ep(epilogue),
+            Kernel::LayerNorm { weight, bias, .. } => weight.iter().chain(bias).copied().collect(),
+            Kernel::Pure(_) => Vec::new(),
+        }
+    }
+}

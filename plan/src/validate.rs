@@ -1,0 +1,316 @@
+//! Checking a manifest before anything runs it.
+//!
+//! Plans are untrusted input: a corrupted or hand-edited file must be refused with a
+//! message naming the step, value or tensor at fault, never reach a kernel with sizes it
+//! does not expect. [`manifest`] checks, in order:
+//!
+//! 1. every index (inputs, values, slots, tensors) is in range, and every dimension is a
+//!    non-negative coefficient over declared symbols;
+//! 2. each input's declared shape is its value's, and a value stored as a tensor has the
+//!    tensor's (known) shape;
+//! 3. the schedule: each step writes an activation buffer not written before, reads only
+//!    values already written, and does not read the buffer it writes;
+//! 4. each step's output shape is what its operator's shape rule ([`crate::ops`]) computes
+//!    from its inputs' shapes (symbolically, so it holds for every batch size), and the
+//!    stored tensors it reads have the sizes its kernel needs;
+//! 5. folded BatchNorm records ([`BnInfo`]) sit on conv or channel-affine steps with a
+//!    scale and a shift, with unique names, a finite eps and tensors of the scale's shape;
+//! 6. variant tables: keys unique and not `base`, replacements of tensors some step reads,
+//!    at most once each, by tensors of exactly their shape (so checking the base covers
+//!    every variant).
+//!
+//! What depends on the kernels' own layouts (a conv's packed weight length) is checked by
+//! the runtime on top.
+
+use std::collections::HashSet;
+
+use crate::dim::Dim;
+use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Storage};
+use crate::ops::{self, TensorType};
+
+/// Most entries the runtime's variant maps may take together (variants x mapped
+/// tensors): 256 MiB. A real plan needs a few thousand; the bound keeps a small crafted
+/// manifest from asking for an enormous allocation.
+pub const MAX_MAP_ENTRIES: usize = 1 << 26;
+
+/// Checks a manifest; the error says what is wrong and where.
+pub fn manifest(m: &Manifest) -> Result<(), String> {
+    indices(m)?;
+    schedule(m)?;
+    batchnorms(m)?;
+    variants(m)
+}
+
+fn bad_dim(d: &Dim, symbols: &[String]) -> bool {
+    d.coef() < 0 || d.symbols().iter().any(|s| !symbols.contains(s))
+}
+
+/// 1 and 2.
+fn indices(m: &Manifest) -> Result<(), String> {
+    let nv = m.values.len();
+    for (i, inp) in m.inputs.iter().enumerate() {
+        if inp.value >= nv || m.values[inp.value].storage != Storage::Input(i) {
+            return Err(format!("input `{}` refers to an invalid value", inp.name));
+        }
+        if let Some(d) = inp.shape.iter().find(|d| bad_dim(d, &m.symbols)) {
+            return Err(format!("input `{}` has an invalid dimension {d}", inp.name));
+        }
+        if inp.shape != m.values[inp.value].shape {
+            return Err(format!(
+                "input `{}` is declared as {} but its value has shape {}",
+                inp.name,
+                crate::show_shape(&inp.shape),
+                crate::show_shape(&m.values[inp.value].shape)
+            ));
+        }
+    }
+    for (i, v) in m.values.iter().enumerate() {
+        match v.storage {
+            Storage::Input(k) if k >= m.inputs.len() => return Err(format!("value {i} reads input {k}")),
+            Storage::Slot(s) if s >= m.slots => return Err(format!("value {i} uses slot {s} of {}", m.slots)),
+            Storage::Tensor(t) if t >= m.tensors.len() => return Err(format!("value {i} reads tensor {t}")),
+            Storage::Tensor(t) => {
+                let shape: Vec<Dim> = m.tensors[t].shape.iter().map(|&d| Dim::from(d)).collect();
+                if shape != v.shape {
+                    return Err(format!(
+                        "value {i} is stored tensor `{}` of shape {:?}, but has shape {}",
+                        m.tensors[t].name,
+                        m.tensors[t].shape,
+                        crate::show_shape(&v.shape)
+                    ));
+                }
+            }
+            _ => {}
+        }
+        if let Some(d) = v.shape.iter().find(|d| bad_dim(d, &m.symbols)) {
+            return Err(format!("value {i} has an invalid dimension {d}"));
+        }
+    }
+    Ok(())
+}
+
+/// 3 and 4.
+fn schedule(m: &Manifest) -> Result<(), String> {
+    let nv = m.values.len();
+    let mut written = vec![false; nv];
+    for inp in &m.inputs {
+        written[inp.value] = true;
+    }
+    for (i, v) in m.values.iter().enumerate() {
+        if matches!(v.storage, Storage::Tensor(_)) {
+            written[i] = true;
+        }
+    }
+    for (k, step) in m.steps.iter().enumerate() {
+        let at = format!("step {k} (`{}`)", step.path);
+        let Some(Storage::Slot(out_slot)) = m.values.get(step.output).map(|v| v.storage) else {
+            return Err(format!("{at} writes an invalid value"));
+        };
+        if written[step.output] {
+            return Err(format!("{at} writes value {} a second time", step.output));
+        }
+        for &i in &step.inputs {
+            if i >= nv || !written[i] {
+                return Err(format!("{at} reads value {i} before it is written"));
+            }
+            if m.values[i].storage == Storage::Slot(out_slot) {
+                return Err(format!("{at} reads buffer {out_slot}, which it writes"));
+            }
+        }
+        for t in step.kernel.tensors() {
+            if t >= m.tensors.len() {
+                return Err(format!("{at} reads tensor {t} of {}", m.tensors.len()));
+            }
+        }
+        let inputs: Vec<TensorType> = step.inputs.iter().map(|&i| TensorType::f32(m.values[i].shape.clone())).collect();
+        let refs: Vec<&TensorType> = inputs.iter().collect();
+        let want = ops::infer(step.kernel.op(), &refs).map_err(|e| format!("{at}: {e}"))?;
+        let out = &m.values[step.output].shape;
+        if &want.shape != out {
+            return Err(format!(
+                "{at}: its output has shape {}, but {} of its inputs gives {}",
+                crate::show_shape(out),
+                step.kernel.op().kind_name(),
+                crate::show_shape(&want.shape)
+            ));
+        }
+        tensor_sizes(m, &step.kernel).map_err(|e| format!("{at}: {e}"))?;
+        written[step.output] = true;
+    }
+    for o in &m.outputs {
+        if o.value >= nv || !written[o.value] {
+            return Err(format!("output `{}` is never computed", o.name));
+        }
+    }
+    Ok(())
+}
+
+/// The stored tensors of a kernel have the sizes it reads (step 4); a conv's packed
+/// weight, whose length depends on its algorithm, is the runtime's to check.
+fn tensor_sizes(m: &Manifest, kernel: &Kernel) -> Result<(), String> {
+    let numel = |t: usize| m.tensors[t].numel();
+    let per_channel = |ep: &EpilogueSpec, channels: i64| -> Result<(), String> {
+        for t in ep.scale.into_iter().chain(ep.shift) {
+            if numel(t) as u64 != channels as u64 {
+                return Err(format!(
+                    "epilogue tensor `{}` has {} values for {channels} channels",
+                    m.tensors[t].name,
+                    numel(t)
+                ));
+            }
+        }
+        Ok(())
+    };
+    match kernel {
+        Kernel::Conv2d { conv, epilogue, .. } => per_channel(epilogue, conv.out_channels),
+        Kernel::Linear { linear, weight, epilogue } => {
+            let want = (linear.in_features as u64).saturating_mul(linear.out_features as u64);
+            if numel(*weight) as u64 != want {
+                return Err(format!(
+                    "linear weight `{}` has {} values, not {want}",
+                    m.tensors[*weight].name,
+                    numel(*weight)
+                ));
+            }
+            per_channel(epilogue, linear.out_features)
+        }
+        Kernel::ChannelAffine { affine, epilogue } => per_channel(epilogue, affine.channels),
+        Kernel::LayerNorm { norm, weight, bias } => {
+            if weight.is_some() != norm.affine || bias.is_some() != norm.affine {
+                return Err("layernorm parameters do not match its `affine`".into());
+            }
+            for t in weight.iter().chain(bias) {
+                if numel(*t) as u64 != norm.features as u64 {
+                    return Err(format!(
+                        "layernorm parameters have the wrong size ({} for {})",
+                        numel(*t),
+                        norm.features
+                    ));
+                }
+            }
+            Ok(())
+        }
+        Kernel::Pure(_) => Ok(()),
+    }
+}
+
+/// 5.
+fn batchnorms(m: &Manifest) -> Result<(), String> {
+    let mut names: HashSet<&str> = HashSet::new();
+    for (k, step) in m.steps.iter().enumerate() {
+        let Some(ep) = step.kernel.epilogue() else { continue };
+        let Some(bn) = &ep.bn else { continue };
+        let at = format!("step {k} (`{}`), BatchNorm `{}`", step.path, bn.name);
+        let conv = matches!(step.kernel, Kernel::Conv2d { .. });
+        if !conv && !matches!(step.kernel, Kernel::ChannelAffine { .. }) {
+            return Err(format!("{at}: only conv2d and channel_affine steps fold a BatchNorm"));
+        }
+        if bn.conv_bias.is_some() && !conv {
+            return Err(format!("{at}: a conv bias on a step without a conv"));
+        }
+        if bn.name.trim().is_empty() || !names.insert(&bn.name) {
+            return Err(format!("{at}: the name is empty or used by another step"));
+        }
+        if !(bn.eps.is_finite() && bn.eps >= 0.0) {
+            return Err(format!("{at}: eps {} is not a finite non-negative number", bn.eps));
+        }
+        let (Some(scale), Some(_)) = (ep.scale, ep.shift) else {
+            return Err(format!("{at}: a folded BatchNorm needs the epilogue's scale and shift"));
+        };
+        let shape = &m.tensors[scale].shape;
+        if shape.len() != 1 {
+            return Err(format!("{at}: the scale has shape {shape:?}, not [C]"));
+        }
+        for t in bn.tensors() {
+            match m.tensors.get(t) {
+                None => return Err(format!("{at}: reads tensor {t} of {}", m.tensors.len())),
+                Some(spec) if &spec.shape != shape => {
+                    return Err(format!(
+                        "{at}: tensor {t} (`{}`) has shape {:?}, the scale {shape:?}",
+                        spec.name, spec.shape
+                    ));
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Which stored tensors the schedule names: read by a step's kernel or stored as a value.
+/// Indices out of range are skipped (validation reports them).
+pub fn read_tensors(m: &Manifest) -> Vec<bool> {
+    let mut read = vec![false; m.tensors.len()];
+    let named = m.steps.iter().flat_map(|s| s.kernel.tensors());
+    let values = m.values.iter().filter_map(|v| match v.storage {
+        Storage::Tensor(t) => Some(t),
+        _ => None,
+    });
+    for t in named.chain(values) {
+        if let Some(r) = read.get_mut(t) {
+            *r = true;
+        }
+    }
+    read
+}
+
+/// One past the highest tensor index the schedule names (0 when it names none): the width
+/// of the runtime's variant maps.
+pub fn map_span(m: &Manifest) -> usize {
+    read_tensors(m).iter().rposition(|&r| r).map_or(0, |t| t + 1)
+}
+
+/// 6.
+fn variants(m: &Manifest) -> Result<(), String> {
+    let n = m.tensors.len();
+    if m.variants.is_empty() {
+        return Ok(());
+    }
+    if u32::try_from(n).is_err() {
+        return Err(format!("{n} tensors; variant plans hold at most {}", u32::MAX));
+    }
+    let read = read_tensors(m);
+    let span = read.iter().rposition(|&r| r).map_or(0, |t| t + 1);
+    if (m.variants.len() + 1).saturating_mul(span) > MAX_MAP_ENTRIES {
+        return Err(format!(
+            "{} variants over {span} tensors exceed the limit of {MAX_MAP_ENTRIES} variant map entries",
+            m.variants.len()
+        ));
+    }
+    let name = |t: usize| &m.tensors[t].name;
+    let mut keys: HashSet<String> = HashSet::with_capacity(m.variants.len());
+    let mut replaced = vec![usize::MAX; n];
+    for (i, v) in m.variants.iter().enumerate() {
+        let key = v.key.to_string();
+        let at = format!("variant `{key}`");
+        if v.key.is_base() || key == BASE_VARIANT {
+            return Err(format!("{at}: the key `{BASE_VARIANT}` is reserved for the base model"));
+        }
+        if !keys.insert(key) {
+            return Err(format!("{at}: the key is used by two variants"));
+        }
+        for r in &v.replaces {
+            if r.base >= n || r.with >= n {
+                return Err(format!("{at} replaces tensor {} with tensor {}, of {n} tensors", r.base, r.with));
+            }
+            if !read[r.base] {
+                return Err(format!("{at} replaces tensor {} (`{}`), which no step reads", r.base, name(r.base)));
+            }
+            let (base, with) = (&m.tensors[r.base].shape, &m.tensors[r.with].shape);
+            if base != with {
+                return Err(format!(
+                    "{at} replaces tensor {} (`{}`, shape {base:?}) with tensor {} (`{}`, shape {with:?}); \
+                     a replacement must have its base tensor's shape",
+                    r.base,
+                    name(r.base),
+                    r.with,
+                    name(r.with)
+                ));
+            }
+            if std::mem::replace(&mut replaced[r.base], i) == i {
+                return Err(format!("{at} replaces tensor {} (`{}`) twice", r.base, name(r.base)));
+            }
+        }
+    }
+    Ok(())
+}
