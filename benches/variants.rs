@@ -33,8 +33,8 @@ fn module(src: &str, overrides: &[(&str, &str)]) -> Module {
 
 fn plan(m: &Module, variants: usize, lora: LoraMode) -> Arc<Plan> {
     let weights = backend::seeded_weights(&m.graph, 1);
-    let keys: Vec<String> = m.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
-    let keys: Vec<String> = keys.into_iter().take(variants).collect();
+    let keys = m.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
+    let keys: Vec<String> = keys.into_iter().take(variants).map(|k| k.to_string()).collect();
     assert_eq!(keys.len(), variants, "the spec declares enough variants");
     let sources = backend::seeded_variants(m, &keys, 10);
     let opts = CompileOptions { lora, ..Default::default() };

@@ -100,7 +100,7 @@ pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
             print::bytes(base_bytes),
             print::bytes(plan.tensor_bytes() as u64 - base_bytes)
         )?;
-        let width = m.variants.iter().map(|v| v.key.len()).max().unwrap_or(0).max(7);
+        let width = m.variants.iter().map(|v| v.key.to_string().len()).max().unwrap_or(0).max(7);
         writeln!(
             out,
             "  {:<width$}  {:>20}  {:>20}  {:>30}",

@@ -218,7 +218,7 @@ fn plans_without_batchnorm_records_ask_for_recompiling() {
     let mut manifest = plan.manifest.clone();
     for step in &mut manifest.steps {
         match &mut step.kernel {
-            Kernel::Conv2d { epilogue, .. } | Kernel::ChannelAffine { epilogue } => epilogue.bn = None,
+            Kernel::Conv2d { epilogue, .. } | Kernel::ChannelAffine { epilogue, .. } => epilogue.bn = None,
             _ => {}
         }
     }

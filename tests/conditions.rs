@@ -143,7 +143,9 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
     let keys: Vec<String> = ["gamma=0.25", "fog=0.06"].iter().map(|k| k.to_string()).collect();
     let sources = backend::seeded_variants(&m, &keys, 50);
     let base = backend::seeded_weights(&m.graph, 1);
-    let melded = variants::meld(&m, MELD, &[&sources[0], &sources[1]], &base).expect("melds");
+    let melded =
+        variants::meld(&m, &readi_plan::VariantKey::parse(MELD).expect("a key"), &[&sources[0], &sources[1]], &base)
+            .expect("melds");
     // The spec's rule: camera (gamma) 0.8, lidar (fog) 0.2.
     let mut checked = 0;
     for (name, (_, v)) in &melded.weights.tensors {
@@ -158,7 +160,8 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
     // Two camera axes at once: no meld rule weighs them apart.
     let both_camera: Vec<String> = ["gamma=0.25", "blur=30"].iter().map(|k| k.to_string()).collect();
     let cam = backend::seeded_variants(&m, &both_camera, 50);
-    let e = variants::meld(&m, "blur=30+gamma=0.25", &[&cam[0], &cam[1]], &base).expect_err("same modality");
+    let key = readi_plan::VariantKey::parse("blur=30+gamma=0.25").expect("a key");
+    let e = variants::meld(&m, &key, &[&cam[0], &cam[1]], &base).expect_err("same modality");
     assert!(e.0[0].message.contains("two parts weigh on `camera`"), "{:?}", e.0[0].message);
 }
 

@@ -52,7 +52,7 @@ fn schedule(plan: &Plan) -> String {
                 if epilogue.shift.is_some() { " shift" } else { "" },
                 if epilogue.relu { " relu" } else { "" }
             ),
-            Kernel::Linear { epilogue, .. } | Kernel::ChannelAffine { epilogue } => format!(
+            Kernel::Linear { epilogue, .. } | Kernel::ChannelAffine { epilogue, .. } => format!(
                 " [{}{}{}]",
                 if epilogue.scale.is_some() { "scale " } else { "" },
                 if epilogue.shift.is_some() { "shift " } else { "" },

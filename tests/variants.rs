@@ -165,7 +165,7 @@ fn bundled_models_compile_with_variants() {
     for model in ["resnet18", "vit_encoder", "pointpillars_bev", "bevfusion_tiny"] {
         let (sources, m) = module(model, &[]);
         let keys = m.variants.as_ref().expect("variants").keys();
-        let keys: Vec<String> = keys.into_iter().take(3).collect();
+        let keys: Vec<String> = keys.into_iter().take(3).map(|k| k.to_string()).collect();
         let variants = backend::seeded_variants(&m, &keys, 100);
         let plan = compile(&sources, &m, &variants, LoraMode::Branch);
         let mf = &plan.manifest;

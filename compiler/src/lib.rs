@@ -1,5 +1,5 @@
 //! The readi compiler front end: the graph IR ([`ir`]), elaboration of a parsed file into
-//! it ([`elaborate`]), shape inference ([`infer`]), the pass pipeline ([`passes`]), the
+//! it ([`elaborate`]), the operators' builtins ([`ops`]), the pass pipeline ([`passes`]), the
 //! verifier ([`verify`]), selector patterns ([`select`]) and printers ([`print`]).
 //!
 //! ```
@@ -17,8 +17,8 @@
 
 pub mod backend;
 pub mod elaborate;
-pub mod infer;
 pub mod ir;
+pub mod ops;
 pub mod passes;
 pub mod print;
 pub mod select;

@@ -21,7 +21,6 @@
 
 use std::collections::{HashMap, HashSet};
 
-use crate::infer::infer;
 use crate::ir::{Op, SlotKind, TensorType};
 use crate::passes::Module;
 
@@ -75,7 +74,7 @@ pub fn verify(module: &Module) -> Result<(), Vec<String>> {
             }
         } else if types.len() == incoming.len() {
             // 4.
-            match infer(&node.op, &types) {
+            match node.op.infer(&types) {
                 Ok(out) if out == node.outputs => {}
                 Ok(out) => problems.push(format!(
                     "{at}: stored output types {} differ from inferred {}",
@@ -191,7 +190,10 @@ mod tests {
             },
             &[],
         );
-        let op = Op::Linear { in_features: 4, out_features: 2, bias: true };
+        let op = Op::Linear(crate::ops::LinearOp {
+            linear: crate::ir::Linear { in_features: 4, out_features: 2 },
+            bias: true,
+        });
         let out = TensorType::new(DType::F32, vec![Dim::symbol("N"), Dim::known(2)]);
         let fc = g.add_node(
             Node {

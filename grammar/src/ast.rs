@@ -154,40 +154,8 @@ pub struct InputDecl {
 }
 
 /// Element types of tensors.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum DType {
-    F32,
-    F16,
-    BF16,
-    I64,
-    I32,
-    Bool,
-}
-
-impl DType {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            DType::F32 => "f32",
-            DType::F16 => "f16",
-            DType::BF16 => "bf16",
-            DType::I64 => "i64",
-            DType::I32 => "i32",
-            DType::Bool => "bool",
-        }
-    }
-    pub fn is_float(self) -> bool {
-        matches!(self, DType::F32 | DType::F16 | DType::BF16)
-    }
-    /// Size of one element in bytes.
-    pub fn size_bytes(self) -> u64 {
-        match self {
-            DType::F32 | DType::I32 => 4,
-            DType::F16 | DType::BF16 => 2,
-            DType::I64 => 8,
-            DType::Bool => 1,
-        }
-    }
-}
+/// Element types, shared with the compiler and the plan format.
+pub use readi_plan::DType;
 
 /// One segment of a layer path: `conv1` or `0`.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]

@@ -12,9 +12,11 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use readi_plan::ops::{LayerNorm, Linear};
+use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session, VariantSwitch};
 use readi_runtime::plan::{
-    EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage, SymDim,
+    EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage,
     TensorSpec, ValueSpec, VariantTable,
 };
 use readi_runtime::testdata::data;
@@ -61,14 +63,14 @@ fn plan() -> Plan {
             replaces.push(Replacement { base: b, with, added: false });
         }
         variants.push(VariantTable {
-            key: key.to_string(),
+            key: VariantKey::parse(key).expect("a valid key"),
             replaces,
             tuned_elements: 0,
             added_elements: 0,
             fallback: Vec::new(),
         });
     }
-    let n = |d: usize| vec![SymDim { coef: 1, syms: vec!["N".into()] }, SymDim::known(d as i64)];
+    let n = |d: usize| vec![Dim::symbol("N"), Dim::from(d)];
     let manifest = Manifest {
         format_version: FORMAT_VERSION,
         model: "switch-latency".into(),
@@ -85,7 +87,7 @@ fn plan() -> Plan {
             Step {
                 path: "fc".into(),
                 kernel: Kernel::Linear {
-                    out_features: FOUT,
+                    linear: Linear { in_features: FIN as i64, out_features: FOUT as i64 },
                     weight: base[0],
                     epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true, bn: None },
                 },
@@ -94,7 +96,11 @@ fn plan() -> Plan {
             },
             Step {
                 path: "ln".into(),
-                kernel: Kernel::LayerNorm { weight: Some(base[2]), bias: Some(base[3]), eps: 1e-5 },
+                kernel: Kernel::LayerNorm {
+                    norm: LayerNorm { features: FOUT as i64, eps: 1e-5, affine: true },
+                    weight: Some(base[2]),
+                    bias: Some(base[3]),
+                },
                 inputs: vec![1],
                 output: 2,
             },

@@ -27,6 +27,8 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::exec::{Bound, Input, Run, RunError, Session, run_step};
+use readi_plan::ops::batchnorm_channel;
+
 use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage};
 
 /// Why calibration failed.
@@ -148,21 +150,14 @@ impl BnCalibrator {
             // The BatchNorm's input: the conv plus its own bias, or the affine's input.
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, relu: false, bn: None };
             let kernel = match &step.kernel {
-                Kernel::Conv2d { cout, kernel, stride, padding, dilation, groups, algo, weight, .. } => {
-                    Kernel::Conv2d {
-                        cout: *cout,
-                        kernel: *kernel,
-                        stride: *stride,
-                        padding: *padding,
-                        dilation: *dilation,
-                        groups: *groups,
-                        algo: algo.clone(),
-                        weight: *weight,
-                        epilogue: identity,
-                    }
+                Kernel::Conv2d { conv, algo, weight, .. } => {
+                    Kernel::Conv2d { conv: conv.clone(), algo: algo.clone(), weight: *weight, epilogue: identity }
                 }
                 // Validation: a BnInfo is only on conv and channel-affine steps.
-                _ => Kernel::ChannelAffine { epilogue: identity },
+                Kernel::ChannelAffine { affine, .. } => {
+                    Kernel::ChannelAffine { affine: affine.clone(), epilogue: identity }
+                }
+                _ => continue,
             };
             let pre = Step { path: step.path.clone(), kernel, inputs: step.inputs.clone(), output: step.output };
             let c = m.tensors[info.weight].numel();
@@ -348,8 +343,8 @@ fn train_mode_batchnorm(
         }
         layer.batch_mean[ch] = mean;
         layer.batch_var[ch] = unbiased;
-        let a = gamma[ch] as f64 / (var + layer.info.eps).sqrt();
-        affine.push((a as f32, (beta[ch] as f64 - mean * a) as f32));
+        let (a, b) = batchnorm_channel(gamma[ch] as f64, beta[ch] as f64, mean, var, layer.info.eps);
+        affine.push((a as f32, b as f32));
     }
     let relu = layer.relu;
     x.par_chunks_mut(inner.max(1)).with_min_len((CHUNK / inner.max(1)).max(1)).enumerate().for_each(|(row, xs)| {

@@ -22,124 +22,9 @@
 use std::borrow::Cow;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
-
-/// The checked `variants` section of a spec, as the runtime needs it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Conditions {
-    pub axes: Vec<AxisSpec>,
-    pub selectors: Vec<SelectorSpec>,
-    /// `(modality, policy)` for modalities whose inputs are optional.
-    pub missing: Vec<(String, MissingPolicy)>,
-    pub meld: Option<MeldSpec>,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AxisSpec {
-    pub name: String,
-    pub modality: String,
-    pub levels: Vec<f64>,
-    /// The level of the clear condition (the base model), if declared.
-    pub clear: Option<f64>,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum MissingPolicy {
-    ZeroFill,
-    Variant,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum KeySource {
-    /// A run metadata value, snapped to the nearest level (or the clear level).
-    Meta(String),
-    /// A statistic of an input.
-    Stat { stat: Statistic, input: String },
-}
-
-/// Statistics of an input tensor a selector may use.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Statistic {
-    /// Mean value (images in [0, 1]: mean brightness).
-    Brightness,
-    /// Standard deviation.
-    Contrast,
-    /// Variance of the 4-neighbour Laplacian over the last two axes (low when blurred).
-    LaplacianVar,
-    /// Fraction of non-zero elements (lidar returns, occupied BEV cells).
-    Density,
-    /// Mean of the non-zero elements (the intensity of the returns there are).
-    Intensity,
-}
-
-impl Statistic {
-    /// Every statistic, in the order the language reference lists them.
-    pub const ALL: [Statistic; 5] =
-        [Statistic::Brightness, Statistic::Contrast, Statistic::LaplacianVar, Statistic::Density, Statistic::Intensity];
-
-    pub fn from_name(name: &str) -> Option<Statistic> {
-        Statistic::ALL.into_iter().find(|s| s.name() == name)
-    }
-
-    /// What it measures, for listings and messages.
-    pub fn description(self) -> &'static str {
-        match self {
-            Statistic::Brightness => "mean value of an image",
-            Statistic::Contrast => "standard deviation of an image",
-            Statistic::LaplacianVar => "variance of the Laplacian of an image (low when blurred)",
-            Statistic::Density => "fraction of non-zero cells or returns",
-            Statistic::Intensity => "mean of the non-zero values (the intensity of the returns)",
-        }
-    }
-    pub fn name(self) -> &'static str {
-        match self {
-            Statistic::Brightness => "brightness",
-            Statistic::Contrast => "contrast",
-            Statistic::LaplacianVar => "laplacian_var",
-            Statistic::Density => "density",
-            Statistic::Intensity => "intensity",
-        }
-    }
-}
-
-/// How one axis's level is found.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct SelectorSpec {
-    pub axis: String,
-    pub source: KeySource,
-    /// Threshold arms: the first whose bound the value is below decides; the last has no
-    /// bound. Empty: the nearest level.
-    pub arms: Vec<ArmSpec>,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ArmSpec {
-    /// `Some((t, inclusive))`: `< t` (`<= t` when inclusive); `None`: `else`.
-    pub below: Option<(f64, bool)>,
-    /// `None`: the clear condition.
-    pub level: Option<f64>,
-}
-
-/// `meld camera = 0.8, lidar = 0.2`: how a combined condition interpolates two
-/// mono-domain variants (the paper's `lambda_c * P_c + lambda_l * P_l`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct MeldSpec {
-    pub by: MeldBy,
-    /// Lambda per modality or axis; they sum to 1.
-    pub weights: Vec<(String, f64)>,
-}
-
-/// Whether a meld rule weighs modalities or axes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum MeldBy {
-    Modality,
-    Axis,
-}
-
-/// A level as it appears in a key: `0.03`, `4`.
-pub fn fmt_level(v: f64) -> String {
-    if v.fract() == 0.0 && v.abs() < 1e15 { format!("{}", v as i64) } else { format!("{v}") }
-}
+pub use readi_plan::conditions::*;
+use readi_plan::key::VariantKey;
+pub use readi_plan::key::fmt_level;
 
 /// Sum and sum of squares in sixteen f32 lanes (so the loop vectorises), folded in f64
 /// every block so long inputs keep their precision; blocks run in parallel.
@@ -287,167 +172,122 @@ impl std::fmt::Display for SelectError {
 
 impl std::error::Error for SelectError {}
 
-impl Conditions {
-    /// Every variant key the spec declares: one per axis level, one per missing modality
-    /// served by a variant (compiled into the plan or not).
-    pub fn keys(&self) -> Vec<String> {
-        let levels = self.axes.iter().flat_map(|a| a.levels.iter().map(|l| format!("{}={}", a.name, fmt_level(*l))));
-        let missing =
-            self.missing.iter().filter(|(_, p)| *p == MissingPolicy::Variant).map(|(m, _)| format!("missing={m}"));
-        levels.chain(missing).collect()
+/// Chooses the variant for one frame under `conditions` (see the module doc). `has`
+/// tells whether the plan holds a key.
+pub fn select(
+    conditions: &Conditions,
+    inputs: &[FrameInput<'_>],
+    meta: &[(String, f64)],
+    has: impl Fn(&VariantKey) -> bool,
+) -> Result<Selection, SelectError> {
+    let c = conditions;
+    let mut reasons = Vec::new();
+    // (the part's key, its axis if it is a level)
+    let mut picked: Vec<(VariantKey, Option<&AxisSpec>)> = Vec::new();
+    let mut absent_modalities: Vec<&str> = Vec::new();
+    for i in inputs.iter().filter(|i| i.data.is_none()) {
+        let m = i.modality.unwrap_or("");
+        let policy = c.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p).unwrap_or(MissingPolicy::ZeroFill);
+        if !absent_modalities.contains(&m) {
+            absent_modalities.push(m);
+            match policy {
+                MissingPolicy::ZeroFill => reasons.push(format!("`{}` is absent: zero-filled ({m} policy)", i.name)),
+                MissingPolicy::Variant => {
+                    let key = VariantKey::missing(m);
+                    reasons.push(format!("`{}` is absent: the {m} policy selects `{key}`", i.name));
+                    picked.push((key, None));
+                }
+            }
+        }
     }
-
-    fn axis(&self, name: &str) -> Option<&AxisSpec> {
-        self.axes.iter().find(|a| a.name == name)
+    for s in &c.selectors {
+        let Some(axis) = c.axis(&s.axis) else { continue };
+        if absent_modalities.contains(&axis.modality.as_str()) {
+            continue;
+        }
+        let (value, source) = match &s.source {
+            KeySource::Meta(k) => match meta.iter().find(|(n, _)| n == k) {
+                Some((_, v)) => (*v, format!("meta `{k}` = {}", fmt_value(*v))),
+                None => {
+                    reasons.push(format!("{}: no metadata `{k}`; clear", s.axis));
+                    continue;
+                }
+            },
+            KeySource::Stat { stat, input } => match inputs.iter().find(|i| i.name == input).and_then(|i| i.data) {
+                Some((data, shape)) => {
+                    let v = statistic(*stat, data, shape);
+                    (v, format!("{}({input}) = {}", stat.name(), fmt_value(v)))
+                }
+                None => continue,
+            },
+        };
+        let level = if s.arms.is_empty() {
+            nearest(axis, value)
+        } else {
+            s.arms
+                .iter()
+                .find(|a| match a.below {
+                    Some((t, inclusive)) => value < t || (inclusive && value == t),
+                    None => true,
+                })
+                .and_then(|a| a.level)
+        };
+        match level {
+            None => reasons.push(format!("{}: {source} -> clear", s.axis)),
+            Some(l) => {
+                let key = VariantKey::level(&s.axis, l);
+                reasons.push(format!("{}: {source} -> {key}", s.axis));
+                picked.push((key, Some(axis)));
+            }
+        }
     }
-
-    /// The lambdas of a melded key's parts (`fog=0.06`, `missing=lidar`), normalised to sum
-    /// 1, or why the spec's meld rule does not combine them (each part must fall in its own
-    /// meld group, a modality or an axis, that the rule weighs).
-    pub fn meld_weights(&self, parts: &[String]) -> Result<Vec<f64>, String> {
-        let meld = self.meld.as_ref().ok_or("the spec has no `meld` rule")?;
-        let mut groups: Vec<&str> = Vec::new();
-        let mut lambdas = Vec::new();
-        for p in parts {
-            let (axis, level) = p.split_once('=').ok_or(format!("`{p}` is not a key"))?;
-            let group = if axis == "missing" {
-                level
-            } else {
-                let a = self.axis(axis).ok_or(format!("no axis `{axis}`"))?;
-                if meld.by == MeldBy::Axis { &a.name } else { &a.modality }
+    // Keys the plan holds: the nearest compiled level of the axis, else nothing.
+    let mut keys: Vec<VariantKey> = Vec::new();
+    for (key, axis) in picked {
+        if has(&key) {
+            keys.push(key);
+            continue;
+        }
+        let alt = axis.and_then(|a| {
+            let want = match key.parts() {
+                [readi_plan::key::KeyPart::Level { level, .. }] => *level,
+                _ => return None,
             };
-            if groups.contains(&group) {
-                return Err(format!("two parts weigh on `{group}`"));
+            let mut levels: Vec<f64> =
+                a.levels.iter().copied().filter(|l| has(&VariantKey::level(&a.name, *l))).collect();
+            levels.sort_by(|x, y| (x - want).abs().total_cmp(&(y - want).abs()));
+            levels.first().map(|l| VariantKey::level(&a.name, *l))
+        });
+        match alt {
+            Some(k) => {
+                reasons.push(format!("the plan has no `{key}`; using the nearest compiled `{k}`"));
+                keys.push(k);
             }
-            groups.push(group);
-            let l = meld.weights.iter().find(|(n, _)| n == group).map(|(_, l)| *l);
-            lambdas.push(l.ok_or(format!("the meld rule gives no lambda for `{group}`"))?);
-        }
-        let sum: f64 = lambdas.iter().sum();
-        Ok(lambdas.iter().map(|l| l / sum).collect())
-    }
-
-    /// Chooses the variant for one frame. `has` tells whether the plan holds a key.
-    pub fn select(
-        &self,
-        inputs: &[FrameInput<'_>],
-        meta: &[(String, f64)],
-        has: impl Fn(&str) -> bool,
-    ) -> Result<Selection, SelectError> {
-        let mut reasons = Vec::new();
-        // (axis or "missing", key part, modality)
-        let mut picked: Vec<(String, String, String)> = Vec::new();
-        let mut absent_modalities: Vec<&str> = Vec::new();
-        for i in inputs.iter().filter(|i| i.data.is_none()) {
-            let m = i.modality.unwrap_or("");
-            let policy =
-                self.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p).unwrap_or(MissingPolicy::ZeroFill);
-            if !absent_modalities.contains(&m) {
-                absent_modalities.push(m);
-                match policy {
-                    MissingPolicy::ZeroFill => {
-                        reasons.push(format!("`{}` is absent: zero-filled ({m} policy)", i.name))
-                    }
-                    MissingPolicy::Variant => {
-                        let key = format!("missing={m}");
-                        reasons.push(format!("`{}` is absent: the {m} policy selects `{key}`", i.name));
-                        picked.push(("missing".into(), key, m.to_string()));
-                    }
-                }
-            }
-        }
-        for s in &self.selectors {
-            let Some(axis) = self.axis(&s.axis) else { continue };
-            if absent_modalities.contains(&axis.modality.as_str()) {
-                continue;
-            }
-            let (value, source) = match &s.source {
-                KeySource::Meta(k) => match meta.iter().find(|(n, _)| n == k) {
-                    Some((_, v)) => (*v, format!("meta `{k}` = {}", fmt_value(*v))),
-                    None => {
-                        reasons.push(format!("{}: no metadata `{k}`; clear", s.axis));
-                        continue;
-                    }
-                },
-                KeySource::Stat { stat, input } => match inputs.iter().find(|i| i.name == input).and_then(|i| i.data) {
-                    Some((data, shape)) => {
-                        let v = statistic(*stat, data, shape);
-                        (v, format!("{}({input}) = {}", stat.name(), fmt_value(v)))
-                    }
-                    None => continue,
-                },
-            };
-            let level = if s.arms.is_empty() {
-                nearest(axis, value)
-            } else {
-                s.arms
-                    .iter()
-                    .find(|a| match a.below {
-                        Some((t, inclusive)) => value < t || (inclusive && value == t),
-                        None => true,
-                    })
-                    .and_then(|a| a.level)
-            };
-            match level {
-                None => reasons.push(format!("{}: {source} -> clear", s.axis)),
-                Some(l) => {
-                    let key = format!("{}={}", s.axis, fmt_level(l));
-                    reasons.push(format!("{}: {source} -> {key}", s.axis));
-                    picked.push((s.axis.clone(), key, axis.modality.clone()));
-                }
-            }
-        }
-        // Keys the plan holds: the nearest compiled level of the axis, else nothing.
-        let mut keys: Vec<(String, String, String)> = Vec::new();
-        for (axis, key, modality) in picked {
-            if has(&key) {
-                keys.push((axis, key, modality));
-                continue;
-            }
-            let alt = self.axis(&axis).and_then(|a| {
-                let want: f64 = key.rsplit_once('=').and_then(|(_, l)| l.parse().ok())?;
-                let mut levels: Vec<f64> =
-                    a.levels.iter().copied().filter(|l| has(&format!("{}={}", a.name, fmt_level(*l)))).collect();
-                levels.sort_by(|x, y| (x - want).abs().total_cmp(&(y - want).abs()));
-                levels.first().map(|l| format!("{}={}", a.name, fmt_level(*l)))
-            });
-            match alt {
-                Some(k) => {
-                    reasons.push(format!("the plan has no `{key}`; using the nearest compiled `{k}`"));
-                    keys.push((axis, k, modality));
-                }
-                None => reasons.push(format!("the plan has no `{key}` variant; ignored")),
-            }
-        }
-        match keys.len() {
-            0 => Ok(Selection { key: "base".into(), reasons }),
-            1 => Ok(Selection { key: keys.remove(0).1, reasons }),
-            _ => {
-                let conditions: Vec<String> = keys.iter().map(|k| k.1.clone()).collect();
-                let Ok(lambdas) = self.meld_weights(&conditions) else {
-                    return Err(SelectError::NoMeld { conditions });
-                };
-                let melded = meld_key(&conditions);
-                if has(&melded) {
-                    reasons.push(format!("meld rule combines {}", conditions.join(" and ")));
-                    return Ok(Selection { key: melded, reasons });
-                }
-                let best = lambdas.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
-                reasons.push(format!(
-                    "the plan has no melded `{melded}`; using `{}` (largest lambda, {})",
-                    conditions[best], lambdas[best]
-                ));
-                Ok(Selection { key: conditions[best].clone(), reasons })
-            }
+            None => reasons.push(format!("the plan has no `{key}` variant; ignored")),
         }
     }
-}
-
-/// The key of a melded variant: its parts joined by `+` in sorted order.
-pub fn meld_key(parts: &[String]) -> String {
-    let mut p: Vec<&str> = parts.iter().map(String::as_str).collect();
-    p.sort_unstable();
-    p.join("+")
+    match keys.len() {
+        0 => Ok(Selection { key: VariantKey::base().to_string(), reasons }),
+        1 => Ok(Selection { key: keys.remove(0).to_string(), reasons }),
+        _ => {
+            let shown = || keys.iter().map(|k| k.to_string()).collect::<Vec<_>>();
+            let no_meld = || SelectError::NoMeld { conditions: shown() };
+            let melded = VariantKey::meld(&keys).map_err(|_| no_meld())?;
+            let Ok(lambdas) = c.meld_weights(&melded) else {
+                return Err(no_meld());
+            };
+            if has(&melded) {
+                reasons.push(format!("meld rule combines {}", shown().join(" and ")));
+                return Ok(Selection { key: melded.to_string(), reasons });
+            }
+            // The lambdas follow the melded key's parts.
+            let best = lambdas.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
+            let part = &melded.parts()[best];
+            reasons
+                .push(format!("the plan has no melded `{melded}`; using `{part}` (largest lambda, {})", lambdas[best]));
+            Ok(Selection { key: part.to_string(), reasons })
+        }
+    }
 }
 
 fn nearest(axis: &AxisSpec, value: f64) -> Option<f64> {
@@ -511,7 +351,7 @@ impl crate::plan::Plan {
                 data: g.as_ref().map(|(d, shape)| (d.as_ref(), shape.as_slice())),
             })
             .collect();
-        c.select(&frame, meta, |k| self.variant_index(k).is_some())
+        select(c, &frame, meta, |k| self.variant_index(&k.to_string()).is_some())
     }
 
     /// The missing-modality variant the spec's policy asks for when an optional input is
@@ -628,33 +468,33 @@ mod tests {
         };
         let leak = |v: Vec<f32>| -> &'static [f32] { Box::leak(v.into_boxed_slice()) };
         let (dark, bright, lidar) = (leak(dark), leak(bright), leak(lidar));
-        let all = |_: &str| true;
-        let sel = s.select(&frame(bright, Some(lidar)), &[], all).expect("selects");
+        let all = |_: &VariantKey| true;
+        let sel = select(&s, &frame(bright, Some(lidar)), &[], all).expect("selects");
         assert_eq!(sel.key, "base");
-        let sel = s.select(&frame(dark, Some(lidar)), &[], all).expect("selects");
+        let sel = select(&s, &frame(dark, Some(lidar)), &[], all).expect("selects");
         assert_eq!(sel.key, "gamma=0.5");
         assert!(sel.reasons.iter().any(|r| r.contains("brightness(cam) = 0.1000 -> gamma=0.5")), "{:?}", sel.reasons);
         // Metadata snaps to the nearest level; 0.01 is nearer the clear 0.
         let meta = |v: f64| vec![("fog_density".to_string(), v)];
-        assert_eq!(s.select(&frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key, "fog=0.06");
-        assert_eq!(s.select(&frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key, "base");
+        assert_eq!(select(&s, &frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key, "fog=0.06");
+        assert_eq!(select(&s, &frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key, "base");
         // Two modalities: the melded key when the plan has it, else the larger lambda.
-        assert_eq!(s.select(&frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key, "fog=0.1+gamma=0.5");
-        let no_meld = |k: &str| !k.contains('+');
-        let sel = s.select(&frame(dark, Some(lidar)), &meta(0.1), no_meld).expect("s");
+        assert_eq!(select(&s, &frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key, "fog=0.1+gamma=0.5");
+        let no_meld = |k: &VariantKey| !k.is_meld();
+        let sel = select(&s, &frame(dark, Some(lidar)), &meta(0.1), no_meld).expect("s");
         assert_eq!(sel.key, "gamma=0.5");
         assert!(sel.reasons.iter().any(|r| r.contains("no melded")));
         // Without a meld rule: an error naming both.
         let mut plain = s.clone();
         plain.meld = None;
-        let e = plain.select(&frame(dark, Some(lidar)), &meta(0.1), all).expect_err("no meld");
+        let e = select(&plain, &frame(dark, Some(lidar)), &meta(0.1), all).expect_err("no meld");
         assert!(e.to_string().contains("gamma=0.5") && e.to_string().contains("fog=0.1"), "{e}");
         // A missing lidar: its policy's variant; the fog selector is skipped.
-        let sel = s.select(&frame(bright, None), &meta(0.1), all).expect("s");
+        let sel = select(&s, &frame(bright, None), &meta(0.1), all).expect("s");
         assert_eq!(sel.key, "missing=lidar");
         // A level the plan lacks: the nearest compiled one.
-        let only = |k: &str| k == "fog=0.03";
-        let sel = s.select(&frame(bright, Some(lidar)), &meta(0.1), only).expect("s");
+        let only = |k: &VariantKey| k.to_string() == "fog=0.03";
+        let sel = select(&s, &frame(bright, Some(lidar)), &meta(0.1), only).expect("s");
         assert_eq!(sel.key, "fog=0.03");
     }
 }

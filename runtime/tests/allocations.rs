@@ -9,10 +9,15 @@
 use std::alloc::System;
 use std::sync::Arc;
 
+use readi_plan::ops::{
+    Activation, BinaryOp, ChannelAffine, Concat, GlobalAvgPool, LayerNorm, Pool2d, PoolKind, Pure, Reshape, Softmax,
+    Window2,
+};
+use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::{
-    ActKind, BinaryKind, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement,
-    Step, Storage, SymDim, TensorSpec, ValueSpec, VariantTable,
+    EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage,
+    TensorSpec, ValueSpec, VariantTable,
 };
 use readi_runtime::testdata::data;
 use stats_alloc::{INSTRUMENTED_SYSTEM, Region, StatsAlloc};
@@ -20,9 +25,9 @@ use stats_alloc::{INSTRUMENTED_SYSTEM, Region, StatsAlloc};
 #[global_allocator]
 static GLOBAL: &StatsAlloc<System> = &INSTRUMENTED_SYSTEM;
 
-fn shape(n: bool, rest: &[usize]) -> Vec<SymDim> {
-    let batch = n.then(|| SymDim { coef: 1, syms: vec!["N".into()] });
-    batch.into_iter().chain(rest.iter().map(|&d| SymDim::known(d as i64))).collect()
+fn shape(n: bool, rest: &[usize]) -> Vec<Dim> {
+    let batch = n.then(|| Dim::symbol("N"));
+    batch.into_iter().chain(rest.iter().map(|&d| Dim::from(d))).collect()
 }
 
 /// `x: [N, 4, 8, 8]` and an optional `z: [N, 2, 8, 8]` through a three-way concat (of
@@ -43,7 +48,7 @@ fn plan() -> Plan {
     let ln_b = add("ln.bias".into(), vec![10], 6);
     let mut variants = Vec::new();
     for v in 0..12u64 {
-        let key = format!("fog={v}");
+        let key = VariantKey::level("fog", v as f64);
         let t = add(format!("bn@shift~{key}"), vec![10], 10 + v);
         let w = add(format!("ln.weight~{key}"), vec![10], 30 + v);
         let b = add(format!("ln.bias~{key}"), vec![10], 50 + v);
@@ -71,10 +76,11 @@ fn plan() -> Plan {
     ];
     let step = |path: &str, kernel, inputs: Vec<usize>, output| Step { path: path.into(), kernel, inputs, output };
     let steps = vec![
-        step("cat", Kernel::Concat { axis: 1 }, vec![0, 1, 0], 2),
+        step("cat", Kernel::Pure(Pure::Concat(Concat { axis: 1 })), vec![0, 1, 0], 2),
         step(
             "bn",
             Kernel::ChannelAffine {
+                affine: ChannelAffine { channels: 10 },
                 epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false, bn: None },
             },
             vec![2],
@@ -82,23 +88,30 @@ fn plan() -> Plan {
         ),
         step(
             "pool",
-            Kernel::Pool {
-                max: true,
-                kernel: [2, 2],
-                stride: [2, 2],
-                padding: [0, 0],
+            Kernel::Pure(Pure::Pool(Pool2d {
+                kind: PoolKind::Max,
+                window: Window2 { kernel: [2, 2], stride: [2, 2], padding: [0, 0], dilation: [1, 1] },
                 ceil_mode: false,
                 count_include_pad: false,
-            },
+            })),
             vec![3],
             4,
         ),
-        step("gap", Kernel::GlobalAvgPool, vec![4], 5),
-        step("flat", Kernel::Reshape, vec![5], 6),
-        step("ln", Kernel::LayerNorm { weight: Some(ln_w), bias: Some(ln_b), eps: 1e-5 }, vec![6], 7),
-        step("add", Kernel::Binary { op: BinaryKind::Add }, vec![7, 6], 8),
-        step("act", Kernel::Activation { act: ActKind::Gelu }, vec![8], 9),
-        step("softmax", Kernel::Softmax { axis: 1 }, vec![9], 10),
+        step("gap", Kernel::Pure(Pure::GlobalAvgPool(GlobalAvgPool)), vec![4], 5),
+        step("flat", Kernel::Pure(Pure::Reshape(Reshape { shape: shape(true, &[10]) })), vec![5], 6),
+        step(
+            "ln",
+            Kernel::LayerNorm {
+                norm: LayerNorm { features: 10, eps: 1e-5, affine: true },
+                weight: Some(ln_w),
+                bias: Some(ln_b),
+            },
+            vec![6],
+            7,
+        ),
+        step("add", Kernel::Pure(Pure::Binary(BinaryOp::Add)), vec![7, 6], 8),
+        step("act", Kernel::Pure(Pure::Activation(Activation::Gelu)), vec![8], 9),
+        step("softmax", Kernel::Pure(Pure::Softmax(Softmax { axis: 1 })), vec![9], 10),
     ];
     let manifest = Manifest {
         format_version: FORMAT_VERSION,

@@ -12,6 +12,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use readi_compiler::backend::variants::canonical_key;
 use readi_grammar::diag::suggest;
+use readi_plan::VariantKey;
 use readi_runtime::calibrate::{BnCalibrator, BnStats};
 use readi_runtime::exec::Input;
 use readi_runtime::plan::{BASE_VARIANT, Plan};
@@ -80,20 +81,22 @@ fn check_key(plan: &Plan, key: &str) -> Result<String, String> {
     }
     let declared = m.conditions.as_ref().map(|c| c.keys()).unwrap_or_default();
     if declared.is_empty() {
-        if !m.variants.iter().any(|v| v.key == key) {
+        let parsed = VariantKey::parse(key).map_err(|e| e.to_string())?;
+        if !m.variants.iter().any(|v| v.key == parsed) {
             eprintln!(
                 "note: the plan does not list the variant keys its spec declares; `{key}` is checked when the \
                  statistics are compiled (`readi compile --variant {key}=FILE`)"
             );
         }
-        return Ok(key.to_string());
+        return Ok(parsed.to_string());
     }
-    canonical_key(key, &declared).ok_or_else(|| {
-        let hint = match suggest(key, declared.iter().map(String::as_str)) {
+    let shown: Vec<String> = declared.iter().map(|k| k.to_string()).collect();
+    canonical_key(key, &declared).map(|k| k.to_string()).ok_or_else(|| {
+        let hint = match suggest(key, shown.iter().map(String::as_str)) {
             Some(s) => format!("did you mean `{s}`? "),
             None => String::new(),
         };
-        format!("model `{}` declares no variant `{key}`; {hint}(its variants: {})", m.model, declared.join(", "))
+        format!("model `{}` declares no variant `{key}`; {hint}(its variants: {})", m.model, shown.join(", "))
     })
 }
 

@@ -118,7 +118,8 @@ fn describe_model(m: &Module, name: &str, check_ms: f64) {
         );
     }
     if let Some(v) = &m.variants {
-        println!("  {} variants declared: {}", v.keys().len(), v.keys().join(" "));
+        let keys: Vec<String> = v.keys().iter().map(|k| k.to_string()).collect();
+        println!("  {} variants declared: {}", keys.len(), keys.join(" "));
     }
 }
 

@@ -13,7 +13,7 @@ use readi_runtime::plan::{Step, Storage, ValueSpec};
 /// Rewrites the storage of every slot value; returns the number of slots.
 pub fn plan_buffers(values: &mut [ValueSpec], steps: &[Step], outputs: &[usize]) -> usize {
     // Elements at batch size 1 (every symbol taken as 1), at least one.
-    let size = |v: &ValueSpec| -> usize { v.shape.iter().map(|d| d.coef.max(0) as usize).product::<usize>().max(1) };
+    let size = |v: &ValueSpec| -> usize { v.shape.iter().map(|d| d.coef().max(0) as usize).product::<usize>().max(1) };
     let mut last_use: Vec<Option<usize>> = vec![None; values.len()];
     for (k, s) in steps.iter().enumerate() {
         for &i in &s.inputs {
@@ -63,16 +63,20 @@ pub fn plan_buffers(values: &mut [ValueSpec], steps: &[Step], outputs: &[usize])
 
 #[cfg(test)]
 mod tests {
-    use readi_runtime::plan::{Kernel, SymDim};
+    use readi_plan::Dim;
+    use readi_plan::ops::{Pure, Reshape};
+    use readi_runtime::plan::Kernel;
 
     use super::*;
 
     fn value(n: i64, storage: Storage) -> ValueSpec {
-        ValueSpec { shape: vec![SymDim { coef: n, syms: vec!["N".into()] }], storage }
+        let shape = Dim::known(n).checked_mul(&Dim::symbol("N")).into_iter().collect();
+        ValueSpec { shape, storage }
     }
 
     fn step(inputs: Vec<usize>, output: usize) -> Step {
-        Step { path: format!("v{output}"), kernel: Kernel::Reshape, inputs, output }
+        let kernel = Kernel::Pure(Pure::Reshape(Reshape { shape: Vec::new() }));
+        Step { path: format!("v{output}"), kernel, inputs, output }
     }
 
     #[test]

@@ -20,15 +20,16 @@
 use std::collections::{HashMap, HashSet};
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
-use readi_runtime::kernels::conv::{self, Conv2dShape};
+use readi_plan::ops::{ChannelAffine, batchnorm_affine};
+use readi_runtime::kernels::conv;
 use readi_runtime::plan::{
-    ActKind, BinaryKind, BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec,
-    Step, Storage, SymDim, TensorSpec, ValueSpec,
+    BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec, Step, Storage,
+    TensorSpec, ValueSpec,
 };
 
 use super::buffers::plan_buffers;
 use super::weights::Bound;
-use crate::ir::{self, Activation, Dim, Graph, NodeId, Op, PoolKind, SlotKind, UpsampleMode, ValueRef};
+use crate::ir::{self, Activation, Dim, Graph, NodeId, Op, Pure, SlotKind, ValueRef};
 
 /// A manifest and its tensors, ready to become a plan.
 pub struct Lowered {
@@ -37,10 +38,6 @@ pub struct Lowered {
     pub tensors: Vec<Vec<f32>>,
     /// For each stored tensor, the parameters (full names) its value derives from.
     pub sources: Vec<Vec<String>>,
-}
-
-fn sym(d: &Dim) -> SymDim {
-    SymDim { coef: d.coef(), syms: d.symbols().to_vec() }
 }
 
 fn ice(message: String) -> Diagnostics {
@@ -94,7 +91,7 @@ impl<'g> Lowering<'g> {
 
     fn new_value(&mut self, v: ValueRef, storage: Storage) -> usize {
         let ty = &self.graph.node(v.node).outputs[v.port as usize];
-        self.values.push(ValueSpec { shape: ty.shape.iter().map(sym).collect(), storage });
+        self.values.push(ValueSpec { shape: ty.shape.clone(), storage });
         self.values.len() - 1
     }
 
@@ -114,7 +111,7 @@ impl<'g> Lowering<'g> {
     /// If the sole user of `id` is a ReLU, absorbs it into `into`'s step and returns true.
     fn absorb_relu(&mut self, id: NodeId, into: NodeId) -> bool {
         match self.sole_user(id) {
-            Some(u) if matches!(self.graph.node(u).op, Op::Activation(Activation::Relu)) => {
+            Some(u) if matches!(self.graph.node(u).op, Op::Pure(Pure::Activation(Activation::Relu))) => {
                 self.absorbed.insert(u, into);
                 true
             }
@@ -152,7 +149,9 @@ impl<'g> Lowering<'g> {
             None => (None, None),
         };
         let node = self.graph.node(bn);
-        let Op::BatchNorm { channels, eps, .. } = node.op else { return Err(ice("not a batchnorm".into())) };
+        let Op::BatchNorm(ir::BatchNorm { channels, eps, .. }) = node.op else {
+            return Err(ice("not a batchnorm".into()));
+        };
         let (w, b, mean, var) = (
             self.weight(node, "weight")?,
             self.weight(node, "bias")?,
@@ -160,12 +159,9 @@ impl<'g> Lowering<'g> {
             self.weight(node, "running_var")?,
         );
         let c = channels as usize;
-        let scale_of = move |i: usize| w[i] as f64 / (var[i] as f64 + eps).sqrt();
-        let scale = move || (0..c).map(|i| scale_of(i) as f32).collect();
-        let shift = move || {
-            let pre = |i: usize| prior_bias.map_or(0.0, |pb| pb[i] as f64);
-            (0..c).map(|i| (b[i] as f64 + (pre(i) - mean[i] as f64) * scale_of(i)) as f32).collect()
-        };
+        let scale = move || batchnorm_affine(w, b, mean, var, eps, None).0.into_iter().map(|s| s as f32).collect();
+        let shift =
+            move || batchnorm_affine(w, b, mean, var, eps, prior_bias).1.into_iter().map(|t| t as f32).collect();
         let path = node.path.clone();
         let targets = format!("folded into `{path}@scale`, `{path}@shift`");
         let slots = ["weight", "bias", "running_mean", "running_var"].map(|slot| ir::join_path(&path, slot));
@@ -204,7 +200,8 @@ impl<'g> Lowering<'g> {
         let known = |d: &Dim| d.as_known().map(|v| v as usize).unwrap_or(1);
         match &node.op {
             Op::Input(_) => {}
-            Op::Parameter { shape } => {
+            Op::Parameter(ir_param) => {
+                let shape = &ir_param.shape;
                 let data = self.weight(node, "")?;
                 let shape = shape.iter().map(|&d| d as usize).collect();
                 let t = self.add_tensor(node.path.clone(), shape, vec![node.path.clone()], || data.to_vec());
@@ -213,27 +210,8 @@ impl<'g> Lowering<'g> {
                 self.value_of.insert(ValueRef { node: id, port: 0 }, v);
             }
             Op::Conv2d(c) => {
-                let xin = g.inputs(id)[0];
-                let xs = shape_of(xin);
-                let os = &node.outputs[0].shape;
-                let s = Conv2dShape {
-                    n: 1,
-                    cin: c.in_channels as usize,
-                    h: known(&xs[2]),
-                    w: known(&xs[3]),
-                    cout: c.out_channels as usize,
-                    kh: c.kernel[0] as usize,
-                    kw: c.kernel[1] as usize,
-                    stride_h: c.stride[0] as usize,
-                    stride_w: c.stride[1] as usize,
-                    pad_h: c.padding[0] as usize,
-                    pad_w: c.padding[1] as usize,
-                    dil_h: c.dilation[0] as usize,
-                    dil_w: c.dilation[1] as usize,
-                    groups: c.groups as usize,
-                    oh: known(&os[2]),
-                    ow: known(&os[3]),
-                };
+                let xs = shape_of(g.inputs(id)[0]);
+                let s = conv::layer_shape(&c.conv, 1, known(&xs[2]), known(&xs[3]));
                 let algo = conv::choose(&s);
                 let weight = self.weight(node, "weight")?;
                 let len = conv::packed_weight_len(&s, algo);
@@ -266,28 +244,21 @@ impl<'g> Lowering<'g> {
                 }
                 // A ReLU after the conv, or after its folded BatchNorm.
                 ep.relu = self.absorb_relu(bn.unwrap_or(id), id);
-                let kernel = Kernel::Conv2d {
-                    cout: s.cout,
-                    kernel: [s.kh, s.kw],
-                    stride: [s.stride_h, s.stride_w],
-                    padding: [s.pad_h, s.pad_w],
-                    dilation: [s.dil_h, s.dil_w],
-                    groups: s.groups,
-                    algo: algo.name().to_string(),
-                    weight: wt,
-                    epilogue: ep,
-                };
+                let kernel =
+                    Kernel::Conv2d { conv: c.conv.clone(), algo: algo.name().to_string(), weight: wt, epilogue: ep };
                 self.emit(id, kernel, inputs);
             }
-            Op::BatchNorm { .. } => {
+            Op::BatchNorm(bn) => {
                 let (st, sh, info) = self.fold_bn(id, None)?;
                 let relu = self.absorb_relu(id, id);
                 let ep = EpilogueSpec { scale: Some(st), shift: Some(sh), relu, bn: Some(info) };
-                self.emit(id, Kernel::ChannelAffine { epilogue: ep }, inputs);
+                let affine = ChannelAffine { channels: bn.channels };
+                self.emit(id, Kernel::ChannelAffine { affine, epilogue: ep }, inputs);
             }
-            Op::Linear { in_features, out_features, bias } => {
+            Op::Linear(l) => {
                 // Stored transposed, [in, out]: the layout GEMM reads fastest.
-                let (fin, fout) = (*in_features as usize, *out_features as usize);
+                let (fin, fout) = (l.linear.in_features as usize, l.linear.out_features as usize);
+                let bias = &l.bias;
                 let w = self.weight(node, "weight")?;
                 let transpose = || {
                     let mut t = vec![0.0f32; w.len()];
@@ -309,12 +280,13 @@ impl<'g> Lowering<'g> {
                     ep.shift = Some(self.add_tensor(bname.clone(), vec![b.len()], vec![bname], || b.to_vec()));
                 }
                 ep.relu = self.absorb_relu(id, id);
-                let kernel = Kernel::Linear { out_features: *out_features as usize, weight: wt, epilogue: ep };
+                let kernel = Kernel::Linear { linear: l.linear.clone(), weight: wt, epilogue: ep };
                 self.emit(id, kernel, inputs);
             }
-            Op::LayerNorm { features, eps, affine } => {
+            Op::LayerNorm(ln) => {
                 let (mut wt, mut bt) = (None, None);
-                if *affine {
+                let features = &ln.features;
+                if ln.affine {
                     for (slot, target) in [("weight", &mut wt), ("bias", &mut bt)] {
                         let data = self.weight(node, slot)?;
                         let name = ir::join_path(&node.path, slot);
@@ -323,58 +295,12 @@ impl<'g> Lowering<'g> {
                             Some(self.add_tensor(name.clone(), vec![*features as usize], vec![name], || data.to_vec()));
                     }
                 }
-                self.emit(id, Kernel::LayerNorm { weight: wt, bias: bt, eps: *eps as f32 }, inputs);
+                self.emit(id, Kernel::LayerNorm { norm: ln.clone(), weight: wt, bias: bt }, inputs);
             }
-            op => {
-                let kernel = simple_kernel(op).ok_or_else(|| ice(format!("no kernel for `{}`", op.kind_name())))?;
-                self.emit(id, kernel, inputs);
-            }
+            Op::Pure(p) => self.emit(id, Kernel::Pure(p.clone()), inputs),
         }
         Ok(())
     }
-}
-
-/// Kernels that map one-to-one from an op without weights.
-fn simple_kernel(op: &Op) -> Option<Kernel> {
-    let bin = |k: ir::BinaryKind| match k {
-        ir::BinaryKind::Add => BinaryKind::Add,
-        ir::BinaryKind::Sub => BinaryKind::Sub,
-        ir::BinaryKind::Mul => BinaryKind::Mul,
-        ir::BinaryKind::Div => BinaryKind::Div,
-    };
-    Some(match op {
-        Op::MatMul => Kernel::MatMul,
-        Op::Binary(k) => Kernel::Binary { op: bin(*k) },
-        Op::Scalar { kind, value, scalar_first } => {
-            Kernel::Scalar { op: bin(*kind), value: *value as f32, scalar_first: *scalar_first }
-        }
-        Op::Activation(a) => Kernel::Activation {
-            act: match a {
-                Activation::Relu => ActKind::Relu,
-                Activation::Gelu => ActKind::Gelu,
-                Activation::GeluTanh => ActKind::GeluTanh,
-                Activation::Sigmoid => ActKind::Sigmoid,
-            },
-        },
-        Op::Softmax { axis } => Kernel::Softmax { axis: *axis },
-        Op::Concat { axis } => Kernel::Concat { axis: *axis },
-        Op::Reshape { .. } => Kernel::Reshape,
-        Op::Permute { perm } => Kernel::Permute { perm: perm.clone() },
-        Op::Pool(p) => Kernel::Pool {
-            max: p.kind == PoolKind::Max,
-            kernel: [p.kernel[0] as usize, p.kernel[1] as usize],
-            stride: [p.stride[0] as usize, p.stride[1] as usize],
-            padding: [p.padding[0] as usize, p.padding[1] as usize],
-            ceil_mode: p.ceil_mode,
-            count_include_pad: p.count_include_pad,
-        },
-        Op::GlobalAvgPool => Kernel::GlobalAvgPool,
-        Op::Upsample { mode, align_corners, scale, .. } => {
-            Kernel::Upsample { bilinear: *mode == UpsampleMode::Bilinear, align_corners: *align_corners, scale: *scale }
-        }
-        Op::Mean { axes, .. } => Kernel::Mean { axes: axes.clone() },
-        _ => return None,
-    })
 }
 
 /// Lowers a verified graph with all its weights bound.
@@ -431,7 +357,7 @@ fn lower_with(graph: &Graph, bound: &Bound<'_>, only: Option<&HashSet<String>>) 
         }
         inputs.push(InputSpec {
             name: a.name.clone(),
-            shape: node.outputs[0].shape.iter().map(sym).collect(),
+            shape: node.outputs[0].shape.clone(),
             modality: a.modality.clone(),
             optional: a.optional,
             value: v,

@@ -21,7 +21,8 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
-use readi_runtime::conditions::meld_key;
+use readi_plan::VariantKey;
+use readi_plan::ops::batchnorm_affine;
 use readi_runtime::plan::{Replacement, TensorSpec, VariantTable};
 
 use super::lower::Lowered;
@@ -30,7 +31,6 @@ use super::lower::lower_only;
 use super::weights::{Bound, WeightSet};
 use crate::ir::{self, Graph, NodeId, SlotKind, ValueRef};
 use crate::passes::Module;
-use crate::passes::check_variants::fmt_level;
 use crate::passes::resolve_adapt::{Injection, RuleKind};
 
 /// How LoRA runs in the plan.
@@ -166,12 +166,10 @@ pub fn inactive<'a, 'w: 'a>(
 /// The BatchNorm affine `y = s * x + t` of a node, from bound values.
 fn bn_affine(module: &Module, bn: NodeId, bound: &Bound<'_>) -> Option<(Vec<f64>, Vec<f64>)> {
     let node = module.graph.node(bn);
-    let ir::Op::BatchNorm { eps, .. } = node.op else { return None };
+    let ir::Op::BatchNorm(bn) = &node.op else { return None };
     let get = |slot: &str| bound.get(&ir::join_path(&node.path, slot)).copied();
     let (w, b, mean, var) = (get("weight")?, get("bias")?, get("running_mean")?, get("running_var")?);
-    let s: Vec<f64> = w.iter().zip(var).map(|(&w, &v)| w as f64 / (v as f64 + eps).sqrt()).collect();
-    let t = b.iter().zip(mean).zip(&s).map(|((&b, &m), s)| b as f64 - m as f64 * s).collect();
-    Some((s, t))
+    Some(batchnorm_affine(w, b, mean, var, bn.eps, None))
 }
 
 /// The BatchNorm right after a LoRA branch's sum, if that is the sum's only use.
@@ -264,19 +262,26 @@ pub fn zero_added(owned: &BTreeMap<String, Owned>) -> Vec<(String, Vec<f32>)> {
     owned.iter().filter(|(_, o)| o.added).map(|(n, o)| (n.clone(), vec![0.0; o.shape.iter().product()])).collect()
 }
 
-/// A melded variant (`fog=0.06+gamma=0.5`) from its parts' parameters: every owned
-/// parameter is `sum(lambda_i * P_i)` (the paper's `lambda_c P_c + lambda_l P_l`), a part
-/// that does not give a parameter contributing the base value (zero for added ones).
+/// A melded variant (`fog=0.06+gamma=0.5`) from its parts' parameters (each part one of
+/// the key's conditions, in any order): every owned parameter is `sum(lambda_i * P_i)`
+/// (the paper's `lambda_c P_c + lambda_l P_l`), a part that does not give a parameter
+/// contributing the base value (zero for added ones).
 pub fn meld(
     module: &Module,
-    key: &str,
+    key: &VariantKey,
     parts: &[&VariantSource],
     base: &WeightSet,
 ) -> Result<VariantSource, Diagnostics> {
     let err = |m: String| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, m)]);
     let spec = module.variants.as_ref().ok_or_else(|| err("the spec has no variants section".into()))?;
-    let keys: Vec<String> = parts.iter().map(|p| p.key.clone()).collect();
-    let lambdas = spec.meld_weights(&keys).map_err(|m| err(format!("cannot meld `{key}`: {m}")))?;
+    let weights_of_key = spec.meld_weights(key).map_err(|m| err(format!("cannot meld `{key}`: {m}")))?;
+    let conditions: Vec<VariantKey> = key.part_keys().collect();
+    let mut lambdas = Vec::with_capacity(parts.len());
+    for part in parts {
+        let k = VariantKey::parse(&part.key).map_err(|e| err(e.to_string()))?;
+        let at = conditions.iter().position(|c| *c == k);
+        lambdas.push(weights_of_key[at.ok_or_else(|| err(format!("`{k}` is not a part of `{key}`")))?]);
+    }
     let mut weights = WeightSet::default();
     for (name, o) in owned_params(module) {
         let n: usize = o.shape.iter().product();
@@ -291,7 +296,8 @@ pub fn meld(
         }
         weights.tensors.insert(name, (o.shape.clone(), acc.into_iter().map(|v| v as f32).collect()));
     }
-    let origin = format!("meld of {}", keys.join(" and "));
+    let shown: Vec<String> = key.part_keys().map(|k| k.to_string()).collect();
+    let origin = format!("meld of {}", shown.join(" and "));
     Ok(VariantSource { key: key.to_string(), weights, origin })
 }
 
@@ -307,12 +313,12 @@ pub fn melded_sources(
     let declared = module.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
     let mut melded = Vec::new();
     for key in keys {
-        let canonical = canonical_key(key, &declared).filter(|k| k.contains('+')).ok_or_else(|| {
+        let canonical = canonical_key(key, &declared).filter(VariantKey::is_meld).ok_or_else(|| {
             err(format!("`{key}` is not a combination of declared keys (write `fog=0.06+gamma=0.5`)"))
         })?;
         let mut parts = Vec::new();
-        for part in canonical.split('+') {
-            let found = sources.iter().find(|s| canonical_key(&s.key, &declared).as_deref() == Some(part));
+        for part in canonical.part_keys() {
+            let found = sources.iter().find(|s| canonical_key(&s.key, &declared).as_ref() == Some(&part));
             parts.push(found.ok_or_else(|| err(format!("cannot meld `{canonical}`: no variant `{part}` is given")))?);
         }
         melded.push(meld(module, &canonical, &parts, base)?);
@@ -320,37 +326,31 @@ pub fn melded_sources(
     Ok(melded)
 }
 
-/// The declared key a written key names: `fog=0.030` names `fog=0.03`; a melded key's
-/// parts are canonicalised and sorted (`gamma=0.5+fog=0.06` names `fog=0.06+gamma=0.5`).
-pub fn canonical_key(key: &str, declared: &[String]) -> Option<String> {
-    if key.contains('+') {
-        let parts: Option<Vec<String>> = key.split('+').map(|p| canonical_key(p.trim(), declared)).collect();
-        return parts.map(|p| meld_key(&p));
-    }
-    if declared.iter().any(|d| d == key) {
-        return Some(key.to_string());
-    }
-    let (axis, level) = key.split_once('=')?;
-    let level: f64 = level.trim().parse().ok()?;
-    let k = format!("{}={}", axis.trim(), fmt_level(level));
-    declared.contains(&k).then_some(k)
+/// The declared key a written key names: `fog=0.030` names `fog=0.03`; a melded key names
+/// the meld of its parts in any order, each of them declared (`gamma=0.5+fog=0.06` names
+/// `fog=0.06+gamma=0.5`).
+pub fn canonical_key(key: &str, declared: &[VariantKey]) -> Option<VariantKey> {
+    let k = VariantKey::parse(key).ok()?;
+    let ok = !k.is_base() && k.part_keys().all(|p| declared.contains(&p));
+    ok.then_some(k)
 }
 
 /// Checks the keys of all variants: declared by the spec, each given once.
-pub fn check_keys(module: &Module, variants: &[VariantSource]) -> Result<Vec<String>, Diagnostics> {
+pub fn check_keys(module: &Module, variants: &[VariantSource]) -> Result<Vec<VariantKey>, Diagnostics> {
     let declared = module.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
+    let shown: Vec<String> = declared.iter().map(|k| k.to_string()).collect();
     let mut diags = Diagnostics::default();
-    let mut keys: Vec<String> = Vec::new();
+    let mut keys: Vec<VariantKey> = Vec::new();
     for v in variants {
         let Some(k) = canonical_key(&v.key, &declared) else {
             let mut d = Diagnostic::error(
                 Code::VariantWeights,
                 format!("{}: variant key `{}` is not declared by the spec", v.origin, v.key),
             );
-            d = match suggest(&v.key, declared.iter().map(String::as_str)) {
+            d = match suggest(&v.key, shown.iter().map(String::as_str)) {
                 Some(s) => d.with_note(format!("did you mean `{s}`?")),
                 None if declared.is_empty() => d.with_note("the spec has no `variants` section"),
-                None => d.with_note(format!("declared keys: {}", declared.join(", "))),
+                None => d.with_note(format!("declared keys: {}", shown.join(", "))),
             };
             diags.push(d);
             continue;
@@ -383,7 +383,7 @@ pub fn bind_variant<'w>(
     graph: &Graph,
     owned: &BTreeMap<String, Owned>,
     source: &'w VariantSource,
-    key: &str,
+    key: &VariantKey,
     strict: bool,
 ) -> Result<BoundVariant<'w>, Diagnostics> {
     let mut diags = Diagnostics::default();
@@ -514,7 +514,12 @@ impl TensorStore {
     /// leaves the tensors the variant does not change empty, among them the base-only
     /// records for AdaBN) whose bytes differ from the base's. `added` holds the parameters
     /// whose tensors count as added.
-    pub fn diff(&mut self, key: &str, lowered: Lowered, added: &HashSet<String>) -> Result<Vec<Replacement>, String> {
+    pub fn diff(
+        &mut self,
+        key: &VariantKey,
+        lowered: Lowered,
+        added: &HashSet<String>,
+    ) -> Result<Vec<Replacement>, String> {
         if lowered.tensors.len() != self.base_len {
             return Err(format!(
                 "variant `{key}` lowers to {} tensors, the base to {}",
@@ -558,7 +563,7 @@ impl TensorStore {
 
 /// A variant's table.
 pub fn table(
-    key: String,
+    key: VariantKey,
     replaces: Vec<Replacement>,
     owned: &BTreeMap<String, Owned>,
     fallback: Vec<String>,

@@ -11,10 +11,11 @@ use std::rc::Rc;
 use readi_grammar::ast::{self, BlockDef};
 use readi_grammar::diag::{Code, Diagnostic, Span, suggest};
 
-use super::builtins::{self, Args, BuiltinKind, Def};
+use super::builtins;
 use super::eval::as_f64;
 use super::{Call, Elab, Frame, Hint, MAX_BLOCK_DEPTH, Value};
 use crate::ir::*;
+use crate::ops::{Args, Def};
 
 impl<'a> Elab<'a> {
     pub(super) fn call(
@@ -26,7 +27,8 @@ impl<'a> Elab<'a> {
         frame: &mut Frame<'a>,
     ) -> Value {
         let name = callee.name.as_str();
-        if let Some(sig) = builtins::builtin(name) {
+        let op = crate::ops::builtin(name);
+        if let Some(sig) = op.map(|b| &b.sig).or_else(|| builtins::function(name)) {
             let Some(values) = self.bind_args(
                 name,
                 sig.params.iter().map(|p| (p.name, !matches!(p.default, Def::Required))).collect(),
@@ -43,24 +45,17 @@ impl<'a> Elab<'a> {
             if values.iter().flatten().any(|(v, _)| v.is_poison() || contains_poison(v)) {
                 return Value::Poison;
             }
-            return match sig.kind {
-                BuiltinKind::Function => self.call_function(name, &values, span),
-                BuiltinKind::Op => {
-                    let built = {
-                        let a = Args { sig, values, call_span: span, graph: &self.graph };
-                        builtins::build_op(&a)
-                    };
-                    match built {
-                        Ok((op, inputs)) => self.add_node_in(op, inputs, hint, span, frame.scope),
-                        Err(d) => self.error(d),
-                    }
-                }
+            let Some(op) = op else { return self.call_function(name, &values, span) };
+            let built = (op.build)(&Args { sig, values, call_span: span, graph: &self.graph });
+            return match built {
+                Ok((op, inputs)) => self.add_node_in(op, inputs, hint, span, frame.scope),
+                Err(d) => self.error(d),
             };
         }
         if let Some(&def) = self.blocks.get(name) {
             return self.call_block(def, args, span, hint, frame);
         }
-        let mut candidates: Vec<&str> = builtins::BUILTINS.iter().map(|s| s.name).collect();
+        let mut candidates: Vec<&str> = builtins::names().collect();
         candidates.extend(self.blocks.keys().copied());
         let mut d = Diagnostic::error(Code::UnknownName, format!("unknown op or block `{name}`"))
             .with_primary(callee.span, "not an op, block or function");

@@ -10,6 +10,7 @@ use std::rc::Rc;
 
 use readi_grammar::ast::{BinaryOp, Expr, ExprKind, UnaryOp};
 use readi_grammar::diag::{Code, Diagnostic, Span, suggest};
+use readi_plan::ops::BinaryOp as TensorOp;
 
 use super::{Elab, Frame, Hint, MAX_RANGE, Value, builtins, display_path, restore};
 use crate::ir::*;
@@ -31,7 +32,7 @@ impl<'a> Elab<'a> {
         }
         let mut d = Diagnostic::error(Code::UnknownName, format!("unknown name `{name}`"))
             .with_primary(span, "not defined here");
-        if builtins::builtin(name).is_some() || self.blocks.contains_key(name) {
+        if builtins::is_builtin(name) || self.blocks.contains_key(name) {
             d = d.with_note(format!("`{name}` is an op or block; call it: `{name}(...)`"));
         } else if let Some(s) = suggest(name, frame.vars.keys().map(String::as_str)) {
             d = d.with_note(format!("did you mean `{s}`?"));
@@ -179,7 +180,7 @@ impl<'a> Elab<'a> {
             (UnaryOp::Neg, Value::Float(f)) => Value::Float(-f),
             (UnaryOp::Not, Value::Bool(b)) => Value::Bool(!b),
             (UnaryOp::Neg, Value::Tensor { value, .. }) => {
-                let op = Op::Scalar { kind: BinaryKind::Mul, value: -1.0, scalar_first: false };
+                let op = Op::Pure(Pure::Scalar(Scalar { op: TensorOp::Mul, value: -1.0, scalar_first: false }));
                 self.add_node_in(op, vec![value], hint, span, scope)
             }
             (op, v) => self.error(
@@ -223,7 +224,7 @@ impl<'a> Elab<'a> {
             (Value::Poison, _) | (_, Value::Poison) => Value::Poison,
             (Value::Tensor { value: x, .. }, Value::Tensor { value: y, .. }) => {
                 let Some(kind) = tensor_kind(op) else { return mismatch(self, &a, &b) };
-                self.add_node_in(Op::Binary(kind), vec![*x, *y], hint, span, frame.scope)
+                self.add_node_in(Op::Pure(Pure::Binary(kind)), vec![*x, *y], hint, span, frame.scope)
             }
             (Value::Tensor { value: x, .. }, s @ (Value::Int(_) | Value::Float(_)))
             | (s @ (Value::Int(_) | Value::Float(_)), Value::Tensor { value: x, .. }) => {
@@ -234,7 +235,8 @@ impl<'a> Elab<'a> {
                     _ => 0.0,
                 };
                 let scalar_first = matches!(a, Value::Int(_) | Value::Float(_));
-                self.add_node_in(Op::Scalar { kind, value, scalar_first }, vec![*x], hint, span, frame.scope)
+                let op = Op::Pure(Pure::Scalar(Scalar { op: kind, value, scalar_first }));
+                self.add_node_in(op, vec![*x], hint, span, frame.scope)
             }
             (Value::Int(x), Value::Int(y)) => self.int_binary(op, *x, *y, span, spans.1),
             (Value::Int(_) | Value::Float(_), Value::Int(_) | Value::Float(_)) => {
@@ -449,12 +451,12 @@ fn compare<T: PartialOrd>(op: BinaryOp, x: T, y: T) -> Option<bool> {
     })
 }
 
-fn tensor_kind(op: BinaryOp) -> Option<BinaryKind> {
+fn tensor_kind(op: BinaryOp) -> Option<TensorOp> {
     match op {
-        BinaryOp::Add => Some(BinaryKind::Add),
-        BinaryOp::Sub => Some(BinaryKind::Sub),
-        BinaryOp::Mul => Some(BinaryKind::Mul),
-        BinaryOp::Div => Some(BinaryKind::Div),
+        BinaryOp::Add => Some(TensorOp::Add),
+        BinaryOp::Sub => Some(TensorOp::Sub),
+        BinaryOp::Mul => Some(TensorOp::Mul),
+        BinaryOp::Div => Some(TensorOp::Div),
         _ => None,
     }
 }

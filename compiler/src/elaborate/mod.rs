@@ -31,7 +31,6 @@ use std::rc::Rc;
 use readi_grammar::ast::{self, BlockDef, LayerName, TypeName};
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, FileId, Span, suggest};
 
-use crate::infer::infer;
 use crate::ir::*;
 pub use value::Value;
 
@@ -262,7 +261,7 @@ impl<'a> Elab<'a> {
     fn collect_blocks(&mut self, file: &'a ast::SourceFile) {
         for b in file.blocks() {
             let name = b.name.name.as_str();
-            if builtins::builtin(name).is_some() {
+            if builtins::is_builtin(name) {
                 self.diags.push(
                     Diagnostic::error(Code::DuplicateName, format!("block `{name}` has the name of a builtin op"))
                         .with_primary(b.name.span, "rename this block"),
@@ -425,7 +424,7 @@ impl<'a> Elab<'a> {
         let path = join_path(&self.graph.scope(scope).path, &name);
         let types: Vec<TensorType> = inputs.iter().filter_map(|v| self.graph.value_type(*v).cloned()).collect();
         let type_refs: Vec<&TensorType> = types.iter().collect();
-        let outputs = match infer(&op, &type_refs) {
+        let outputs = match op.infer(&type_refs) {
             Ok(o) => o,
             Err(e) => {
                 let mut d =

@@ -9,7 +9,6 @@ use readi_grammar::ast::{self, Expr, LayerName, SeqItem, Stmt, StmtKind};
 use readi_grammar::diag::{Code, Diagnostic, Span};
 
 use super::{Elab, Frame, Hint, Value, restore};
-use crate::infer;
 use crate::ir::*;
 
 impl<'a> Elab<'a> {
@@ -136,7 +135,7 @@ impl<'a> Elab<'a> {
             frame.vars.insert(name.clone(), Value::Poison);
             return;
         }
-        let ty = infer::input_type(decl.dtype.0, shape);
+        let ty = TensorType::new(decl.dtype.0, shape);
         let op = Op::Input(InputAttrs {
             name: name.clone(),
             modality: decl.modality.as_ref().map(|m| m.name.clone()),

@@ -25,7 +25,6 @@
 //! dimension `N`). Every node's output types are inferred when it is created (see
 //! [`crate::infer`]) and re-checked by the verifier ([`crate::verify`]).
 
-mod dim;
 mod op;
 
 use std::cmp::Reverse;
@@ -34,10 +33,13 @@ use std::collections::BinaryHeap;
 use petgraph::Direction;
 use petgraph::stable_graph::{NodeIndex, StableDiGraph};
 use petgraph::visit::EdgeRef;
-use readi_grammar::ast::DType;
 use readi_grammar::diag::Span;
+pub use readi_plan::ops::{
+    Activation, BatchNorm, BinaryOp, Conv2d, LayerNorm, Linear, Pool2d, PoolKind, Pure, Scalar, Upsample, UpsampleMode,
+    Window2,
+};
+pub use readi_plan::{DType, Dim, TensorType};
 
-pub use dim::Dim;
 pub use op::*;
 
 /// The identity of a node. Stays valid while other nodes are added and removed.
@@ -60,39 +62,6 @@ pub struct ScopeId(pub u32);
 pub struct ValueRef {
     pub node: NodeId,
     pub port: u16,
-}
-
-/// The element type and shape of a tensor.
-#[derive(Clone, Debug, PartialEq, Eq, Hash)]
-pub struct TensorType {
-    pub dtype: DType,
-    pub shape: Vec<Dim>,
-}
-
-impl TensorType {
-    pub fn new(dtype: DType, shape: Vec<Dim>) -> TensorType {
-        TensorType { dtype, shape }
-    }
-    pub fn rank(&self) -> usize {
-        self.shape.len()
-    }
-    /// The known size of an axis, `None` if symbolic or out of range.
-    pub fn known_dim(&self, axis: usize) -> Option<i64> {
-        self.shape.get(axis).and_then(Dim::as_known)
-    }
-}
-
-impl std::fmt::Display for TensorType {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}[", self.dtype.as_str())?;
-        for (i, d) in self.shape.iter().enumerate() {
-            if i > 0 {
-                f.write_str(", ")?;
-            }
-            write!(f, "{d}")?;
-        }
-        f.write_str("]")
-    }
 }
 
 /// A tensor edge from `src_port` of its source node to `dst_port` of its target node.

@@ -29,8 +29,10 @@
 use readi_grammar::diag::Span;
 
 use super::resolve_adapt::{AdaptPlan, Injection, RuleKind};
-use crate::infer::infer;
-use crate::ir::{Activation, BinaryKind, Conv2dAttrs, Graph, Node, NodeId, Op, SlotKind, ValueRef};
+use crate::ir::{
+    Activation, BinaryOp, Conv2d, Graph, Linear, Node, NodeId, Op, Pure, Scalar, SlotKind, ValueRef, Window2,
+};
+use crate::ops::{ConvOp, LinearOp};
 
 /// Runs the pass. Returns `Err` with a message only on a broken invariant (a compiler bug).
 pub fn run(graph: &mut Graph, plan: &mut AdaptPlan) -> Result<(), String> {
@@ -69,7 +71,7 @@ fn add(
         .collect::<Option<Vec<_>>>()
         .ok_or_else(|| format!("`{path}` reads a missing value"))?;
     let refs: Vec<_> = types.iter().collect();
-    let outputs = infer(&op, &refs).map_err(|e| format!("`{path}`: {}", e.message))?;
+    let outputs = op.infer(&refs).map_err(|e| format!("`{path}`: {}", e.message))?;
     let mut params = op.param_slots();
     for p in &mut params {
         p.kind = SlotKind::Added;
@@ -86,31 +88,26 @@ fn lora(graph: &mut Graph, base: NodeId, rank: i64, scale: f64, rule: usize, spa
     let node = graph.node(base).clone();
     let x = graph.inputs(base).first().copied().ok_or_else(|| format!("`{}` has no input", node.path))?;
     let (op_a, op_b) = match &node.op {
-        Op::Linear { in_features, out_features, .. } => (
-            Op::Linear { in_features: *in_features, out_features: rank, bias: false },
-            Op::Linear { in_features: rank, out_features: *out_features, bias: false },
-        ),
-        Op::Conv2d(c) => (
-            Op::Conv2d(Conv2dAttrs { out_channels: rank, groups: 1, bias: false, ..c.clone() }),
-            Op::Conv2d(Conv2dAttrs {
-                in_channels: rank,
-                out_channels: c.out_channels,
-                kernel: [1, 1],
-                stride: [1, 1],
-                padding: [0, 0],
-                dilation: [1, 1],
-                groups: 1,
-                bias: false,
-            }),
-        ),
+        Op::Linear(l) => {
+            let linear = |in_features, out_features| {
+                Op::Linear(LinearOp { linear: Linear { in_features, out_features }, bias: false })
+            };
+            (linear(l.linear.in_features, rank), linear(rank, l.linear.out_features))
+        }
+        Op::Conv2d(c) => {
+            let a = Conv2d { out_channels: rank, groups: 1, ..c.conv.clone() };
+            let b = Conv2d { in_channels: rank, out_channels: c.conv.out_channels, window: Window2::ONE, groups: 1 };
+            (Op::Conv2d(ConvOp { conv: a, bias: false }), Op::Conv2d(ConvOp { conv: b, bias: false }))
+        }
         op => return Err(format!("LoRA on a `{}` layer `{}`", op.kind_name(), node.path)),
     };
     let p = &node.path;
     let a = add(graph, base, format!("{p}.lora_A"), op_a, &[x], span)?;
     let b = add(graph, base, format!("{p}.lora_B"), op_b, &[out(a)], span)?;
-    let scaled = Op::Scalar { kind: BinaryKind::Mul, value: scale, scalar_first: false };
+    let scaled = Op::Pure(Pure::Scalar(Scalar { op: BinaryOp::Mul, value: scale, scalar_first: false }));
     let s = add(graph, base, format!("{p}.lora_scale"), scaled, &[out(b)], span)?;
-    let sum = add(graph, base, format!("{p}.lora_add"), Op::Binary(BinaryKind::Add), &[out(base), out(s)], span)?;
+    let sum =
+        add(graph, base, format!("{p}.lora_add"), Op::Pure(Pure::Binary(BinaryOp::Add)), &[out(base), out(s)], span)?;
     graph.replace_uses_except(out(base), out(sum), sum);
     Ok(Injection::Lora { rule, base, a, b, scale: s, add: sum, factor: scale })
 }
@@ -130,22 +127,15 @@ fn adapter(
         .and_then(|t| t.known_dim(1))
         .ok_or_else(|| format!("the input of `{path}` has no known channel count"))?;
     let conv = |cin: i64, cout: i64| {
-        Op::Conv2d(Conv2dAttrs {
-            in_channels: cin,
-            out_channels: cout,
-            kernel: [1, 1],
-            stride: [1, 1],
-            padding: [0, 0],
-            dilation: [1, 1],
-            groups: 1,
-            bias: true,
-        })
+        let conv = Conv2d { in_channels: cin, out_channels: cout, window: Window2::ONE, groups: 1 };
+        Op::Conv2d(ConvOp { conv, bias: true })
     };
     let mid = c / squeeze;
     let down = add(graph, target, format!("{path}.adapter.down"), conv(c, mid), &[x], span)?;
-    let a = add(graph, target, format!("{path}.adapter.act"), Op::Activation(act), &[out(down)], span)?;
+    let a = add(graph, target, format!("{path}.adapter.act"), Op::Pure(Pure::Activation(act)), &[out(down)], span)?;
     let up = add(graph, target, format!("{path}.adapter.up"), conv(mid, c), &[out(a)], span)?;
-    let sum = add(graph, target, format!("{path}.adapter.add"), Op::Binary(BinaryKind::Add), &[x, out(up)], span)?;
+    let sum =
+        add(graph, target, format!("{path}.adapter.add"), Op::Pure(Pure::Binary(BinaryOp::Add)), &[x, out(up)], span)?;
     graph.set_input(target, 0, out(sum));
     Ok(Injection::Adapter { rule, target, down, act: a, up, add: sum })
 }

@@ -29,31 +29,10 @@ use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
 use crate::ir::{Activation, Graph, NodeId, Op, ScopeKind};
 use crate::select;
 
-/// Op kinds a selector may name.
-pub const OP_KINDS: &[&str] = &[
-    "conv2d",
-    "batchnorm",
-    "layernorm",
-    "linear",
-    "matmul",
-    "add",
-    "sub",
-    "mul",
-    "div",
-    "relu",
-    "gelu",
-    "sigmoid",
-    "softmax",
-    "concat",
-    "reshape",
-    "permute",
-    "maxpool",
-    "avgpool",
-    "global_avgpool",
-    "upsample",
-    "mean",
-    "parameter",
-];
+/// Whether `word` names an op kind a selector may use (a builtin op, not an alias).
+fn is_op_kind(word: &str) -> bool {
+    crate::ops::op_kinds().any(|k| k == word)
+}
 
 /// Default LoRA rank (the paper's `k`).
 pub const DEFAULT_RANK: i64 = 4;
@@ -243,10 +222,10 @@ impl Cx<'_> {
 
     fn check_kinds(&self, kinds: &[readi_grammar::ast::Ident]) -> Result<(), Diagnostic> {
         for k in kinds {
-            if !OP_KINDS.contains(&k.name.as_str()) {
+            if !is_op_kind(&k.name) {
                 let mut d = Diagnostic::error(Code::BadSelector, format!("`{}` is not an op kind", k.name))
                     .with_primary(k.span, "unknown op kind");
-                if let Some(s) = suggest(&k.name, OP_KINDS.iter().copied()) {
+                if let Some(s) = suggest(&k.name, crate::ops::op_kinds()) {
                     d = d.with_note(format!("did you mean `{s}`?"));
                 }
                 return Err(d);
@@ -260,7 +239,7 @@ impl Cx<'_> {
         match item {
             SelItem::Pattern(p) => {
                 if let Some(word) = p.as_single_word()
-                    && OP_KINDS.contains(&word)
+                    && is_op_kind(word)
                 {
                     return Ok(g
                         .node_ids()
@@ -363,11 +342,13 @@ impl Cx<'_> {
         for s in selected {
             let node = self.graph.node(s.node);
             let (fan_in, fan_out, added) = match &node.op {
-                Op::Linear { in_features, out_features, .. } => {
-                    (*in_features, *out_features, rank * (in_features + out_features))
+                Op::Linear(l) => {
+                    let (fin, fout) = (l.linear.in_features, l.linear.out_features);
+                    (fin, fout, rank * (fin + fout))
                 }
-                Op::Conv2d(c) if c.groups == 1 => {
-                    let k = c.kernel[0] * c.kernel[1];
+                Op::Conv2d(c) if c.conv.groups == 1 => {
+                    let c = &c.conv;
+                    let k = c.window.kernel[0] * c.window.kernel[1];
                     (c.in_channels * k, c.out_channels, rank * c.in_channels * k + c.out_channels * rank)
                 }
                 Op::Conv2d(_) => {
@@ -452,7 +433,7 @@ impl Cx<'_> {
         if !ok {
             return None;
         }
-        let kind_target = before.as_single_word().filter(|w| OP_KINDS.contains(w));
+        let kind_target = before.as_single_word().filter(|w| is_op_kind(w));
         let mut targets: Vec<Target> = Vec::new();
         for &inst in &instances {
             let prefix = &g.scopes[inst].path;
@@ -604,13 +585,13 @@ impl<'a> Options<'a> {
 
     fn activation(&self, name: &str, diags: &mut Diagnostics) -> Option<Activation> {
         let Some(o) = self.get(name) else { return Some(Activation::Relu) };
-        let acts = ["relu", "gelu", "sigmoid"];
+        // Every activation by its name (`gelu` is the exact one).
+        let mut acts: Vec<&str> = Activation::ALL.iter().map(|a| a.name()).collect();
+        acts.dedup();
         match &o.value {
-            Some(OptionValue::Word(w)) if acts.contains(&w.name.as_str()) => Some(match w.name.as_str() {
-                "relu" => Activation::Relu,
-                "gelu" => Activation::Gelu,
-                _ => Activation::Sigmoid,
-            }),
+            Some(OptionValue::Word(w)) if acts.contains(&w.name.as_str()) => {
+                Activation::ALL.into_iter().find(|a| a.name() == w.name)
+            }
             other => {
                 let mut d = Diagnostic::error(Code::BadOption, format!("`{name}` must be one of {}", acts.join(", ")))
                     .with_primary(o.span, "unknown activation");

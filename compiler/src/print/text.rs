@@ -162,6 +162,7 @@ pub fn to_text(module: &Module) -> String {
         }
         let keys = v.keys();
         let _ = writeln!(out, "  {} variants:", keys.len());
+        let keys: Vec<String> = keys.iter().map(|k| k.to_string()).collect();
         wrap(&mut out, "    ", &keys, 100);
     }
     out

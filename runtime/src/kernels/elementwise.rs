@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use super::softmax::exp_fast;
-use super::{Act, BinaryOp};
+use super::{Activation, BinaryOp};
 
 /// Below this many elements a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;
@@ -56,13 +56,13 @@ pub fn scalar(op: BinaryOp, x: &[f32], value: f32, scalar_first: bool, out: &mut
 /// Every activation is plain arithmetic (no libm calls), so the loops vectorise. Measured
 /// over [-12, 12]: `Gelu` is within 4e-7 of the exact erf form (PyTorch's CPU kernel is
 /// within 1.1e-6 of it), `GeluTanh` within 6e-7 of its f64 formula.
-pub fn activation(act: Act, x: &[f32], out: &mut [f32]) {
+pub fn activation(act: Activation, x: &[f32], out: &mut [f32]) {
     assert_eq!(x.len(), out.len(), "activation: x and out differ in length");
     par_ranges(out, |start, o| map_chunk(act, &x[start..start + o.len()], o));
 }
 
 /// `x = act(x)`, element-wise.
-pub fn activation_in_place(act: Act, x: &mut [f32]) {
+pub fn activation_in_place(act: Activation, x: &mut [f32]) {
     par_ranges(x, |_, x| map_chunk_in_place(act, x));
 }
 
@@ -71,20 +71,28 @@ pub fn activation_in_place(act: Act, x: &mut [f32]) {
 macro_rules! per_act {
     ($act:expr, $f:ident => $body:expr) => {
         match $act {
-            Act::Relu => {
+            Activation::Relu => {
                 let $f = relu;
                 $body
             }
-            Act::Gelu => {
+            Activation::Gelu => {
                 let $f = gelu;
                 $body
             }
-            Act::GeluTanh => {
+            Activation::GeluTanh => {
                 let $f = gelu_tanh;
                 $body
             }
-            Act::Sigmoid => {
+            Activation::Sigmoid => {
                 let $f = sigmoid;
+                $body
+            }
+            Activation::Tanh => {
+                let $f = tanh;
+                $body
+            }
+            Activation::Silu => {
+                let $f = silu;
                 $body
             }
         }
@@ -93,7 +101,7 @@ macro_rules! per_act {
 
 simd_fn! {
     /// `out[i] = act(x[i])`.
-    fn map_chunk(act: Act, x: &[f32], out: &mut [f32]) {
+    fn map_chunk(act: Activation, x: &[f32], out: &mut [f32]) {
         let x = &x[..out.len()];
         per_act!(act, f => {
             for (o, &v) in out.iter_mut().zip(x) {
@@ -105,7 +113,7 @@ simd_fn! {
 
 simd_fn! {
     /// `x[i] = act(x[i])`.
-    fn map_chunk_in_place(act: Act, x: &mut [f32]) {
+    fn map_chunk_in_place(act: Activation, x: &mut [f32]) {
         per_act!(act, f => {
             for v in x.iter_mut() {
                 *v = f(*v);
@@ -166,6 +174,25 @@ fn sigmoid(x: f32) -> f32 {
     let e = exp_fast(-x.abs());
     let s = 1.0 / (1.0 + e);
     if x < 0.0 { e * s } else { s }
+}
+
+/// `tanh(x)`: the odd Taylor polynomial to `x^5` for `|x| < 0.1` (error below 6e-9
+/// relative), else `sign(x) (1 - e) / (1 + e)` with `e = e^(-2|x|)`, which cannot overflow;
+/// ±1 beyond |x| ≈ 9, NaN for NaN. Branch-free, so the loop vectorises.
+#[inline(always)]
+fn tanh(x: f32) -> f32 {
+    let a = x.abs();
+    let e = exp_fast(-2.0 * a);
+    let big = (1.0 - e) / (1.0 + e);
+    let x2 = x * x;
+    let small = x * (1.0 + x2 * (-1.0 / 3.0 + x2 * (2.0 / 15.0)));
+    if a < 0.1 { small } else { big.copysign(x) }
+}
+
+/// `x * sigmoid(x)` (PyTorch's `silu`).
+#[inline(always)]
+fn silu(x: f32) -> f32 {
+    x * sigmoid(x)
 }
 
 /// Runs `f(start, chunk)` over `out` in chunks, in parallel when `out` is large; `start` is
@@ -507,10 +534,10 @@ mod tests {
     fn relu_and_in_place_agree() {
         let x: Vec<f32> = data(40_000, 4).iter().map(|v| v * 5.0).collect();
         let mut got = vec![0.0; x.len()];
-        activation(Act::Relu, &x, &mut got);
+        activation(Activation::Relu, &x, &mut got);
         let want: Vec<f32> = x.iter().map(|&v| if v > 0.0 { v } else { 0.0 }).collect();
         assert_eq!(got, want);
-        for act in [Act::Relu, Act::Gelu, Act::GeluTanh, Act::Sigmoid] {
+        for act in Activation::ALL {
             activation(act, &x, &mut got);
             let mut inplace = x.clone();
             activation_in_place(act, &mut inplace);
@@ -524,13 +551,13 @@ mod tests {
         let mut x: Vec<f32> = (-24_000..=24_000).map(|i| i as f32 * 5e-4).collect();
         x.extend(data(1000, 5).iter().map(|v| v * 1e-3));
         let mut got = vec![0.0; x.len()];
-        activation(Act::Gelu, &x, &mut got);
+        activation(Activation::Gelu, &x, &mut got);
         let want: Vec<f32> = x
             .iter()
             .map(|&v| (0.5 * v as f64 * (1.0 + libm::erf(v as f64 / std::f64::consts::SQRT_2))) as f32)
             .collect();
         assert_close(&got, &want, 1e-6);
-        activation(Act::GeluTanh, &x, &mut got);
+        activation(Activation::GeluTanh, &x, &mut got);
         let want: Vec<f32> = x
             .iter()
             .map(|&v| {
@@ -574,9 +601,9 @@ mod tests {
             4.9999995,
         ];
         let mut got = [0.0; 11];
-        activation(Act::Gelu, &x, &mut got);
+        activation(Activation::Gelu, &x, &mut got);
         assert_close(&got, &erf, 1e-6);
-        activation(Act::GeluTanh, &x, &mut got);
+        activation(Activation::GeluTanh, &x, &mut got);
         assert_close(&got, &tanh, 1e-6);
     }
 
@@ -584,7 +611,7 @@ mod tests {
     fn sigmoid_is_safe_at_large_magnitudes() {
         let x = [-200.0, -100.0, -86.0, -20.0, -1.0, 0.0, 1.0, 20.0, 100.0, f32::INFINITY, f32::NEG_INFINITY];
         let mut got = [0.0; 11];
-        activation(Act::Sigmoid, &x, &mut got);
+        activation(Activation::Sigmoid, &x, &mut got);
         let want: Vec<f32> = x.iter().map(|&v| (1.0 / (1.0 + (-(v as f64)).exp())) as f32).collect();
         assert_close(&got, &want, 1e-6);
         // Relative accuracy holds in the tail down to -87: sigmoid(-20) = 2.0611537e-9.
@@ -592,7 +619,66 @@ mod tests {
         assert!(got[2] > 0.0);
         assert!(got.iter().all(|v| (0.0..=1.0).contains(v)));
         let mut nan = [f32::NAN];
-        activation_in_place(Act::Sigmoid, &mut nan);
+        activation_in_place(Activation::Sigmoid, &mut nan);
         assert!(nan[0].is_nan());
+    }
+
+    #[test]
+    fn every_activation_matches_its_f64_formula() {
+        // A dense grid over [-12, 12], values near 0 and the extremes.
+        let mut x: Vec<f32> = (-24_000..=24_000).map(|i| i as f32 * 5e-4).collect();
+        x.extend(data(1000, 6).iter().map(|v| v * 1e-3));
+        x.extend([-100.0, -30.0, 30.0, 100.0, 0.1, -0.1, 0.099_999_99]);
+        for act in Activation::ALL {
+            let mut got = vec![0.0; x.len()];
+            activation(act, &x, &mut got);
+            let want: Vec<f32> = x.iter().map(|&v| act.reference(v as f64) as f32).collect();
+            assert_close(&got, &want, 1e-6);
+        }
+    }
+
+    #[test]
+    fn tanh_and_silu_match_pytorch() {
+        let x = [-9.0, -3.0, -1.5, -0.5, -0.05, -1e-3, 0.0, 1e-3, 0.05, 0.5, 1.0, 2.5, 9.0];
+        // torch.tanh(torch.tensor(x)).tolist(), torch 2.15
+        let tanh = [
+            -0.999_999_94,
+            -0.995_054_8,
+            -0.905_148_3,
+            -0.462_117_17,
+            -0.049_958_374,
+            -0.000_999_999_7,
+            0.0,
+            0.000_999_999_7,
+            0.049_958_374,
+            0.462_117_17,
+            0.761_594_2,
+            0.986_614_3,
+            0.999_999_94,
+        ];
+        // torch.nn.functional.silu(torch.tensor(x)).tolist()
+        let silu = [
+            -0.001_110_551_2,
+            -0.142_277_61,
+            -0.273_638_28,
+            -0.188_770_34,
+            -0.024_375_131,
+            -0.000_499_75,
+            0.0,
+            0.000_500_25,
+            0.025_624_87,
+            0.311_229_68,
+            0.731_058_6,
+            2.310_354_5,
+            8.998_89,
+        ];
+        let mut got = [0.0; 13];
+        activation(Activation::Tanh, &x, &mut got);
+        assert_close(&got, &tanh, 1e-6);
+        activation(Activation::Silu, &x, &mut got);
+        assert_close(&got, &silu, 1e-6);
+        let mut nan = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY];
+        activation_in_place(Activation::Tanh, &mut nan);
+        assert!(nan[0].is_nan() && nan[1] == 1.0 && nan[2] == -1.0, "{nan:?}");
     }
 }

@@ -85,25 +85,7 @@ pub mod softmax;
 #[cfg(test)]
 pub(crate) mod testutil;
 
-/// Element-wise binary operations.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BinaryOp {
-    Add,
-    Sub,
-    Mul,
-    Div,
-}
-
-/// Element-wise activations.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Act {
-    Relu,
-    /// GELU with erf, as PyTorch's default.
-    Gelu,
-    /// GELU with the tanh approximation.
-    GeluTanh,
-    Sigmoid,
-}
+pub use readi_plan::ops::{Activation, BinaryOp};
 
 /// What happens to each output channel of a conv or linear after the accumulation:
 /// `y = act(acc * scale[c] + shift[c])`. A bias is a `shift` without `scale`; a folded
@@ -113,27 +95,4 @@ pub struct Epilogue<'a> {
     pub scale: Option<&'a [f32]>,
     pub shift: Option<&'a [f32]>,
     pub relu: bool,
-}
-
-/// Output length of a sliding window (conv, pooling), as PyTorch's
-/// `pooling_output_shape` computes it:
-/// `floor((len + 2 pad - dilation (kernel - 1) - 1 + (ceil ? stride - 1 : 0)) / stride) + 1`,
-/// minus one when ceil mode would start the last window past the input and left padding.
-/// `None` when the result is not at least 1 or a value is out of range. The compiler's
-/// shape inference and the runtime's plan checks both use this one definition.
-pub fn window_out(len: i64, kernel: i64, stride: i64, pad: i64, dilation: i64, ceil: bool) -> Option<i64> {
-    if stride < 1 || kernel < 1 || dilation < 1 {
-        return None;
-    }
-    let eff = dilation.checked_mul(kernel - 1)?;
-    let num = len.checked_add(pad.checked_mul(2)?)?.checked_sub(eff)?.checked_sub(1)?.checked_add(if ceil {
-        stride - 1
-    } else {
-        0
-    })?;
-    let mut out = num.div_euclid(stride) + 1;
-    if ceil && (out - 1).checked_mul(stride)? >= len.checked_add(pad)? {
-        out -= 1;
-    }
-    (out >= 1).then_some(out)
 }

@@ -3,6 +3,8 @@
 
 use rayon::prelude::*;
 
+use readi_plan::ops::{Pool2d, window_out};
+
 use super::reduce::sum_simd;
 
 /// Below this much work (window reads) a kernel runs on the calling thread.
@@ -10,14 +12,7 @@ const PAR_MIN: usize = 1 << 15;
 /// Window reads per parallel task, roughly.
 const TASK_WORK: usize = 1 << 14;
 
-/// Which reduction a pooling window applies.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PoolKind {
-    /// Maximum; padding counts as `-inf` and NaN propagates.
-    Max,
-    /// Mean, with the divisor chosen by `count_include_pad`.
-    Avg,
-}
+pub use readi_plan::ops::PoolKind;
 
 /// Sizes of a 2-D pooling over `nc` planes of `h × w`, producing `oh × ow` per plane.
 ///
@@ -60,15 +55,43 @@ fn window(o: usize, len: usize, k: usize, stride: usize, pad: usize) -> Window {
     Window { start: clamp(start), end: clamp(end), padded_len }
 }
 
-/// PyTorch's pooled output length (`pooling_output_shape`, dilation 1).
+/// PyTorch's pooled output length (dilation 1): the shared window rule,
+/// [`window_out`], on kernel sizes; 0 when the window does not fit.
 fn pooled_len(len: usize, k: usize, stride: usize, pad: usize, ceil_mode: bool) -> usize {
-    let span = len + 2 * pad - k;
-    let mut n = if ceil_mode { span.div_ceil(stride) } else { span / stride } + 1;
-    // The last window must start inside the input or its left padding.
-    if ceil_mode && (n - 1) * stride >= len + pad {
-        n -= 1;
+    let i = |v: usize| i64::try_from(v).unwrap_or(i64::MAX);
+    window_out(i(len), i(k), i(stride), i(pad), 1, ceil_mode).map_or(0, |o| o as usize)
+}
+
+impl Pool2dShape {
+    /// The kernel's view of a pooling layer over `nc` planes of `h x w`: the one place a
+    /// [`Pool2dShape`] is built from the operator's attributes.
+    pub fn of(pool: &Pool2d, nc: usize, h: usize, w: usize) -> Pool2dShape {
+        let win = &pool.window;
+        let u = |v: i64| usize::try_from(v).unwrap_or(0);
+        let (kh, kw, stride_h, stride_w, pad_h, pad_w) = (
+            u(win.kernel[0]),
+            u(win.kernel[1]),
+            u(win.stride[0]),
+            u(win.stride[1]),
+            u(win.padding[0]),
+            u(win.padding[1]),
+        );
+        Pool2dShape {
+            nc,
+            h,
+            w,
+            kh,
+            kw,
+            stride_h,
+            stride_w,
+            pad_h,
+            pad_w,
+            oh: pooled_len(h, kh, stride_h, pad_h, pool.ceil_mode),
+            ow: pooled_len(w, kw, stride_w, pad_w, pool.ceil_mode),
+            ceil_mode: pool.ceil_mode,
+            count_include_pad: pool.count_include_pad,
+        }
     }
-    n
 }
 
 /// Input columns one tile of a pooling row may span (a stack buffer).

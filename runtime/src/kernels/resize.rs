@@ -10,14 +10,9 @@ const CHUNK: usize = 1 << 14;
 /// Output columns whose source indices and weights are computed together.
 const TILE: usize = 128;
 
-/// How `upsample` picks input values for an output position.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ResizeMode {
-    /// PyTorch's legacy `'nearest'` (not `'nearest-exact'`).
-    Nearest,
-    /// PyTorch's `'bilinear'` (no antialiasing).
-    Bilinear,
-}
+/// How `upsample` picks input values for an output position: PyTorch's legacy
+/// `'nearest'` (not `'nearest-exact'`) or `'bilinear'` (no antialiasing).
+pub use readi_plan::ops::UpsampleMode as ResizeMode;
 
 /// The output-to-input index mapping along one axis, computed in f32 like PyTorch's CPU
 /// kernels so that index choices agree at the boundaries.

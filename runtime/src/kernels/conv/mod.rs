@@ -85,6 +85,34 @@ pub struct Conv2dShape {
     pub ow: usize,
 }
 
+/// The kernel's view of a conv layer, `conv` applied to an `n x cin x h x w` input: the
+/// one place a [`Conv2dShape`] is built from a layer's geometry (the compiler packs
+/// weights at `n = 1`, the runtime binds at the batch size). The output size is the
+/// shape rule's (`readi_plan::ops::Window2`); a window that does not fit gives 0.
+pub fn layer_shape(conv: &readi_plan::ops::Conv2d, n: usize, h: usize, w: usize) -> Conv2dShape {
+    let win = &conv.window;
+    let u = |v: i64| usize::try_from(v).unwrap_or(0);
+    let out = |axis: usize, len: usize| i64::try_from(len).ok().and_then(|l| win.out_len(axis, l, false)).map_or(0, u);
+    Conv2dShape {
+        n,
+        cin: u(conv.in_channels),
+        h,
+        w,
+        cout: u(conv.out_channels),
+        kh: u(win.kernel[0]),
+        kw: u(win.kernel[1]),
+        stride_h: u(win.stride[0]),
+        stride_w: u(win.stride[1]),
+        pad_h: u(win.padding[0]),
+        pad_w: u(win.padding[1]),
+        dil_h: u(win.dilation[0]),
+        dil_w: u(win.dilation[1]),
+        groups: u(conv.groups),
+        oh: out(0, h),
+        ow: out(1, w),
+    }
+}
+
 impl Conv2dShape {
     fn cin_g(&self) -> usize {
         self.cin / self.groups

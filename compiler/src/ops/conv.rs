@@ -1,0 +1,82 @@
+//! `conv2d(x, out, kernel, stride=1, padding=0, dilation=1, groups=1, bias=true)`.
+
+use readi_plan::ops::{Conv2d, Operator, ShapeResult, TensorType, Window2};
+
+use super::{Args, Builtin, P, R, boolean, int, req};
+use crate::ir::{Op, ParamSlot, ValueRef};
+
+/// A conv layer in the IR: the operator and whether it has a bias.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ConvOp {
+    pub conv: Conv2d,
+    pub bias: bool,
+}
+
+impl ConvOp {
+    /// `weight [out, in/groups, kh, kw]` and, with a bias, `bias [out]`.
+    pub fn param_slots(&self) -> Vec<ParamSlot> {
+        let mut v = vec![ParamSlot::param("weight", self.conv.weight_shape().to_vec())];
+        if self.bias {
+            v.push(ParamSlot::param("bias", vec![self.conv.out_channels]));
+        }
+        v
+    }
+}
+
+impl Operator for ConvOp {
+    fn kind_name(&self) -> &'static str {
+        self.conv.kind_name()
+    }
+    fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        self.conv.infer(inputs)
+    }
+    fn attrs(&self) -> Vec<(&'static str, String)> {
+        let mut v = self.conv.attrs();
+        v.push(("bias", self.bias.to_string()));
+        v
+    }
+}
+
+const PARAMS: &[P] = &[
+    req("x"),
+    req("out"),
+    req("kernel"),
+    int("stride", 1),
+    int("padding", 0),
+    int("dilation", 1),
+    int("groups", 1),
+    boolean("bias", true),
+];
+
+pub(super) fn builtins() -> Vec<Builtin> {
+    vec![Builtin::new("conv2d", PARAMS, conv2d)]
+}
+
+fn conv2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    let t = args.ttype("x")?;
+    let in_channels = t.known_dim(1).filter(|_| t.rank() == 4).ok_or_else(|| {
+        args.bad_value("x", format!("conv2d needs an NCHW tensor with a known channel count, got {t}"))
+    })?;
+    let window = Window2 {
+        kernel: args.pair("kernel", 1)?,
+        stride: args.pair("stride", 1)?,
+        padding: args.pair("padding", 0)?,
+        dilation: args.pair("dilation", 1)?,
+    };
+    let conv = Conv2d {
+        in_channels,
+        out_channels: args.int_at_least("out", 1)?,
+        window,
+        groups: args.int_at_least("groups", 1)?,
+    };
+    if in_channels % conv.groups != 0 || conv.out_channels % conv.groups != 0 {
+        return Err(args.bad_value(
+            "groups",
+            format!(
+                "groups={} must divide both the {in_channels} input and {} output channels",
+                conv.groups, conv.out_channels
+            ),
+        ));
+    }
+    Ok((Op::Conv2d(ConvOp { conv, bias: args.boolean("bias")? }), vec![args.tensor("x")?]))
+}

@@ -1,0 +1,96 @@
+//! The compiler's side of each operator: its builtins in the language and, for operators
+//! with weights, the IR wrapper that adds the parameter slots.
+//!
+//! An operator's attributes and shape rule are defined once, in `readi_plan::ops` (shared
+//! with the runtime, which checks plans with the same rule). Here, one file per family
+//! says how the language writes the operator (a [`Builtin`]: its name, its parameters with
+//! PyTorch's names and defaults, and a builder that checks the arguments and makes the IR
+//! op) and which `state_dict` tensors it owns.
+//!
+//! | file             | builtins                                                    |
+//! |------------------|-------------------------------------------------------------|
+//! | `conv.rs`        | `conv2d`                                                    |
+//! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`                      |
+//! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, every activation (`relu`, `gelu`, ...) |
+//! | `linear.rs`      | `linear`, `matmul`                                          |
+//! | `norm.rs`        | `batchnorm`, `layernorm`                                    |
+//! | `layout.rs`      | `concat`, `reshape`, `flatten`, `transpose`, `permute`      |
+//! | `reduce.rs`      | `mean`, `softmax`                                           |
+//! | `resize.rs`      | `upsample`                                                  |
+//! | `parameter.rs`   | `parameter`                                                 |
+//!
+//! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
+//! options becomes a builtin `name(x)` by itself (`docs/contributing.md`).
+
+mod args;
+mod conv;
+mod elementwise;
+mod layout;
+mod linear;
+mod norm;
+mod parameter;
+mod pool;
+mod reduce;
+mod resize;
+
+use std::sync::LazyLock;
+
+pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, req};
+pub use conv::ConvOp;
+pub use linear::LinearOp;
+pub use norm::{batchnorm_slots, layernorm_slots};
+pub use parameter::ParameterOp;
+
+use crate::ir::{Op, ValueRef};
+
+/// A builtin's builder: checks the bound arguments and makes the op and its tensor inputs
+/// in port order.
+pub type Build = fn(&Args<'_>) -> R<(Op, Vec<ValueRef>)>;
+
+/// A builtin op of the language.
+pub struct Builtin {
+    pub sig: Sig,
+    pub build: Build,
+    /// The builtin writes an op of another kind (`transpose` and `flatten` make a
+    /// `permute` and a `reshape`), so selectors do not know it as a kind.
+    pub alias: bool,
+}
+
+impl Builtin {
+    pub(crate) const fn new(name: &'static str, params: &'static [P], build: Build) -> Builtin {
+        Builtin { sig: Sig { name, params }, build, alias: false }
+    }
+    pub(crate) const fn alias(self) -> Builtin {
+        Builtin { alias: true, ..self }
+    }
+}
+
+static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
+    let families = [
+        conv::builtins(),
+        norm::builtins(),
+        linear::builtins(),
+        elementwise::builtins(),
+        reduce::builtins(),
+        layout::builtins(),
+        pool::builtins(),
+        resize::builtins(),
+        parameter::builtins(),
+    ];
+    families.into_iter().flatten().collect()
+});
+
+/// Every builtin op.
+pub fn builtins() -> &'static [Builtin] {
+    &BUILTINS
+}
+
+/// The builtin op called `name`.
+pub fn builtin(name: &str) -> Option<&'static Builtin> {
+    BUILTINS.iter().find(|b| b.sig.name == name)
+}
+
+/// The op kinds selectors may name: every builtin that is not an alias.
+pub fn op_kinds() -> impl Iterator<Item = &'static str> {
+    BUILTINS.iter().filter(|b| !b.alias).map(|b| b.sig.name)
+}

@@ -1,0 +1,60 @@
+//! `batchnorm(x, eps=1e-5, momentum=0.1)` and `layernorm(x, eps=1e-5, affine=true)`.
+
+use readi_plan::DType;
+use readi_plan::ops::{BatchNorm, LayerNorm};
+
+use super::{Args, Builtin, P, R, boolean, flt, positive_float, req};
+use crate::ir::{Op, ParamSlot, ValueRef};
+
+/// A BatchNorm's `state_dict`: `weight`, `bias`, `running_mean`, `running_var` (all
+/// `[C]`) and `num_batches_tracked` (an i64 scalar).
+pub fn batchnorm_slots(bn: &BatchNorm) -> Vec<ParamSlot> {
+    let c = bn.channels;
+    vec![
+        ParamSlot::param("weight", vec![c]),
+        ParamSlot::param("bias", vec![c]),
+        ParamSlot::buffer("running_mean", vec![c], DType::F32),
+        ParamSlot::buffer("running_var", vec![c], DType::F32),
+        ParamSlot::buffer("num_batches_tracked", vec![], DType::I64),
+    ]
+}
+
+/// A LayerNorm's `weight` and `bias` (`[features]`), when it is affine.
+pub fn layernorm_slots(ln: &LayerNorm) -> Vec<ParamSlot> {
+    if !ln.affine {
+        return Vec::new();
+    }
+    vec![ParamSlot::param("weight", vec![ln.features]), ParamSlot::param("bias", vec![ln.features])]
+}
+
+const BATCHNORM: &[P] = &[req("x"), flt("eps", 1e-5), flt("momentum", 0.1)];
+const LAYERNORM: &[P] = &[req("x"), flt("eps", 1e-5), boolean("affine", true)];
+
+pub(super) fn builtins() -> Vec<Builtin> {
+    vec![Builtin::new("batchnorm", BATCHNORM, batchnorm), Builtin::new("layernorm", LAYERNORM, layernorm)]
+}
+
+fn batchnorm(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    let t = args.ttype("x")?;
+    let channels = t.known_dim(1).filter(|_| t.rank() >= 2).ok_or_else(|| {
+        args.bad_value("x", format!("batchnorm needs a tensor with a known axis 1 (channels), got {t}"))
+    })?;
+    let eps = positive_float(args, "eps")?;
+    let momentum = args.float("momentum")?;
+    if !(0.0..=1.0).contains(&momentum) {
+        return Err(args.bad_value("momentum", format!("must be in [0, 1], got {momentum}")));
+    }
+    Ok((Op::BatchNorm(BatchNorm { channels, eps, momentum }), vec![args.tensor("x")?]))
+}
+
+fn layernorm(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    let t = args.ttype("x")?;
+    let features = t
+        .rank()
+        .checked_sub(1)
+        .and_then(|l| t.known_dim(l))
+        .ok_or_else(|| args.bad_value("x", format!("layernorm needs a known last axis, got {t}")))?;
+    let eps = positive_float(args, "eps")?;
+    let op = Op::LayerNorm(LayerNorm { features, eps, affine: args.boolean("affine")? });
+    Ok((op, vec![args.tensor("x")?]))
+}
