@@ -20,8 +20,9 @@ use std::time::Instant;
 mod common;
 
 use common::inputs;
+use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, LoraMode};
-use readi_compiler::passes::{self, Module, Options};
+use readi_compiler::passes::{self, Options};
 use readi_grammar::diag::FileId;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;

@@ -10,8 +10,8 @@ use common::readi;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, VariantSource, WeightSet};
-use readi_compiler::passes::Module;
 use readi_runtime::calibrate::{BnCalibrator, BnStats, CalibrateError};
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::{Kernel, Plan};

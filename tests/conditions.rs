@@ -5,8 +5,9 @@ mod common;
 
 use std::sync::Arc;
 
+use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, VariantSource, variants};
-use readi_compiler::passes::Module;
+use readi_compiler::passes::{self, BackendInputs, Pass};
 use readi_runtime::exec::{Input, RunError, Session, Tensor};
 use readi_runtime::plan::Plan;
 
@@ -143,12 +144,17 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
     let keys: Vec<String> = ["gamma=0.25", "fog=0.06"].iter().map(|k| k.to_string()).collect();
     let sources = backend::seeded_variants(&m, &keys, 50);
     let base = backend::seeded_weights(&m.graph, 1);
-    let melded =
-        variants::meld(&m, &readi_plan::VariantKey::parse(MELD).expect("a key"), &[&sources[0], &sources[1]], &base)
-            .expect("melds");
+    // Run the back end to the `meld` pass and read the melded variant from the table.
+    let opts = CompileOptions { melds: vec![MELD.into()], ..Default::default() };
+    let inputs = BackendInputs { base: &base, base_name: "seeded", variants: &sources, opts: &opts };
+    let mut melded = m.clone();
+    passes::run_backend(&mut melded, &inputs, Some(Pass::Meld)).expect("melds");
+    let table = melded.tensors.expect("a tensor table");
+    assert_eq!(table.variants[2].key.to_string(), MELD);
     // The spec's rule: camera (gamma) 0.8, lidar (fog) 0.2.
     let mut checked = 0;
-    for (name, (_, v)) in &melded.weights.tensors {
+    for name in table.owned.keys() {
+        let v = table.value(name, 3).expect("bound");
         let (c, l) = (&sources[0].weights.tensors[name].1, &sources[1].weights.tensors[name].1);
         for i in 0..v.len() {
             let want = 0.8 * c[i] as f64 + 0.2 * l[i] as f64;
@@ -160,8 +166,8 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
     // Two camera axes at once: no meld rule weighs them apart.
     let both_camera: Vec<String> = ["gamma=0.25", "blur=30"].iter().map(|k| k.to_string()).collect();
     let cam = backend::seeded_variants(&m, &both_camera, 50);
-    let key = readi_plan::VariantKey::parse("blur=30+gamma=0.25").expect("a key");
-    let e = variants::meld(&m, &key, &[&cam[0], &cam[1]], &base).expect_err("same modality");
+    let opts = CompileOptions { melds: vec!["blur=30+gamma=0.25".into()], ..Default::default() };
+    let e = backend::compile_variants(&m, &base, "seeded", &cam, &opts).expect_err("same modality");
     assert!(e.0[0].message.contains("two parts weigh on `camera`"), "{:?}", e.0[0].message);
 }
 

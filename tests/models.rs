@@ -7,8 +7,8 @@ mod common;
 use std::collections::BTreeMap;
 
 use common::compile;
+use readi_compiler::Module;
 use readi_compiler::ir::Dim;
-use readi_compiler::passes::Module;
 
 fn module(rel: &str, overrides: &[(&str, &str)]) -> Module {
     let (sources, out) = compile(rel, overrides, None);

@@ -24,8 +24,8 @@ fn window_shapes_match_pytorch() {
         let n = |i: usize| f[i].parse::<i64>().expect("int field");
         let (op, input) = match f[0] {
             "conv" => (
-                Op::Conv2d(ConvOp {
-                    conv: Conv2d {
+                Op::Conv2d(ConvOp::new(
+                    Conv2d {
                         in_channels: n(1),
                         out_channels: n(4),
                         window: Window2 {
@@ -36,8 +36,8 @@ fn window_shapes_match_pytorch() {
                         },
                         groups: n(13),
                     },
-                    bias: true,
-                }),
+                    true,
+                )),
                 nchw(n(1), n(2), n(3)),
             ),
             kind @ ("maxpool" | "avgpool") => (

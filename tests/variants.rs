@@ -11,10 +11,10 @@ mod common;
 
 use std::sync::Arc;
 
+use readi_compiler::Module;
 use readi_compiler::backend::variants::owned_params;
 use readi_compiler::backend::{self, CompileOptions, LoraMode, VariantSource, WeightSet, peft, seeded_tensor};
 use readi_compiler::ir::SlotKind;
-use readi_compiler::passes::Module;
 use readi_grammar::diag::{Diagnostics, SourceMap};
 use readi_runtime::exec::{Input, Session, Tensor};
 use readi_runtime::plan::Plan;

@@ -4,8 +4,8 @@
 
 mod common;
 
+use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, WeightSet};
-use readi_compiler::passes::Module;
 use readi_grammar::diag::SourceMap;
 use safetensors::tensor::{Dtype, TensorView};
 

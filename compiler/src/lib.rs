@@ -18,10 +18,12 @@
 pub mod backend;
 pub mod elaborate;
 pub mod ir;
+pub mod module;
 pub mod ops;
 pub mod passes;
 pub mod print;
 pub mod select;
 pub mod verify;
 
-pub use passes::{Module, Options, Outcome, Pass, run};
+pub use module::Module;
+pub use passes::{Options, Outcome, Pass, run};

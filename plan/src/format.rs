@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::VariantKey;
-use crate::ops::{ChannelAffine, Conv2d, LayerNorm, Linear, Operator, Pure};
+use crate::ops::{ChannelAffine, Conv2d, ConvAlgo, LayerNorm, Linear, Operator, Pure};
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
 /// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
@@ -229,7 +229,7 @@ pub enum Kernel {
     /// for `algo` (see `readi_runtime::kernels::conv`).
     Conv2d {
         conv: Conv2d,
-        algo: String,
+        algo: ConvAlgo,
         weight: usize,
         epilogue: EpilogueSpec,
     },

@@ -19,13 +19,13 @@
 //!    at most once each, by tensors of exactly their shape (so checking the base covers
 //!    every variant).
 //!
-//! What depends on the kernels' own layouts (a conv's packed weight length) is checked by
-//! the runtime on top.
+//! Nothing here depends on the kernels' code: a conv's packed weight length is
+//! [`crate::ops::ConvAlgo::packed_len`], defined with the algorithms.
 
 use std::collections::HashSet;
 
 use crate::dim::Dim;
-use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Storage};
+use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage};
 use crate::ops::{self, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
@@ -134,7 +134,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
                 crate::show_shape(&want.shape)
             ));
         }
-        tensor_sizes(m, &step.kernel).map_err(|e| format!("{at}: {e}"))?;
+        tensor_sizes(m, step).map_err(|e| format!("{at}: {e}"))?;
         written[step.output] = true;
     }
     for o in &m.outputs {
@@ -145,9 +145,10 @@ fn schedule(m: &Manifest) -> Result<(), String> {
     Ok(())
 }
 
-/// The stored tensors of a kernel have the sizes it reads (step 4); a conv's packed
-/// weight, whose length depends on its algorithm, is the runtime's to check.
-fn tensor_sizes(m: &Manifest, kernel: &Kernel) -> Result<(), String> {
+/// The stored tensors of a step's kernel have the sizes it reads (step 4), a conv's
+/// packed weight the length its algorithm reads, and the algorithm fits the layer.
+fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
+    let kernel = &step.kernel;
     let numel = |t: usize| m.tensors[t].numel();
     let per_channel = |ep: &EpilogueSpec, channels: i64| -> Result<(), String> {
         for t in ep.scale.into_iter().chain(ep.shift) {
@@ -162,7 +163,25 @@ fn tensor_sizes(m: &Manifest, kernel: &Kernel) -> Result<(), String> {
         Ok(())
     };
     match kernel {
-        Kernel::Conv2d { conv, epilogue, .. } => per_channel(epilogue, conv.out_channels),
+        Kernel::Conv2d { conv, algo, weight, epilogue } => {
+            // The shape rule has checked the spatial sizes are known; the batch does not matter.
+            let x = &m.values[step.inputs[0]].shape;
+            let known = |d: &Dim| d.as_known().and_then(|v| usize::try_from(v).ok()).unwrap_or(0);
+            let s = conv.shape(1, known(&x[2]), known(&x[3]));
+            if !algo.supports(&s) {
+                return Err(format!("conv algorithm `{}` cannot compute this layer", algo.name()));
+            }
+            if numel(*weight) != algo.packed_len(&s) {
+                return Err(format!(
+                    "conv2d weight `{}` has {} values, `{}` needs {}",
+                    m.tensors[*weight].name,
+                    numel(*weight),
+                    algo.name(),
+                    algo.packed_len(&s)
+                ));
+            }
+            per_channel(epilogue, conv.out_channels)
+        }
         Kernel::Linear { linear, weight, epilogue } => {
             let want = (linear.in_features as u64).saturating_mul(linear.out_features as u64);
             if numel(*weight) as u64 != want {

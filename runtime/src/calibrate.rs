@@ -151,7 +151,7 @@ impl BnCalibrator {
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, relu: false, bn: None };
             let kernel = match &step.kernel {
                 Kernel::Conv2d { conv, algo, weight, .. } => {
-                    Kernel::Conv2d { conv: conv.clone(), algo: algo.clone(), weight: *weight, epilogue: identity }
+                    Kernel::Conv2d { conv: conv.clone(), algo: *algo, weight: *weight, epilogue: identity }
                 }
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {

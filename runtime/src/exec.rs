@@ -531,7 +531,7 @@ fn bind(plan: &Plan, symbols: &[usize], threads: usize) -> Result<Bound, RunErro
 /// holds at every batch size.
 fn conv_params(step: &Step, shapes: &[Vec<usize>], at: &str) -> Result<Option<(Conv2dShape, ConvAlgo)>, RunError> {
     let Kernel::Conv2d { conv, algo, .. } = &step.kernel else { return Ok(None) };
-    let algo = ConvAlgo::from_name(algo).ok_or_else(|| bad(at, format!("unknown conv algorithm `{algo}`")))?;
+    let algo = *algo;
     let x = &shapes[step.inputs[0]];
     let s = conv::layer_shape(conv, x[0], x[2], x[3]);
     if shapes[step.output] != [s.n, s.cout, s.oh, s.ow] {

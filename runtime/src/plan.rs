@@ -37,8 +37,6 @@ use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 pub use readi_plan::format::*;
 pub use readi_plan::{Dim, show_shape};
 
-use crate::kernels::conv::{self, ConvAlgo};
-
 const KEY_VERSION: &str = "readi.format_version";
 const KEY_MANIFEST: &str = "readi.manifest";
 const KEY_CHECKSUM: &str = "readi.checksum";
@@ -392,10 +390,8 @@ impl Plan {
     }
 
     /// Checks the manifest ([`readi_plan::validate`]: indices, schedule, every step's
-    /// shapes against its operator's rule, BatchNorm records, variant tables), what
-    /// depends on the kernels' layouts (a conv's algorithm fits the layer and its packed
-    /// weight has that algorithm's length), and, for a plan from the compiler, that each
-    /// tensor's data fills its shape.
+    /// shapes against its operator's rule, its tensors' sizes, BatchNorm records, variant
+    /// tables) and, for a plan from the compiler, that each tensor's data fills its shape.
     fn validate(&self, path: &str) -> Result<(), PlanError> {
         let m = &self.manifest;
         let bad = |detail: String| Err(PlanError::Manifest { path: path.into(), detail });
@@ -416,30 +412,6 @@ impl Plan {
             }
         }
         readi_plan::validate::manifest(m).map_err(|detail| PlanError::Manifest { path: path.into(), detail })?;
-        for (k, step) in m.steps.iter().enumerate() {
-            if let Kernel::Conv2d { conv, algo, weight, .. } = &step.kernel {
-                let at = format!("step {k} (`{}`)", step.path);
-                let x = &m.values[step.inputs[0]].shape;
-                let algo = ConvAlgo::from_name(algo).ok_or_else(|| PlanError::Manifest {
-                    path: path.into(),
-                    detail: format!("{at}: unknown conv algorithm `{algo}`"),
-                })?;
-                // Spatial sizes are known (the shape rule checked); the batch does not matter.
-                let (h, w) = (x[2].as_known().unwrap_or(0) as usize, x[3].as_known().unwrap_or(0) as usize);
-                let s = conv::layer_shape(conv, 1, h, w);
-                if !algo.supports(&s) {
-                    return bad(format!("{at}: conv algorithm `{}` cannot compute this layer", algo.name()));
-                }
-                if m.tensors[*weight].numel() != conv::packed_weight_len(&s, algo) {
-                    return bad(format!(
-                        "{at}: conv2d weight has {} values, `{}` needs {}",
-                        m.tensors[*weight].numel(),
-                        algo.name(),
-                        conv::packed_weight_len(&s, algo)
-                    ));
-                }
-            }
-        }
         Ok(())
     }
 }

@@ -277,7 +277,7 @@ fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                     window: Window2 { kernel: [3, 3], stride: [1, 1], padding: [1, 1], dilation: [1, 1] },
                     groups: 1,
                 },
-                algo: "im2col".into(),
+                algo: readi_plan::ops::ConvAlgo::Im2col,
                 weight: w,
                 epilogue: EpilogueSpec { scale: Some(scale1), shift: Some(shift1), relu: true, bn: None },
             },

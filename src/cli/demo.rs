@@ -9,8 +9,9 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Instant;
 
+use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions};
-use readi_compiler::passes::{self, Module, Options};
+use readi_compiler::passes::{self, Options};
 use readi_compiler::print;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;

@@ -20,8 +20,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use readi_compiler::Module;
 use readi_compiler::backend::{VariantSource, WeightSet, peft};
-use readi_compiler::passes::Module;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use serde::Deserialize;
 

@@ -78,7 +78,7 @@ pub fn with_module(
     path: &Path,
     model: &ModelArgs,
     stop_after: Option<Pass>,
-    f: impl FnOnce(&passes::Module),
+    f: impl FnOnce(&readi_compiler::Module),
 ) -> Result<(), ExitCode> {
     let (out, _) = s.compile(path, model, stop_after)?;
     if out.diagnostics.has_errors() {

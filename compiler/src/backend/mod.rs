@@ -1,32 +1,46 @@
-//! The back end: from a checked module and its weights to a runtime plan.
+//! The back end's data and its entry points: from a checked module, its weights and its
+//! variants to a runtime plan.
 //!
-//! | pass            | changes                                                    |
-//! |-----------------|------------------------------------------------------------|
-//! | `bind_weights`  | binds safetensors tensors to parameter slots by name       |
-//! | `bind_variants` | checks each variant's tensors against the adaptation rules |
-//! | `lower`         | schedule of kernel steps; folds BatchNorm, fuses ReLU/bias  |
-//! | `plan_buffers`  | assigns activation buffers by liveness                     |
-//!
-//! [`compile`] runs them and returns a [`Plan`] held in memory; `Plan::write` stores it.
-//! With variants, the base and every variant are lowered to the same schedule and each
-//! variant keeps the stored tensors that differ from the base (see [`variants`]).
+//! The back-end passes (`bind_weights` to `plan_buffers`) are in [`crate::passes`], run
+//! by the same driver as the front end; here are what they work on: weight sets read from
+//! safetensors ([`weights`]), PEFT adapters ([`peft`]), variant sources and what the
+//! variants own ([`variants`]), and the tensor table ([`tensors`]). [`compile`] and
+//! [`compile_variants`] run the back end and return a [`Plan`] held in memory;
+//! `Plan::write` stores it.
 
-pub mod buffers;
-pub mod lower;
 pub mod peft;
+pub mod tensors;
 pub mod variants;
 pub mod weights;
-
-use std::collections::HashSet;
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use readi_runtime::plan::Plan;
 
-use crate::ir::{self, Graph};
-use crate::passes::Module;
-use crate::passes::resolve_adapt::Injection;
-pub use variants::{LoraMode, VariantSource};
+use crate::ir::Graph;
+use crate::module::Module;
+use crate::passes::{self, BackendInputs};
+pub use variants::VariantSource;
 pub use weights::WeightSet;
+
+/// How LoRA runs in the plan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LoraMode {
+    /// Folded into the adapted layer's weight per variant: no extra work at run time, but
+    /// each variant stores the whole weight of every LoRA layer.
+    #[default]
+    Merge,
+    /// Kept as a side branch `scale * B(A(x))`: each variant stores only `A` and `B`.
+    Branch,
+}
+
+impl LoraMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            LoraMode::Merge => "merge",
+            LoraMode::Branch => "branch",
+        }
+    }
+}
 
 /// Options of the back end.
 #[derive(Clone, Debug, Default)]
@@ -55,8 +69,8 @@ pub fn compile(
     compile_variants(module, weights, weights_name, &[], opts)
 }
 
-/// Compiles a checked module with its base weights and the parameters of each variant.
-/// Returns the plan and any warnings.
+/// Compiles a checked module with its base weights and the parameters of each variant:
+/// runs the back-end passes and builds the plan. Returns the plan and any warnings.
 pub fn compile_variants(
     module: &Module,
     base: &WeightSet,
@@ -64,87 +78,12 @@ pub fn compile_variants(
     sources: &[VariantSource],
     opts: &CompileOptions,
 ) -> Result<(Plan, Diagnostics), Diagnostics> {
-    // Melded variants: from their parts' parameters, then like any other variant.
-    let melded = variants::melded_sources(module, sources, &opts.melds, base)?;
-    let all: Vec<VariantSource>;
-    let sources = if melded.is_empty() {
-        sources
-    } else {
-        all = sources.iter().cloned().chain(melded).collect();
-        &all[..]
-    };
-    let keys = variants::check_keys(module, sources)?;
-    let (mut bound, mut warnings) = weights::bind(&module.graph, base, base_name, opts.allow_unused)?;
-    let owned = variants::owned_params(module);
-    let zeros = variants::zero_added(&owned);
-    for (name, z) in &zeros {
-        bound.insert(name.clone(), z);
-    }
-    // Bind every variant first: whether an adapter can move behind its BatchNorm depends on
-    // the values of all of them.
-    let mut bound_variants = Vec::new();
-    let mut errors = Diagnostics::default();
-    for (source, key) in sources.iter().zip(keys) {
-        match variants::bind_variant(&module.graph, &owned, source, &key, opts.strict) {
-            Ok(bv) => bound_variants.push((key, bv)),
-            Err(d) => errors.extend(d),
-        }
-    }
-    if errors.has_errors() {
-        return Err(errors);
-    }
-    let vbounds: Vec<weights::Bound<'_>> = bound_variants
-        .iter_mut()
-        .map(|(_, bv)| {
-            warnings.extend(std::mem::take(&mut bv.warnings));
-            let mut vb = bound.clone();
-            vb.extend(bv.values.iter().map(|(n, v)| (n.clone(), *v)));
-            vb
-        })
-        .collect();
-    // Adapters and LoRA branches no variant uses leave the schedule (without variants, all).
-    let all_bounds = std::iter::once(&bound).chain(&vbounds);
-    let dropped = variants::inactive(module, all_bounds.clone());
-    let commuted: Vec<Injection> =
-        variants::commutable(module, opts.lora, all_bounds).into_iter().filter(|inj| !dropped.contains(inj)).collect();
-    let graph = variants::lowering_graph(module, opts.lora, &dropped, &commuted);
-    let base_commuted = variants::commute_weights(module, &commuted, &bound);
-    let mut base_bound = bound.clone();
-    for (name, w) in &base_commuted {
-        base_bound.insert(name.clone(), w);
-    }
-    let lower::Lowered { mut manifest, tensors: base_tensors, .. } = lower::lower(&graph, &base_bound)?;
-    let mut store = variants::TensorStore::new(std::mem::take(&mut manifest.tensors), base_tensors);
-    // Tensors derived from these parameters count as added in the budget.
-    let mut added: HashSet<String> = owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.clone()).collect();
-    if opts.lora == LoraMode::Merge {
-        for inj in module.adapt.iter().flat_map(|a| &a.injections) {
-            if let Injection::Lora { base, .. } = inj {
-                added.insert(ir::join_path(&module.graph.node(*base).path, "weight"));
-            }
-        }
-    }
-    let mut tables = Vec::new();
-    for ((key, bv), mut vbound) in bound_variants.into_iter().zip(vbounds) {
-        let merged = if opts.lora == LoraMode::Merge { variants::merge_lora(module, &vbound) } else { Vec::new() };
-        let moved = variants::commute_weights(module, &commuted, &vbound);
-        for (name, w) in merged.iter().chain(&moved) {
-            vbound.insert(name.clone(), w);
-        }
-        // Only tensors derived from what the variant changes need computing.
-        let changed: HashSet<String> =
-            bv.values.iter().map(|(n, _)| n).chain(merged.iter().chain(&moved).map(|(n, _)| n)).cloned().collect();
-        let lowered = lower::lower_only(&graph, &vbound, &changed)?;
-        let replaces = store.diff(&key, lowered, &added).map_err(ice)?;
-        tables.push(variants::table(key, replaces, &owned, bv.fallback));
-    }
-    if errors.has_errors() {
-        return Err(errors);
-    }
-    manifest.tensors = store.specs;
-    manifest.variants = tables;
-    manifest.conditions = module.variants.clone();
-    let plan = Plan::new(manifest, store.data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
+    let mut m = module.clone();
+    let inputs = BackendInputs { base, base_name, variants: sources, opts };
+    let warnings = passes::run_backend(&mut m, &inputs, None)?;
+    let lowered = m.lowered.ok_or_else(|| ice("the back end produced no plan".into()))?;
+    let data: Vec<Vec<f32>> = lowered.data.iter().map(|d| d.to_vec()).collect();
+    let plan = Plan::new(lowered.manifest, data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }
 

@@ -15,7 +15,7 @@ use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use serde_json::Value;
 
 use super::weights::WeightSet;
-use crate::passes::Module;
+use crate::module::Module;
 use crate::passes::resolve_adapt::{Injection, RuleKind};
 
 /// The file names inside an adapter directory.

@@ -452,7 +452,7 @@ impl<'a> Elab<'a> {
                 .with_note("name it with a statement, `name = ...`, so its parameters get a state_dict key"),
             );
         }
-        let id = self.graph.add_node(Node { op, path, scope, params, outputs, span }, &inputs);
+        let id = self.graph.add_node(Node::new(op, path, scope, params, outputs, span), &inputs);
         Value::Tensor { value: ValueRef { node: id, port: 0 }, scope: None }
     }
 }

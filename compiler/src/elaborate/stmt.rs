@@ -141,10 +141,7 @@ impl<'a> Elab<'a> {
             modality: decl.modality.as_ref().map(|m| m.name.clone()),
             optional: decl.optional,
         });
-        let id = self.graph.add_node(
-            Node { op, path: name.clone(), scope: frame.scope, params: vec![], outputs: vec![ty], span },
-            &[],
-        );
+        let id = self.graph.add_node(Node::new(op, name.clone(), frame.scope, vec![], vec![ty], span), &[]);
         frame.vars.insert(name.clone(), Value::Tensor { value: ValueRef { node: id, port: 0 }, scope: None });
     }
 

@@ -82,12 +82,33 @@ pub struct Node {
     pub params: Vec<ParamSlot>,
     pub outputs: Vec<TensorType>,
     pub span: Span,
+    /// The paths of the nodes a back-end fusion merged into this one (a folded BatchNorm,
+    /// an absorbed ReLU), for listings: `conv1 (+bn1, relu#0)`.
+    pub fused: Vec<String>,
 }
 
 impl Node {
-    /// The full name of a parameter slot, `<path>.<slot>`.
+    /// A node with no fused nodes.
+    pub fn new(
+        op: Op,
+        path: String,
+        scope: ScopeId,
+        params: Vec<ParamSlot>,
+        outputs: Vec<TensorType>,
+        span: Span,
+    ) -> Node {
+        Node { op, path, scope, params, outputs, span, fused: Vec::new() }
+    }
+
+    /// The full name of the tensor a parameter slot reads: `<path>.<slot>`, or the tensor
+    /// a back-end pass bound it to.
     pub fn param_name(&self, slot: &ParamSlot) -> String {
-        join_path(&self.path, slot.name)
+        slot.tensor.clone().unwrap_or_else(|| join_path(&self.path, slot.name))
+    }
+
+    /// The path with the fused nodes, as step listings show it: `conv1 (+bn1, relu#0)`.
+    pub fn display_path(&self) -> String {
+        if self.fused.is_empty() { self.path.clone() } else { format!("{} (+{})", self.path, self.fused.join(", ")) }
     }
 }
 
@@ -281,6 +302,12 @@ impl Graph {
             .edges_directed(id.0, Direction::Incoming)
             .map(|e| (e.weight().dst_port, ValueRef { node: NodeId(e.source()), port: e.weight().src_port }))
             .collect()
+    }
+
+    /// How many times the outputs of `id` are read: one per edge, one per graph output.
+    pub fn uses(&self, id: NodeId) -> usize {
+        let edges = self.graph.edges_directed(id.0, Direction::Outgoing).count();
+        edges + self.outputs.iter().filter(|o| o.value.node == id).count()
     }
 
     /// The nodes that consume any output of `id`.

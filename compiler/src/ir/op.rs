@@ -9,7 +9,7 @@
 use readi_plan::ops::{self, BatchNorm, LayerNorm, Operator, Pure, ShapeError, ShapeResult};
 
 use super::{DType, TensorType};
-use crate::ops::{ConvOp, LinearOp, ParameterOp, batchnorm_slots, layernorm_slots};
+use crate::ops::{AffineOp, ConvOp, LinearOp, ParameterOp, batchnorm_slots, layernorm_slots};
 
 /// An operation of the graph. The tensor inputs are the node's incoming edges; everything
 /// else is an attribute here.
@@ -27,6 +27,8 @@ pub enum Op {
     LayerNorm(LayerNorm),
     /// `y = x W^T + b` over the last axis.
     Linear(LinearOp),
+    /// A per-channel affine: a BatchNorm folded by the back end that no conv absorbed.
+    ChannelAffine(AffineOp),
     /// An operator without parameters: element-wise ops, layout, pooling, reductions.
     Pure(Pure),
 }
@@ -73,24 +75,32 @@ pub enum SlotKind {
 }
 
 /// A named tensor a node needs besides its inputs: a weight, a bias, a running statistic.
-/// Its full name is `<node path>.<name>`, the PyTorch `state_dict` key. Values are bound
-/// later (from safetensors); here the slot only fixes name, shape and type.
+/// Its full name is `<node path>.<name>`, the PyTorch `state_dict` key, unless a back-end
+/// pass bound the slot to a tensor it derived (`tensor`: a folded scale, a packed
+/// weight). Values are bound from safetensors by `bind_weights`; here the slot fixes
+/// name, shape and type.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ParamSlot {
     pub name: &'static str,
     pub shape: Vec<i64>,
     pub dtype: DType,
     pub kind: SlotKind,
+    /// The tensor the slot reads when it is not `<path>.<name>`.
+    pub tensor: Option<String>,
 }
 
 impl ParamSlot {
     /// A trainable f32 parameter.
     pub fn param(name: &'static str, shape: Vec<i64>) -> ParamSlot {
-        ParamSlot { name, shape, dtype: DType::F32, kind: SlotKind::Param }
+        ParamSlot { name, shape, dtype: DType::F32, kind: SlotKind::Param, tensor: None }
     }
     /// A buffer (running statistics, counters).
     pub fn buffer(name: &'static str, shape: Vec<i64>, dtype: DType) -> ParamSlot {
-        ParamSlot { name, shape, dtype, kind: SlotKind::Buffer }
+        ParamSlot { name, shape, dtype, kind: SlotKind::Buffer, tensor: None }
+    }
+    /// The same slot reading `tensor`.
+    pub fn bound(self, tensor: String) -> ParamSlot {
+        ParamSlot { tensor: Some(tensor), ..self }
     }
     /// Number of elements.
     pub fn numel(&self) -> u64 {
@@ -108,6 +118,7 @@ impl Op {
             Op::BatchNorm(o) => o,
             Op::LayerNorm(o) => o,
             Op::Linear(o) => o,
+            Op::ChannelAffine(o) => o,
             Op::Pure(p) => p.op(),
         }
     }
@@ -141,6 +152,7 @@ impl Op {
             Op::BatchNorm(bn) => batchnorm_slots(bn),
             Op::LayerNorm(ln) => layernorm_slots(ln),
             Op::Linear(l) => l.param_slots(),
+            Op::ChannelAffine(a) => a.param_slots(),
             Op::Input(_) | Op::Pure(_) => Vec::new(),
         }
     }

@@ -1,24 +1,42 @@
 //! `conv2d(x, out, kernel, stride=1, padding=0, dilation=1, groups=1, bias=true)`.
 
-use readi_plan::ops::{Conv2d, Operator, ShapeResult, TensorType, Window2};
+use readi_plan::ops::{Conv2d, ConvAlgo, Operator, ShapeResult, TensorType, Window2};
 
-use super::{Args, Builtin, P, R, boolean, int, req};
+use super::{Args, Builtin, Epilogue, P, R, boolean, int, req};
 use crate::ir::{Op, ParamSlot, ValueRef};
 
-/// A conv layer in the IR: the operator and whether it has a bias.
-#[derive(Clone, Debug, PartialEq, Eq)]
+/// A conv layer in the IR: the operator, whether it has a bias, and what the back end
+/// decided for it.
+#[derive(Clone, Debug, PartialEq)]
 pub struct ConvOp {
     pub conv: Conv2d,
     pub bias: bool,
+    /// Back end: what runs after the accumulation (`fold_batchnorm`, `fuse_epilogues`).
+    pub epilogue: Epilogue,
+    /// Back end: the algorithm that computes the layer (`choose_conv_algo`).
+    pub algo: Option<ConvAlgo>,
+    /// Back end: the weight slot holds the weight packed for `algo` (`pack_weights`).
+    pub packed: bool,
 }
 
 impl ConvOp {
-    /// `weight [out, in/groups, kh, kw]` and, with a bias, `bias [out]`.
+    /// A conv as the language writes it.
+    pub fn new(conv: Conv2d, bias: bool) -> ConvOp {
+        ConvOp { conv, bias, epilogue: Epilogue::default(), algo: None, packed: false }
+    }
+
+    /// `weight [out, in/groups, kh, kw]` (packed: `[len]` of the algorithm's layout),
+    /// with a bias `bias [out]`, then the epilogue's slots.
     pub fn param_slots(&self) -> Vec<ParamSlot> {
-        let mut v = vec![ParamSlot::param("weight", self.conv.weight_shape().to_vec())];
+        let weight = match self.algo.filter(|_| self.packed) {
+            Some(algo) => vec![algo.packed_len(&self.conv.shape(1, 0, 0)) as i64],
+            None => self.conv.weight_shape().to_vec(),
+        };
+        let mut v = vec![ParamSlot::param("weight", weight)];
         if self.bias {
             v.push(ParamSlot::param("bias", vec![self.conv.out_channels]));
         }
+        v.extend(self.epilogue.slots(self.conv.out_channels));
         v
     }
 }
@@ -33,6 +51,12 @@ impl Operator for ConvOp {
     fn attrs(&self) -> Vec<(&'static str, String)> {
         let mut v = self.conv.attrs();
         v.push(("bias", self.bias.to_string()));
+        if let Some(algo) = self.algo {
+            v.push(("algo", algo.name().to_string()));
+        }
+        if let Some(e) = self.epilogue.attr() {
+            v.push(("epilogue", e));
+        }
         v
     }
 }
@@ -78,5 +102,5 @@ fn conv2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
             ),
         ));
     }
-    Ok((Op::Conv2d(ConvOp { conv, bias: args.boolean("bias")? }), vec![args.tensor("x")?]))
+    Ok((Op::Conv2d(ConvOp::new(conv, args.boolean("bias")?)), vec![args.tensor("x")?]))
 }

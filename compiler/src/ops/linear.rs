@@ -2,24 +2,39 @@
 
 use readi_plan::ops::{Linear, MatMul, Operator, Pure, ShapeResult, TensorType};
 
-use super::{Args, Builtin, P, R, boolean, req};
+use super::{Args, Builtin, Epilogue, P, R, boolean, req};
 use crate::ir::{Op, ParamSlot, ValueRef};
 
-/// A linear layer in the IR: the operator and whether it has a bias.
-#[derive(Clone, Debug, PartialEq, Eq)]
+/// A linear layer in the IR: the operator, whether it has a bias, and what the back end
+/// decided for it.
+#[derive(Clone, Debug, PartialEq)]
 pub struct LinearOp {
     pub linear: Linear,
     pub bias: bool,
+    /// Back end: what runs after the accumulation (`fuse_epilogues`).
+    pub epilogue: Epilogue,
+    /// Back end: the weight slot holds the weight transposed, `[in, out]`, the layout the
+    /// GEMM reads fastest (`pack_weights`).
+    pub packed: bool,
 }
 
 impl LinearOp {
-    /// `weight [out, in]` and, with a bias, `bias [out]`.
+    /// A linear layer as the language writes it.
+    pub fn new(linear: Linear, bias: bool) -> LinearOp {
+        LinearOp { linear, bias, epilogue: Epilogue::default(), packed: false }
+    }
+
+    /// `weight [out, in]` (packed: `[in, out]`), with a bias `bias [out]`, then the
+    /// epilogue's slots.
     pub fn param_slots(&self) -> Vec<ParamSlot> {
         let l = &self.linear;
-        let mut v = vec![ParamSlot::param("weight", vec![l.out_features, l.in_features])];
+        let weight =
+            if self.packed { vec![l.in_features, l.out_features] } else { vec![l.out_features, l.in_features] };
+        let mut v = vec![ParamSlot::param("weight", weight)];
         if self.bias {
             v.push(ParamSlot::param("bias", vec![l.out_features]));
         }
+        v.extend(self.epilogue.slots(l.out_features));
         v
     }
 }
@@ -34,6 +49,9 @@ impl Operator for LinearOp {
     fn attrs(&self) -> Vec<(&'static str, String)> {
         let mut v = self.linear.attrs();
         v.push(("bias", self.bias.to_string()));
+        if let Some(e) = self.epilogue.attr() {
+            v.push(("epilogue", e));
+        }
         v
     }
 }
@@ -53,7 +71,7 @@ fn linear(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         .and_then(|l| t.known_dim(l))
         .ok_or_else(|| args.bad_value("x", format!("linear needs a known last axis, got {t}")))?;
     let linear = Linear { in_features, out_features: args.int_at_least("out", 1)? };
-    Ok((Op::Linear(LinearOp { linear, bias: args.boolean("bias")? }), vec![args.tensor("x")?]))
+    Ok((Op::Linear(LinearOp::new(linear, args.boolean("bias")?)), vec![args.tensor("x")?]))
 }
 
 fn matmul(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {

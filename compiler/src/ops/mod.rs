@@ -1,6 +1,10 @@
 //! The compiler's side of each operator: its builtins in the language and, for operators
 //! with weights, the IR wrapper that adds the parameter slots.
 //!
+//! The back end's forms of the weighted operators live here too: a conv or linear with
+//! its fused [`Epilogue`], algorithm and packed weight, and the channel affine a
+//! BatchNorm folds to ([`AffineOp`]).
+//!
 //! An operator's attributes and shape rule are defined once, in `readi_plan::ops` (shared
 //! with the runtime, which checks plans with the same rule). Here, one file per family
 //! says how the language writes the operator (a [`Builtin`]: its name, its parameters with
@@ -25,6 +29,7 @@
 mod args;
 mod conv;
 mod elementwise;
+mod epilogue;
 mod layout;
 mod linear;
 mod norm;
@@ -37,8 +42,9 @@ use std::sync::LazyLock;
 
 pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, req};
 pub use conv::ConvOp;
+pub use epilogue::{BnFold, Epilogue};
 pub use linear::LinearOp;
-pub use norm::{batchnorm_slots, layernorm_slots};
+pub use norm::{AffineOp, batchnorm_slots, layernorm_slots};
 pub use parameter::ParameterOp;
 
 use crate::ir::{Op, ValueRef};

@@ -1,9 +1,9 @@
 //! `batchnorm(x, eps=1e-5, momentum=0.1)` and `layernorm(x, eps=1e-5, affine=true)`.
 
 use readi_plan::DType;
-use readi_plan::ops::{BatchNorm, LayerNorm};
+use readi_plan::ops::{BatchNorm, ChannelAffine, LayerNorm, Operator, ShapeResult, TensorType};
 
-use super::{Args, Builtin, P, R, boolean, flt, positive_float, req};
+use super::{Args, Builtin, Epilogue, P, R, boolean, flt, positive_float, req};
 use crate::ir::{Op, ParamSlot, ValueRef};
 
 /// A BatchNorm's `state_dict`: `weight`, `bias`, `running_mean`, `running_var` (all
@@ -25,6 +25,36 @@ pub fn layernorm_slots(ln: &LayerNorm) -> Vec<ParamSlot> {
         return Vec::new();
     }
     vec![ParamSlot::param("weight", vec![ln.features]), ParamSlot::param("bias", vec![ln.features])]
+}
+
+/// A BatchNorm the back end could not fold into a conv, as a per-channel affine with its
+/// epilogue (scale, shift, maybe a ReLU, and the BatchNorm's record).
+#[derive(Clone, Debug, PartialEq)]
+pub struct AffineOp {
+    pub affine: ChannelAffine,
+    pub epilogue: Epilogue,
+}
+
+impl AffineOp {
+    pub fn param_slots(&self) -> Vec<ParamSlot> {
+        self.epilogue.slots(self.affine.channels)
+    }
+}
+
+impl Operator for AffineOp {
+    fn kind_name(&self) -> &'static str {
+        self.affine.kind_name()
+    }
+    fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        self.affine.infer(inputs)
+    }
+    fn attrs(&self) -> Vec<(&'static str, String)> {
+        let mut v = self.affine.attrs();
+        if let Some(e) = self.epilogue.attr() {
+            v.push(("epilogue", e));
+        }
+        v
+    }
 }
 
 const BATCHNORM: &[P] = &[req("x"), flt("eps", 1e-5), flt("momentum", 0.1)];

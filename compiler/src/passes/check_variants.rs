@@ -23,15 +23,14 @@ use crate::ir::{Graph, Op};
 /// Missing-modality policies.
 pub const POLICIES: &[&str] = &["zero_fill", "variant"];
 
-/// A level as it appears in a key: `0.03`, `4` (the runtime's formatting, so that keys
-/// the compiler writes are the keys the runtime selects).
-pub use readi_runtime::conditions::fmt_level;
-/// The checked variants section is the runtime's [`Conditions`]: what the compiler checks
-/// is what the plan carries and the runtime selects by.
-pub use readi_runtime::conditions::{
+/// The checked variants section is the plan's [`Conditions`](readi_plan::conditions::Conditions):
+/// what the compiler checks is what the plan carries and the runtime selects by.
+pub use readi_plan::conditions::{
     ArmSpec as Arm, AxisSpec as Axis, Conditions as VariantSpec, KeySource, MeldBy, MeldSpec as Meld, MissingPolicy,
     SelectorSpec as KeySelector, Statistic,
 };
+/// A level as it appears in a key: `0.03`, `4`.
+pub use readi_plan::key::fmt_level;
 
 struct InputInfo {
     name: String,

@@ -47,5 +47,5 @@ pub fn run(graph: &Graph, diags: &mut Diagnostics) -> Option<Patch> {
         }
         remove.push(id);
     }
-    (!remove.is_empty()).then_some(Patch { rule: "dead_code.unreachable", replace_uses: vec![], remove })
+    (!remove.is_empty()).then_some(Patch { remove, ..Patch::new("dead_code.unreachable") })
 }

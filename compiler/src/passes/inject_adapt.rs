@@ -77,7 +77,7 @@ fn add(
         p.kind = SlotKind::Added;
     }
     let scope = graph.node(like).scope;
-    Ok(graph.add_node(Node { op, path, scope, params, outputs, span }, inputs))
+    Ok(graph.add_node(Node::new(op, path, scope, params, outputs, span), inputs))
 }
 
 fn out(node: NodeId) -> ValueRef {
@@ -89,15 +89,14 @@ fn lora(graph: &mut Graph, base: NodeId, rank: i64, scale: f64, rule: usize, spa
     let x = graph.inputs(base).first().copied().ok_or_else(|| format!("`{}` has no input", node.path))?;
     let (op_a, op_b) = match &node.op {
         Op::Linear(l) => {
-            let linear = |in_features, out_features| {
-                Op::Linear(LinearOp { linear: Linear { in_features, out_features }, bias: false })
-            };
+            let linear =
+                |in_features, out_features| Op::Linear(LinearOp::new(Linear { in_features, out_features }, false));
             (linear(l.linear.in_features, rank), linear(rank, l.linear.out_features))
         }
         Op::Conv2d(c) => {
             let a = Conv2d { out_channels: rank, groups: 1, ..c.conv.clone() };
             let b = Conv2d { in_channels: rank, out_channels: c.conv.out_channels, window: Window2::ONE, groups: 1 };
-            (Op::Conv2d(ConvOp { conv: a, bias: false }), Op::Conv2d(ConvOp { conv: b, bias: false }))
+            (Op::Conv2d(ConvOp::new(a, false)), Op::Conv2d(ConvOp::new(b, false)))
         }
         op => return Err(format!("LoRA on a `{}` layer `{}`", op.kind_name(), node.path)),
     };
@@ -128,7 +127,7 @@ fn adapter(
         .ok_or_else(|| format!("the input of `{path}` has no known channel count"))?;
     let conv = |cin: i64, cout: i64| {
         let conv = Conv2d { in_channels: cin, out_channels: cout, window: Window2::ONE, groups: 1 };
-        Op::Conv2d(ConvOp { conv, bias: true })
+        Op::Conv2d(ConvOp::new(conv, true))
     };
     let mid = c / squeeze;
     let down = add(graph, target, format!("{path}.adapter.down"), conv(c, mid), &[x], span)?;

@@ -1,31 +1,63 @@
-//! The front-end pipeline, in one place.
+//! The pipeline, in one place: every pass from source text to plan, run by one driver.
 //!
-//! | pass             | changes                                      | assumes                  |
-//! |------------------|----------------------------------------------|--------------------------|
-//! | `parse`          | source text to AST                           | —                        |
-//! | `elaborate`      | AST to a fully typed graph                   | no syntax errors         |
-//! | `dead_code`      | removes nodes no output depends on           | a verified graph         |
-//! | `resolve_adapt`  | binds adaptation rules to layers (side table)| dead code removed        |
-//! | `inject_adapt`   | adds LoRA branches and adapters (zero in the base) | rules resolved     |
-//! | `check_variants` | checks the variants section (side table)     | a verified graph         |
+//! | pass               | changes                                                        | assumes                  |
+//! |--------------------|----------------------------------------------------------------|--------------------------|
+//! | `parse`            | source text to AST                                             | —                        |
+//! | `elaborate`        | AST to a fully typed graph                                     | no syntax errors         |
+//! | `dead_code`        | removes nodes no output depends on                             | a verified graph         |
+//! | `resolve_adapt`    | binds adaptation rules to layers (side table)                  | dead code removed        |
+//! | `inject_adapt`     | adds LoRA branches and adapters (zero in the base)             | rules resolved           |
+//! | `check_variants`   | checks the variants section (side table)                       | a verified graph         |
+//! | `bind_weights`     | the base weights into the tensor table                         | the front end ran        |
+//! | `bind_variants`    | each variant's tensors into the table                          | base weights bound       |
+//! | `meld`             | melded variants from their parts                               | variants bound           |
+//! | `drop_inactive`    | removes LoRA branches and adapters no variant uses             | variants bound           |
+//! | `commute_adapters` | moves adapters (and LoRA branches) behind their BatchNorm      | inactive ones dropped    |
+//! | `merge_lora`       | merges LoRA into the layer's weight, per variant               | `--lora merge`           |
+//! | `fold_batchnorm`   | BatchNorm into the conv before it, or a channel affine         | adaptations placed       |
+//! | `fuse_epilogues`   | biases into epilogue shifts, ReLUs into their producer         | BatchNorms folded        |
+//! | `choose_conv_algo` | an algorithm per conv                                          | epilogues fused          |
+//! | `pack_weights`     | conv weights packed for their algorithm, linear transposed     | algorithms chosen        |
+//! | `lower`            | one kernel step per node: the schedule and the variant tables  | weights packed           |
+//! | `plan_buffers`     | activation buffers shared by values whose lifetimes do not overlap | lowered              |
 //!
-//! Passes that rewrite the graph return [`Patch`]es; [`apply`] applies them, and the
-//! driver repeats a rewriting pass until it returns none (a fixed point). After every pass
-//! the driver runs the verifier ([`crate::verify`]); a verifier failure is a compiler bug
-//! and is reported as an internal error. The CLI can stop after any pass
-//! (`readi ir --stop-after elaborate`).
+//! Each pass is a file here, opening with what it changes, what it assumes and when it
+//! does nothing. Passes do not mutate the module: a rewriting pass returns [`Patch`]es,
+//! named by the rule that made them, which [`apply`] applies; the driver asks the pass
+//! again until it finds nothing (a fixed point). A pass that computes a side table (the
+//! adaptation plan, the tensor table, the lowered plan) returns it and the driver stores
+//! it. After every pass the driver runs the verifier ([`crate::verify`]); a failure is a
+//! compiler bug, reported as an internal error at the node it concerns and naming the
+//! pass. The CLI can stop after any pass (`readi ir --stop-after fold_batchnorm`).
 
+pub mod bind_variants;
+pub mod bind_weights;
 pub mod check_variants;
+pub mod choose_conv_algo;
+pub mod commute_adapters;
 pub mod dead_code;
+pub mod drop_inactive;
+pub mod fold_batchnorm;
+pub mod fuse_epilogues;
 pub mod inject_adapt;
+pub mod lower;
+pub mod meld;
+pub mod merge_lora;
+pub mod pack_weights;
+pub mod plan_buffers;
 pub mod resolve_adapt;
+
+use std::collections::HashSet;
 
 use readi_grammar::ast::SourceFile;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, FileId, Span};
 
+use crate::backend::tensors::Tensor;
+use crate::backend::{CompileOptions, VariantSource, WeightSet};
 use crate::elaborate::{ElabOptions, elaborate};
-use crate::ir::{Graph, NodeId, ValueRef};
-use crate::verify::verify;
+use crate::ir::{NodeId, Op, ParamSlot, ValueRef};
+use crate::module::{Lowered, Module};
+use crate::verify::{VerifyError, verify};
 pub use check_variants::VariantSpec;
 pub use resolve_adapt::AdaptPlan;
 
@@ -38,6 +70,18 @@ pub enum Pass {
     ResolveAdapt,
     InjectAdapt,
     CheckVariants,
+    BindWeights,
+    BindVariants,
+    Meld,
+    DropInactive,
+    CommuteAdapters,
+    MergeLora,
+    FoldBatchnorm,
+    FuseEpilogues,
+    ChooseConvAlgo,
+    PackWeights,
+    Lower,
+    PlanBuffers,
 }
 
 /// The passes in order, with their names and one-line descriptions.
@@ -48,7 +92,26 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::ResolveAdapt, "resolve_adapt", "bind adaptation rules to layers; check conflicts"),
     (Pass::InjectAdapt, "inject_adapt", "add LoRA branches and adapters to the graph (zero in the base model)"),
     (Pass::CheckVariants, "check_variants", "check axes, selectors, missing-modality and meld rules"),
+    (Pass::BindWeights, "bind_weights", "bind the base weights (safetensors, PyTorch names) to the parameter slots"),
+    (Pass::BindVariants, "bind_variants", "bind each variant's tensors, checked against the adaptation rules"),
+    (Pass::Meld, "meld", "build melded variants from their parts' parameters"),
+    (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
+    (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
+    (Pass::MergeLora, "merge_lora", "merge LoRA into the adapted layer's weight, per variant (--lora merge)"),
+    (Pass::FoldBatchnorm, "fold_batchnorm", "fold BatchNorm into the conv before it, or make it a channel affine"),
+    (
+        Pass::FuseEpilogues,
+        "fuse_epilogues",
+        "biases into epilogue shifts; ReLUs into the conv, linear or affine before",
+    ),
+    (Pass::ChooseConvAlgo, "choose_conv_algo", "choose each conv's algorithm (im2col, Winograd, depthwise, 1x1 GEMM)"),
+    (Pass::PackWeights, "pack_weights", "pack conv weights for their algorithm; store linear weights transposed"),
+    (Pass::Lower, "lower", "one kernel step per node: the schedule, stored tensors and variant tables"),
+    (Pass::PlanBuffers, "plan_buffers", "share activation buffers between values whose lifetimes do not overlap"),
 ];
+
+/// The first pass of the back end (it needs weights).
+pub const FIRST_BACKEND_PASS: Pass = Pass::BindWeights;
 
 impl Pass {
     pub fn name(self) -> &'static str {
@@ -57,44 +120,122 @@ impl Pass {
     pub fn from_name(name: &str) -> Option<Pass> {
         PIPELINE.iter().find(|p| p.1 == name).map(|p| p.0)
     }
-}
-
-/// A graph and what the passes have learned about it.
-#[derive(Clone, Debug)]
-pub struct Module {
-    pub graph: Graph,
-    /// Set by `resolve_adapt` when the file has an `adapt` section.
-    pub adapt: Option<AdaptPlan>,
-    /// Set by `check_variants` when the file has a `variants` section.
-    pub variants: Option<VariantSpec>,
+    /// Whether the pass belongs to the back end (needs weights).
+    pub fn is_backend(self) -> bool {
+        self >= FIRST_BACKEND_PASS
+    }
 }
 
 /// A graph rewrite proposed by a pass, applied by [`apply`]. The label names the rule
-/// that produced it, for `--explain`-style output and errors.
+/// that produced it, for messages and listings. Its parts apply in field order.
 #[derive(Clone, Debug, Default)]
 pub struct Patch {
     pub rule: &'static str,
+    /// Tensors added to the table or replacing one of the same name.
+    pub tensors: Vec<(String, Tensor)>,
+    /// Nodes whose op and parameter slots are replaced (id, inputs and path are kept).
+    pub rewrite: Vec<(NodeId, Op, Vec<ParamSlot>)>,
     /// Uses of the first value are redirected to the second.
     pub replace_uses: Vec<(ValueRef, ValueRef)>,
-    /// Nodes to delete (after redirection).
+    /// Input port of a node set to a value.
+    pub set_inputs: Vec<(NodeId, u16, ValueRef)>,
+    /// Paths of nodes merged into a node, for listings (`conv1 (+bn1)`).
+    pub fuse: Vec<(NodeId, String)>,
+    /// Nodes to delete (after everything else). The adaptation plan forgets them.
     pub remove: Vec<NodeId>,
 }
 
-/// Applies a patch to a graph.
-pub fn apply(graph: &mut Graph, patch: &Patch) {
+impl Patch {
+    /// A patch of the rule `rule`.
+    pub fn new(rule: &'static str) -> Patch {
+        Patch { rule, ..Patch::default() }
+    }
+
+    /// Every node the patch changes or whose uses it changes.
+    fn touched(&self) -> HashSet<NodeId> {
+        let mut t: HashSet<NodeId> = HashSet::new();
+        t.extend(self.rewrite.iter().map(|r| r.0));
+        t.extend(self.replace_uses.iter().flat_map(|(a, b)| [a.node, b.node]));
+        t.extend(self.set_inputs.iter().flat_map(|(n, _, v)| [*n, v.node]));
+        t.extend(self.fuse.iter().map(|f| f.0));
+        t.extend(self.remove.iter().copied());
+        t
+    }
+}
+
+/// The slots `op` derives, bound to their tensors: a slot named in `bind` reads the tensor
+/// given there; a slot of the same name in `old` keeps the tensor and kind it had; any
+/// other reads `<path>.<name>`. How a rewrite gives a node its new slots.
+pub(crate) fn rebind(op: &Op, old: &[ParamSlot], bind: &[(&str, String)]) -> Vec<ParamSlot> {
+    op.param_slots()
+        .into_iter()
+        .map(|slot| {
+            let prev = old.iter().find(|o| o.name == slot.name);
+            let kind = prev.map_or(slot.kind, |o| o.kind);
+            let tensor = match bind.iter().find(|(n, _)| *n == slot.name) {
+                Some((_, t)) => Some(t.clone()),
+                None => prev.and_then(|o| o.tensor.clone()),
+            };
+            ParamSlot { kind, tensor, ..slot }
+        })
+        .collect()
+}
+
+/// Applies a patch to a module.
+pub fn apply(module: &mut Module, patch: Patch) {
+    if let Some(table) = module.tensors.as_mut() {
+        for (name, t) in patch.tensors {
+            table.insert(name, t);
+        }
+    }
+    let g = &mut module.graph;
+    for (id, op, params) in patch.rewrite {
+        let node = g.node_mut(id);
+        node.op = op;
+        node.params = params;
+    }
     for (old, new) in &patch.replace_uses {
-        graph.replace_uses(*old, *new);
+        g.replace_uses(*old, *new);
+    }
+    for &(node, port, value) in &patch.set_inputs {
+        g.set_input(node, port, value);
+    }
+    for (id, path) in patch.fuse {
+        g.node_mut(id).fused.push(path);
     }
     for &n in &patch.remove {
-        graph.remove_node(n);
+        g.remove_node(n);
     }
+    if let Some(plan) = module.adapt.as_mut()
+        && !patch.remove.is_empty()
+    {
+        plan.forget(&patch.remove);
+    }
+}
+
+/// Applies the patches of one round; a patch touching a node an earlier one of the round
+/// touched is left for the next round (the pass finds it again if it still applies).
+/// Returns how many were applied.
+fn apply_round(module: &mut Module, patches: Vec<Patch>) -> usize {
+    let mut touched: HashSet<NodeId> = HashSet::new();
+    let mut applied = 0;
+    for p in patches {
+        let t = p.touched();
+        if t.iter().any(|n| touched.contains(n)) {
+            continue;
+        }
+        touched.extend(t);
+        apply(module, p);
+        applied += 1;
+    }
+    applied
 }
 
 /// Options of a pipeline run.
 #[derive(Clone, Debug, Default)]
 pub struct Options {
     pub elab: ElabOptions,
-    /// Stop after this pass (the whole pipeline when `None`).
+    /// Stop after this pass (the whole front end when `None`).
     pub stop_after: Option<Pass>,
 }
 
@@ -108,7 +249,7 @@ impl Options {
     }
 }
 
-/// The outcome of a pipeline run: the module as far as it got, and every diagnostic.
+/// The outcome of a front-end run: the module as far as it got, and every diagnostic.
 #[derive(Debug)]
 pub struct Outcome {
     pub ast: SourceFile,
@@ -118,7 +259,8 @@ pub struct Outcome {
     pub reached: Option<Pass>,
 }
 
-/// Runs the front-end pipeline on one source file.
+/// Runs the front end (`parse` to `check_variants`, or up to `opts.stop_after`) on one
+/// source file.
 pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
     let parsed = readi_grammar::parse(file, src);
     let mut diags = parsed.diagnostics;
@@ -140,10 +282,10 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
         out.diagnostics = diags;
         return out;
     };
-    let mut module = Module { graph, adapt: None, variants: None };
+    let mut module = Module::new(graph);
     let errors = diags.has_errors();
     if !errors {
-        check(&module, Pass::Elaborate, file, &mut diags);
+        check(&module, Pass::Elaborate, &mut diags);
     }
     if errors || diags.has_errors() {
         // A graph with errors is kept for printing but goes no further.
@@ -153,7 +295,7 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
     }
     out.reached = Some(Pass::Elaborate);
 
-    for &(pass, _, _) in &PIPELINE[2..] {
+    for &(pass, _, _) in PIPELINE.iter().filter(|p| p.0 > Pass::Elaborate && !p.0.is_backend()) {
         if opts.stop_after.is_some_and(|s| s < pass) {
             break;
         }
@@ -169,7 +311,7 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                     }
                     round += 1;
                     match patch {
-                        Some(p) => apply(&mut module.graph, &p),
+                        Some(p) => apply(&mut module, p),
                         None => break,
                     }
                 }
@@ -183,9 +325,10 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                 if let Some(plan) = module.adapt.as_mut()
                     && let Err(e) = inject_adapt::run(&mut module.graph, plan)
                 {
+                    let span = module.graph.scopes[0].span;
                     diags.push(
                         Diagnostic::error(Code::Internal, format!("internal compiler error in `inject_adapt`: {e}"))
-                            .with_primary(Span::new(file, 0, 0), "please report this with the input file"),
+                            .with_primary(span, "please report this with the input file"),
                     );
                 }
             }
@@ -194,9 +337,9 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                     module.variants = Some(check_variants::run(&module.graph, section, &mut diags));
                 }
             }
-            Pass::Parse | Pass::Elaborate => {}
+            _ => {}
         }
-        check(&module, pass, file, &mut diags);
+        check(&module, pass, &mut diags);
         if diags.has_errors() {
             break;
         }
@@ -208,17 +351,116 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
     out
 }
 
-/// Runs the verifier; its failures are compiler bugs, reported as such.
-fn check(module: &Module, after: Pass, file: FileId, diags: &mut Diagnostics) {
-    if let Err(problems) = verify(module) {
-        let mut d = Diagnostic::error(
-            Code::Internal,
-            format!("internal compiler error: the graph is invalid after pass `{}`", after.name()),
-        )
-        .with_primary(Span::new(file, 0, 0), "please report this with the input file");
-        for p in problems.into_iter().take(10) {
-            d = d.with_note(p);
+/// What the back end compiles a module with.
+#[derive(Clone, Copy, Debug)]
+pub struct BackendInputs<'a> {
+    /// The base model's weights, and the file they came from (for messages).
+    pub base: &'a WeightSet,
+    pub base_name: &'a str,
+    /// Each variant's parameters.
+    pub variants: &'a [VariantSource],
+    pub opts: &'a CompileOptions,
+}
+
+/// What a back-end pass computed.
+pub enum Output {
+    /// Graph rewrites, applied by the driver.
+    Patches(Vec<Patch>),
+    /// The tensor table, stored as the module's.
+    Tensors(Box<crate::backend::tensors::TensorTable>),
+    /// The lowered plan, stored as the module's.
+    Lowered(Box<Lowered>),
+}
+
+/// A back-end pass: reads the module, returns what it computed and any warnings, or the
+/// errors that stop compilation.
+type BackendPass = fn(&Module, &BackendInputs<'_>, &mut Diagnostics) -> Result<Output, Diagnostics>;
+
+fn backend_pass(pass: Pass) -> Option<BackendPass> {
+    Some(match pass {
+        Pass::BindWeights => bind_weights::run,
+        Pass::BindVariants => bind_variants::run,
+        Pass::Meld => meld::run,
+        Pass::DropInactive => drop_inactive::run,
+        Pass::CommuteAdapters => commute_adapters::run,
+        Pass::MergeLora => merge_lora::run,
+        Pass::FoldBatchnorm => fold_batchnorm::run,
+        Pass::FuseEpilogues => fuse_epilogues::run,
+        Pass::ChooseConvAlgo => choose_conv_algo::run,
+        Pass::PackWeights => pack_weights::run,
+        Pass::Lower => lower::run,
+        Pass::PlanBuffers => plan_buffers::run,
+        _ => return None,
+    })
+}
+
+/// Most rounds a rewriting pass may take to reach its fixed point before the driver calls
+/// it a compiler bug (each round applies every non-overlapping patch found).
+const MAX_ROUNDS: usize = 1000;
+
+/// Runs the back end on a module the front end checked, from `bind_weights` to
+/// `plan_buffers` or up to `stop_after`, verifying after every pass. Returns the
+/// warnings; on errors the module is left as the failing pass found it.
+pub fn run_backend(
+    module: &mut Module,
+    inputs: &BackendInputs<'_>,
+    stop_after: Option<Pass>,
+) -> Result<Diagnostics, Diagnostics> {
+    let mut warnings = Diagnostics::default();
+    for &(pass, name, _) in PIPELINE.iter().filter(|p| p.0.is_backend()) {
+        if stop_after.is_some_and(|s| s < pass) {
+            break;
         }
-        diags.push(d);
+        let Some(f) = backend_pass(pass) else { continue };
+        let mut rounds = 0;
+        loop {
+            match f(module, inputs, &mut warnings)? {
+                Output::Tensors(t) => module.tensors = Some(*t),
+                Output::Lowered(l) => module.lowered = Some(*l),
+                Output::Patches(p) if p.is_empty() => break,
+                Output::Patches(p) => {
+                    apply_round(module, p);
+                    rounds += 1;
+                    if rounds < MAX_ROUNDS {
+                        continue;
+                    }
+                    let span = module.graph.scopes[0].span;
+                    let d = Diagnostic::error(
+                        Code::Internal,
+                        format!("internal compiler error: pass `{name}` did not reach a fixed point"),
+                    )
+                    .with_primary(span, "please report this with the input file");
+                    return Err(Diagnostics(vec![d]));
+                }
+            }
+            break;
+        }
+        let mut diags = Diagnostics::default();
+        check(module, pass, &mut diags);
+        if diags.has_errors() {
+            return Err(diags);
+        }
     }
+    Ok(warnings)
+}
+
+/// Runs the verifier; its failures are compiler bugs, reported as such, each at the node
+/// it concerns (the model's declaration for the graph as a whole).
+fn check(module: &Module, after: Pass, diags: &mut Diagnostics) {
+    let Err(problems) = verify(module) else { return };
+    let model_span = module.graph.scopes[0].span;
+    let span_of = |e: &VerifyError| {
+        e.node.filter(|&n| module.graph.contains(n)).map(|n| module.graph.node(n).span).unwrap_or(model_span)
+    };
+    let first: Span = problems.first().map(span_of).unwrap_or(model_span);
+    let mut d = Diagnostic::error(
+        Code::Internal,
+        format!("internal compiler error: the module is invalid after pass `{}`", after.name()),
+    )
+    .with_primary(first, problems.first().map(|p| p.message.clone()).unwrap_or_default());
+    for p in problems.iter().skip(1).take(9) {
+        d = d.with_secondary(span_of(p), p.message.clone());
+    }
+    d = d.with_note("please report this with the input file");
+    diags.push(d);
 }

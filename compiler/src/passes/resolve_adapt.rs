@@ -60,6 +60,14 @@ pub enum Injection {
 }
 
 impl Injection {
+    /// The layer the injection adapts: the LoRA's base layer, the adapter's target.
+    pub fn anchor(&self) -> NodeId {
+        match *self {
+            Injection::Lora { base, .. } => base,
+            Injection::Adapter { target, .. } => target,
+        }
+    }
+
     /// Every node the injection added.
     pub fn nodes(&self) -> [NodeId; 4] {
         match *self {
@@ -112,6 +120,16 @@ pub struct Target {
 }
 
 impl AdaptPlan {
+    /// Forgets removed nodes: the targets on them and the injections that contain them
+    /// (a back-end pass that drops or merges a branch removes its nodes).
+    pub fn forget(&mut self, removed: &[NodeId]) {
+        for r in &mut self.rules {
+            r.targets.retain(|t| !removed.contains(&t.node));
+        }
+        self.injections
+            .retain(|inj| !removed.contains(&inj.anchor()) && inj.nodes().iter().all(|n| !removed.contains(n)));
+    }
+
     /// Existing parameter elements tuned per variant (each f32 slot counted once).
     pub fn tuned_elements(&self, graph: &Graph) -> u64 {
         let mut seen: HashMap<(NodeId, &str), u64> = HashMap::new();

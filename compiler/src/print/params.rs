@@ -4,7 +4,7 @@ use std::fmt::Write;
 
 use super::{bytes, thousands};
 use crate::ir::SlotKind;
-use crate::passes::Module;
+use crate::module::Module;
 
 /// The table as text. Buffers (running statistics) are listed when `buffers` is set; the
 /// total counts trainable parameters only, as PyTorch's `model.parameters()` does.

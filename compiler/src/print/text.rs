@@ -11,7 +11,7 @@ use std::fmt::Write;
 
 use super::thousands;
 use crate::ir::{Graph, NodeId, Op, SlotKind, ValueRef};
-use crate::passes::Module;
+use crate::module::Module;
 use crate::passes::check_variants::{KeySource, MissingPolicy, fmt_level};
 use crate::passes::resolve_adapt::RuleKind;
 
@@ -188,5 +188,5 @@ fn wrap(out: &mut String, indent: &str, words: &[String], width: usize) {
 
 /// The graph alone as text (no side tables).
 pub fn graph_to_text(g: &Graph) -> String {
-    to_text(&Module { graph: g.clone(), adapt: None, variants: None })
+    to_text(&Module::new(g.clone()))
 }

@@ -23,6 +23,201 @@ impl Conv2d {
     }
 }
 
+impl Conv2d {
+    /// The kernel's view of the layer at an input of `n x in x h x w`: the one place a
+    /// [`Conv2dShape`] is built (the compiler packs weights at `n = 1`, the runtime binds
+    /// at the batch size). A window that does not fit gives an output size of 0, which
+    /// every kernel and check refuses.
+    pub fn shape(&self, n: usize, h: usize, w: usize) -> Conv2dShape {
+        let win = &self.window;
+        let u = |v: i64| usize::try_from(v).unwrap_or(0);
+        let out =
+            |axis: usize, len: usize| i64::try_from(len).ok().and_then(|l| win.out_len(axis, l, false)).map_or(0, u);
+        Conv2dShape {
+            n,
+            cin: u(self.in_channels),
+            h,
+            w,
+            cout: u(self.out_channels),
+            kh: u(win.kernel[0]),
+            kw: u(win.kernel[1]),
+            stride_h: u(win.stride[0]),
+            stride_w: u(win.stride[1]),
+            pad_h: u(win.padding[0]),
+            pad_w: u(win.padding[1]),
+            dil_h: u(win.dilation[0]),
+            dil_w: u(win.dilation[1]),
+            groups: u(self.groups),
+            oh: out(0, h),
+            ow: out(1, w),
+        }
+    }
+}
+
+/// The geometry of one conv layer: input `[n, cin, h, w]`, weight (PyTorch layout)
+/// `[cout, cin/groups, kh, kw]`, output `[n, cout, oh, ow]` with PyTorch's
+/// `oh = (h + 2·pad_h − dil_h·(kh − 1) − 1) / stride_h + 1` (likewise `ow`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Conv2dShape {
+    /// Batch size.
+    pub n: usize,
+    /// Input channels.
+    pub cin: usize,
+    /// Input height.
+    pub h: usize,
+    /// Input width.
+    pub w: usize,
+    /// Output channels.
+    pub cout: usize,
+    /// Kernel height.
+    pub kh: usize,
+    /// Kernel width.
+    pub kw: usize,
+    /// Vertical stride.
+    pub stride_h: usize,
+    /// Horizontal stride.
+    pub stride_w: usize,
+    /// Zero padding above and below.
+    pub pad_h: usize,
+    /// Zero padding left and right.
+    pub pad_w: usize,
+    /// Vertical dilation.
+    pub dil_h: usize,
+    /// Horizontal dilation.
+    pub dil_w: usize,
+    /// Channel groups; divides `cin` and `cout`.
+    pub groups: usize,
+    /// Output height.
+    pub oh: usize,
+    /// Output width.
+    pub ow: usize,
+}
+
+impl Conv2dShape {
+    /// Input channels per group.
+    pub fn cin_g(&self) -> usize {
+        self.cin / self.groups
+    }
+
+    /// Output channels per group.
+    pub fn cout_g(&self) -> usize {
+        self.cout / self.groups
+    }
+
+    /// Rows of the im2col matrix: one per (input channel of a group, ky, kx).
+    pub fn k(&self) -> usize {
+        self.cin_g() * self.kh * self.kw
+    }
+
+    /// A 3x3, stride-1, undilated layer: what Winograd computes.
+    pub fn is_winograd_shape(&self) -> bool {
+        self.kh == 3 && self.kw == 3 && self.stride_h == 1 && self.stride_w == 1 && self.dil_h == 1 && self.dil_w == 1
+    }
+}
+
+/// How a conv layer is computed (see `readi_runtime::kernels::conv`). Chosen once per
+/// layer by the compiler; the packed weight is specific to it. Plans name it as
+/// [`ConvAlgo::name`] spells it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ConvAlgo {
+    /// 1x1, stride 1, no padding: GEMM straight on the input. Weight as PyTorch's.
+    Gemm1x1,
+    /// General: unfold a tile of pixels, one GEMM, epilogue. Weight as PyTorch's.
+    Im2col,
+    /// Winograd F(2x2, 3x3) for 3x3 stride-1 undilated convs. Weight `[16, cout, cin/groups]`.
+    Winograd2,
+    /// Winograd F(4x4, 3x3) for 3x3 stride-1 undilated convs. Weight `[36, cout, cin/groups]`.
+    Winograd4,
+    /// Direct loop for one input channel per group (depthwise). Weight as PyTorch's.
+    Depthwise,
+}
+
+impl Conv2dShape {
+    /// A square layer without dilation: `n x cin x hw x hw` to `cout` channels with a
+    /// `k x k` kernel; the output size follows PyTorch's formula.
+    #[allow(clippy::too_many_arguments)]
+    pub fn square(
+        n: usize,
+        cin: usize,
+        hw: usize,
+        cout: usize,
+        k: usize,
+        stride: usize,
+        pad: usize,
+        groups: usize,
+    ) -> Self {
+        let o = (hw + 2 * pad - k) / stride + 1;
+        Conv2dShape {
+            n,
+            cin,
+            h: hw,
+            w: hw,
+            cout,
+            kh: k,
+            kw: k,
+            stride_h: stride,
+            stride_w: stride,
+            pad_h: pad,
+            pad_w: pad,
+            dil_h: 1,
+            dil_w: 1,
+            groups,
+            oh: o,
+            ow: o,
+        }
+    }
+}
+
+impl ConvAlgo {
+    /// Every algorithm, for listings and tests.
+    pub const ALL: [ConvAlgo; 5] =
+        [ConvAlgo::Gemm1x1, ConvAlgo::Im2col, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Depthwise];
+
+    /// The name stored in plan files.
+    pub fn name(self) -> &'static str {
+        match self {
+            ConvAlgo::Gemm1x1 => "gemm1x1",
+            ConvAlgo::Im2col => "im2col",
+            ConvAlgo::Winograd2 => "winograd2",
+            ConvAlgo::Winograd4 => "winograd4",
+            ConvAlgo::Depthwise => "depthwise",
+        }
+    }
+
+    /// The algorithm called `name` (as [`ConvAlgo::name`] spells it).
+    pub fn from_name(name: &str) -> Option<ConvAlgo> {
+        ConvAlgo::ALL.into_iter().find(|a| a.name() == name)
+    }
+
+    /// Whether the algorithm can compute this layer.
+    pub fn supports(self, s: &Conv2dShape) -> bool {
+        match self {
+            ConvAlgo::Gemm1x1 => {
+                s.kh == 1 && s.kw == 1 && s.stride_h == 1 && s.stride_w == 1 && s.pad_h == 0 && s.pad_w == 0
+            }
+            ConvAlgo::Im2col => true,
+            ConvAlgo::Winograd2 | ConvAlgo::Winograd4 => s.is_winograd_shape(),
+            ConvAlgo::Depthwise => s.cin_g() == 1,
+        }
+    }
+
+    /// Length of the weight packed for this algorithm.
+    pub fn packed_len(self, s: &Conv2dShape) -> usize {
+        match self {
+            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => s.cout * s.k(),
+            ConvAlgo::Winograd2 => 16 * s.cout * s.cin_g(),
+            ConvAlgo::Winograd4 => 36 * s.cout * s.cin_g(),
+        }
+    }
+}
+
+impl std::fmt::Display for ConvAlgo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.pad(self.name())
+    }
+}
+
 impl Operator for Conv2d {
     fn kind_name(&self) -> &'static str {
         "conv2d"

@@ -40,7 +40,7 @@ use std::fmt;
 use serde::{Deserialize, Serialize};
 
 use crate::dim::Dim;
-pub use conv::Conv2d;
+pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};

@@ -46,176 +46,12 @@ use self::im2col::{gemm_part, gemm_tile};
 use self::split::{Part, parts, split};
 use self::winograd::{F2, F2_G, F4, F4_G, Wino, pack_winograd, winograd_part};
 
-/// The geometry of one conv layer: input `[n, cin, h, w]`, weight (PyTorch layout)
-/// `[cout, cin/groups, kh, kw]`, output `[n, cout, oh, ow]` with PyTorch's
-/// `oh = (h + 2·pad_h − dil_h·(kh − 1) − 1) / stride_h + 1` (likewise `ow`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Conv2dShape {
-    /// Batch size.
-    pub n: usize,
-    /// Input channels.
-    pub cin: usize,
-    /// Input height.
-    pub h: usize,
-    /// Input width.
-    pub w: usize,
-    /// Output channels.
-    pub cout: usize,
-    /// Kernel height.
-    pub kh: usize,
-    /// Kernel width.
-    pub kw: usize,
-    /// Vertical stride.
-    pub stride_h: usize,
-    /// Horizontal stride.
-    pub stride_w: usize,
-    /// Zero padding above and below.
-    pub pad_h: usize,
-    /// Zero padding left and right.
-    pub pad_w: usize,
-    /// Vertical dilation.
-    pub dil_h: usize,
-    /// Horizontal dilation.
-    pub dil_w: usize,
-    /// Channel groups; divides `cin` and `cout`.
-    pub groups: usize,
-    /// Output height.
-    pub oh: usize,
-    /// Output width.
-    pub ow: usize,
-}
+pub use readi_plan::ops::{Conv2dShape, ConvAlgo};
 
-/// The kernel's view of a conv layer, `conv` applied to an `n x cin x h x w` input: the
-/// one place a [`Conv2dShape`] is built from a layer's geometry (the compiler packs
-/// weights at `n = 1`, the runtime binds at the batch size). The output size is the
-/// shape rule's (`readi_plan::ops::Window2`); a window that does not fit gives 0.
+/// The kernel's view of a conv layer at an input of `n x cin x h x w`
+/// ([`readi_plan::ops::Conv2d::shape`], the one place it is built).
 pub fn layer_shape(conv: &readi_plan::ops::Conv2d, n: usize, h: usize, w: usize) -> Conv2dShape {
-    let win = &conv.window;
-    let u = |v: i64| usize::try_from(v).unwrap_or(0);
-    let out = |axis: usize, len: usize| i64::try_from(len).ok().and_then(|l| win.out_len(axis, l, false)).map_or(0, u);
-    Conv2dShape {
-        n,
-        cin: u(conv.in_channels),
-        h,
-        w,
-        cout: u(conv.out_channels),
-        kh: u(win.kernel[0]),
-        kw: u(win.kernel[1]),
-        stride_h: u(win.stride[0]),
-        stride_w: u(win.stride[1]),
-        pad_h: u(win.padding[0]),
-        pad_w: u(win.padding[1]),
-        dil_h: u(win.dilation[0]),
-        dil_w: u(win.dilation[1]),
-        groups: u(conv.groups),
-        oh: out(0, h),
-        ow: out(1, w),
-    }
-}
-
-impl Conv2dShape {
-    fn cin_g(&self) -> usize {
-        self.cin / self.groups
-    }
-
-    fn cout_g(&self) -> usize {
-        self.cout / self.groups
-    }
-
-    /// Rows of the im2col matrix: one per (input channel of a group, ky, kx).
-    fn k(&self) -> usize {
-        self.cin_g() * self.kh * self.kw
-    }
-
-    fn is_winograd_shape(&self) -> bool {
-        self.kh == 3 && self.kw == 3 && self.stride_h == 1 && self.stride_w == 1 && self.dil_h == 1 && self.dil_w == 1
-    }
-}
-
-/// How a conv layer is computed; see the module doc. Chosen once per layer by [`choose`];
-/// the packed weight is specific to it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ConvAlgo {
-    /// 1x1, stride 1, no padding: GEMM straight on the input. Weight as PyTorch's.
-    Gemm1x1,
-    /// General: unfold a tile of pixels, one GEMM, epilogue. Weight as PyTorch's.
-    Im2col,
-    /// Winograd F(2x2, 3x3) for 3x3 stride-1 undilated convs. Weight `[16, cout, cin/groups]`.
-    Winograd2,
-    /// Winograd F(4x4, 3x3) for 3x3 stride-1 undilated convs. Weight `[36, cout, cin/groups]`.
-    Winograd4,
-    /// Direct loop for one input channel per group (depthwise). Weight as PyTorch's.
-    Depthwise,
-}
-
-impl Conv2dShape {
-    /// A square layer without dilation: `n x cin x hw x hw` to `cout` channels with a
-    /// `k x k` kernel; the output size follows PyTorch's formula.
-    #[allow(clippy::too_many_arguments)]
-    pub fn square(
-        n: usize,
-        cin: usize,
-        hw: usize,
-        cout: usize,
-        k: usize,
-        stride: usize,
-        pad: usize,
-        groups: usize,
-    ) -> Self {
-        let o = (hw + 2 * pad - k) / stride + 1;
-        Conv2dShape {
-            n,
-            cin,
-            h: hw,
-            w: hw,
-            cout,
-            kh: k,
-            kw: k,
-            stride_h: stride,
-            stride_w: stride,
-            pad_h: pad,
-            pad_w: pad,
-            dil_h: 1,
-            dil_w: 1,
-            groups,
-            oh: o,
-            ow: o,
-        }
-    }
-}
-
-impl ConvAlgo {
-    /// Every algorithm, for listings and tests.
-    pub const ALL: [ConvAlgo; 5] =
-        [ConvAlgo::Gemm1x1, ConvAlgo::Im2col, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Depthwise];
-
-    /// The name stored in plan files.
-    pub fn name(self) -> &'static str {
-        match self {
-            ConvAlgo::Gemm1x1 => "gemm1x1",
-            ConvAlgo::Im2col => "im2col",
-            ConvAlgo::Winograd2 => "winograd2",
-            ConvAlgo::Winograd4 => "winograd4",
-            ConvAlgo::Depthwise => "depthwise",
-        }
-    }
-
-    /// The algorithm called `name` (as [`ConvAlgo::name`] spells it).
-    pub fn from_name(name: &str) -> Option<ConvAlgo> {
-        ConvAlgo::ALL.into_iter().find(|a| a.name() == name)
-    }
-
-    /// Whether the algorithm can compute this layer.
-    pub fn supports(self, s: &Conv2dShape) -> bool {
-        match self {
-            ConvAlgo::Gemm1x1 => {
-                s.kh == 1 && s.kw == 1 && s.stride_h == 1 && s.stride_w == 1 && s.pad_h == 0 && s.pad_w == 0
-            }
-            ConvAlgo::Im2col => true,
-            ConvAlgo::Winograd2 | ConvAlgo::Winograd4 => s.is_winograd_shape(),
-            ConvAlgo::Depthwise => s.cin_g() == 1,
-        }
-    }
+    conv.shape(n, h, w)
 }
 
 /// Picks the algorithm for a layer (at compile time; the batch size does not matter).
@@ -247,13 +83,9 @@ pub fn choose(s: &Conv2dShape) -> ConvAlgo {
     ConvAlgo::Im2col
 }
 
-/// Length of the weight packed for `algo`.
+/// Length of the weight packed for `algo` ([`ConvAlgo::packed_len`]).
 pub fn packed_weight_len(s: &Conv2dShape, algo: ConvAlgo) -> usize {
-    match algo {
-        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => s.cout * s.k(),
-        ConvAlgo::Winograd2 => 16 * s.cout * s.cin_g(),
-        ConvAlgo::Winograd4 => 36 * s.cout * s.cin_g(),
-    }
+    algo.packed_len(s)
 }
 
 /// Converts a PyTorch-layout weight `[cout, cin/groups, kh, kw]` to the layout `algo`
@@ -335,7 +167,8 @@ fn check_shape(s: &Conv2dShape) {
     );
     assert!(s.kh > 0 && s.kw > 0 && s.stride_h > 0 && s.stride_w > 0 && s.dil_h > 0 && s.dil_w > 0, "conv: {s:?}");
     let out = |len: usize, k: usize, st: usize, p: usize, d: usize| {
-        (len + 2 * p).checked_sub(d * (k - 1) + 1).map(|v| v / st + 1)
+        let i = |v: usize| i64::try_from(v).ok();
+        readi_plan::ops::window_out(i(len)?, i(k)?, i(st)?, i(p)?, i(d)?, false).and_then(|o| usize::try_from(o).ok())
     };
     assert!(
         out(s.h, s.kh, s.stride_h, s.pad_h, s.dil_h) == Some(s.oh)

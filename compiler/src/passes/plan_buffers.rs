@@ -1,5 +1,5 @@
 //! `plan_buffers`: assigns every computed value an activation buffer (slot) so that
-//! values whose lifetimes do not overlap share one.
+//! values whose lifetimes do not overlap share one (rule `plan_buffers`).
 //!
 //! A value lives from the step that writes it to the last step that reads it (graph
 //! outputs live to the end). Steps are visited in order; a step's output takes a free slot
@@ -7,8 +7,25 @@
 //! Among free slots the best fit is taken: the smallest slot at least as large as the
 //! value (sizes compared at batch size 1), else the largest one, which then grows. The
 //! runtime sizes each slot as the largest value assigned to it at the bound batch size.
+//!
+//! Assumes `lower` ran (it gives every value a buffer of its own). The lowered plan's
+//! manifest changes; its tensors do not.
 
-use readi_runtime::plan::{Step, Storage, ValueSpec};
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_plan::format::{Step, Storage, ValueSpec};
+
+use super::{BackendInputs, Output};
+use crate::module::Module;
+
+pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
+    let mut lowered = module.lowered.clone().ok_or_else(|| {
+        Diagnostics(vec![Diagnostic::error(Code::Internal, "internal compiler error: the module is not lowered")])
+    })?;
+    let m = &mut lowered.manifest;
+    let outputs: Vec<usize> = m.outputs.iter().map(|o| o.value).collect();
+    m.slots = plan_buffers(&mut m.values, &m.steps, &outputs);
+    Ok(Output::Lowered(Box::new(lowered)))
+}
 
 /// Rewrites the storage of every slot value; returns the number of slots.
 pub fn plan_buffers(values: &mut [ValueSpec], steps: &[Step], outputs: &[usize]) -> usize {
@@ -64,8 +81,8 @@ pub fn plan_buffers(values: &mut [ValueSpec], steps: &[Step], outputs: &[usize])
 #[cfg(test)]
 mod tests {
     use readi_plan::Dim;
+    use readi_plan::format::Kernel;
     use readi_plan::ops::{Pure, Reshape};
-    use readi_runtime::plan::Kernel;
 
     use super::*;
 

@@ -1,0 +1,46 @@
+//! A module: the graph and what the passes have learned about it.
+//!
+//! The graph is the IR ([`crate::ir`]); everything else is a side table a pass filled in,
+//! `None` until then:
+//!
+//! | field      | set by           | holds                                                    |
+//! |------------|------------------|----------------------------------------------------------|
+//! | `adapt`    | `resolve_adapt`  | the adaptation rules bound to layers, and `inject_adapt`'s injections |
+//! | `variants` | `check_variants` | the checked `variants` section (axes, selectors, meld rule) |
+//! | `tensors`  | `bind_weights`   | every tensor's base value and the variants' values        |
+//! | `lowered`  | `lower`          | the schedule and its stored tensors: the plan in the making |
+
+use readi_plan::format::Manifest;
+
+use crate::backend::tensors::{Data, TensorTable};
+use crate::ir::Graph;
+use crate::passes::{AdaptPlan, VariantSpec};
+
+/// See the module documentation.
+#[derive(Clone, Debug)]
+pub struct Module {
+    pub graph: Graph,
+    /// Set by `resolve_adapt` when the file has an `adapt` section.
+    pub adapt: Option<AdaptPlan>,
+    /// Set by `check_variants` when the file has a `variants` section.
+    pub variants: Option<VariantSpec>,
+    /// Set by `bind_weights`; `bind_variants` and `meld` add the variants.
+    pub tensors: Option<TensorTable>,
+    /// Set by `lower`; `plan_buffers` assigns its buffers.
+    pub lowered: Option<Lowered>,
+}
+
+impl Module {
+    /// A module of a graph, with no side tables yet.
+    pub fn new(graph: Graph) -> Module {
+        Module { graph, adapt: None, variants: None, tensors: None, lowered: None }
+    }
+}
+
+/// A lowered module: the plan's manifest (schedule, values, tensors, variant tables) and
+/// the data of each stored tensor, in manifest order.
+#[derive(Clone, Debug)]
+pub struct Lowered {
+    pub manifest: Manifest,
+    pub data: Vec<Data>,
+}

@@ -1,0 +1,75 @@
+//! What the back end fuses into a conv, linear or channel-affine node after its
+//! accumulation: `relu(acc * scale[c] + shift[c])`, and the BatchNorm it folded.
+//!
+//! Empty in the front end. `fold_batchnorm` adds a scale and a shift (and the record
+//! AdaBN needs to undo the fold), `fuse_epilogues` turns a bias into a shift and absorbs a
+//! ReLU. Each part brings its parameter slots, bound to the tensors the pass derived.
+
+use crate::ir::ParamSlot;
+
+/// See the module documentation.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Epilogue {
+    /// A per-channel scale: slot `scale`.
+    pub scale: bool,
+    /// A per-channel shift (a bias, a folded BatchNorm's shift): slot `shift`.
+    pub shift: bool,
+    pub relu: bool,
+    /// The BatchNorm folded into `scale` and `shift`.
+    pub bn: Option<BnFold>,
+}
+
+/// A BatchNorm folded into an epilogue, as AdaBN needs it to re-estimate the statistics
+/// from a plan: its name and eps, and slots `bn.weight`, `bn.bias` (gamma and beta as
+/// themselves) and, when a conv bias went into the shift, `bn.conv_bias`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BnFold {
+    /// The BatchNorm's path, its PyTorch module name.
+    pub name: String,
+    pub eps: f64,
+    pub conv_bias: bool,
+}
+
+impl Epilogue {
+    pub fn is_empty(&self) -> bool {
+        *self == Epilogue::default()
+    }
+
+    /// The slots of an epilogue over `channels` output channels, in order.
+    pub fn slots(&self, channels: i64) -> Vec<ParamSlot> {
+        let mut v = Vec::new();
+        let c = || ParamSlot::param("", vec![channels]);
+        let named = |name: &'static str| ParamSlot { name, ..c() };
+        if self.scale {
+            v.push(named("scale"));
+        }
+        if self.shift {
+            v.push(named("shift"));
+        }
+        if let Some(bn) = &self.bn {
+            v.push(named("bn.weight"));
+            v.push(named("bn.bias"));
+            if bn.conv_bias {
+                v.push(named("bn.conv_bias"));
+            }
+        }
+        v
+    }
+
+    /// The epilogue for printouts: `scale+shift+relu (bn1 folded)`, or `None` when empty.
+    pub fn attr(&self) -> Option<String> {
+        if self.is_empty() {
+            return None;
+        }
+        let parts: Vec<&str> = [(self.scale, "scale"), (self.shift, "shift"), (self.relu, "relu")]
+            .iter()
+            .filter(|p| p.0)
+            .map(|p| p.1)
+            .collect();
+        let mut s = parts.join("+");
+        if let Some(bn) = &self.bn {
+            s.push_str(&format!(" ({} folded)", bn.name));
+        }
+        Some(s)
+    }
+}

@@ -1,0 +1,77 @@
+//! `fuse_epilogues`: gives conv, linear and channel-affine nodes the work they can do
+//! while writing their output.
+//!
+//! * rule `bias_to_shift`: a conv's or linear's bias becomes its epilogue's shift (the
+//!   same tensor; a folded BatchNorm already has a shift and no bias);
+//! * rule `fuse_relu`: a ReLU whose input is a conv, linear or channel affine that
+//!   nothing else reads runs in that node's epilogue; the ReLU leaves the graph.
+//!
+//! Does nothing when no bias is left and no ReLU follows such a node. Assumes
+//! `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
+
+use readi_grammar::diag::Diagnostics;
+
+use super::{BackendInputs, Output, Patch, rebind};
+use crate::ir::{Activation, Graph, NodeId, Op, Pure, ValueRef};
+use crate::module::Module;
+use crate::ops::Epilogue;
+
+pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
+    let g = &module.graph;
+    let mut patches = Vec::new();
+    for id in g.node_ids() {
+        let node = g.node(id);
+        let bias = || node.params.iter().find(|s| s.name == "bias").map(|s| node.param_name(s));
+        let shifted = match &node.op {
+            Op::Conv2d(c) if c.bias && !c.epilogue.shift => {
+                let mut c = c.clone();
+                c.bias = false;
+                c.epilogue.shift = true;
+                Some(Op::Conv2d(c))
+            }
+            Op::Linear(l) if l.bias && !l.epilogue.shift => {
+                let mut l = l.clone();
+                l.bias = false;
+                l.epilogue.shift = true;
+                Some(Op::Linear(l))
+            }
+            _ => None,
+        };
+        if let (Some(new), Some(b)) = (shifted, bias()) {
+            let slots = rebind(&new, &node.params, &[("shift", b)]);
+            let mut p = Patch::new("bias_to_shift");
+            p.rewrite.push((id, new, slots));
+            patches.push(p);
+            continue;
+        }
+        if matches!(node.op, Op::Pure(Pure::Activation(Activation::Relu)))
+            && let Some(x) = g.inputs(id).first()
+            && let Some(new) = with_relu(g, x.node)
+        {
+            let producer = g.node(x.node);
+            let slots = rebind(&new, &producer.params, &[]);
+            let mut p = Patch::new("fuse_relu");
+            p.rewrite.push((x.node, new, slots));
+            p.replace_uses.push((ValueRef { node: id, port: 0 }, *x));
+            p.fuse.push((x.node, node.path.clone()));
+            p.remove.push(id);
+            patches.push(p);
+        }
+    }
+    Ok(Output::Patches(patches))
+}
+
+/// The op of `producer` with a ReLU in its epilogue, if it is a conv, linear or channel
+/// affine without one whose output only the ReLU reads.
+fn with_relu(g: &Graph, producer: NodeId) -> Option<Op> {
+    if g.uses(producer) != 1 {
+        return None;
+    }
+    let relu = |e: &Epilogue| (!e.relu).then(|| Epilogue { relu: true, ..e.clone() });
+    Some(match &g.node(producer).op {
+        Op::Conv2d(c) => Op::Conv2d(crate::ops::ConvOp { epilogue: relu(&c.epilogue)?, ..c.clone() }),
+        Op::Linear(l) => Op::Linear(crate::ops::LinearOp { epilogue: relu(&l.epilogue)?, ..l.clone() }),
+        Op::ChannelAffine(a) => Op::ChannelAffine(crate::ops::AffineOp { epilogue: relu(&a.epilogue)?, ..a.clone() }),
+        _ => return None,
+    })
+}

@@ -1,0 +1,360 @@
+//! `lower`: one kernel step per node, in topological order: the plan's schedule, its
+//! stored tensors and its variant tables.
+//!
+//! A one-to-one map: an input becomes an input value, a `parameter` a stored-tensor
+//! value, a conv, linear, channel affine or layernorm a kernel reading the tensors its
+//! slots name (the epilogue's scale, shift and BatchNorm record included), and every other
+//! op the same [`Pure`](readi_plan::ops::Pure) operator as a kernel. The rewrites happened
+//! before (fold, fuse, pack); a node they should have changed (an unfolded BatchNorm, an
+//! unpacked weight) is a compiler bug. A step's path lists the nodes fused into it
+//! (`conv1 (+bn1, relu#0)`).
+//!
+//! Stored tensors are the ones the steps read, each once, in the order of first use, with
+//! the base's values. Each variant's table replaces every tensor whose value under the
+//! variant has other bits than the base's; identical replacements (across variants, or
+//! equal to a base tensor) are stored once. A replacement counts as added in the budget
+//! when its tensor derives from a parameter a rule added. The parameter table says where
+//! each of the spec's parameters went. Every value gets a buffer of its own;
+//! `plan_buffers` shares them.
+//!
+//! Assumes every pass before it ran. Changes nothing in the graph.
+
+use std::collections::hash_map::DefaultHasher;
+use std::collections::{HashMap, HashSet};
+use std::hash::{Hash, Hasher};
+
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_plan::format::{
+    BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec, Replacement, Step,
+    Storage, TensorSpec, ValueSpec, VariantTable,
+};
+
+use super::bind_variants::{not_bound, same_bits};
+use super::{BackendInputs, Output};
+use crate::backend::tensors::{Data, TensorTable};
+use crate::ir::{Graph, Node, NodeId, Op, ValueRef};
+use crate::module::{Lowered, Module};
+use crate::ops::Epilogue;
+
+pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
+    let table = module.tensors.as_ref().ok_or_else(not_bound)?;
+    let g = &module.graph;
+    let order = g.topo_order().ok_or_else(|| ice("the graph has a cycle".into()))?;
+    let mut l = Lowering {
+        graph: g,
+        table,
+        values: Vec::new(),
+        value_of: HashMap::new(),
+        steps: Vec::new(),
+        names: Vec::new(),
+        index: HashMap::new(),
+        records: HashSet::new(),
+    };
+    let mut inputs = Vec::new();
+    let mut symbols: Vec<String> = Vec::new();
+    for (i, id) in g.input_nodes().into_iter().enumerate() {
+        let node = g.node(id);
+        let Op::Input(a) = &node.op else { continue };
+        let v = l.new_value(ValueRef { node: id, port: 0 }, Storage::Input(i));
+        for d in &node.outputs[0].shape {
+            for s in d.symbols() {
+                if !symbols.contains(s) {
+                    symbols.push(s.clone());
+                }
+            }
+        }
+        let (name, modality, optional) = (a.name.clone(), a.modality.clone(), a.optional);
+        inputs.push(InputSpec { name, shape: node.outputs[0].shape.clone(), modality, optional, value: v });
+    }
+    for id in order {
+        l.lower_node(id)?;
+    }
+    let mut outputs = Vec::new();
+    for o in &g.outputs {
+        outputs.push(OutputSpec { name: o.name.clone(), value: l.value(o.value)? });
+    }
+    let read = l.read_tensors();
+    let Lowering { values, steps, names, records, .. } = l;
+    let tensors: Vec<TensorSpec> = names
+        .iter()
+        .map(|n| TensorSpec { name: n.clone(), shape: table.get(n).map(|t| t.shape.clone()).unwrap_or_default() })
+        .collect();
+    let mut store = Store::new(
+        tensors,
+        names
+            .iter()
+            .map(|n| table.get(n).map(|t| t.base.clone()))
+            .collect::<Option<_>>()
+            .ok_or_else(|| ice("a stored tensor is not bound".into()))?,
+    );
+    let added: HashSet<&str> = table.owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.as_str()).collect();
+    let count = |want: bool| -> u64 {
+        table.owned.values().filter(|o| o.added == want).map(|o| o.shape.iter().product::<usize>() as u64).sum()
+    };
+    let mut variants = Vec::new();
+    for (i, info) in table.variants.iter().enumerate() {
+        let mut replaces = Vec::new();
+        for (t, name) in names.iter().enumerate() {
+            let Some(tensor) = table.get(name) else { continue };
+            let Some(Some(value)) = tensor.variants.get(i) else { continue };
+            if !read[t] || same_bits(value, &tensor.base) {
+                continue;
+            }
+            let with = store.add(format!("{name}#{}", info.key), &tensor.shape, value.clone());
+            let is_added = tensor.sources.iter().any(|s| added.contains(s.as_str()));
+            replaces.push(Replacement { base: t, with, added: is_added });
+        }
+        variants.push(VariantTable {
+            key: info.key.clone(),
+            replaces,
+            tuned_elements: count(false),
+            added_elements: count(true),
+            fallback: info.fallback.clone(),
+        });
+    }
+    let params = table
+        .params
+        .iter()
+        .map(|p| ParamSpec {
+            name: p.name.clone(),
+            shape: p.shape.clone(),
+            trainable: p.trainable,
+            stored_as: stored_as(&p.name, &names, &records, table),
+            added: p.added,
+        })
+        .collect();
+    let slots = values.iter().filter(|v| matches!(v.storage, Storage::Slot(_))).count();
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: g.name.clone(),
+        model_params: g.model_params.clone(),
+        symbols,
+        inputs,
+        outputs,
+        values,
+        steps,
+        slots,
+        tensors: store.specs,
+        params,
+        variants,
+        conditions: module.variants.clone(),
+    };
+    Ok(Output::Lowered(Box::new(Lowered { manifest, data: store.data })))
+}
+
+fn ice(message: String) -> Diagnostics {
+    Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error while lowering: {message}"))])
+}
+
+struct Lowering<'m> {
+    graph: &'m Graph,
+    table: &'m TensorTable,
+    values: Vec<ValueSpec>,
+    value_of: HashMap<ValueRef, usize>,
+    steps: Vec<Step>,
+    /// The stored tensors, by name, in the order of first use.
+    names: Vec<String>,
+    index: HashMap<String, usize>,
+    /// Stored tensors only a BatchNorm record reads (AdaBN's, not a kernel's).
+    records: HashSet<usize>,
+}
+
+impl<'m> Lowering<'m> {
+    fn new_value(&mut self, v: ValueRef, storage: Storage) -> usize {
+        let shape = self.graph.node(v.node).outputs[v.port as usize].shape.clone();
+        let storage = match storage {
+            // Every computed value its own buffer, for now.
+            Storage::Slot(_) => {
+                Storage::Slot(self.values.iter().filter(|v| matches!(v.storage, Storage::Slot(_))).count())
+            }
+            s => s,
+        };
+        self.values.push(ValueSpec { shape, storage });
+        self.value_of.insert(v, self.values.len() - 1);
+        self.values.len() - 1
+    }
+
+    fn value(&self, v: ValueRef) -> Result<usize, Diagnostics> {
+        self.value_of
+            .get(&v)
+            .copied()
+            .ok_or_else(|| ice(format!("value of node {} used before it is computed", v.node.index())))
+    }
+
+    /// The stored tensor a slot of `node` reads.
+    fn tensor(&mut self, node: &Node, slot: &str) -> Result<usize, Diagnostics> {
+        let s = node
+            .params
+            .iter()
+            .find(|s| s.name == slot)
+            .ok_or_else(|| ice(format!("`{}` has no slot `{slot}`", node.path)))?;
+        let name = node.param_name(s);
+        if self.table.get(&name).is_none() {
+            return Err(ice(format!("tensor `{name}` of `{}` is not bound", node.path)));
+        }
+        if let Some(&i) = self.index.get(&name) {
+            return Ok(i);
+        }
+        self.names.push(name.clone());
+        self.index.insert(name, self.names.len() - 1);
+        Ok(self.names.len() - 1)
+    }
+
+    fn epilogue(&mut self, node: &Node, e: &Epilogue) -> Result<EpilogueSpec, Diagnostics> {
+        let scale = if e.scale { Some(self.tensor(node, "scale")?) } else { None };
+        let shift = if e.shift { Some(self.tensor(node, "shift")?) } else { None };
+        let bn = match &e.bn {
+            Some(f) => {
+                let weight = self.tensor(node, "bn.weight")?;
+                let bias = self.tensor(node, "bn.bias")?;
+                let conv_bias = if f.conv_bias { Some(self.tensor(node, "bn.conv_bias")?) } else { None };
+                self.records.extend([weight, bias].into_iter().chain(conv_bias));
+                Some(BnInfo { name: f.name.clone(), eps: f.eps, weight, bias, conv_bias })
+            }
+            None => None,
+        };
+        Ok(EpilogueSpec { scale, shift, relu: e.relu, bn })
+    }
+
+    fn lower_node(&mut self, id: NodeId) -> Result<(), Diagnostics> {
+        let g = self.graph;
+        let node = g.node(id);
+        let inputs: Vec<usize> = g.inputs(id).into_iter().map(|v| self.value(v)).collect::<Result<_, _>>()?;
+        let kernel = match &node.op {
+            Op::Input(_) => return Ok(()),
+            Op::Parameter(_) => {
+                let t = self.tensor(node, "")?;
+                self.new_value(ValueRef { node: id, port: 0 }, Storage::Tensor(t));
+                return Ok(());
+            }
+            Op::Conv2d(c) => {
+                let algo =
+                    c.algo.filter(|_| c.packed).ok_or_else(|| ice(format!("conv `{}` is not packed", node.path)))?;
+                if c.bias {
+                    return Err(ice(format!("conv `{}` still has a bias", node.path)));
+                }
+                let weight = self.tensor(node, "weight")?;
+                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue: self.epilogue(node, &c.epilogue)? }
+            }
+            Op::Linear(l) => {
+                if !l.packed || l.bias {
+                    return Err(ice(format!("linear `{}` is not packed or still has a bias", node.path)));
+                }
+                let weight = self.tensor(node, "weight")?;
+                Kernel::Linear { linear: l.linear.clone(), weight, epilogue: self.epilogue(node, &l.epilogue)? }
+            }
+            Op::ChannelAffine(a) => {
+                Kernel::ChannelAffine { affine: a.affine.clone(), epilogue: self.epilogue(node, &a.epilogue)? }
+            }
+            Op::LayerNorm(ln) => {
+                let (weight, bias) = if ln.affine {
+                    (Some(self.tensor(node, "weight")?), Some(self.tensor(node, "bias")?))
+                } else {
+                    (None, None)
+                };
+                Kernel::LayerNorm { norm: ln.clone(), weight, bias }
+            }
+            Op::BatchNorm(_) => return Err(ice(format!("BatchNorm `{}` was not folded", node.path))),
+            Op::Pure(p) => Kernel::Pure(p.clone()),
+        };
+        let output = self.new_value(ValueRef { node: id, port: 0 }, Storage::Slot(0));
+        self.steps.push(Step { path: node.display_path(), kernel, inputs, output });
+        Ok(())
+    }
+
+    /// Which stored tensors a step's kernel reads or a value stores (not the BatchNorm
+    /// records, which only AdaBN reads and no variant replaces).
+    fn read_tensors(&self) -> Vec<bool> {
+        let mut read = vec![false; self.names.len()];
+        let named = self.steps.iter().flat_map(|s| s.kernel.tensors());
+        let values = self.values.iter().filter_map(|v| match v.storage {
+            Storage::Tensor(t) => Some(t),
+            _ => None,
+        });
+        for t in named.chain(values) {
+            read[t] = true;
+        }
+        read
+    }
+}
+
+/// Where a spec parameter went, for the plan's parameter table: `tensor <name>`, or how
+/// each stored tensor it contributes to was derived (`packed as ...`, `folded into ...`),
+/// and `kept as <name> for adapt-bn` for a BatchNorm record; `not used by the plan`.
+fn stored_as(param: &str, names: &[String], records: &HashSet<usize>, table: &TensorTable) -> String {
+    let mut groups: Vec<(&str, Vec<&str>)> = Vec::new();
+    let mut itself = None;
+    for (i, name) in names.iter().enumerate() {
+        let Some(t) = table.get(name) else { continue };
+        if !t.sources.iter().any(|s| s == param) {
+            continue;
+        }
+        if name == param {
+            itself = Some(if records.contains(&i) {
+                format!("kept as `{name}` for adapt-bn")
+            } else {
+                format!("tensor `{name}`")
+            });
+            continue;
+        }
+        let how = if t.sources.first().map(String::as_str) == Some(param) {
+            t.how.unwrap_or("stored as")
+        } else {
+            "folded into"
+        };
+        match groups.iter_mut().find(|(h, _)| *h == how) {
+            Some((_, v)) => v.push(name),
+            None => groups.push((how, vec![name])),
+        }
+    }
+    let mut parts: Vec<String> = groups
+        .into_iter()
+        .map(|(how, v)| format!("{how} {}", v.iter().map(|n| format!("`{n}`")).collect::<Vec<_>>().join(", ")))
+        .collect();
+    parts.extend(itself);
+    if parts.is_empty() { "not used by the plan".into() } else { parts.join("; ") }
+}
+
+/// The plan's tensors: the base's, then each distinct replacement once.
+struct Store {
+    specs: Vec<TensorSpec>,
+    data: Vec<Data>,
+    by_hash: HashMap<u64, Vec<usize>>,
+}
+
+fn bits_hash(shape: &[usize], data: &[f32]) -> u64 {
+    let mut h = DefaultHasher::new();
+    shape.hash(&mut h);
+    for v in data {
+        v.to_bits().hash(&mut h);
+    }
+    h.finish()
+}
+
+impl Store {
+    fn new(specs: Vec<TensorSpec>, data: Vec<Data>) -> Store {
+        let mut by_hash: HashMap<u64, Vec<usize>> = HashMap::new();
+        for (i, (spec, d)) in specs.iter().zip(&data).enumerate() {
+            by_hash.entry(bits_hash(&spec.shape, d)).or_default().push(i);
+        }
+        Store { specs, data, by_hash }
+    }
+
+    /// The index of a stored tensor of this shape with `value`'s bits, stored as `name`
+    /// when there is none yet.
+    fn add(&mut self, name: String, shape: &[usize], value: Data) -> usize {
+        let shape = shape.to_vec();
+        let h = bits_hash(&shape, &value);
+        let found = self.by_hash.get(&h).and_then(|c| {
+            c.iter().copied().find(|&j| self.specs[j].shape == shape && same_bits(&self.data[j], &value))
+        });
+        if let Some(j) = found {
+            return j;
+        }
+        self.specs.push(TensorSpec { name, shape });
+        self.data.push(value);
+        let j = self.data.len() - 1;
+        self.by_hash.entry(h).or_default().push(j);
+        j
+    }
+}

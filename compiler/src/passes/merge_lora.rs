@@ -1,0 +1,58 @@
+//! `merge_lora`: merges each LoRA branch into its layer's weight, per variant (rule
+//! `merge_lora`): `W + scale * B A`, PEFT's merge (for a conv, `A` is
+//! `[rank, in * kh * kw]` and `B` is `[out, rank]`). The branch's nodes leave the graph, so
+//! an adapted plan runs the base model's schedule; each variant stores the merged weight
+//! of every layer its LoRA changes.
+//!
+//! Does nothing with `--lora branch` or without LoRA. Assumes `commute_adapters` ran (it
+//! moves branches only in branch mode).
+
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+
+use super::bind_variants::not_bound;
+use super::{BackendInputs, Output, Patch};
+use crate::backend::LoraMode;
+use crate::ir::{self, ValueRef};
+use crate::module::Module;
+use crate::passes::resolve_adapt::Injection;
+
+pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
+    let table = module.tensors.as_ref().ok_or_else(not_bound)?;
+    let g = &module.graph;
+    let Some(plan) = &module.adapt else { return Ok(Output::Patches(Vec::new())) };
+    if inputs.opts.lora != LoraMode::Merge {
+        return Ok(Output::Patches(Vec::new()));
+    }
+    let ice = |e: String| Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {e}"))]);
+    let mut patches = Vec::new();
+    for inj in &plan.injections {
+        let Injection::Lora { base, a, b, add, factor, .. } = *inj else { continue };
+        let name = |n| ir::join_path(&g.node(n).path, "weight");
+        let (w, wa, wb) = (name(base), name(a), name(b));
+        let rank = g.node(a).params.first().and_then(|s| s.shape.first()).copied().unwrap_or(1).max(1) as usize;
+        let shape = table.get(&w).map(|t| t.shape.clone()).unwrap_or_default();
+        let merged =
+            table.derive_one(&[&w, &wa, &wb], "merged into", shape, |v| merge(v, rank, factor)).map_err(ice)?;
+        let mut p = Patch::new("merge_lora");
+        p.tensors.push((w, merged));
+        p.replace_uses.push((ValueRef { node: add, port: 0 }, ValueRef { node: base, port: 0 }));
+        p.remove.extend(inj.nodes());
+        patches.push(p);
+    }
+    Ok(Output::Patches(patches))
+}
+
+/// `W + factor * B A` from `[W, A, B]`, accumulated in f64.
+fn merge(v: &[&[f32]], rank: usize, factor: f64) -> Vec<f32> {
+    let (w, wa, wb) = (v[0], v[1], v[2]);
+    let cols = wa.len() / rank;
+    let rows = wb.len() / rank;
+    let mut out = w.to_vec();
+    for o in 0..rows {
+        for c in 0..cols {
+            let delta: f64 = (0..rank).map(|r| wb[o * rank + r] as f64 * wa[r * cols + c] as f64).sum();
+            out[o * cols + c] = (w[o * cols + c] as f64 + factor * delta) as f32;
+        }
+    }
+    out
+}

@@ -1,0 +1,76 @@
+//! `pack_weights`: stores each weight in the layout its kernel reads, once, at compile
+//! time, for the base and every variant that changes it.
+//!
+//! * rule `pack_conv`: a conv's weight packed for its algorithm
+//!   (`readi_runtime::kernels::conv::pack_weight`: Winograd-transformed, or as PyTorch's
+//!   for the GEMM paths), as `<path>.weight@<algo>`;
+//! * rule `transpose_linear`: a linear's weight transposed to `[in, out]`, the layout the
+//!   GEMM reads fastest, as `<path>.weight@t`.
+//!
+//! Does nothing when every weight is packed. Assumes every conv has an algorithm
+//! (`choose_conv_algo`).
+
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_runtime::kernels::conv;
+
+use super::bind_variants::not_bound;
+use super::choose_conv_algo::spatial;
+use super::{BackendInputs, Output, Patch, rebind};
+use crate::ir::Op;
+use crate::module::Module;
+use crate::ops::{ConvOp, LinearOp};
+
+pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
+    let table = module.tensors.as_ref().ok_or_else(not_bound)?;
+    let g = &module.graph;
+    let ice = |e: String| Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {e}"))]);
+    let mut patches = Vec::new();
+    for id in g.node_ids() {
+        let node = g.node(id);
+        let Some(slot) = node.params.iter().find(|s| s.name == "weight") else { continue };
+        let weight = node.param_name(slot);
+        match &node.op {
+            Op::Conv2d(c) if !c.packed => {
+                let Some(algo) = c.algo else { return Err(ice(format!("conv `{}` has no algorithm", node.path))) };
+                let (h, w) = spatial(g, id);
+                let s = c.conv.shape(1, h, w);
+                let len = algo.packed_len(&s);
+                let packed = table
+                    .derive_one(&[&weight], "packed as", vec![len], |v| {
+                        let mut out = vec![0.0; len];
+                        conv::pack_weight(&s, algo, v[0], &mut out);
+                        out
+                    })
+                    .map_err(ice)?;
+                let name = format!("{}.weight@{}", node.path, algo.name());
+                let new = Op::Conv2d(ConvOp { packed: true, ..c.clone() });
+                let mut p = Patch::new("pack_conv");
+                p.rewrite.push((id, new.clone(), rebind(&new, &node.params, &[("weight", name.clone())])));
+                p.tensors.push((name, packed));
+                patches.push(p);
+            }
+            Op::Linear(l) if !l.packed => {
+                let (fin, fout) = (l.linear.in_features.max(0) as usize, l.linear.out_features.max(0) as usize);
+                let transposed = table
+                    .derive_one(&[&weight], "transposed as", vec![fin, fout], |v| {
+                        let mut t = vec![0.0f32; fin * fout];
+                        for o in 0..fout {
+                            for i in 0..fin {
+                                t[i * fout + o] = v[0][o * fin + i];
+                            }
+                        }
+                        t
+                    })
+                    .map_err(ice)?;
+                let name = format!("{}.weight@t", node.path);
+                let new = Op::Linear(LinearOp { packed: true, ..l.clone() });
+                let mut p = Patch::new("transpose_linear");
+                p.rewrite.push((id, new.clone(), rebind(&new, &node.params, &[("weight", name.clone())])));
+                p.tensors.push((name, transposed));
+                patches.push(p);
+            }
+            _ => {}
+        }
+    }
+    Ok(Output::Patches(patches))
+}
