@@ -12,6 +12,7 @@ use std::time::Instant;
 use readi_compiler::backend::{self, CompileOptions};
 use readi_compiler::passes::{self, Module, Options};
 use readi_compiler::print;
+use readi_runtime::conditions;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;
 
@@ -185,7 +186,7 @@ pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCo
         let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
         let meta = vec![("fog_density".to_string(), scene.fog)];
         let t = Instant::now();
-        let selection = plan.select(&given, &meta).map_err(|e| fail(e.to_string()))?;
+        let selection = conditions::select(&plan, &given, &meta).map_err(|e| fail(e.to_string()))?;
         let select_us = t.elapsed().as_secs_f64() * 1e6;
         let t = Instant::now();
         session.set_variant(&selection.key).map_err(|e| fail(e.to_string()))?;
