@@ -28,7 +28,7 @@ use readi_plan::key::VariantKey;
 pub use readi_plan::key::fmt_level;
 
 use crate::exec::Input;
-use crate::plan::{BASE_VARIANT, Plan};
+use crate::plan::Plan;
 
 /// Sum and sum of squares in sixteen f32 lanes (so the loop vectorises), folded in f64
 /// every block so long inputs keep their precision; blocks run in parallel.
@@ -147,7 +147,7 @@ pub struct FrameInput<'a> {
 /// The outcome of selection: a key the plan holds, and why.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Selection {
-    pub key: String,
+    pub key: VariantKey,
     pub reasons: Vec<String>,
 }
 
@@ -271,8 +271,8 @@ pub fn select_frame(
         }
     }
     match keys.len() {
-        0 => Ok(Selection { key: VariantKey::base().to_string(), reasons }),
-        1 => Ok(Selection { key: keys.remove(0).to_string(), reasons }),
+        0 => Ok(Selection { key: VariantKey::base(), reasons }),
+        1 => Ok(Selection { key: keys.remove(0), reasons }),
         _ => {
             let shown = || keys.iter().map(|k| k.to_string()).collect::<Vec<_>>();
             let no_meld = || SelectError::NoMeld { conditions: shown() };
@@ -282,14 +282,14 @@ pub fn select_frame(
             };
             if has(&melded) {
                 reasons.push(format!("meld rule combines {}", shown().join(" and ")));
-                return Ok(Selection { key: melded.to_string(), reasons });
+                return Ok(Selection { key: melded, reasons });
             }
             // The lambdas follow the melded key's parts.
             let best = lambdas.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
-            let part = &melded.parts()[best];
+            let Some(part) = melded.part_keys().nth(best) else { return Err(no_meld()) };
             reasons
                 .push(format!("the plan has no melded `{melded}`; using `{part}` (largest lambda, {})", lambdas[best]));
-            Ok(Selection { key: part.to_string(), reasons })
+            Ok(Selection { key: part, reasons })
         }
     }
 }
@@ -322,7 +322,7 @@ pub fn select(plan: &Plan, inputs: &[Input<'_>], meta: &[(String, f64)]) -> Resu
         }
     }
     let Some(c) = &m.conditions else {
-        return Ok(Selection { key: BASE_VARIANT.into(), reasons: vec!["the plan declares no conditions".into()] });
+        return Ok(Selection { key: VariantKey::base(), reasons: vec!["the plan declares no conditions".into()] });
     };
     // Each input as selection reads it: a multi-view input only with the views present,
     // as `[views, C, H, W]`.
@@ -351,21 +351,23 @@ pub fn select(plan: &Plan, inputs: &[Input<'_>], meta: &[(String, f64)]) -> Resu
             data: g.as_ref().map(|(d, shape)| (d.as_ref(), shape.as_slice())),
         })
         .collect();
-    select_frame(c, &frame, meta, |k| plan.variant_index(&k.to_string()).is_some())
+    select_frame(c, &frame, meta, |k| plan.variant_index_of(k).is_some())
 }
 
 /// The missing-modality variant the spec's policy asks for when an optional input is
 /// absent (`missing lidar: variant` and no `lidar_bev` given), if `plan` holds it, with
 /// the reason. Selectors are not consulted: this is what a run without automatic
 /// selection still owes the spec.
-pub fn missing_variant(plan: &Plan, inputs: &[Input<'_>]) -> Option<(String, String)> {
+pub fn missing_variant(plan: &Plan, inputs: &[Input<'_>]) -> Option<(VariantKey, String)> {
     let c = plan.manifest.conditions.as_ref()?;
     plan.manifest.inputs.iter().filter(|i| !inputs.iter().any(|g| g.name == i.name)).find_map(|i| {
         let m = i.modality.as_deref()?;
         let policy = c.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p)?;
-        let key = format!("missing={m}");
-        (policy == MissingPolicy::Variant && plan.variant_index(&key).is_some())
-            .then(|| (key.clone(), format!("`{}` is absent: the {m} policy selects `{key}`", i.name)))
+        let key = VariantKey::missing(m);
+        (policy == MissingPolicy::Variant && plan.variant_index_of(&key).is_some()).then(|| {
+            let why = format!("`{}` is absent: the {m} policy selects `{key}`", i.name);
+            (key, why)
+        })
     })
 }
 
@@ -469,19 +471,25 @@ mod tests {
         let (dark, bright, lidar) = (leak(dark), leak(bright), leak(lidar));
         let all = |_: &VariantKey| true;
         let sel = select_frame(&s, &frame(bright, Some(lidar)), &[], all).expect("selects");
-        assert_eq!(sel.key, "base");
+        assert_eq!(sel.key.to_string(), "base");
         let sel = select_frame(&s, &frame(dark, Some(lidar)), &[], all).expect("selects");
-        assert_eq!(sel.key, "gamma=0.5");
+        assert_eq!(sel.key.to_string(), "gamma=0.5");
         assert!(sel.reasons.iter().any(|r| r.contains("brightness(cam) = 0.1000 -> gamma=0.5")), "{:?}", sel.reasons);
         // Metadata snaps to the nearest level; 0.01 is nearer the clear 0.
         let meta = |v: f64| vec![("fog_density".to_string(), v)];
-        assert_eq!(select_frame(&s, &frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key, "fog=0.06");
-        assert_eq!(select_frame(&s, &frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key, "base");
+        assert_eq!(
+            select_frame(&s, &frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key.to_string(),
+            "fog=0.06"
+        );
+        assert_eq!(select_frame(&s, &frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key.to_string(), "base");
         // Two modalities: the melded key when the plan has it, else the larger lambda.
-        assert_eq!(select_frame(&s, &frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key, "fog=0.1+gamma=0.5");
+        assert_eq!(
+            select_frame(&s, &frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key.to_string(),
+            "fog=0.1+gamma=0.5"
+        );
         let no_meld = |k: &VariantKey| !k.is_meld();
         let sel = select_frame(&s, &frame(dark, Some(lidar)), &meta(0.1), no_meld).expect("s");
-        assert_eq!(sel.key, "gamma=0.5");
+        assert_eq!(sel.key.to_string(), "gamma=0.5");
         assert!(sel.reasons.iter().any(|r| r.contains("no melded")));
         // Without a meld rule: an error naming both.
         let mut plain = s.clone();
@@ -490,10 +498,10 @@ mod tests {
         assert!(e.to_string().contains("gamma=0.5") && e.to_string().contains("fog=0.1"), "{e}");
         // A missing lidar: its policy's variant; the fog selector is skipped.
         let sel = select_frame(&s, &frame(bright, None), &meta(0.1), all).expect("s");
-        assert_eq!(sel.key, "missing=lidar");
+        assert_eq!(sel.key.to_string(), "missing=lidar");
         // A level the plan lacks: the nearest compiled one.
         let only = |k: &VariantKey| k.to_string() == "fog=0.03";
         let sel = select_frame(&s, &frame(bright, Some(lidar)), &meta(0.1), only).expect("s");
-        assert_eq!(sel.key, "fog=0.03");
+        assert_eq!(sel.key.to_string(), "fog=0.03");
     }
 }

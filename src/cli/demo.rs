@@ -189,7 +189,7 @@ pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCo
         let selection = conditions::select(&plan, &given, &meta).map_err(|e| fail(e.to_string()))?;
         let select_us = t.elapsed().as_secs_f64() * 1e6;
         let t = Instant::now();
-        session.set_variant(&selection.key).map_err(|e| fail(e.to_string()))?;
+        session.set_variant_key(&selection.key).map_err(|e| fail(e.to_string()))?;
         let switch_us = t.elapsed().as_secs_f64() * 1e6;
         let t = Instant::now();
         let result = session.run(&given).map_err(|e| fail(e.to_string()))?;

@@ -59,7 +59,7 @@ pub fn run(
         Choice::Base => {
             if let Some((key, why)) = conditions::missing_variant(&plan, &given) {
                 println!("{why}");
-                session.set_variant(&key).map_err(|e| fail(e.to_string()))?;
+                session.set_variant_key(&key).map_err(|e| fail(e.to_string()))?;
             }
         }
         Choice::Key(key) => session.set_variant(&key).map_err(|e| fail(e.to_string()))?,
@@ -71,7 +71,7 @@ pub fn run(
             for r in &sel.reasons {
                 println!("  {r}");
             }
-            session.set_variant(&sel.key).map_err(|e| fail(e.to_string()))?;
+            session.set_variant_key(&sel.key).map_err(|e| fail(e.to_string()))?;
         }
     }
     let start = Instant::now();

@@ -36,6 +36,8 @@ use std::fmt;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+use readi_plan::VariantKey;
+
 use crate::plan::Plan;
 
 pub(crate) use bind::Bound;
@@ -76,8 +78,9 @@ pub enum RunError {
     BadPlan { step: String, detail: String },
     /// The thread pool could not be created.
     Threads(String),
-    /// A variant key the plan does not have.
-    UnknownVariant { key: String, known: Vec<String>, nearest: Option<String> },
+    /// A variant key the plan does not have (`key` as given), or a text that is not a
+    /// variant key at all (`malformed` says why).
+    UnknownVariant { key: String, known: Vec<String>, nearest: Option<String>, malformed: Option<String> },
     /// A variant index past the plan's variants.
     VariantIndex { index: usize, count: usize },
 }
@@ -104,13 +107,17 @@ impl fmt::Display for RunError {
             }
             RunError::BadPlan { step, detail } => write!(f, "invalid plan at {step}: {detail}"),
             RunError::Threads(e) => write!(f, "cannot start the thread pool: {e}"),
-            RunError::UnknownVariant { key, known, nearest } => {
-                write!(f, "the plan has no variant `{key}`")?;
+            RunError::UnknownVariant { key, known, nearest, malformed } => {
+                match malformed {
+                    None => write!(f, "the plan has no variant `{key}`")?,
+                    Some(why) => write!(f, "`{key}` is not a variant key: {why}")?,
+                }
                 if let Some(near) = nearest {
                     write!(f, "; did you mean `{near}`?")?;
                 }
                 let shown: Vec<&str> = known.iter().take(KEYS_SHOWN).map(String::as_str).collect();
-                write!(f, " (its variants: {}", shown.join(", "))?;
+                let whose = if malformed.is_some() { "the plan's" } else { "its" };
+                write!(f, " ({whose} variants: {}", shown.join(", "))?;
                 if known.len() > KEYS_SHOWN {
                     write!(f, " and {} more", known.len() - KEYS_SHOWN)?;
                 }
@@ -195,9 +202,21 @@ impl Session {
 
     /// Makes variant `key` ([`BASE_VARIANT`](crate::plan::BASE_VARIANT) for the base)
     /// active for the runs that start from now on. A run in progress keeps its variant.
-    /// Copies no weights and allocates nothing (except for the error of an unknown key).
+    /// Copies no weights and allocates nothing (except for the error of an unknown key)
+    /// when `key` is canonical, as the plan lists it; another spelling of a key
+    /// (`fog=0.010` for `fog=0.01`, `gamma=0.5+blur=15` for `blur=15+gamma=0.5`) is read
+    /// as a [`VariantKey`] and names the same variant.
     pub fn set_variant(&self, key: &str) -> Result<(), RunError> {
-        switch::activate(&self.plan, &self.active, key)
+        self.active.store(switch::lookup(&self.plan, key)?, Ordering::Release);
+        Ok(())
+    }
+
+    /// As [`set_variant`](Session::set_variant), by parsed key (a
+    /// [`Selection`](crate::conditions::Selection)'s, say); allocates nothing (except for
+    /// the error of an unknown key).
+    pub fn set_variant_key(&self, key: &VariantKey) -> Result<(), RunError> {
+        self.active.store(switch::lookup_key(&self.plan, key)?, Ordering::Release);
+        Ok(())
     }
 
     /// The active variant's key: the one the next run will use, unless it is switched

@@ -1,9 +1,20 @@
 //! Switching a session's variant: [`VariantSwitch`], the key lookup behind it and
 //! [`Session::set_variant`], and the nearest-key suggestion of an unknown key.
+//!
+//! A key given as text is looked up exactly first: the plan's keys are canonical
+//! [`VariantKey`] text, so a canonical key (as [`Plan::variant_keys`] lists it) is found by
+//! a binary search that allocates nothing. Only on a miss is the text read as a
+//! [`VariantKey`] and looked up by meaning, so `fog=0.010` names `fog=0.01` and
+//! `gamma=0.5+blur=15` names `blur=15+gamma=0.5`; a key that is still unknown, or a text
+//! that is not a key at all, is a [`RunError::UnknownVariant`] with the nearest known key.
+//! A parsed key (a [`Selection`](crate::conditions::Selection)'s) is compared with the
+//! plan's parsed keys, which allocates nothing either.
 
 use std::fmt;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
+
+use readi_plan::VariantKey;
 
 use crate::plan::Plan;
 
@@ -23,8 +34,18 @@ pub struct VariantSwitch {
 impl VariantSwitch {
     /// Makes variant `key` active for the runs that start from now on: a lookup that
     /// allocates nothing and an atomic store. A run in progress keeps its variant.
+    /// A key written another way than the plan's (`fog=0.010`, parts of a meld in another
+    /// order) is read as a [`VariantKey`] and found by meaning, which allocates.
     pub fn set(&self, key: &str) -> Result<(), RunError> {
-        activate(&self.plan, &self.active, key)
+        self.active.store(lookup(&self.plan, key)?, Ordering::Release);
+        Ok(())
+    }
+
+    /// As [`set`](VariantSwitch::set), by parsed key; allocates nothing (except for the
+    /// error of an unknown key).
+    pub fn set_key(&self, key: &VariantKey) -> Result<(), RunError> {
+        self.active.store(lookup_key(&self.plan, key)?, Ordering::Release);
+        Ok(())
     }
 
     /// As [`set`](VariantSwitch::set), by index (0 is the base).
@@ -54,16 +75,32 @@ impl fmt::Debug for VariantSwitch {
     }
 }
 
-/// Looks `key` up and stores its index; the lookup is a binary search over the plan's
-/// keys, so nothing is allocated unless the key is unknown.
-pub(super) fn activate(plan: &Plan, active: &AtomicUsize, key: &str) -> Result<(), RunError> {
-    let Some(i) = plan.variant_index(key) else {
-        let known: Vec<String> = plan.variant_keys().map(str::to_string).collect();
-        let nearest = nearest_key(key, &known).map(str::to_string);
-        return Err(RunError::UnknownVariant { key: key.to_string(), known, nearest });
-    };
-    active.store(i, Ordering::Release);
-    Ok(())
+/// The index of the variant `key` names: its exact text first (a binary search over the
+/// plan's keys, which allocates nothing), then the text read as a [`VariantKey`].
+pub(super) fn lookup(plan: &Plan, key: &str) -> Result<usize, RunError> {
+    if let Some(i) = plan.variant_index(key) {
+        return Ok(i);
+    }
+    match VariantKey::parse(key) {
+        Ok(parsed) => plan.variant_index_of(&parsed).ok_or_else(|| unknown(plan, key, &parsed.to_string(), None)),
+        Err(e) => Err(unknown(plan, key, key, Some(e.reason))),
+    }
+}
+
+/// The index of the variant of key `key`; allocates nothing unless it is unknown.
+pub(super) fn lookup_key(plan: &Plan, key: &VariantKey) -> Result<usize, RunError> {
+    plan.variant_index_of(key).ok_or_else(|| {
+        let text = key.to_string();
+        unknown(plan, &text, &text, None)
+    })
+}
+
+/// The error for a key the plan does not have, given as `key`; the suggestion is the
+/// known key nearest `canonical` (the key's canonical text when it is a key).
+fn unknown(plan: &Plan, key: &str, canonical: &str, malformed: Option<String>) -> RunError {
+    let known: Vec<String> = plan.variant_keys().map(str::to_string).collect();
+    let nearest = nearest_key(canonical, &known).map(str::to_string);
+    RunError::UnknownVariant { key: key.to_string(), known, nearest, malformed }
 }
 
 /// The known key closest to `key` by edit distance (ignoring case), if it is close: at
