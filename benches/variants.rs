@@ -24,6 +24,7 @@ use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, LoraMode};
 use readi_compiler::passes::{self, Options};
 use readi_grammar::diag::FileId;
+use readi_runtime::conditions;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;
 
@@ -176,7 +177,7 @@ fn main() {
     let mut sel = Vec::new();
     for _ in 0..if quick { 10 } else { 50 } {
         let t = Instant::now();
-        std::hint::black_box(merged.select(&given, &meta).expect("selects"));
+        std::hint::black_box(conditions::select(&merged, &given, &meta).expect("selects"));
         sel.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let sel = median(sel);

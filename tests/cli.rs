@@ -360,3 +360,129 @@ fn compile_a_deployment_with_variants() {
     assert!(stderr(&o).contains("`blur=7` is not declared"), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A model with a fog axis at 0.01, a camera axis and a meld rule, for the key tests.
+const KEYS_SPEC: &str = "\
+model keys {
+  input image: f32[N, 3, 8, 8] @camera
+  input points: f32[N, 3, 8, 8] @lidar
+  cam = conv2d(image, 4, kernel=3, padding=1, bias=false)
+  bn1 = batchnorm(cam)
+  lid = conv2d(points, 4, kernel=3, padding=1, bias=false)
+  bn2 = batchnorm(lid)
+  head {
+    fc = linear(flatten(global_avgpool(relu(bn1 + bn2)), start=1), 3)
+  }
+  output y = head.fc
+}
+adapt {
+  tune batchnorm, head.*
+}
+variants {
+  axis fog on lidar: 0.01, 0.03 clear 0
+  axis gamma on camera: 0.25, 4 clear 1
+  meld camera = 0.8, lidar = 0.2
+}
+";
+
+/// `run`, `bench` and `adapt-bn` read `--variant` as a key, as `compile` does: `fog=0.010`
+/// names `fog=0.01`, and a meld's parts may come in any order.
+#[test]
+fn variant_keys_are_read_by_meaning_by_every_command() {
+    use readi_compiler::backend::{WeightSet, seeded_tensor, variants::owned_params};
+    let dir = std::env::temp_dir().join(format!("readi-cli-keys-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let spec = dir.join("keys.readi");
+    std::fs::write(&spec, KEYS_SPEC).expect("write spec");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let (_, weights) = seeded_weights_file(&p(&spec), &[], "keys");
+    let module = common::compile(&p(&spec), &[], None).1.module.expect("module");
+    let mut args = vec!["compile".to_string(), p(&spec), "--weights".into(), p(&weights)];
+    for (seed, key) in [(5, "fog=0.01"), (6, "gamma=0.25")] {
+        let mut params = WeightSet::default();
+        for (name, o) in owned_params(&module) {
+            params.tensors.insert(name.clone(), (o.shape.clone(), seeded_tensor(seed, &name, &o.shape)));
+        }
+        let file = dir.join(format!("{key}.safetensors"));
+        std::fs::write(&file, params.to_safetensors().expect("serialises")).expect("write");
+        args.extend(["--variant".into(), format!("{key}={}", p(&file))]);
+    }
+    let plan = dir.join("keys.plan");
+    args.extend(["--meld".into(), "fog=0.01+gamma=0.25".into(), "-o".into(), p(&plan)]);
+    let o = readi(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    let (image, points) = (dir.join("image.npy"), dir.join("points.npy"));
+    let shape = vec![2, 3, 8, 8];
+    let values = |seed: usize| (0..2 * 3 * 64).map(|i| ((i * 37 + seed) % 101) as f32 / 101.0).collect();
+    write_npy(&image, &readi_runtime::exec::Tensor { shape: shape.clone(), data: values(1) });
+    write_npy(&points, &readi_runtime::exec::Tensor { shape: shape.clone(), data: values(2) });
+    let (image_arg, points_arg) = (format!("image={}", p(&image)), format!("points={}", p(&points)));
+    let plan_s = p(&plan);
+    // Runs `--variant key` (the base without); returns stdout and the output's bytes.
+    let run = |key: Option<&str>| {
+        let out = dir.join("y.npy");
+        let mut args = vec!["run", &plan_s, "--input", &image_arg, "--input", &points_arg];
+        let out_s = p(&out);
+        args.extend(["--output", &out_s]);
+        if let Some(key) = key {
+            args.extend(["--variant", key]);
+        }
+        let o = readi(&args);
+        assert!(o.status.success(), "--variant {key:?}: {}", stderr(&o));
+        (stdout(&o), std::fs::read(&out).expect("output written"))
+    };
+    let (_, base) = run(None);
+    let (out, fog) = run(Some("fog=0.01"));
+    assert!(out.contains("ran variant fog=0.01 "), "{out}");
+    assert_ne!(fog, base, "the variant's tensors change the output");
+    let (out, fog_long) = run(Some("fog=0.010"));
+    assert!(out.contains("ran variant fog=0.01 "), "{out}");
+    assert_eq!(fog_long, fog, "fog=0.010 is fog=0.01");
+    let (out, meld) = run(Some("fog=0.01+gamma=0.25"));
+    assert!(out.contains("ran variant fog=0.01+gamma=0.25 "), "{out}");
+    assert_ne!(meld, fog);
+    let (out, meld_swapped) = run(Some("gamma=0.250+fog=0.01"));
+    assert!(out.contains("ran variant fog=0.01+gamma=0.25 "), "{out}");
+    assert_eq!(meld_swapped, meld, "a meld's parts in either order name one variant");
+
+    let o = readi(&["bench", &plan_s, "--runs", "1", "--warmup", "0", "--variant", "gamma=0.25+fog=0.010"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("(fog=0.01+gamma=0.25)"), "{}", stdout(&o));
+    // Text that is not a key says why; a key the plan lacks names the nearest it has.
+    let o = readi(&["run", &plan_s, "--input", &image_arg, "--input", &points_arg, "--variant", "fog=0.01+fog=0.03"]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(
+        err.contains("`fog=0.01+fog=0.03` is not a variant key: `fog=0.01` and `fog=0.03` are on the same axis"),
+        "{err}"
+    );
+    let o = readi(&["bench", &plan_s, "--runs", "1", "--variant", "gamma=0.25+fog=0.030"]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(err.contains("no variant `gamma=0.25+fog=0.030`; did you mean `fog=0.01+gamma=0.25`?"), "{err}");
+
+    // adapt-bn writes statistics under the canonical key of a meld given in any order.
+    let mut sample = WeightSet::default();
+    sample.tensors.insert("image".into(), (shape.clone(), values(3)));
+    sample.tensors.insert("points".into(), (shape.clone(), values(4)));
+    let sample_path = dir.join("sample.safetensors");
+    std::fs::write(&sample_path, sample.to_safetensors().expect("serialises")).expect("write");
+    let stats = dir.join("stats.safetensors");
+    let o = readi(&[
+        "adapt-bn",
+        &plan_s,
+        "--variant",
+        "gamma=0.250+fog=0.010",
+        "--samples",
+        &p(&sample_path),
+        "-o",
+        &p(&stats),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("for variant `fog=0.01+gamma=0.25`"), "{}", stdout(&o));
+    let o = readi(&["adapt-bn", &plan_s, "--variant", "fog=0.02", "--samples", &p(&sample_path), "-o", &p(&stats)]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("declares no variant `fog=0.02`"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -8,6 +8,7 @@ use std::sync::Arc;
 use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, VariantSource, variants};
 use readi_compiler::passes::{self, BackendInputs, Pass};
+use readi_runtime::conditions;
 use readi_runtime::exec::{Input, RunError, Session, Tensor};
 use readi_runtime::plan::Plan;
 
@@ -69,33 +70,34 @@ fn selectors_choose_variants_and_say_why() {
     let (plan, _) = plan(&m);
     let (clear_cam, lidar) = frame(0.5, 0.01);
     let (dark_cam, _) = frame(0.1, 0.01);
-    let select =
-        |cam: &[f32], lid: Option<&[f32]>, fog: f64| plan.select(&inputs(Some(cam), lid), &meta(fog)).expect("selects");
+    let select = |cam: &[f32], lid: Option<&[f32]>, fog: f64| {
+        conditions::select(&plan, &inputs(Some(cam), lid), &meta(fog)).expect("selects")
+    };
 
     let s = select(&clear_cam, Some(&lidar), 0.0);
-    assert_eq!(s.key, "base", "{:?}", s.reasons);
+    assert_eq!(s.key.to_string(), "base", "{:?}", s.reasons);
     let s = select(&dark_cam, Some(&lidar), 0.0);
-    assert_eq!(s.key, "gamma=0.25");
+    assert_eq!(s.key.to_string(), "gamma=0.25");
     assert!(s.reasons.iter().any(|r| r.starts_with("gamma: brightness(camera) = 0.1000")), "{:?}", s.reasons);
     let s = select(&clear_cam, Some(&lidar), 0.055);
-    assert_eq!(s.key, "fog=0.06", "the nearest level: {:?}", s.reasons);
+    assert_eq!(s.key.to_string(), "fog=0.06", "the nearest level: {:?}", s.reasons);
     let s = select(&dark_cam, Some(&lidar), 0.06);
-    assert_eq!(s.key, MELD, "fog and dark at once: the melded variant: {:?}", s.reasons);
+    assert_eq!(s.key.to_string(), MELD, "fog and dark at once: the melded variant: {:?}", s.reasons);
     let s = select(&clear_cam, None, 0.06);
-    assert_eq!(s.key, "missing=lidar", "a lost lidar; its fog selector is skipped: {:?}", s.reasons);
+    assert_eq!(s.key.to_string(), "missing=lidar", "a lost lidar; its fog selector is skipped: {:?}", s.reasons);
     // Without selection, the missing-modality policy still holds.
-    let (key, why) = plan.missing_variant(&inputs(Some(&clear_cam), None)).expect("the policy's variant");
-    assert_eq!(key, "missing=lidar");
+    let (key, why) = conditions::missing_variant(&plan, &inputs(Some(&clear_cam), None)).expect("the policy's variant");
+    assert_eq!(key.to_string(), "missing=lidar");
     assert!(why.contains("`lidar_bev` is absent"), "{why}");
-    assert_eq!(plan.missing_variant(&inputs(Some(&clear_cam), Some(&lidar))), None);
-    assert_eq!(plan.missing_variant(&inputs(None, Some(&lidar))), None, "camera's policy is zero_fill");
+    assert_eq!(conditions::missing_variant(&plan, &inputs(Some(&clear_cam), Some(&lidar))), None);
+    assert_eq!(conditions::missing_variant(&plan, &inputs(None, Some(&lidar))), None, "camera's policy is zero_fill");
     // A level the plan has no variant for falls back to the nearest compiled one.
     let s = select(&clear_cam, Some(&lidar), 0.15);
-    assert_eq!(s.key, "fog=0.06");
+    assert_eq!(s.key.to_string(), "fog=0.06");
     assert!(s.reasons.iter().any(|r| r.contains("no `fog=0.15`")), "{:?}", s.reasons);
     // A blurred camera: a flat image has no Laplacian variance.
     let flat = vec![0.5f32; clear_cam.len()];
-    assert_eq!(select(&flat, Some(&lidar), 0.0).key, "blur=30");
+    assert_eq!(select(&flat, Some(&lidar), 0.0).key.to_string(), "blur=30");
 }
 
 #[test]
@@ -103,14 +105,13 @@ fn a_dropped_camera_is_not_read_as_darkness() {
     let m = module();
     let (plan, _) = plan(&m);
     let (mut cam, lidar) = frame(0.5, 0.01);
-    readi_runtime::conditions::drop_views(&mut cam, &CAMERA, &[1, 4]).expect("views exist");
+    conditions::drop_views(&mut cam, &CAMERA, &[1, 4]).expect("views exist");
     let per_view = 3 * 128 * 352;
     assert!(cam[per_view..2 * per_view].iter().all(|v| *v == 0.0) && cam[0] != 0.0);
-    let s = plan.select(&inputs(Some(&cam), Some(&lidar)), &[]).expect("selects");
-    assert_eq!(s.key, "base", "brightness over the four views present is 0.5: {:?}", s.reasons);
-    assert!(readi_runtime::conditions::drop_views(&mut cam, &CAMERA, &[6]).is_err());
-    let e =
-        readi_runtime::conditions::drop_views(&mut cam, &[6, 3, 128, 352], &[1]).expect_err("4-D is not multi-view");
+    let s = conditions::select(&plan, &inputs(Some(&cam), Some(&lidar)), &[]).expect("selects");
+    assert_eq!(s.key.to_string(), "base", "brightness over the four views present is 0.5: {:?}", s.reasons);
+    assert!(conditions::drop_views(&mut cam, &CAMERA, &[6]).is_err());
+    let e = conditions::drop_views(&mut cam, &[6, 3, 128, 352], &[1]).expect_err("4-D is not multi-view");
     assert!(e.contains("not multi-view"), "{e}");
 }
 

@@ -3,8 +3,9 @@
 //! A plan compiled from a spec with a `variants` section carries its [`Conditions`]: the
 //! axes and their levels, how each axis's level is found (a statistic of an input against
 //! thresholds, or a metadata value snapped to the nearest level), the missing-modality
-//! policies and the meld rule. [`Conditions::select`] turns one frame's inputs and metadata
-//! into a variant key and the reasons for it:
+//! policies and the meld rule. [`select`] turns one frame's inputs and metadata into the
+//! key of a variant the plan holds and the reasons for it ([`select_frame`] does the same
+//! under any [`Conditions`], for any set of keys):
 //!
 //! 1. each absent optional input's modality follows its policy: `zero_fill` (the default)
 //!    runs the zero-filled input and ignores the modality's selectors; `variant` selects
@@ -25,6 +26,9 @@ use rayon::prelude::*;
 pub use readi_plan::conditions::*;
 use readi_plan::key::VariantKey;
 pub use readi_plan::key::fmt_level;
+
+use crate::exec::Input;
+use crate::plan::Plan;
 
 /// Sum and sum of squares in sixteen f32 lanes (so the loop vectorises), folded in f64
 /// every block so long inputs keep their precision; blocks run in parallel.
@@ -143,7 +147,7 @@ pub struct FrameInput<'a> {
 /// The outcome of selection: a key the plan holds, and why.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Selection {
-    pub key: String,
+    pub key: VariantKey,
     pub reasons: Vec<String>,
 }
 
@@ -174,7 +178,7 @@ impl std::error::Error for SelectError {}
 
 /// Chooses the variant for one frame under `conditions` (see the module doc). `has`
 /// tells whether the plan holds a key.
-pub fn select(
+pub fn select_frame(
     conditions: &Conditions,
     inputs: &[FrameInput<'_>],
     meta: &[(String, f64)],
@@ -267,8 +271,8 @@ pub fn select(
         }
     }
     match keys.len() {
-        0 => Ok(Selection { key: VariantKey::base().to_string(), reasons }),
-        1 => Ok(Selection { key: keys.remove(0).to_string(), reasons }),
+        0 => Ok(Selection { key: VariantKey::base(), reasons }),
+        1 => Ok(Selection { key: keys.remove(0), reasons }),
         _ => {
             let shown = || keys.iter().map(|k| k.to_string()).collect::<Vec<_>>();
             let no_meld = || SelectError::NoMeld { conditions: shown() };
@@ -278,14 +282,14 @@ pub fn select(
             };
             if has(&melded) {
                 reasons.push(format!("meld rule combines {}", shown().join(" and ")));
-                return Ok(Selection { key: melded.to_string(), reasons });
+                return Ok(Selection { key: melded, reasons });
             }
             // The lambdas follow the melded key's parts.
             let best = lambdas.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
-            let part = &melded.parts()[best];
+            let Some(part) = melded.part_keys().nth(best) else { return Err(no_meld()) };
             reasons
                 .push(format!("the plan has no melded `{melded}`; using `{part}` (largest lambda, {})", lambdas[best]));
-            Ok(Selection { key: part.to_string(), reasons })
+            Ok(Selection { key: part, reasons })
         }
     }
 }
@@ -305,69 +309,66 @@ fn fmt_value(v: f64) -> String {
     if v != 0.0 && (v.abs() < 1e-3 || v.abs() >= 1e5) { format!("{v:.3e}") } else { format!("{v:.4}") }
 }
 
-impl crate::plan::Plan {
-    /// Chooses this plan's variant for one frame: `inputs` as given to
-    /// [`Session::run`](crate::exec::Session::run) (absent optional inputs left out) and run
-    /// metadata such as a weather service's `fog_density`. A plan without conditions runs
-    /// the base. For a multi-view input (`[N, views, C, H, W]`), statistics are computed over
-    /// the views that are not all zero, so a dropped camera does not read as darkness.
-    pub fn select(&self, inputs: &[crate::exec::Input<'_>], meta: &[(String, f64)]) -> Result<Selection, SelectError> {
-        let m = &self.manifest;
-        for spec in &m.inputs {
-            if !spec.optional && !inputs.iter().any(|i| i.name == spec.name) {
-                return Err(SelectError::MissingRequired { input: spec.name.clone() });
-            }
+/// Chooses `plan`'s variant for one frame: `inputs` as given to
+/// [`Session::run`](crate::exec::Session::run) (absent optional inputs left out) and run
+/// metadata such as a weather service's `fog_density`. A plan without conditions runs the
+/// base. For a multi-view input (`[N, views, C, H, W]`), statistics are computed over the
+/// views that are not all zero, so a dropped camera does not read as darkness.
+pub fn select(plan: &Plan, inputs: &[Input<'_>], meta: &[(String, f64)]) -> Result<Selection, SelectError> {
+    let m = &plan.manifest;
+    for spec in &m.inputs {
+        if !spec.optional && !inputs.iter().any(|i| i.name == spec.name) {
+            return Err(SelectError::MissingRequired { input: spec.name.clone() });
         }
-        let Some(c) = &m.conditions else {
-            return Ok(Selection {
-                key: crate::plan::BASE_VARIANT.into(),
-                reasons: vec!["the plan declares no conditions".into()],
-            });
-        };
-        // Each input as selection reads it: a multi-view input only with the views present,
-        // as `[views, C, H, W]`.
-        let given: Vec<Option<ViewedInput<'_>>> = m
-            .inputs
-            .iter()
-            .map(|spec| {
-                let i = inputs.iter().find(|i| i.name == spec.name)?;
-                if i.shape.len() < 5 {
-                    return Some((Cow::Borrowed(i.data), i.shape.to_vec()));
-                }
-                let views = present_views(i.data, i.shape);
-                let per_view: usize = i.shape[2..].iter().product();
-                let mut shape = vec![views.len() / per_view.max(1)];
-                shape.extend_from_slice(&i.shape[2..]);
-                Some((views, shape))
-            })
-            .collect();
-        let frame: Vec<FrameInput<'_>> = m
-            .inputs
-            .iter()
-            .zip(&given)
-            .map(|(spec, g)| FrameInput {
-                name: &spec.name,
-                modality: spec.modality.as_deref(),
-                data: g.as_ref().map(|(d, shape)| (d.as_ref(), shape.as_slice())),
-            })
-            .collect();
-        select(c, &frame, meta, |k| self.variant_index(&k.to_string()).is_some())
     }
-
-    /// The missing-modality variant the spec's policy asks for when an optional input is
-    /// absent (`missing lidar: variant` and no `lidar_bev` given), if the plan holds it,
-    /// with the reason. Selectors are not consulted: this is what a run without automatic
-    /// selection still owes the spec.
-    pub fn missing_variant(&self, inputs: &[crate::exec::Input<'_>]) -> Option<(String, String)> {
-        let c = self.manifest.conditions.as_ref()?;
-        self.manifest.inputs.iter().filter(|i| !inputs.iter().any(|g| g.name == i.name)).find_map(|i| {
-            let m = i.modality.as_deref()?;
-            let policy = c.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p)?;
-            let key = format!("missing={m}");
-            (policy == MissingPolicy::Variant && self.variant_index(&key).is_some())
-                .then(|| (key.clone(), format!("`{}` is absent: the {m} policy selects `{key}`", i.name)))
+    let Some(c) = &m.conditions else {
+        return Ok(Selection { key: VariantKey::base(), reasons: vec!["the plan declares no conditions".into()] });
+    };
+    // Each input as selection reads it: a multi-view input only with the views present,
+    // as `[views, C, H, W]`.
+    let given: Vec<Option<ViewedInput<'_>>> = m
+        .inputs
+        .iter()
+        .map(|spec| {
+            let i = inputs.iter().find(|i| i.name == spec.name)?;
+            if i.shape.len() < 5 {
+                return Some((Cow::Borrowed(i.data), i.shape.to_vec()));
+            }
+            let views = present_views(i.data, i.shape);
+            let per_view: usize = i.shape[2..].iter().product();
+            let mut shape = vec![views.len() / per_view.max(1)];
+            shape.extend_from_slice(&i.shape[2..]);
+            Some((views, shape))
         })
-    }
+        .collect();
+    let frame: Vec<FrameInput<'_>> = m
+        .inputs
+        .iter()
+        .zip(&given)
+        .map(|(spec, g)| FrameInput {
+            name: &spec.name,
+            modality: spec.modality.as_deref(),
+            data: g.as_ref().map(|(d, shape)| (d.as_ref(), shape.as_slice())),
+        })
+        .collect();
+    select_frame(c, &frame, meta, |k| plan.variant_index_of(k).is_some())
+}
+
+/// The missing-modality variant the spec's policy asks for when an optional input is
+/// absent (`missing lidar: variant` and no `lidar_bev` given), if `plan` holds it, with
+/// the reason. Selectors are not consulted: this is what a run without automatic
+/// selection still owes the spec.
+pub fn missing_variant(plan: &Plan, inputs: &[Input<'_>]) -> Option<(VariantKey, String)> {
+    let c = plan.manifest.conditions.as_ref()?;
+    plan.manifest.inputs.iter().filter(|i| !inputs.iter().any(|g| g.name == i.name)).find_map(|i| {
+        let m = i.modality.as_deref()?;
+        let policy = c.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p)?;
+        let key = VariantKey::missing(m);
+        (policy == MissingPolicy::Variant && plan.variant_index_of(&key).is_some()).then(|| {
+            let why = format!("`{}` is absent: the {m} policy selects `{key}`", i.name);
+            (key, why)
+        })
+    })
 }
 
 /// An input's data and shape as selection reads it.
@@ -469,32 +470,38 @@ mod tests {
         let leak = |v: Vec<f32>| -> &'static [f32] { Box::leak(v.into_boxed_slice()) };
         let (dark, bright, lidar) = (leak(dark), leak(bright), leak(lidar));
         let all = |_: &VariantKey| true;
-        let sel = select(&s, &frame(bright, Some(lidar)), &[], all).expect("selects");
-        assert_eq!(sel.key, "base");
-        let sel = select(&s, &frame(dark, Some(lidar)), &[], all).expect("selects");
-        assert_eq!(sel.key, "gamma=0.5");
+        let sel = select_frame(&s, &frame(bright, Some(lidar)), &[], all).expect("selects");
+        assert_eq!(sel.key.to_string(), "base");
+        let sel = select_frame(&s, &frame(dark, Some(lidar)), &[], all).expect("selects");
+        assert_eq!(sel.key.to_string(), "gamma=0.5");
         assert!(sel.reasons.iter().any(|r| r.contains("brightness(cam) = 0.1000 -> gamma=0.5")), "{:?}", sel.reasons);
         // Metadata snaps to the nearest level; 0.01 is nearer the clear 0.
         let meta = |v: f64| vec![("fog_density".to_string(), v)];
-        assert_eq!(select(&s, &frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key, "fog=0.06");
-        assert_eq!(select(&s, &frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key, "base");
+        assert_eq!(
+            select_frame(&s, &frame(bright, Some(lidar)), &meta(0.07), all).expect("s").key.to_string(),
+            "fog=0.06"
+        );
+        assert_eq!(select_frame(&s, &frame(bright, Some(lidar)), &meta(0.01), all).expect("s").key.to_string(), "base");
         // Two modalities: the melded key when the plan has it, else the larger lambda.
-        assert_eq!(select(&s, &frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key, "fog=0.1+gamma=0.5");
+        assert_eq!(
+            select_frame(&s, &frame(dark, Some(lidar)), &meta(0.1), all).expect("s").key.to_string(),
+            "fog=0.1+gamma=0.5"
+        );
         let no_meld = |k: &VariantKey| !k.is_meld();
-        let sel = select(&s, &frame(dark, Some(lidar)), &meta(0.1), no_meld).expect("s");
-        assert_eq!(sel.key, "gamma=0.5");
+        let sel = select_frame(&s, &frame(dark, Some(lidar)), &meta(0.1), no_meld).expect("s");
+        assert_eq!(sel.key.to_string(), "gamma=0.5");
         assert!(sel.reasons.iter().any(|r| r.contains("no melded")));
         // Without a meld rule: an error naming both.
         let mut plain = s.clone();
         plain.meld = None;
-        let e = select(&plain, &frame(dark, Some(lidar)), &meta(0.1), all).expect_err("no meld");
+        let e = select_frame(&plain, &frame(dark, Some(lidar)), &meta(0.1), all).expect_err("no meld");
         assert!(e.to_string().contains("gamma=0.5") && e.to_string().contains("fog=0.1"), "{e}");
         // A missing lidar: its policy's variant; the fog selector is skipped.
-        let sel = select(&s, &frame(bright, None), &meta(0.1), all).expect("s");
-        assert_eq!(sel.key, "missing=lidar");
+        let sel = select_frame(&s, &frame(bright, None), &meta(0.1), all).expect("s");
+        assert_eq!(sel.key.to_string(), "missing=lidar");
         // A level the plan lacks: the nearest compiled one.
         let only = |k: &VariantKey| k.to_string() == "fog=0.03";
-        let sel = select(&s, &frame(bright, Some(lidar)), &meta(0.1), only).expect("s");
-        assert_eq!(sel.key, "fog=0.03");
+        let sel = select_frame(&s, &frame(bright, Some(lidar)), &meta(0.1), only).expect("s");
+        assert_eq!(sel.key.to_string(), "fog=0.03");
     }
 }

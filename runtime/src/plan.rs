@@ -34,6 +34,7 @@ use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
+use readi_plan::VariantKey;
 pub use readi_plan::format::*;
 pub use readi_plan::{Dim, show_shape};
 
@@ -127,6 +128,8 @@ pub struct Plan {
 struct VariantMaps {
     /// Key of each variant: [`BASE_VARIANT`], then the tables' keys in manifest order.
     keys: Box<[Box<str>]>,
+    /// The same keys, parsed, for lookups by meaning.
+    parsed: Box<[VariantKey]>,
     /// Variant indices sorted by [`key_order`], for lookups by binary search (no hashing,
     /// no allocation).
     by_key: Box<[u32]>,
@@ -157,12 +160,12 @@ impl VariantMaps {
                 row[r.base] = r.with as u32;
             }
         }
-        let keys: Box<[Box<str>]> = std::iter::once(BASE_VARIANT.into())
-            .chain(m.variants.iter().map(|v| v.key.to_string().into_boxed_str()))
-            .collect();
+        let parsed: Box<[VariantKey]> =
+            std::iter::once(VariantKey::base()).chain(m.variants.iter().map(|v| v.key.clone())).collect();
+        let keys: Box<[Box<str>]> = parsed.iter().map(|k| k.to_string().into_boxed_str()).collect();
         let mut by_key: Vec<u32> = (0..count as u32).collect();
         by_key.sort_by(|&a, &b| key_order(&keys[a as usize], &keys[b as usize]));
-        VariantMaps { keys, by_key: by_key.into(), maps: maps.into(), span }
+        VariantMaps { keys, parsed, by_key: by_key.into(), maps: maps.into(), span }
     }
 }
 
@@ -240,11 +243,18 @@ impl Plan {
         self.variants.keys.len()
     }
 
-    /// The index of the variant with key `key` ([`BASE_VARIANT`] is 0). Allocates nothing.
+    /// The index of the variant whose key's canonical text is `key` ([`BASE_VARIANT`] is
+    /// 0); [`Plan::variant_index_of`] takes a parsed key. Allocates nothing.
     pub fn variant_index(&self, key: &str) -> Option<usize> {
         let keys = &self.variants.keys;
         let at = self.variants.by_key.binary_search_by(|&i| key_order(&keys[i as usize], key)).ok()?;
         Some(self.variants.by_key[at] as usize)
+    }
+
+    /// The index of the variant of key `key` (the base is 0), compared as keys, not as
+    /// text. Allocates nothing.
+    pub fn variant_index_of(&self, key: &VariantKey) -> Option<usize> {
+        self.variants.parsed.iter().position(|k| k == key)
     }
 
     /// The key of variant `i`.

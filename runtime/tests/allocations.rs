@@ -139,6 +139,7 @@ fn switching_and_runs_allocate_only_outputs() {
     let plan = Arc::new(plan());
     assert_eq!(plan.variant_count(), 13);
     let keys: Vec<String> = plan.variant_keys().map(str::to_string).collect();
+    let parsed: Vec<VariantKey> = keys.iter().map(|k| VariantKey::parse(k).expect("a key")).collect();
     let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
     let handle = s.switch_handle();
     let x = data(3 * 4 * 64, 7);
@@ -166,12 +167,14 @@ fn switching_and_runs_allocate_only_outputs() {
                 handle.set(&keys[i % keys.len()]).expect("known key");
                 s.set_variant(&keys[(i + 5) % keys.len()]).expect("known key");
                 handle.set_index(i % keys.len()).expect("in range");
+                handle.set_key(&parsed[(i + 3) % keys.len()]).expect("known key");
+                s.set_variant_key(&parsed[(i + 7) % keys.len()]).expect("known key");
             }
             let c = region.change();
             c.allocations + c.reallocations
         })
         .min();
-    assert_eq!(switching, Some(0), "30,000 switches allocated");
+    assert_eq!(switching, Some(0), "50,000 switches allocated");
 
     // Each run returns a Vec of two (name, tensor) pairs: 1 + 2 * 3 allocations.
     let per_run = 7;

@@ -692,6 +692,7 @@ fn unknown_keys_and_indices_are_errors_with_suggestions() {
             key: "fog=0.5".into(),
             known: vec!["base".into(), "fog=0.05".into(), "gamma=2".into()],
             nearest: Some("fog=0.05".into()),
+            malformed: None,
         }
     );
     assert_eq!(
@@ -711,6 +712,109 @@ fn unknown_keys_and_indices_are_errors_with_suggestions() {
     assert_eq!(e, RunError::VariantIndex { index: 3, count: 3 });
     assert!(e.to_string().contains("variant index 3 is out of range: the plan has 3 variants"), "{e}");
     assert_eq!(s.variant(), "fog=0.05");
+}
+
+/// The MLP plan with keys that have other spellings: `fog=0.01`, a meld and a missing
+/// modality.
+fn spelled_plan() -> Arc<Plan> {
+    let (m, tensors) = edited(|v| {
+        for (t, k) in v.iter_mut().zip(["fog=0.01", "blur=15+gamma=0.5", "missing=lidar"]) {
+            t.key = key(k);
+        }
+    });
+    Arc::new(Plan::new(m, tensors).expect("valid"))
+}
+
+#[test]
+fn keys_are_looked_up_by_meaning() {
+    let plan = spelled_plan();
+    assert_eq!(
+        plan.variant_keys().collect::<Vec<_>>(),
+        [BASE_VARIANT, "fog=0.01", "blur=15+gamma=0.5", "missing=lidar"]
+    );
+    let mut s = Session::new(Arc::clone(&plan), 1).expect("session");
+    let handle = s.switch_handle();
+    let x = data(2 * 4, 3);
+    // Each spelling names the canonical key's variant, by text and parsed, from the
+    // session and from a handle, and runs exactly as the canonical key does.
+    for (canonical, spellings) in [
+        ("fog=0.01", &["fog=0.010", " fog = 0.01 ", "fog=1e-2", "fog=.01"][..]),
+        ("blur=15+gamma=0.5", &["gamma=0.5+blur=15", "gamma=0.50+blur=15.0", "blur=15 + gamma=0.5"][..]),
+        ("missing=lidar", &[" missing=lidar"][..]),
+        (BASE_VARIANT, &[" base "][..]),
+    ] {
+        s.set_variant(canonical).expect("the canonical key");
+        let want = run(&mut s, &x, &[2, 4]);
+        let index = s.last_variant();
+        for &text in spellings {
+            s.set_variant(BASE_VARIANT).expect("base");
+            s.set_variant(text).unwrap_or_else(|e| panic!("`{text}`: {e}"));
+            assert_eq!(s.variant(), canonical, "`{text}`");
+            let got = run(&mut s, &x, &[2, 4]);
+            assert_eq!(s.last_variant(), index, "`{text}`");
+            assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "`{text}`");
+            handle.set_index(0).expect("base");
+            handle.set(text).unwrap_or_else(|e| panic!("`{text}`: {e}"));
+            assert_eq!(handle.key(), canonical, "`{text}`");
+            handle.set_index(0).expect("base");
+            handle.set_key(&key(text)).expect("a parsed key");
+            assert_eq!(handle.key(), canonical, "`{text}`");
+            s.set_variant(BASE_VARIANT).expect("base");
+            s.set_variant_key(&key(text)).expect("a parsed key");
+            assert_eq!(s.variant(), canonical, "`{text}`");
+        }
+    }
+    assert_eq!(plan.variant_index_of(&key("gamma=0.5+blur=15")), plan.variant_index("blur=15+gamma=0.5"));
+    assert_eq!(plan.variant_index_of(&VariantKey::base()), Some(0));
+    assert_eq!(plan.variant_index_of(&key("fog=0.02")), None);
+    // Only canonical text is found by the exact lookup.
+    assert_eq!(plan.variant_index("fog=0.010"), None);
+}
+
+#[test]
+fn unknown_and_malformed_keys_say_so() {
+    let plan = spelled_plan();
+    let s = Session::new(Arc::clone(&plan), 1).expect("session");
+    s.set_variant("fog=0.01").expect("known key");
+    let known: Vec<String> = plan.variant_keys().map(str::to_string).collect();
+    // A key in another spelling that the plan does not have: the suggestion is the one
+    // nearest its canonical text (`blur=5+gamma=0.5`).
+    let e = s.set_variant("gamma=0.50+blur=5").expect_err("unknown key");
+    assert_eq!(
+        e,
+        RunError::UnknownVariant {
+            key: "gamma=0.50+blur=5".into(),
+            known: known.clone(),
+            nearest: Some("blur=15+gamma=0.5".into()),
+            malformed: None,
+        }
+    );
+    assert_eq!(
+        e.to_string(),
+        "the plan has no variant `gamma=0.50+blur=5`; did you mean `blur=15+gamma=0.5`? (its variants: base, \
+         fog=0.01, blur=15+gamma=0.5, missing=lidar)"
+    );
+    let e = s.set_variant_key(&key("fog=0.020")).expect_err("unknown key");
+    assert!(matches!(&e, RunError::UnknownVariant { key, malformed: None, .. } if key == "fog=0.02"), "{e}");
+    // Text that is not a key says why, and still suggests a key when one is near.
+    let e = s.switch_handle().set("fog0.01").expect_err("malformed");
+    assert!(matches!(&e, RunError::UnknownVariant { malformed: Some(_), .. }), "{e:?}");
+    assert_eq!(
+        e.to_string(),
+        "`fog0.01` is not a variant key: `fog0.01` has no `=` (write `axis=level`, `missing=modality` or `base`); \
+         did you mean `fog=0.01`? (the plan's variants: base, fog=0.01, blur=15+gamma=0.5, missing=lidar)"
+    );
+    for (text, why) in [
+        ("fog=thick", "the level `thick` of `fog` is not a finite number"),
+        ("fog=0.01+fog=0.03", "`fog=0.01` and `fog=0.03` are on the same axis"),
+        ("", "it is empty"),
+        ("missing=", "`` is not a modality name"),
+    ] {
+        let e = s.set_variant(text).expect_err("malformed").to_string();
+        assert!(e.starts_with(&format!("`{text}` is not a variant key: {why}")), "{e}");
+    }
+    // A failed switch leaves the active variant alone.
+    assert_eq!(s.variant(), "fog=0.01");
 }
 
 #[test]

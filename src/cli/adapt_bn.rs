@@ -10,7 +10,6 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use readi_compiler::backend::variants::canonical_key;
 use readi_grammar::diag::suggest;
 use readi_plan::VariantKey;
 use readi_runtime::calibrate::{BnCalibrator, BnStats};
@@ -72,32 +71,40 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     Ok(())
 }
 
-/// The variant key, checked against the keys the plan's spec declares when the plan lists
-/// them (and written as declared: `fog=0.030` is `fog=0.03`).
-fn check_key(plan: &Plan, key: &str) -> Result<String, String> {
+/// The variant key, read as a [`VariantKey`] (so `fog=0.030` is `fog=0.03` and a meld's
+/// parts may come in any order) and checked against the keys the plan's spec declares when
+/// the plan lists them: every part of the key must be declared.
+fn check_key(plan: &Plan, text: &str) -> Result<VariantKey, String> {
     let m = &plan.manifest;
-    if key.trim() == BASE_VARIANT {
+    let declared = m.conditions.as_ref().map(|c| c.keys()).unwrap_or_default();
+    let shown: Vec<String> = declared.iter().map(|k| k.to_string()).collect();
+    let hint = || match suggest(text, shown.iter().map(String::as_str)) {
+        Some(s) => format!("did you mean `{s}`? "),
+        None => String::new(),
+    };
+    let key = VariantKey::parse(text).map_err(|e| {
+        if declared.is_empty() {
+            e.to_string()
+        } else {
+            format!("{e}; {}(model `{}` declares {})", hint(), m.model, shown.join(", "))
+        }
+    })?;
+    if key.is_base() {
         return Err(format!("`{BASE_VARIANT}` is the base model; AdaBN estimates statistics for a variant's key"));
     }
-    let declared = m.conditions.as_ref().map(|c| c.keys()).unwrap_or_default();
     if declared.is_empty() {
-        let parsed = VariantKey::parse(key).map_err(|e| e.to_string())?;
-        if !m.variants.iter().any(|v| v.key == parsed) {
+        if plan.variant_index_of(&key).is_none() {
             eprintln!(
                 "note: the plan does not list the variant keys its spec declares; `{key}` is checked when the \
                  statistics are compiled (`readi compile --variant {key}=FILE`)"
             );
         }
-        return Ok(parsed.to_string());
+        return Ok(key);
     }
-    let shown: Vec<String> = declared.iter().map(|k| k.to_string()).collect();
-    canonical_key(key, &declared).map(|k| k.to_string()).ok_or_else(|| {
-        let hint = match suggest(key, shown.iter().map(String::as_str)) {
-            Some(s) => format!("did you mean `{s}`? "),
-            None => String::new(),
-        };
-        format!("model `{}` declares no variant `{key}`; {hint}(its variants: {})", m.model, shown.join(", "))
-    })
+    if key.part_keys().all(|p| declared.contains(&p)) {
+        return Ok(key);
+    }
+    Err(format!("model `{}` declares no variant `{text}`; {}(its variants: {})", m.model, hint(), shown.join(", ")))
 }
 
 /// A batch: per input, name, shape and data.
@@ -156,7 +163,7 @@ fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, Stri
 
 /// Writes `<bn>.running_mean` and `<bn>.running_var` of every BatchNorm (f32), with what
 /// made them in the metadata.
-fn write_stats(out: &Path, stats: &[BnStats], key: &str, cal: &BnCalibrator, model: &str) -> Result<(), String> {
+fn write_stats(out: &Path, stats: &[BnStats], key: &VariantKey, cal: &BnCalibrator, model: &str) -> Result<(), String> {
     let bytes = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
     let data: Vec<(String, Vec<u8>, usize)> = stats
         .iter()

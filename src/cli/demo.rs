@@ -13,6 +13,7 @@ use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions};
 use readi_compiler::passes::{self, Options};
 use readi_compiler::print;
+use readi_runtime::conditions;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::Plan;
 
@@ -186,10 +187,10 @@ pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCo
         let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
         let meta = vec![("fog_density".to_string(), scene.fog)];
         let t = Instant::now();
-        let selection = plan.select(&given, &meta).map_err(|e| fail(e.to_string()))?;
+        let selection = conditions::select(&plan, &given, &meta).map_err(|e| fail(e.to_string()))?;
         let select_us = t.elapsed().as_secs_f64() * 1e6;
         let t = Instant::now();
-        session.set_variant(&selection.key).map_err(|e| fail(e.to_string()))?;
+        session.set_variant_key(&selection.key).map_err(|e| fail(e.to_string()))?;
         let switch_us = t.elapsed().as_secs_f64() * 1e6;
         let t = Instant::now();
         let result = session.run(&given).map_err(|e| fail(e.to_string()))?;

@@ -5,6 +5,7 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::Instant;
 
+use readi_runtime::conditions;
 use readi_runtime::exec::{Input, Session, Tensor};
 
 use super::{load_plan, tensor_io, threads_or_default};
@@ -50,27 +51,27 @@ pub fn run(
         let Some((_, (shape, data))) = loaded.iter_mut().find(|(n, _)| n == name) else {
             return Err(fail(format!("--drop-views names `{name}`, which is not given with --input")));
         };
-        readi_runtime::conditions::drop_views(data, shape, views).map_err(|e| fail(format!("input `{name}`: {e}")))?;
+        conditions::drop_views(data, shape, views).map_err(|e| fail(format!("input `{name}`: {e}")))?;
     }
     let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
     let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
     match choice {
         Choice::Base => {
-            if let Some((key, why)) = plan.missing_variant(&given) {
+            if let Some((key, why)) = conditions::missing_variant(&plan, &given) {
                 println!("{why}");
-                session.set_variant(&key).map_err(|e| fail(e.to_string()))?;
+                session.set_variant_key(&key).map_err(|e| fail(e.to_string()))?;
             }
         }
         Choice::Key(key) => session.set_variant(&key).map_err(|e| fail(e.to_string()))?,
         Choice::Auto(meta) => {
             let t = Instant::now();
-            let sel = plan.select(&given, &meta).map_err(|e| fail(e.to_string()))?;
+            let sel = conditions::select(&plan, &given, &meta).map_err(|e| fail(e.to_string()))?;
             let us = t.elapsed().as_secs_f64() * 1e6;
             println!("selected variant {} ({us:.0} us):", sel.key);
             for r in &sel.reasons {
                 println!("  {r}");
             }
-            session.set_variant(&sel.key).map_err(|e| fail(e.to_string()))?;
+            session.set_variant_key(&sel.key).map_err(|e| fail(e.to_string()))?;
         }
     }
     let start = Instant::now();

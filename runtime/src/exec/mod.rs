@@ -1,0 +1,318 @@
+//! Executing a plan.
+//!
+//! A [`Session`] owns a thread pool and the activation buffers of one plan. The first run
+//! (and any run with a new batch size) *binds* the plan: it evaluates every value's shape
+//! from the inputs', checks each step against its kernel's requirements (a plan file is
+//! untrusted), and allocates one buffer per slot of the plan's buffer plan plus the
+//! kernels' scratch. Later runs at the same batch size allocate nothing in the executor
+//! but the output tensors they return (`runtime/tests/allocations.rs` counts; some
+//! kernels still allocate small per-call work lists: conv, the GEMM, matmul, permute,
+//! mean and broadcasting binary ops); weights are read in place from the plan.
+//!
+//! An `optional` input that is not given is zero-filled.
+//!
+//! # Variants
+//!
+//! A session's active variant (see [`crate::plan`]) is an atomic index shared with every
+//! [`VariantSwitch`] handle taken from it. Switching looks the key up and stores the
+//! index: no weight is copied or rewritten and nothing is allocated, and it may happen
+//! from any thread while a run is in progress. A run loads the index once, at its start,
+//! and resolves every tensor access through that variant's map, so each run sees exactly
+//! one variant.
+//!
+//! # Where things are
+//!
+//! * this file: the types a caller sees ([`Tensor`], [`Input`], [`RunError`]) and
+//!   [`Session`], which matches inputs, binds and runs;
+//! * `bind.rs`: binding symbols, shapes, buffers and conv parameters (`Bound`);
+//! * `run.rs`: executing the steps of a bound plan (`Run`, `run_step`);
+//! * `switch.rs`: [`VariantSwitch`] and the variant key lookup.
+
+mod bind;
+mod run;
+mod switch;
+
+use std::fmt;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use readi_plan::VariantKey;
+
+use crate::plan::Plan;
+
+pub(crate) use bind::Bound;
+pub(crate) use run::{Run, run_step};
+pub use switch::VariantSwitch;
+
+/// A dense f32 tensor returned by a run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tensor {
+    pub shape: Vec<usize>,
+    pub data: Vec<f32>,
+}
+
+/// An input given to a run: name, data, shape.
+#[derive(Clone, Copy, Debug)]
+pub struct Input<'a> {
+    pub name: &'a str,
+    pub data: &'a [f32],
+    pub shape: &'a [usize],
+}
+
+/// Why a run failed.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RunError {
+    /// An input the model does not have.
+    UnknownInput { name: String, known: Vec<String> },
+    /// A required input that was not given.
+    MissingInput { name: String },
+    /// An input given twice.
+    DuplicateInput { name: String },
+    /// An input whose shape does not fit the declared one.
+    InputShape { name: String, expected: String, got: Vec<usize>, detail: String },
+    /// Data length and shape disagree.
+    InputLength { name: String, len: usize, shape: Vec<usize> },
+    /// A NaN or infinity in an input.
+    NotFinite { name: String, index: usize, value: f32 },
+    /// The plan is inconsistent (a corrupted or hand-edited file).
+    BadPlan { step: String, detail: String },
+    /// The thread pool could not be created.
+    Threads(String),
+    /// A variant key the plan does not have (`key` as given), or a text that is not a
+    /// variant key at all (`malformed` says why).
+    UnknownVariant { key: String, known: Vec<String>, nearest: Option<String>, malformed: Option<String> },
+    /// A variant index past the plan's variants.
+    VariantIndex { index: usize, count: usize },
+}
+
+/// Most keys an [`RunError::UnknownVariant`] message lists.
+const KEYS_SHOWN: usize = 24;
+
+impl fmt::Display for RunError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            RunError::UnknownInput { name, known } => {
+                write!(f, "the model has no input `{name}` (its inputs: {})", known.join(", "))
+            }
+            RunError::MissingInput { name } => write!(f, "input `{name}` is required but was not given"),
+            RunError::DuplicateInput { name } => write!(f, "input `{name}` is given twice"),
+            RunError::InputShape { name, expected, got, detail } => {
+                write!(f, "input `{name}` has shape {got:?}, but the model expects {expected}: {detail}")
+            }
+            RunError::InputLength { name, len, shape } => {
+                write!(f, "input `{name}`: {len} values do not fill shape {shape:?}")
+            }
+            RunError::NotFinite { name, index, value } => {
+                write!(f, "input `{name}` holds {value} at flat index {index}; inputs must be finite")
+            }
+            RunError::BadPlan { step, detail } => write!(f, "invalid plan at {step}: {detail}"),
+            RunError::Threads(e) => write!(f, "cannot start the thread pool: {e}"),
+            RunError::UnknownVariant { key, known, nearest, malformed } => {
+                match malformed {
+                    None => write!(f, "the plan has no variant `{key}`")?,
+                    Some(why) => write!(f, "`{key}` is not a variant key: {why}")?,
+                }
+                if let Some(near) = nearest {
+                    write!(f, "; did you mean `{near}`?")?;
+                }
+                let shown: Vec<&str> = known.iter().take(KEYS_SHOWN).map(String::as_str).collect();
+                let whose = if malformed.is_some() { "the plan's" } else { "its" };
+                write!(f, " ({whose} variants: {}", shown.join(", "))?;
+                if known.len() > KEYS_SHOWN {
+                    write!(f, " and {} more", known.len() - KEYS_SHOWN)?;
+                }
+                f.write_str(")")
+            }
+            RunError::VariantIndex { index, count } => {
+                write!(f, "variant index {index} is out of range: the plan has {count} variants (0 is the base)")
+            }
+        }
+    }
+}
+
+impl std::error::Error for RunError {}
+
+/// Runs one plan; reuses its buffers across runs.
+pub struct Session {
+    plan: Arc<Plan>,
+    pool: rayon::ThreadPool,
+    threads: usize,
+    /// The active variant's index, shared with every [`VariantSwitch`]; always a valid
+    /// index (stores are checked).
+    active: Arc<AtomicUsize>,
+    /// The variant the last successful run used.
+    last_variant: Option<usize>,
+    bound: Option<Bound>,
+    /// Per plan input, the position in the caller's list of the input of that name.
+    /// Refilled by every run; kept so that a run does not allocate it.
+    given: Vec<Option<usize>>,
+    /// The symbol values of the current run in `manifest.symbols` order (0: not bound
+    /// yet). Refilled by every run.
+    symbols: Vec<usize>,
+    /// Accumulated seconds per step, when profiling.
+    profile: Option<Vec<f64>>,
+}
+
+pub(crate) fn bad(step: &str, detail: impl Into<String>) -> RunError {
+    RunError::BadPlan { step: step.to_string(), detail: detail.into() }
+}
+
+impl Session {
+    /// A session running `plan` on `threads` threads (at least 1), under the base
+    /// variant.
+    pub fn new(plan: Arc<Plan>, threads: usize) -> Result<Session, RunError> {
+        let threads = threads.max(1);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("readi-{i}"))
+            .build()
+            .map_err(|e| RunError::Threads(e.to_string()))?;
+        let given = Vec::with_capacity(plan.manifest.inputs.len());
+        let symbols = vec![0; plan.manifest.symbols.len()];
+        Ok(Session {
+            plan,
+            pool,
+            threads,
+            active: Arc::new(AtomicUsize::new(0)),
+            last_variant: None,
+            bound: None,
+            given,
+            symbols,
+            profile: None,
+        })
+    }
+
+    /// Starts (or restarts) accumulating the time each step takes across runs.
+    pub fn enable_profiling(&mut self) {
+        self.profile = Some(vec![0.0; self.plan.manifest.steps.len()]);
+    }
+
+    /// Seconds spent in each step since profiling was enabled, in schedule order.
+    pub fn profile(&self) -> Option<&[f64]> {
+        self.profile.as_deref()
+    }
+
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Makes variant `key` ([`BASE_VARIANT`](crate::plan::BASE_VARIANT) for the base)
+    /// active for the runs that start from now on. A run in progress keeps its variant.
+    /// Copies no weights and allocates nothing (except for the error of an unknown key)
+    /// when `key` is canonical, as the plan lists it; another spelling of a key
+    /// (`fog=0.010` for `fog=0.01`, `gamma=0.5+blur=15` for `blur=15+gamma=0.5`) is read
+    /// as a [`VariantKey`] and names the same variant.
+    pub fn set_variant(&self, key: &str) -> Result<(), RunError> {
+        self.active.store(switch::lookup(&self.plan, key)?, Ordering::Release);
+        Ok(())
+    }
+
+    /// As [`set_variant`](Session::set_variant), by parsed key (a
+    /// [`Selection`](crate::conditions::Selection)'s, say); allocates nothing (except for
+    /// the error of an unknown key).
+    pub fn set_variant_key(&self, key: &VariantKey) -> Result<(), RunError> {
+        self.active.store(switch::lookup_key(&self.plan, key)?, Ordering::Release);
+        Ok(())
+    }
+
+    /// The active variant's key: the one the next run will use, unless it is switched
+    /// before.
+    pub fn variant(&self) -> &str {
+        self.plan.variant_key(self.active.load(Ordering::Acquire))
+    }
+
+    /// A handle that switches this session's variant, for another thread (or many).
+    pub fn switch_handle(&self) -> VariantSwitch {
+        VariantSwitch { plan: Arc::clone(&self.plan), active: Arc::clone(&self.active) }
+    }
+
+    /// The index of the variant the last successful run used (its key:
+    /// [`Plan::variant_key`]), or `None` before the first.
+    pub fn last_variant(&self) -> Option<usize> {
+        self.last_variant
+    }
+
+    /// Runs the plan under the active variant. Inputs are matched by name; absent
+    /// `optional` inputs are zeros. Returns the outputs in the plan's order, with their
+    /// names.
+    pub fn run(&mut self, inputs: &[Input<'_>]) -> Result<Vec<(String, Tensor)>, RunError> {
+        // The run's only read of the active variant: every tensor access below resolves
+        // through this variant's map, whatever switches happen meanwhile.
+        let variant = self.active.load(Ordering::Acquire);
+        let plan = Arc::clone(&self.plan);
+        let m = &plan.manifest;
+        let weights = plan
+            .variant_tensors(variant)
+            .ok_or(RunError::VariantIndex { index: variant, count: plan.variant_count() })?;
+        self.prepare(&plan, inputs)?;
+        let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        let run = Run { plan: &plan, weights, inputs, given: &self.given };
+        let threads = self.threads;
+        let profile = self.profile.as_deref_mut();
+        self.pool.install(|| run::execute(&run, bound, threads, profile))?;
+        let bound: &Bound = bound;
+        let mut out = Vec::with_capacity(m.outputs.len());
+        for o in &m.outputs {
+            let data = run::value_slice(&run, bound, o.value).to_vec();
+            out.push((o.name.clone(), Tensor { shape: bound.shapes[o.value].clone(), data }));
+        }
+        self.last_variant = Some(variant);
+        Ok(out)
+    }
+
+    /// Runs `exec` on the session's thread pool in place of the normal executor, under the
+    /// base model, with the inputs matched, checked and the buffers bound as for a run.
+    /// For calibration ([`crate::calibrate`]), which needs to see inside the steps.
+    pub(crate) fn run_custom<T>(
+        &mut self,
+        inputs: &[Input<'_>],
+        exec: impl FnOnce(&Run<'_>, &mut Bound, usize) -> Result<T, RunError> + Send,
+    ) -> Result<T, RunError>
+    where
+        T: Send,
+    {
+        let plan = Arc::clone(&self.plan);
+        self.prepare(&plan, inputs)?;
+        let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        let run = Run { plan: &plan, weights: plan.base_tensors(), inputs, given: &self.given };
+        let threads = self.threads;
+        self.pool.install(|| exec(&run, bound, threads))
+    }
+
+    /// Matches the inputs to the plan's by name, binds the symbols, checks the inputs and
+    /// (re)binds the buffers when the symbol values changed.
+    fn prepare(&mut self, plan: &Plan, inputs: &[Input<'_>]) -> Result<(), RunError> {
+        let m = &plan.manifest;
+        // Match inputs to the plan's.
+        self.given.clear();
+        self.given.resize(m.inputs.len(), None);
+        for (pos, inp) in inputs.iter().enumerate() {
+            match m.inputs.iter().position(|s| s.name == inp.name) {
+                Some(i) if self.given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
+                Some(i) => self.given[i] = Some(pos),
+                None => {
+                    return Err(RunError::UnknownInput {
+                        name: inp.name.into(),
+                        known: m.inputs.iter().map(|s| s.name.clone()).collect(),
+                    });
+                }
+            }
+        }
+        bind::bind_symbols(m, &self.given, inputs, &mut self.symbols)?;
+        for (spec, g) in m.inputs.iter().zip(&self.given) {
+            if let Some(pos) = *g
+                && let Some(index) = inputs[pos].data.iter().position(|v| !v.is_finite())
+            {
+                return Err(RunError::NotFinite { name: spec.name.clone(), index, value: inputs[pos].data[index] });
+            }
+        }
+        if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
+            self.bound = Some(bind::bind(plan, &self.symbols, self.threads)?);
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,230 @@
+//! Running the steps of a bound plan: each step's kernel called on its inputs' data,
+//! stored tensors resolved under the run's variant, into its output's buffer.
+
+use rayon::prelude::*;
+
+use readi_plan::ops::Pure;
+
+use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
+use crate::kernels::pool::{self, Pool2dShape};
+use crate::kernels::resize;
+use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
+use crate::plan::{EpilogueSpec, Kernel, Plan, Step, Storage, VariantTensors};
+
+use super::bind::Bound;
+use super::{Input, RunError, bad};
+
+/// What one run reads besides its buffers: the stored tensors under the run's variant
+/// and the caller's inputs.
+#[derive(Clone, Copy)]
+pub(crate) struct Run<'a> {
+    pub(crate) plan: &'a Plan,
+    pub(super) weights: VariantTensors<'a>,
+    pub(super) inputs: &'a [Input<'a>],
+    /// Per plan input, the position in `inputs` of the input of that name
+    /// (`Session::given`).
+    pub(super) given: &'a [Option<usize>],
+}
+
+/// The data of a value, stored tensors resolved under the run's variant.
+pub(super) fn value_slice<'a>(run: &Run<'a>, bound: &'a Bound, v: usize) -> &'a [f32] {
+    let n: usize = bound.shapes[v].iter().product();
+    match run.plan.manifest.values[v].storage {
+        Storage::Input(i) => match run.given[i] {
+            Some(pos) => run.inputs[pos].data,
+            None => &bound.zeros[i],
+        },
+        Storage::Slot(s) => &bound.slots[s][..n],
+        Storage::Tensor(t) => run.weights.get(t),
+    }
+}
+
+fn epilogue<'a>(w: VariantTensors<'a>, e: &EpilogueSpec) -> Epilogue<'a> {
+    Epilogue { scale: e.scale.map(|t| w.get(t)), shift: e.shift.map(|t| w.get(t)), relu: e.relu }
+}
+
+/// Runs every step in order. Allocates nothing: inputs are fetched by each kernel as
+/// it needs them.
+pub(super) fn execute(
+    run: &Run<'_>,
+    bound: &mut Bound,
+    threads: usize,
+    mut profile: Option<&mut [f64]>,
+) -> Result<(), RunError> {
+    let m = &run.plan.manifest;
+    for (k, step) in m.steps.iter().enumerate() {
+        let start = profile.is_some().then(std::time::Instant::now);
+        let Storage::Slot(out_slot) = m.values[step.output].storage else {
+            return Err(bad(&step.path, "output is not an activation buffer"));
+        };
+        // Take the output buffer out so inputs can be borrowed alongside it; `bind`
+        // checked that no step reads the slot it writes.
+        let mut out_buf = std::mem::take(&mut bound.slots[out_slot]);
+        let out_len: usize = bound.shapes[step.output].iter().product();
+        let mut scratch = std::mem::take(&mut bound.scratch);
+        {
+            let b: &Bound = bound;
+            let out = &mut out_buf[..out_len];
+            run_step(run, b, step, b.convs[k].as_ref(), out, &mut scratch, threads);
+        }
+        bound.scratch = scratch;
+        bound.slots[out_slot] = out_buf;
+        if let (Some(p), Some(t)) = (profile.as_deref_mut(), start) {
+            p[k] += t.elapsed().as_secs_f64();
+        }
+    }
+    Ok(())
+}
+
+/// Runs one step, its shapes checked at bind time.
+pub(crate) fn run_step(
+    run: &Run<'_>,
+    b: &Bound,
+    step: &Step,
+    conv_params: Option<&(Conv2dShape, ConvAlgo)>,
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    let w = run.weights;
+    let input = |j: usize| {
+        let v = step.inputs[j];
+        (value_slice(run, b, v), b.shapes[v].as_slice())
+    };
+    let out_shape = b.shapes[step.output].as_slice();
+    // Every kernel takes at least one input (checked at bind time).
+    let (x, xs) = input(0);
+    match &step.kernel {
+        Kernel::Conv2d { weight, epilogue: ep, .. } => {
+            if let Some((s, algo)) = conv_params {
+                conv::conv2d(s, *algo, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
+            }
+        }
+        Kernel::Linear { linear: l, weight, epilogue: ep } => {
+            let fin = xs.last().copied().unwrap_or(1);
+            let rows = x.len() / fin.max(1);
+            let layout = linear::WeightLayout::InOut;
+            let fout = l.out_features as usize;
+            linear::linear(x, rows, fin, w.get(*weight), layout, fout, &epilogue(w, ep), out, threads);
+        }
+        Kernel::ChannelAffine { epilogue: ep, .. } => {
+            let (n, c) = (xs[0], xs[1]);
+            let inner = x.len() / (n * c).max(1);
+            let e = epilogue(w, ep);
+            norm::channel_affine(x, n, c, inner, e.scale, e.shift, e.relu, out);
+        }
+        Kernel::LayerNorm { norm: ln, weight, bias } => {
+            let f = xs.last().copied().unwrap_or(1);
+            let rows = x.len() / f.max(1);
+            norm::layernorm(x, rows, f, weight.map(|t| w.get(t)), bias.map(|t| w.get(t)), ln.eps as f32, out);
+        }
+        Kernel::Pure(op) => match op {
+            Pure::MatMul(_) => {
+                let (y, ys) = input(1);
+                linear::matmul(x, xs, y, ys, out, out_shape, threads);
+            }
+            Pure::Binary(op) => {
+                let (y, ys) = input(1);
+                elementwise::binary(*op, x, xs, y, ys, out, out_shape);
+            }
+            Pure::Scalar(s) => elementwise::scalar(s.op, x, s.value as f32, s.scalar_first, out),
+            Pure::Activation(act) => elementwise::activation(*act, x, out),
+            Pure::Softmax(s) => {
+                let outer: usize = xs[..s.axis].iter().product();
+                let inner: usize = xs[s.axis + 1..].iter().product();
+                softmax::softmax(x, outer, xs[s.axis], inner, out);
+            }
+            Pure::Concat(c) => concat(step.inputs.len(), input, c.axis, out, out_shape),
+            Pure::Reshape(_) => out.copy_from_slice(x),
+            Pure::Permute(p) => layout::permute(x, xs, &p.perm, out),
+            Pure::Pool(p) => {
+                let s = Pool2dShape::of(p, xs[0] * xs[1], xs[2], xs[3]);
+                pool::pool2d(p.kind, &s, x, out);
+            }
+            Pure::GlobalAvgPool(_) => pool::global_avgpool(x, xs[0] * xs[1], xs[2] * xs[3], out),
+            Pure::Upsample(u) => {
+                let scale = u.scale.map(|s| (s[0], s[1]));
+                let (nc, h, wd) = (xs[0] * xs[1], xs[2], xs[3]);
+                resize::upsample(u.mode, u.align_corners, scale, x, nc, h, wd, out, out_shape[2], out_shape[3]);
+            }
+            Pure::Mean(m) => reduce::mean(x, xs, &m.axes, out),
+        },
+    }
+}
+
+/// Outputs at least this long are copied in parallel.
+const CONCAT_PAR_MIN: usize = 1 << 15;
+/// Elements per parallel task.
+const CONCAT_CHUNK: usize = 1 << 14;
+
+/// Concatenation along `axis` of `count` inputs given by `part`, each copied into its
+/// place in turn, so no list of inputs is built (the result is
+/// [`layout::concat`]'s). Shapes were checked at bind time.
+fn concat<'a>(
+    count: usize,
+    part: impl Fn(usize) -> (&'a [f32], &'a [usize]),
+    axis: usize,
+    out: &mut [f32],
+    out_shape: &[usize],
+) {
+    let inner: usize = out_shape[axis + 1..].iter().product();
+    let row = out_shape[axis] * inner;
+    if row == 0 || out.is_empty() {
+        return;
+    }
+    let outer = out.len() / row;
+    let mut at = 0;
+    for j in 0..count {
+        let (d, s) = part(j);
+        let n = s[axis] * inner;
+        if n == 0 {
+            continue;
+        }
+        let copy = |dst: &mut [f32], src: &[f32]| dst[at..at + n].copy_from_slice(src);
+        if out.len() < CONCAT_PAR_MIN {
+            out.chunks_mut(row).zip(d.chunks(n)).for_each(|(dst, src)| copy(dst, src));
+        } else if outer > 1 {
+            let min_rows = (CONCAT_CHUNK / row).max(1);
+            out.par_chunks_mut(row).zip(d.par_chunks(n)).with_min_len(min_rows).for_each(|(dst, src)| copy(dst, src));
+        } else {
+            // One block per input: split the copy instead.
+            out[at..at + n]
+                .par_chunks_mut(CONCAT_CHUNK)
+                .zip(d.par_chunks(CONCAT_CHUNK))
+                .for_each(|(dst, src)| dst.copy_from_slice(src));
+        }
+        at += n;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn concat_by_parts_matches_the_kernel() {
+        use crate::testdata::data;
+        // (shapes of the parts, axis): small, empty parts, one big block per part and
+        // many rows (both parallel paths).
+        let cases: [(&[&[usize]], usize); 5] = [
+            (&[&[2, 3, 4], &[2, 1, 4], &[2, 2, 4]], 1),
+            (&[&[2, 0, 4], &[2, 3, 4], &[2, 0, 4]], 1),
+            (&[&[3, 5], &[4, 5]], 0),
+            (&[&[1, 40_000], &[1, 30_000]], 1),
+            (&[&[600, 40, 2], &[600, 7, 2], &[600, 1, 2]], 1),
+        ];
+        for (k, (shapes, axis)) in cases.into_iter().enumerate() {
+            let datas: Vec<Vec<f32>> =
+                shapes.iter().enumerate().map(|(i, s)| data(s.iter().product(), (10 * k + i) as u64)).collect();
+            let parts: Vec<(&[f32], &[usize])> = datas.iter().map(Vec::as_slice).zip(shapes.iter().copied()).collect();
+            let mut out_shape = shapes[0].to_vec();
+            out_shape[axis] = shapes.iter().map(|s| s[axis]).sum();
+            let len = out_shape.iter().product();
+            let mut want = vec![f32::NAN; len];
+            layout::concat(&parts, axis, &mut want);
+            let mut got = vec![f32::NAN; len];
+            concat(parts.len(), |j| parts[j], axis, &mut got, &out_shape);
+            assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "case {k}");
+        }
+    }
+}
