@@ -142,8 +142,9 @@ pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
 }
 
 /// The schedule: its step count by kernel kind, in order of first use; with `verbose`,
-/// then one line per step: index, output value, kernel, input values, output shape and the
-/// spec path of the nodes it computes.
+/// then one line per step: index, output value, kernel (with a conv's algorithm and the
+/// epilogue it fuses), input values, output shape and the spec path of the nodes it
+/// computes.
 pub fn schedule(m: &Manifest, verbose: bool) -> String {
     render(|out| {
         let mut kinds: Vec<(&str, usize)> = Vec::new();
@@ -158,11 +159,16 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
         if verbose {
             for (k, st) in m.steps.iter().enumerate() {
                 let ins: Vec<String> = st.inputs.iter().map(|i| format!("%{i}")).collect();
+                let buffer = match m.values[st.output].storage {
+                    Storage::Slot(s) => format!(" (buffer {s})"),
+                    _ => String::new(),
+                };
                 writeln!(
                     out,
-                    "  {k:>4} %{} = {}({}) {}  {}",
+                    "  {k:>4} %{}{buffer} = {}{}({}) {}  {}",
                     st.output,
                     st.kernel.name(),
+                    kernel_detail(&st.kernel),
                     ins.join(", "),
                     show_shape(&m.values[st.output].shape),
                     st.path
@@ -171,6 +177,37 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
         }
         Ok(())
     })
+}
+
+/// The variant tables: per variant, the stored tensors it replaces (by base tensor name)
+/// and how many bytes it stores that the base does not share.
+pub fn variant_tables(m: &Manifest) -> String {
+    render(|out| {
+        for v in &m.variants {
+            let names: Vec<&str> = v.replaces.iter().map(|r| m.tensors[r.base].name.as_str()).collect();
+            let own: HashSet<usize> = v.replaces.iter().map(|r| r.with).collect();
+            let bytes: usize = own.iter().map(|&t| m.tensors[t].numel() * 4).sum();
+            writeln!(out, "variant {}: replaces {} ({})", v.key, names.join(", "), print::bytes(bytes as u64))?;
+        }
+        Ok(())
+    })
+}
+
+/// A kernel's choices for listings: `[winograd4 scale shift relu]` for a conv (its
+/// algorithm and what its epilogue applies), `[shift relu]` for a linear or channel
+/// affine; nothing for other kernels.
+pub fn kernel_detail(k: &Kernel) -> String {
+    let Some(ep) = k.epilogue() else { return String::new() };
+    let mut parts: Vec<String> = Vec::new();
+    if let Kernel::Conv2d { algo, .. } = k {
+        parts.push(algo.to_string());
+    }
+    for (on, name) in [(ep.scale.is_some(), "scale"), (ep.shift.is_some(), "shift"), (ep.relu, "relu")] {
+        if on {
+            parts.push(name.into());
+        }
+    }
+    format!("[{}]", parts.join(" "))
 }
 
 /// The activation buffers: how many, and their bytes at batch 1 with and without the
@@ -284,10 +321,14 @@ model two(hidden: int = 8) {
         let steps: Vec<&str> = lines.collect();
         assert_eq!(steps.len(), expected.len(), "{listing}");
         for (k, (line, (kernel, shape, path))) in steps.iter().zip(expected).enumerate() {
-            let head = format!("{k:>4} %{} = {kernel}(%{k}) {shape}", k + 1);
-            assert!(line.trim_start().starts_with(head.trim_start()), "step {k}: want `{head}`, got `{line}`");
+            let head = format!("{k} %{} (buffer ", k + 1);
+            assert!(line.trim_start().starts_with(&head), "step {k}: want `{head}`, got `{line}`");
+            assert!(line.contains(&format!(" = {kernel}")), "step {k}: want kernel `{kernel}`, got `{line}`");
+            assert!(line.contains(&format!("(%{k}) {shape}")), "step {k}: want `(%{k}) {shape}`, got `{line}`");
             assert!(line.ends_with(&format!("  {path}")), "step {k}: want path `{path}`, got `{line}`");
         }
+        // The conv's algorithm and what its epilogue fuses.
+        assert!(steps[0].contains("conv2d[im2col shift relu]"), "{listing}");
         assert!(listing.ends_with('\n'));
         assert_eq!(schedule(&plan.manifest, false), format!("{}\n", listing.lines().next().unwrap_or_default()));
     }

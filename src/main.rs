@@ -50,7 +50,7 @@ fn run(cli: Cli) -> ExitCode {
     let result = match cli.command {
         Command::Check { files, model, deny_warnings } => cli::check::run(&mut s, &files, &model, deny_warnings),
         Command::Ast { file, debug } => cli::ast::run(&mut s, &file, debug),
-        Command::Ir { file, stop_after, model } => cli::ir::run(&mut s, &file, &model, stop_after),
+        Command::Ir { file, stop_after, model, backend } => cli::ir::run(&mut s, &file, &model, stop_after, &backend),
         Command::Graph { file, output, stop_after, model } => {
             cli::ir::graph(&mut s, &file, output.as_deref(), &model, stop_after)
         }

@@ -40,30 +40,10 @@ fn run(plan: Arc<Plan>, data: &[(String, Vec<usize>, Vec<f32>)], threads: usize)
     Session::new(plan, threads).expect("session").run(&given).expect("runs")
 }
 
-/// A stable listing of the schedule: kernel, fused path, epilogue.
+/// The schedule as `readi inspect --verbose` lists it: kernel, algorithm and epilogue,
+/// shapes, buffers and fused paths, then the buffer plan.
 fn schedule(plan: &Plan) -> String {
-    use readi_runtime::plan::Kernel;
-    let mut s = String::new();
-    for st in &plan.manifest.steps {
-        let ep = match &st.kernel {
-            Kernel::Conv2d { epilogue, algo, .. } => format!(
-                " [{algo}{}{}{}]",
-                if epilogue.scale.is_some() { " scale" } else { "" },
-                if epilogue.shift.is_some() { " shift" } else { "" },
-                if epilogue.relu { " relu" } else { "" }
-            ),
-            Kernel::Linear { epilogue, .. } | Kernel::ChannelAffine { epilogue, .. } => format!(
-                " [{}{}{}]",
-                if epilogue.scale.is_some() { "scale " } else { "" },
-                if epilogue.shift.is_some() { "shift " } else { "" },
-                if epilogue.relu { "relu" } else { "" }
-            ),
-            _ => String::new(),
-        };
-        s.push_str(&format!("{:<14} {}{ep}\n", st.kernel.name(), st.path));
-    }
-    s.push_str(&format!("{} steps, {} buffers\n", plan.manifest.steps.len(), plan.manifest.slots));
-    s
+    readi::inspect::schedule(&plan.manifest, true) + &readi::inspect::buffers(&plan.manifest)
 }
 
 fn check_paths(rel: &str, batch: usize) -> Plan {

@@ -70,11 +70,14 @@ pub enum Command {
     #[command(after_help = "Example:\n  readi ir models/resnet18.readi --stop-after elaborate")]
     Ir {
         file: PathBuf,
-        /// Stop after this pass (see `readi passes`).
+        /// Stop after this pass (see `readi passes`). A back-end pass compiles with the
+        /// weights and variants below; after `lower` the schedule is printed.
         #[arg(long, value_name = "PASS", value_parser = parse_pass)]
         stop_after: Option<Pass>,
         #[command(flatten)]
         model: ModelArgs,
+        #[command(flatten)]
+        backend: BackendArgs,
     },
     /// Write the graph as Graphviz DOT (to stdout, or to a file with -o).
     #[command(after_help = "Example:\n  readi graph models/resnet18.readi -o r18.dot && dot -Tsvg r18.dot > r18.svg")]
@@ -269,6 +272,29 @@ fn parse_views(s: &str) -> Result<(String, Vec<usize>), String> {
     let (k, v) = parse_set(s)?;
     let views: Result<Vec<usize>, _> = v.split(',').map(|x| x.trim().parse::<usize>()).collect();
     views.map(|views| (k, views)).map_err(|_| format!("`{s}`: expected NAME=V,V with view numbers, e.g. camera=1,4"))
+}
+
+/// What `readi ir` compiles a back-end pass with.
+#[derive(clap::Args, Clone, Default)]
+pub struct BackendArgs {
+    /// Base weights (safetensors); without, seeded weights (`--seed`).
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// The seed of the seeded weights and variants.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// A variant's parameters, `KEY=PATH` (repeatable), as for `readi compile`.
+    #[arg(long = "variant", value_name = "KEY=PATH", value_parser = parse_variant_arg)]
+    pub variants: Vec<(String, String)>,
+    /// A variant with seeded parameters (repeatable): `--seeded-variant fog=0.03`.
+    #[arg(long = "seeded-variant", value_name = "KEY")]
+    pub seeded_variants: Vec<String>,
+    /// How LoRA runs (merged into the weights, or a side branch).
+    #[arg(long, value_enum)]
+    pub lora: Option<LoraArg>,
+    /// A melded variant, `fog=0.06+gamma=0.5` (repeatable).
+    #[arg(long = "meld", value_name = "KEY+KEY")]
+    pub melds: Vec<String>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]

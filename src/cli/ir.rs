@@ -1,20 +1,75 @@
 //! `readi ir`, `readi graph` and `readi passes`: the graph IR as text or as Graphviz DOT,
-//! after the whole pipeline or after one pass, and the list of those passes.
+//! after the front end or after any pass, and the list of those passes.
 
 use std::path::Path;
 use std::process::ExitCode;
 
-use readi_compiler::passes::{PIPELINE, Pass};
+use readi_compiler::backend::{self, CompileOptions, LoraMode, WeightSet};
+use readi_compiler::passes::{self, BackendInputs, PIPELINE, Pass};
 use readi_compiler::print;
 
-use super::args::ModelArgs;
-use super::frontend::{Frontend, with_module};
+use super::args::{BackendArgs, LoraArg, ModelArgs};
+use super::deploy;
+use super::frontend::{Frontend, summary_line, with_module};
 
-/// `readi ir`: the module as IR text.
-pub fn run(s: &mut Frontend, file: &Path, model: &ModelArgs, stop_after: Option<Pass>) -> Result<(), ExitCode> {
-    with_module(s, file, model, stop_after, |m| {
-        print!("{}", print::to_text(m));
-    })
+/// `readi ir`: the module as IR text after the front end or after `stop_after`; after a
+/// back-end pass it is compiled with `backend`'s weights and variants, and from `lower`
+/// on the schedule is printed as `readi inspect` prints it.
+pub fn run(
+    s: &mut Frontend,
+    file: &Path,
+    model: &ModelArgs,
+    stop_after: Option<Pass>,
+    backend: &BackendArgs,
+) -> Result<(), ExitCode> {
+    let Some(pass) = stop_after.filter(|p| p.is_backend()) else {
+        return with_module(s, file, model, stop_after, |m| print!("{}", print::to_text(m)));
+    };
+    let (out, _) = s.compile(file, model, None)?;
+    let Some(mut module) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
+        eprintln!("error: {}", summary_line(&file.display().to_string(), &out.diagnostics));
+        return Err(ExitCode::FAILURE);
+    };
+    let report = |s: &Frontend, d: readi_grammar::diag::Diagnostics| {
+        s.report(&d);
+        ExitCode::FAILURE
+    };
+    let (weights, name) = match &backend.weights {
+        Some(path) => {
+            let name = path.display().to_string();
+            let bytes = std::fs::read(path).map_err(|e| {
+                eprintln!("error: cannot read {name}: {e}");
+                ExitCode::FAILURE
+            })?;
+            (WeightSet::from_safetensors(&name, &bytes).map_err(|d| report(s, d))?, name)
+        }
+        None => {
+            eprintln!("note: seeded weights (seed {}); give --weights for a model's own", backend.seed);
+            (backend::seeded_weights(&module.graph, backend.seed), format!("<seeded weights {}>", backend.seed))
+        }
+    };
+    let mut sources = Vec::new();
+    for files in deploy::variant_args(&backend.variants) {
+        sources.push(deploy::read_variant(&files, &module).map_err(|d| report(s, d))?);
+    }
+    sources.extend(backend::seeded_variants(&module, &backend.seeded_variants, backend.seed + 1));
+    let lora = match backend.lora {
+        Some(LoraArg::Branch) => LoraMode::Branch,
+        _ => LoraMode::Merge,
+    };
+    let opts = CompileOptions { lora, melds: backend.melds.clone(), ..CompileOptions::default() };
+    let inputs = BackendInputs { base: &weights, base_name: &name, variants: &sources, opts: &opts };
+    let warnings = passes::run_backend(&mut module, &inputs, Some(pass)).map_err(|d| report(s, d))?;
+    s.report(&warnings);
+    match &module.lowered {
+        Some(l) => {
+            print!("{}", readi::inspect::schedule(&l.manifest, true));
+            print!("{}", readi::inspect::buffers(&l.manifest));
+            print!("{}", readi::inspect::variant_tables(&l.manifest));
+        }
+        None => print!("{}", print::to_text(&module)),
+    }
+    Ok(())
 }
 
 /// `readi graph`: the graph as DOT, to stdout or to `output`.

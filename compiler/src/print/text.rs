@@ -5,11 +5,17 @@
 //! history of node ids. Each node is one line, `%k path = op(inputs) {attrs} : type`,
 //! followed by an indented line of its parameter slots. The adaptation plan and the
 //! variant spec, when present, follow the nodes.
+//!
+//! In the back end a node may show the nodes fused into it (`%3 conv1 (+bn1) = ...`), a
+//! slot the tensor a pass bound it to (`scale f32[64] = bn1@scale`) and the variants whose
+//! value of that tensor differs from the base's (`{fog=0.03, gamma=4}`); a `tensors` line
+//! sums up the tensor table.
 
 use std::collections::HashMap;
 use std::fmt::Write;
 
 use super::thousands;
+use crate::backend::tensors::TensorTable;
 use crate::ir::{Graph, NodeId, Op, SlotKind, ValueRef};
 use crate::module::Module;
 use crate::passes::check_variants::{KeySource, MissingPolicy, fmt_level};
@@ -52,7 +58,7 @@ pub fn to_text(module: &Module) -> String {
         let _ = writeln!(
             out,
             "  %{k} {} = {}({}){attrs} : {}",
-            node.path,
+            node.display_path(),
             node.op.kind_name(),
             inputs.join(", "),
             types.join(", ")
@@ -65,7 +71,10 @@ pub fn to_text(module: &Module) -> String {
                     .map(|s| {
                         let dims: Vec<String> = s.shape.iter().map(|d| d.to_string()).collect();
                         let name = if s.name.is_empty() { "(value)" } else { s.name };
-                        format!("{name} {}[{}]", s.dtype.as_str(), dims.join(", "))
+                        let bound = s.tensor.as_ref().map(|t| format!(" = {t}")).unwrap_or_default();
+                        let varies =
+                            module.tensors.as_ref().map(|t| varies(t, &node.param_name(s))).unwrap_or_default();
+                        format!("{name} {}[{}]{bound}{varies}", s.dtype.as_str(), dims.join(", "))
                     })
                     .collect()
             };
@@ -82,7 +91,26 @@ pub fn to_text(module: &Module) -> String {
     for o in &g.outputs {
         let _ = writeln!(out, "  output {} = {}", o.name, val(o.value));
     }
-    if let Some(plan) = &module.adapt {
+    if let Some(t) = &module.tensors {
+        let elements: usize = t.iter().map(|(_, x)| x.numel()).sum();
+        let keys: Vec<String> = t.variants.iter().map(|v| v.key.to_string()).collect();
+        let variants =
+            if keys.is_empty() { "no variants".to_string() } else { format!("variants {}", keys.join(", ")) };
+        let _ = writeln!(out, "tensors: {} ({} elements); {variants}", t.len(), thousands(elements as u64));
+    }
+    if let Some(t) = &module.tensors {
+        // Once bound, the table says what the variants own; the rules' targets are gone
+        // with the nodes the back end folded away.
+        let count = |added: bool| {
+            t.owned.values().filter(|o| o.added == added).map(|o| o.shape.iter().product::<usize>() as u64).sum::<u64>()
+        };
+        let _ = writeln!(
+            out,
+            "  per variant: {} existing elements tuned, {} added",
+            thousands(count(false)),
+            thousands(count(true))
+        );
+    } else if let Some(plan) = &module.adapt {
         let _ = writeln!(out, "adapt");
         for (i, r) in plan.rules.iter().enumerate() {
             let what = match &r.kind {
@@ -166,6 +194,24 @@ pub fn to_text(module: &Module) -> String {
         wrap(&mut out, "    ", &keys, 100);
     }
     out
+}
+
+/// ` {a, b}`: the variants whose value of tensor `name` differs from the base's (all of
+/// them listed up to four, else their count), or nothing.
+fn varies(table: &TensorTable, name: &str) -> String {
+    let Some(t) = table.get(name) else { return String::new() };
+    let keys: Vec<String> = t
+        .variants
+        .iter()
+        .zip(&table.variants)
+        .filter(|(v, _)| v.is_some())
+        .map(|(_, info)| info.key.to_string())
+        .collect();
+    match keys.len() {
+        0 => String::new(),
+        1..=4 => format!(" {{{}}}", keys.join(", ")),
+        n => format!(" {{{n} variants}}"),
+    }
 }
 
 /// Writes words separated by spaces, wrapped at `width` columns.
