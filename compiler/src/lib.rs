@@ -15,6 +15,7 @@
 //! assert_eq!(module.graph.parameter_count(), 8 * 4 + 4);
 //! ```
 
+pub mod adapt;
 pub mod backend;
 pub mod elaborate;
 pub mod ir;
@@ -23,7 +24,9 @@ pub mod ops;
 pub mod passes;
 pub mod print;
 pub mod select;
+pub mod value;
 pub mod verify;
+pub mod weights;
 
 pub use module::Module;
 pub use passes::{Options, Outcome, Pass, run};

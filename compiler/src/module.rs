@@ -12,9 +12,11 @@
 
 use readi_plan::format::Manifest;
 
-use crate::backend::tensors::{Data, TensorTable};
 use crate::ir::Graph;
-use crate::passes::{AdaptPlan, VariantSpec};
+use crate::weights::tensors::{Data, TensorTable};
+use readi_plan::conditions::Conditions as VariantSpec;
+
+use crate::adapt::AdaptPlan;
 
 /// See the module documentation.
 #[derive(Clone, Debug)]

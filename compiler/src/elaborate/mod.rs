@@ -23,7 +23,6 @@ mod builtins;
 mod call;
 mod eval;
 mod stmt;
-mod value;
 
 use std::collections::{HashMap, HashSet};
 use std::rc::Rc;
@@ -32,7 +31,7 @@ use readi_grammar::ast::{self, BlockDef, LayerName, TypeName};
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, FileId, Span, suggest};
 
 use crate::ir::*;
-pub use value::Value;
+pub use crate::value::Value;
 
 /// Maximum number of nodes a model may elaborate to.
 pub const MAX_NODES: usize = 200_000;

@@ -8,8 +8,8 @@
 
 use readi_grammar::diag::{Code, Diagnostic, Span};
 
-use crate::elaborate::Value;
 use crate::ir::*;
+use crate::value::Value;
 
 /// A default value of an op parameter.
 #[derive(Clone, Copy, Debug)]

@@ -5,8 +5,8 @@
 use readi_plan::ops::{Concat, Permute, Pure, Reshape};
 
 use super::{Args, Builtin, P, R, int, req};
-use crate::elaborate::Value;
 use crate::ir::{Dim, Op, TensorType, ValueRef};
+use crate::value::Value;
 
 const CONCAT: &[P] = &[req("xs"), req("axis")];
 const RESHAPE: &[P] = &[req("x"), req("shape")];

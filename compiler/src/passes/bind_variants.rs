@@ -2,7 +2,7 @@
 //! the adaptation rules.
 //!
 //! A variant's files give the tensors it owns by PyTorch name (safetensors files, PEFT
-//! adapter directories; see [`crate::backend::variants`]). Checks, each an error naming
+//! adapter directories; see [`crate::weights::variants`]). Checks, each an error naming
 //! the file and tensor: a key the `variants` section does not declare (or given twice), a
 //! tensor the rules do not make per-variant, a wrong shape, a NaN or infinity. An owned
 //! tensor a variant does not give keeps the base value (zero for added ones) and is
@@ -18,11 +18,11 @@ use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
 use readi_plan::VariantKey;
 
 use super::{BackendInputs, Output};
-use crate::backend::VariantSource;
-use crate::backend::tensors::{Data, VariantInfo};
-use crate::backend::variants::{Owned, canonical_key};
 use crate::ir::Graph;
 use crate::module::Module;
+use crate::weights::VariantSource;
+use crate::weights::tensors::{Data, VariantInfo};
+use crate::weights::variants::{Owned, canonical_key};
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let mut table = module.tensors.clone().ok_or_else(not_bound)?;

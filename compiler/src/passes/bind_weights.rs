@@ -20,11 +20,11 @@ use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
 
 use super::{BackendInputs, Output};
-use crate::backend::WeightSet;
-use crate::backend::tensors::{Data, SpecParam, Tensor, TensorTable};
-use crate::backend::variants::owned_params;
 use crate::ir::{Graph, NodeId, SlotKind};
 use crate::module::Module;
+use crate::weights::WeightSet;
+use crate::weights::tensors::{Data, SpecParam, Tensor, TensorTable};
+use crate::weights::variants::owned_params;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let g = &module.graph;

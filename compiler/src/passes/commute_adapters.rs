@@ -22,11 +22,11 @@ use readi_plan::ops::batchnorm_affine;
 
 use super::bind_variants::not_bound;
 use super::{BackendInputs, Output, Patch};
-use crate::backend::LoraMode;
-use crate::backend::tensors::TensorTable;
+use crate::adapt::Injection;
 use crate::ir::{self, Graph, NodeId, Op, ValueRef};
 use crate::module::Module;
-use crate::passes::resolve_adapt::Injection;
+use crate::passes::LoraMode;
+use crate::weights::tensors::TensorTable;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;

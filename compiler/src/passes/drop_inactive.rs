@@ -13,10 +13,10 @@ use readi_grammar::diag::Diagnostics;
 
 use super::bind_variants::not_bound;
 use super::{BackendInputs, Output, Patch};
-use crate::backend::tensors::TensorTable;
+use crate::adapt::Injection;
 use crate::ir::{Graph, ValueRef};
 use crate::module::Module;
-use crate::passes::resolve_adapt::Injection;
+use crate::weights::tensors::TensorTable;
 
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;

@@ -19,10 +19,10 @@ use readi_plan::ops::{ChannelAffine, batchnorm_affine, batchnorm_channel};
 
 use super::bind_variants::not_bound;
 use super::{BackendInputs, Output, Patch, rebind};
-use crate::backend::tensors::{Tensor, TensorTable};
 use crate::ir::{Graph, NodeId, Op, ValueRef};
 use crate::module::Module;
 use crate::ops::{AffineOp, BnFold, ConvOp, Epilogue};
+use crate::weights::tensors::{Tensor, TensorTable};
 
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;

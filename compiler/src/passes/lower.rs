@@ -31,10 +31,10 @@ use readi_plan::format::{
 
 use super::bind_variants::{not_bound, same_bits};
 use super::{BackendInputs, Output};
-use crate::backend::tensors::{Data, TensorTable};
 use crate::ir::{Graph, Node, NodeId, Op, ValueRef};
 use crate::module::{Lowered, Module};
 use crate::ops::Epilogue;
+use crate::weights::tensors::{Data, TensorTable};
 
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;

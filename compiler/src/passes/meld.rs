@@ -16,9 +16,9 @@ use readi_plan::VariantKey;
 
 use super::bind_variants::{not_bound, same_bits};
 use super::{BackendInputs, Output};
-use crate::backend::tensors::{Data, TensorTable, VariantInfo};
-use crate::backend::variants::canonical_key;
 use crate::module::Module;
+use crate::weights::tensors::{Data, TensorTable, VariantInfo};
+use crate::weights::variants::canonical_key;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let mut table = module.tensors.clone().ok_or_else(not_bound)?;

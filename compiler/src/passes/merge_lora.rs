@@ -11,10 +11,10 @@ use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 
 use super::bind_variants::not_bound;
 use super::{BackendInputs, Output, Patch};
-use crate::backend::LoraMode;
+use crate::adapt::Injection;
 use crate::ir::{self, ValueRef};
 use crate::module::Module;
-use crate::passes::resolve_adapt::Injection;
+use crate::passes::LoraMode;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;

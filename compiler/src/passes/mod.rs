@@ -52,12 +52,12 @@ use std::collections::HashSet;
 use readi_grammar::ast::SourceFile;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, FileId, Span};
 
-use crate::backend::tensors::Tensor;
-use crate::backend::{CompileOptions, VariantSource, WeightSet};
 use crate::elaborate::{ElabOptions, elaborate};
 use crate::ir::{NodeId, Op, ParamSlot, ValueRef};
 use crate::module::{Lowered, Module};
 use crate::verify::{VerifyError, verify};
+use crate::weights::tensors::Tensor;
+use crate::weights::{VariantSource, WeightSet};
 pub use check_variants::VariantSpec;
 pub use resolve_adapt::AdaptPlan;
 
@@ -351,6 +351,39 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
     out
 }
 
+/// How LoRA runs in the plan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LoraMode {
+    /// Folded into the adapted layer's weight per variant: no extra work at run time, but
+    /// each variant stores the whole weight of every LoRA layer.
+    #[default]
+    Merge,
+    /// Kept as a side branch `scale * B(A(x))`: each variant stores only `A` and `B`.
+    Branch,
+}
+
+impl LoraMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            LoraMode::Merge => "merge",
+            LoraMode::Branch => "branch",
+        }
+    }
+}
+
+/// Options of the back end.
+#[derive(Clone, Debug, Default)]
+pub struct CompileOptions {
+    /// Tensors in the weights file that the model does not use are warnings, not errors.
+    pub allow_unused: bool,
+    /// How LoRA branches run.
+    pub lora: LoraMode,
+    /// An owned parameter a variant does not give is an error, not a warning.
+    pub strict: bool,
+    /// Melded variants to build from the given ones, `fog=0.06+gamma=0.5`.
+    pub melds: Vec<String>,
+}
+
 /// What the back end compiles a module with.
 #[derive(Clone, Copy, Debug)]
 pub struct BackendInputs<'a> {
@@ -367,7 +400,7 @@ pub enum Output {
     /// Graph rewrites, applied by the driver.
     Patches(Vec<Patch>),
     /// The tensor table, stored as the module's.
-    Tensors(Box<crate::backend::tensors::TensorTable>),
+    Tensors(Box<crate::weights::tensors::TensorTable>),
     /// The lowered plan, stored as the module's.
     Lowered(Box<Lowered>),
 }
@@ -414,7 +447,8 @@ pub fn run_backend(
         let Some(f) = backend_pass(pass) else { continue };
         let mut rounds = 0;
         loop {
-            match f(module, inputs, &mut warnings)? {
+            let output = f(module, inputs, &mut warnings).map_err(|d| locate(d, module, name))?;
+            match output {
                 Output::Tensors(t) => module.tensors = Some(*t),
                 Output::Lowered(l) => module.lowered = Some(*l),
                 Output::Patches(p) if p.is_empty() => break,
@@ -442,6 +476,30 @@ pub fn run_backend(
         }
     }
     Ok(warnings)
+}
+
+/// Internal errors a pass reported without a place point at the model and name the pass:
+/// no error reaches the user at `0:0`.
+fn locate(diags: Diagnostics, module: &Module, pass: &str) -> Diagnostics {
+    let span = module.graph.scopes[0].span;
+    Diagnostics(
+        diags
+            .0
+            .into_iter()
+            .map(|d| {
+                if d.code != Code::Internal || d.primary_span().is_some() {
+                    return d;
+                }
+                let message = format!("{} (in pass `{pass}`)", d.message);
+                let mut located =
+                    Diagnostic::error(Code::Internal, message).with_primary(span, "while compiling this model");
+                for n in d.notes {
+                    located = located.with_note(n);
+                }
+                located.with_note("please report this with the input file")
+            })
+            .collect(),
+    )
 }
 
 /// Runs the verifier; its failures are compiler bugs, reported as such, each at the node

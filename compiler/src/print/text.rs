@@ -15,11 +15,11 @@ use std::collections::HashMap;
 use std::fmt::Write;
 
 use super::thousands;
-use crate::backend::tensors::TensorTable;
+use crate::adapt::RuleKind;
 use crate::ir::{Graph, NodeId, Op, SlotKind, ValueRef};
 use crate::module::Module;
 use crate::passes::check_variants::{KeySource, MissingPolicy, fmt_level};
-use crate::passes::resolve_adapt::RuleKind;
+use crate::weights::tensors::TensorTable;
 
 /// The module as text.
 pub fn to_text(module: &Module) -> String {

@@ -14,9 +14,9 @@ use std::collections::BTreeMap;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use serde_json::Value;
 
-use super::weights::WeightSet;
+use super::WeightSet;
+use crate::adapt::{Injection, RuleKind};
 use crate::module::Module;
-use crate::passes::resolve_adapt::{Injection, RuleKind};
 
 /// The file names inside an adapter directory.
 pub const CONFIG_FILE: &str = "adapter_config.json";

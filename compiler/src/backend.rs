@@ -1,17 +1,10 @@
-//! The back end's data and its entry points: from a checked module, its weights and its
-//! variants to a runtime plan.
+//! The back end's entry points: from a checked module, its weights and its variants to
+//! a runtime plan.
 //!
 //! The back-end passes (`bind_weights` to `plan_buffers`) are in [`crate::passes`], run
-//! by the same driver as the front end; here are what they work on: weight sets read from
-//! safetensors ([`weights`]), PEFT adapters ([`peft`]), variant sources and what the
-//! variants own ([`variants`]), and the tensor table ([`tensors`]). [`compile`] and
-//! [`compile_variants`] run the back end and return a [`Plan`] held in memory;
-//! `Plan::write` stores it.
-
-pub mod peft;
-pub mod tensors;
-pub mod variants;
-pub mod weights;
+//! by the same driver as the front end; what they work on is in [`crate::weights`] (and
+//! re-exported here). [`compile`] and [`compile_variants`] run them and return a [`Plan`]
+//! held in memory; `Plan::write` stores it.
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use readi_runtime::plan::Plan;
@@ -19,44 +12,15 @@ use readi_runtime::plan::Plan;
 use crate::ir::Graph;
 use crate::module::Module;
 use crate::passes::{self, BackendInputs};
-pub use variants::VariantSource;
-pub use weights::WeightSet;
+pub use crate::passes::{CompileOptions, LoraMode};
+pub use crate::weights::{VariantSource, WeightSet, peft, tensors, variants};
 
-/// How LoRA runs in the plan.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum LoraMode {
-    /// Folded into the adapted layer's weight per variant: no extra work at run time, but
-    /// each variant stores the whole weight of every LoRA layer.
-    #[default]
-    Merge,
-    /// Kept as a side branch `scale * B(A(x))`: each variant stores only `A` and `B`.
-    Branch,
-}
-
-impl LoraMode {
-    pub fn name(self) -> &'static str {
-        match self {
-            LoraMode::Merge => "merge",
-            LoraMode::Branch => "branch",
-        }
-    }
-}
-
-/// Options of the back end.
-#[derive(Clone, Debug, Default)]
-pub struct CompileOptions {
-    /// Tensors in the weights file that the model does not use are warnings, not errors.
-    pub allow_unused: bool,
-    /// How LoRA branches run.
-    pub lora: LoraMode,
-    /// An owned parameter a variant does not give is an error, not a warning.
-    pub strict: bool,
-    /// Melded variants to build from the given ones, `fog=0.06+gamma=0.5`.
-    pub melds: Vec<String>,
-}
-
-fn ice(message: String) -> Diagnostics {
-    Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {message}"))])
+/// An internal error about `module` as a whole, at the model's declaration.
+fn ice(module: &Module, message: String) -> Diagnostics {
+    let d = Diagnostic::error(Code::Internal, format!("internal compiler error: {message}"))
+        .with_primary(module.graph.scopes[0].span, "while compiling this model")
+        .with_note("please report this with the input file");
+    Diagnostics(vec![d])
 }
 
 /// Compiles a checked module with its base weights and no variants.
@@ -81,9 +45,9 @@ pub fn compile_variants(
     let mut m = module.clone();
     let inputs = BackendInputs { base, base_name, variants: sources, opts };
     let warnings = passes::run_backend(&mut m, &inputs, None)?;
-    let lowered = m.lowered.ok_or_else(|| ice("the back end produced no plan".into()))?;
+    let lowered = m.lowered.take().ok_or_else(|| ice(module, "the back end produced no plan".into()))?;
     let data: Vec<Vec<f32>> = lowered.data.iter().map(|d| d.to_vec()).collect();
-    let plan = Plan::new(lowered.manifest, data).map_err(|e| ice(format!("the plan is invalid: {e}")))?;
+    let plan = Plan::new(lowered.manifest, data).map_err(|e| ice(module, format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }
 

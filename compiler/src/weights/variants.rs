@@ -11,10 +11,10 @@ use std::collections::BTreeMap;
 use readi_grammar::ast::DType;
 use readi_plan::VariantKey;
 
-use super::weights::WeightSet;
+use super::WeightSet;
+use crate::adapt::RuleKind;
 use crate::ir::{NodeId, ParamSlot, SlotKind};
 use crate::module::Module;
-use crate::passes::resolve_adapt::RuleKind;
 
 /// One variant's parameters, by PyTorch name, and where they came from (for messages).
 #[derive(Clone, Debug, Default)]

@@ -1,6 +1,14 @@
-//! Weight sets: tensors by PyTorch name, read from safetensors files (f16 and bf16
-//! converted to f32) and written back. `bind_weights` and `bind_variants` bind them to
+//! What the back end binds: weight sets (tensors by PyTorch name, read from safetensors
+//! files, f16 and bf16 converted to f32, and written back), PEFT adapters ([`peft`]),
+//! variant sources and what the variants own ([`variants`]), and the tensor table the
+//! back-end passes work on ([`tensors`]). `bind_weights` and `bind_variants` bind them to
 //! the graph.
+
+pub mod peft;
+pub mod tensors;
+pub mod variants;
+
+pub use variants::VariantSource;
 
 use std::collections::BTreeMap;
 

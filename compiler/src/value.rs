@@ -1,4 +1,5 @@
-//! Values of the elaboration-time language.
+//! Values of the elaboration-time language: what an expression evaluates to while the
+//! graph is built, and what a builtin's arguments are (`crate::ops`).
 
 use std::rc::Rc;
 
