@@ -24,7 +24,9 @@
 //! Each pass is a file here, opening with what it changes, what it assumes and when it
 //! does nothing. Passes do not mutate the module: a rewriting pass returns [`Patch`]es,
 //! named by the rule that made them, which [`apply`] applies; the driver asks the pass
-//! again until it finds nothing (a fixed point). A pass that computes a side table (the
+//! again until it finds nothing (a fixed point). The one exception is `inject_adapt`,
+//! which creates nodes (a patch only rewires and removes them): it adds them through the
+//! graph's API and records them in the adaptation plan. A pass that computes a side table (the
 //! adaptation plan, the tensor table, the lowered plan) returns it and the driver stores
 //! it. After every pass the driver runs the verifier ([`crate::verify`]); a failure is a
 //! compiler bug, reported as an internal error at the node it concerns and naming the
