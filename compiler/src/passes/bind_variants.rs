@@ -62,7 +62,7 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
 }
 
 pub(super) fn not_bound() -> Diagnostics {
-    Diagnostics(vec![Diagnostic::error(Code::Internal, "internal compiler error: the weights are not bound")])
+    super::internal("the weights are not bound")
 }
 
 /// Whether two values have the same bits.

@@ -17,11 +17,11 @@
 //! BatchNorm and adapter values. Does nothing when no injection sits before a BatchNorm
 //! (or a scale is near zero). Assumes `drop_inactive` ran.
 
-use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_grammar::diag::Diagnostics;
 use readi_plan::ops::batchnorm_affine;
 
 use super::bind_variants::not_bound;
-use super::{BackendInputs, Output, Patch};
+use super::{BackendInputs, Output, Patch, internal};
 use crate::adapt::Injection;
 use crate::ir::{self, Graph, NodeId, Op, ValueRef};
 use crate::module::Module;
@@ -33,7 +33,6 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
     let g = &module.graph;
     let Some(plan) = &module.adapt else { return Ok(Output::Patches(Vec::new())) };
     let out = |node| ValueRef { node, port: 0 };
-    let ice = |e: String| Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {e}"))]);
     let mut patches = Vec::new();
     for inj in &plan.injections {
         match *inj {
@@ -54,7 +53,7 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
                     .map(|n| ("moved behind its BatchNorm", table.get(n).map(|t| t.shape.clone()).unwrap_or_default()))
                     .collect();
                 let eps = bn_eps(g, target);
-                let moved = table.derive(&ins, &shapes, |v| move_adapter(v, eps)).map_err(ice)?;
+                let moved = table.derive(&ins, &shapes, |v| move_adapter(v, eps)).map_err(internal)?;
                 let mut p = Patch::new("adapter_behind_batchnorm");
                 p.tensors.extend([wd, bd, wu, bu].into_iter().zip(moved));
                 let bn_out = out(target);
@@ -72,7 +71,7 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
                 let eps = bn_eps(g, bn);
                 let scaled = table
                     .derive_one(&ins, "moved behind its BatchNorm", shape, |v| scale_lora_b(v, eps))
-                    .map_err(ice)?;
+                    .map_err(internal)?;
                 let mut p = Patch::new("lora_behind_batchnorm");
                 p.tensors.push((wb, scaled));
                 let bn_out = out(bn);

@@ -14,11 +14,11 @@
 //! parameters. Does nothing when no BatchNorm is left. Assumes the adaptations are placed
 //! (`drop_inactive`, `commute_adapters`, `merge_lora`).
 
-use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_grammar::diag::Diagnostics;
 use readi_plan::ops::{ChannelAffine, batchnorm_affine, batchnorm_channel};
 
 use super::bind_variants::not_bound;
-use super::{BackendInputs, Output, Patch, rebind};
+use super::{BackendInputs, Output, Patch, internal, rebind};
 use crate::ir::{Graph, NodeId, Op, ValueRef};
 use crate::module::Module;
 use crate::ops::{AffineOp, BnFold, ConvOp, Epilogue};
@@ -27,7 +27,6 @@ use crate::weights::tensors::{Tensor, TensorTable};
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;
     let g = &module.graph;
-    let ice = |e: String| Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {e}"))]);
     let mut patches = Vec::new();
     for id in g.node_ids() {
         let node = g.node(id);
@@ -36,7 +35,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         let (Some(w), Some(b), Some(mean), Some(var)) =
             (name("weight"), name("bias"), name("running_mean"), name("running_var"))
         else {
-            return Err(ice(format!("BatchNorm `{}` lacks its parameter slots", node.path)));
+            return Err(internal(format!("BatchNorm `{}` lacks its parameter slots", node.path)));
         };
         let c = bn.channels.max(0) as usize;
         let eps = bn.eps;
@@ -56,8 +55,8 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
                     .map(|(&g, &var)| batchnorm_channel(g as f64, 0.0, 0.0, var as f64, eps).0 as f32)
                     .collect()
             })
-            .map_err(ice)?;
-        let shift = shift_tensor(table, [&w, &b, &mean, &var], conv_bias.as_deref(), c, eps).map_err(ice)?;
+            .map_err(internal)?;
+        let shift = shift_tensor(table, [&w, &b, &mean, &var], conv_bias.as_deref(), c, eps).map_err(internal)?;
         let fold = BnFold { name: node.path.clone(), eps, conv_bias: conv_bias.is_some() };
         let epilogue = Epilogue { scale: true, shift: true, relu: false, bn: Some(fold) };
         let mut bind =

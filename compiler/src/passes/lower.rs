@@ -23,7 +23,7 @@ use std::collections::hash_map::DefaultHasher;
 use std::collections::{HashMap, HashSet};
 use std::hash::{Hash, Hasher};
 
-use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_grammar::diag::Diagnostics;
 use readi_plan::format::{
     BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec, Replacement, Step,
     Storage, TensorSpec, ValueSpec, VariantTable,
@@ -73,45 +73,16 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     for o in &g.outputs {
         outputs.push(OutputSpec { name: o.name.clone(), value: l.value(o.value)? });
     }
-    let read = l.read_tensors();
     let Lowering { values, steps, names, records, .. } = l;
     let tensors: Vec<TensorSpec> = names
         .iter()
         .map(|n| TensorSpec { name: n.clone(), shape: table.get(n).map(|t| t.shape.clone()).unwrap_or_default() })
         .collect();
-    let mut store = Store::new(
-        tensors,
-        names
-            .iter()
-            .map(|n| table.get(n).map(|t| t.base.clone()))
-            .collect::<Option<_>>()
-            .ok_or_else(|| ice("a stored tensor is not bound".into()))?,
-    );
-    let added: HashSet<&str> = table.owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.as_str()).collect();
-    let count = |want: bool| -> u64 {
-        table.owned.values().filter(|o| o.added == want).map(|o| o.shape.iter().product::<usize>() as u64).sum()
-    };
-    let mut variants = Vec::new();
-    for (i, info) in table.variants.iter().enumerate() {
-        let mut replaces = Vec::new();
-        for (t, name) in names.iter().enumerate() {
-            let Some(tensor) = table.get(name) else { continue };
-            let Some(Some(value)) = tensor.variants.get(i) else { continue };
-            if !read[t] || same_bits(value, &tensor.base) {
-                continue;
-            }
-            let with = store.add(format!("{name}#{}", info.key), &tensor.shape, value.clone());
-            let is_added = tensor.sources.iter().any(|s| added.contains(s.as_str()));
-            replaces.push(Replacement { base: t, with, added: is_added });
-        }
-        variants.push(VariantTable {
-            key: info.key.clone(),
-            replaces,
-            tuned_elements: count(false),
-            added_elements: count(true),
-            fallback: info.fallback.clone(),
-        });
-    }
+    let data: Vec<Data> = names
+        .iter()
+        .map(|n| table.get(n).map(|t| t.base.clone()))
+        .collect::<Option<_>>()
+        .ok_or_else(|| ice("a stored tensor is not bound".into()))?;
     let params = table
         .params
         .iter()
@@ -124,7 +95,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         })
         .collect();
     let slots = values.iter().filter(|v| matches!(v.storage, Storage::Slot(_))).count();
-    let manifest = Manifest {
+    let mut manifest = Manifest {
         format_version: FORMAT_VERSION,
         model: g.name.clone(),
         model_params: g.model_params.clone(),
@@ -134,16 +105,45 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         values,
         steps,
         slots,
-        tensors: store.specs,
+        tensors,
         params,
-        variants,
+        variants: Vec::new(),
         conditions: module.variants.clone(),
     };
+    // The tensors a variant may replace: those a kernel reads or a value stores (not the
+    // BatchNorm records, which only AdaBN reads).
+    let read = readi_plan::validate::read_tensors(&manifest);
+    let mut store = Store::new(std::mem::take(&mut manifest.tensors), data);
+    let added: HashSet<&str> = table.owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.as_str()).collect();
+    let count = |want: bool| -> u64 {
+        table.owned.values().filter(|o| o.added == want).map(|o| o.shape.iter().product::<usize>() as u64).sum()
+    };
+    for (i, info) in table.variants.iter().enumerate() {
+        let mut replaces = Vec::new();
+        for (t, name) in names.iter().enumerate() {
+            let Some(tensor) = table.get(name) else { continue };
+            let Some(Some(value)) = tensor.variants.get(i) else { continue };
+            if !read[t] || same_bits(value, &tensor.base) {
+                continue;
+            }
+            let with = store.add(format!("{name}#{}", info.key), &tensor.shape, value.clone());
+            let is_added = tensor.sources.iter().any(|s| added.contains(s.as_str()));
+            replaces.push(Replacement { base: t, with, added: is_added });
+        }
+        manifest.variants.push(VariantTable {
+            key: info.key.clone(),
+            replaces,
+            tuned_elements: count(false),
+            added_elements: count(true),
+            fallback: info.fallback.clone(),
+        });
+    }
+    manifest.tensors = store.specs;
     Ok(Output::Lowered(Box::new(Lowered { manifest, data: store.data })))
 }
 
 fn ice(message: String) -> Diagnostics {
-    Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error while lowering: {message}"))])
+    super::internal(message)
 }
 
 struct Lowering<'m> {
@@ -260,21 +260,6 @@ impl<'m> Lowering<'m> {
         let output = self.new_value(ValueRef { node: id, port: 0 }, Storage::Slot(0));
         self.steps.push(Step { path: node.display_path(), kernel, inputs, output });
         Ok(())
-    }
-
-    /// Which stored tensors a step's kernel reads or a value stores (not the BatchNorm
-    /// records, which only AdaBN reads and no variant replaces).
-    fn read_tensors(&self) -> Vec<bool> {
-        let mut read = vec![false; self.names.len()];
-        let named = self.steps.iter().flat_map(|s| s.kernel.tensors());
-        let values = self.values.iter().filter_map(|v| match v.storage {
-            Storage::Tensor(t) => Some(t),
-            _ => None,
-        });
-        for t in named.chain(values) {
-            read[t] = true;
-        }
-        read
     }
 }
 

@@ -7,10 +7,10 @@
 //! Does nothing with `--lora branch` or without LoRA. Assumes `commute_adapters` ran (it
 //! moves branches only in branch mode).
 
-use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_grammar::diag::Diagnostics;
 
 use super::bind_variants::not_bound;
-use super::{BackendInputs, Output, Patch};
+use super::{BackendInputs, Output, Patch, internal};
 use crate::adapt::Injection;
 use crate::ir::{self, ValueRef};
 use crate::module::Module;
@@ -23,7 +23,6 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
     if inputs.opts.lora != LoraMode::Merge {
         return Ok(Output::Patches(Vec::new()));
     }
-    let ice = |e: String| Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {e}"))]);
     let mut patches = Vec::new();
     for inj in &plan.injections {
         let Injection::Lora { base, a, b, add, factor, .. } = *inj else { continue };
@@ -32,7 +31,7 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
         let rank = g.node(a).params.first().and_then(|s| s.shape.first()).copied().unwrap_or(1).max(1) as usize;
         let shape = table.get(&w).map(|t| t.shape.clone()).unwrap_or_default();
         let merged =
-            table.derive_one(&[&w, &wa, &wb], "merged into", shape, |v| merge(v, rank, factor)).map_err(ice)?;
+            table.derive_one(&[&w, &wa, &wb], "merged into", shape, |v| merge(v, rank, factor)).map_err(internal)?;
         let mut p = Patch::new("merge_lora");
         p.tensors.push((w, merged));
         p.replace_uses.push((ValueRef { node: add, port: 0 }, ValueRef { node: base, port: 0 }));

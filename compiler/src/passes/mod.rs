@@ -480,6 +480,12 @@ pub fn run_backend(
     Ok(warnings)
 }
 
+/// An internal compiler error: a bug, never the user's. Passes report them without a
+/// place; the driver points them at the model and names the pass ([`locate`]).
+pub(crate) fn internal(message: impl std::fmt::Display) -> Diagnostics {
+    Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {message}"))])
+}
+
 /// Internal errors a pass reported without a place point at the model and name the pass:
 /// no error reaches the user at `0:0`.
 fn locate(diags: Diagnostics, module: &Module, pass: &str) -> Diagnostics {

@@ -10,12 +10,12 @@
 //! Does nothing when every weight is packed. Assumes every conv has an algorithm
 //! (`choose_conv_algo`).
 
-use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_grammar::diag::Diagnostics;
 use readi_runtime::kernels::conv;
 
 use super::bind_variants::not_bound;
 use super::choose_conv_algo::spatial;
-use super::{BackendInputs, Output, Patch, rebind};
+use super::{BackendInputs, Output, Patch, internal, rebind};
 use crate::ir::Op;
 use crate::module::Module;
 use crate::ops::{ConvOp, LinearOp};
@@ -23,7 +23,6 @@ use crate::ops::{ConvOp, LinearOp};
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;
     let g = &module.graph;
-    let ice = |e: String| Diagnostics(vec![Diagnostic::error(Code::Internal, format!("internal compiler error: {e}"))]);
     let mut patches = Vec::new();
     for id in g.node_ids() {
         let node = g.node(id);
@@ -31,7 +30,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         let weight = node.param_name(slot);
         match &node.op {
             Op::Conv2d(c) if !c.packed => {
-                let Some(algo) = c.algo else { return Err(ice(format!("conv `{}` has no algorithm", node.path))) };
+                let Some(algo) = c.algo else { return Err(internal(format!("conv `{}` has no algorithm", node.path))) };
                 let (h, w) = spatial(g, id);
                 let s = c.conv.shape(1, h, w);
                 let len = algo.packed_len(&s);
@@ -41,7 +40,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
                         conv::pack_weight(&s, algo, v[0], &mut out);
                         out
                     })
-                    .map_err(ice)?;
+                    .map_err(internal)?;
                 let name = format!("{}.weight@{}", node.path, algo.name());
                 let new = Op::Conv2d(ConvOp { packed: true, ..c.clone() });
                 let mut p = Patch::new("pack_conv");
@@ -61,7 +60,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
                         }
                         t
                     })
-                    .map_err(ice)?;
+                    .map_err(internal)?;
                 let name = format!("{}.weight@t", node.path);
                 let new = Op::Linear(LinearOp { packed: true, ..l.clone() });
                 let mut p = Patch::new("transpose_linear");

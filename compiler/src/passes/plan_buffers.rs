@@ -11,16 +11,14 @@
 //! Assumes `lower` ran (it gives every value a buffer of its own). The lowered plan's
 //! manifest changes; its tensors do not.
 
-use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_grammar::diag::Diagnostics;
 use readi_plan::format::{Step, Storage, ValueSpec};
 
 use super::{BackendInputs, Output};
 use crate::module::Module;
 
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
-    let mut lowered = module.lowered.clone().ok_or_else(|| {
-        Diagnostics(vec![Diagnostic::error(Code::Internal, "internal compiler error: the module is not lowered")])
-    })?;
+    let mut lowered = module.lowered.clone().ok_or_else(|| super::internal("the module is not lowered"))?;
     let m = &mut lowered.manifest;
     let outputs: Vec<usize> = m.outputs.iter().map(|o| o.value).collect();
     m.slots = plan_buffers(&mut m.values, &m.steps, &outputs);
