@@ -12,9 +12,10 @@
 //!
 //! Any safetensors tool can list a plan's tensors. Loading maps the file and borrows the
 //! weight bytes in place: nothing proportional to the weights is copied, at load or later.
-//! Plans are untrusted input: [`Plan::load`] checks the container, the version, the
-//! checksum and every index in the manifest, and reports a [`PlanError`] naming what is
-//! wrong; shapes are checked again when a batch size is bound.
+//! Plans are untrusted input: [`Plan::load`] checks the container, the version and the
+//! checksum, then the manifest with `readi_plan::validate` (every index, the schedule,
+//! and every step's shapes against its operator's shape rule, on the symbolic shapes, so
+//! they hold at every batch size), and reports a [`PlanError`] naming what is wrong.
 //!
 //! # Variants
 //!

@@ -2,8 +2,9 @@
 //!
 //! A [`Session`] owns a thread pool and the activation buffers of one plan. The first run
 //! (and any run with a new batch size) *binds* the plan: it evaluates every value's shape
-//! from the inputs', checks each step against its kernel's requirements (a plan file is
-//! untrusted), and allocates one buffer per slot of the plan's buffer plan plus the
+//! from the inputs' (the plan's load checked every step's shapes against its operator's
+//! rule for any batch size, so binding only bounds the sizes and builds each conv's
+//! parameters), and allocates one buffer per slot of the plan's buffer plan plus the
 //! kernels' scratch. Later runs at the same batch size allocate nothing in the executor
 //! but the output tensors they return (`runtime/tests/allocations.rs` counts; some
 //! kernels still allocate small per-call work lists: conv, the GEMM, matmul, permute,
