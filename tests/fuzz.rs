@@ -17,7 +17,7 @@
 //!
 //! An internal compiler error (`Code::Internal`, rendered `E0999`) is a bug whatever the
 //! input, so every property fails on one, from the front end or the back end. Bugs found
-//! so far are in [`known_bugs`].
+//! so far are in [`regressions`].
 //!
 //! Case counts: the front-end properties run `PROPTEST_CASES` cases each (default 192; CI
 //! sets 256), the back-end ones a quarter of that ([`backend_cases`]), since each of
@@ -32,8 +32,9 @@ use std::sync::{Arc, OnceLock};
 
 use proptest::prelude::*;
 use proptest::test_runner::FileFailurePersistence;
+use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions};
-use readi_compiler::passes::{self, Module, Options};
+use readi_compiler::passes::{self, Options};
 use readi_compiler::print;
 use readi_compiler::verify::verify;
 use readi_grammar::ast_print::to_source;
@@ -1396,30 +1397,27 @@ fn limits_hold_on_a_small_stack() {
     assert!(rendered.contains("nested more than"), "{rendered}");
 }
 
-/// Bugs the properties found, each reduced to a minimal spec that reproduces it. A test
-/// here is `#[ignore]`d while its bug stands (`cargo test --test fuzz -- --ignored` runs
-/// them); the properties that found the bugs are unchanged and fail whenever they draw
-/// such a case. Remove the `#[ignore]` with the fix.
-mod known_bugs {
+/// Bugs the properties found, each reduced to a minimal spec, kept as regression tests
+/// (the properties that found them still run too).
+mod regressions {
     use super::exercise;
 
     /// An adapter before a layer whose input has a symbolic spatial axis (`H` in
-    /// `f32[N, 4, H, 4]` is a symbol, as `N` is) is an internal error in `inject_adapt`:
-    /// "`body.bn.adapter.down`: conv2d needs known spatial sizes, but axis 2 of
-    /// f32[N, 4, H, 4] is symbolic". `resolve_adapt` accepts the target (it checks that the
-    /// input is 4-D with a known channel count), and `inject_adapt` then fails to build the
-    /// adapter's 1x1 conv. With an earlier rule already injected (`lora ... on head.fc`),
-    /// the half-injected graph also fails the verifier ("added slots do not match the
-    /// injections"). Expected: a user error at the rule, as for other targets an adapter
-    /// cannot take, or an adapter that does not need the spatial sizes. Found by
+    /// `f32[N, 4, H, 4]` is a symbol, as `N` is) was an internal error in `inject_adapt`
+    /// (its 1x1 convs need known spatial sizes) and, with another rule injected first, a
+    /// verifier failure. `resolve_adapt` now refuses the target at the rule. Found by
     /// `edited_generated_models_never_panic`, from an edit that put a word in place of an
     /// input's height.
     #[test]
-    #[ignore = "known bug: internal error in inject_adapt for an adapter before a symbolic spatial axis"]
     fn adapter_before_a_layer_with_a_symbolic_spatial_axis() {
-        exercise(
+        let (sources, out) = exercise(
             "model m {\n  input x: f32[N, 4, H, 4]\n  body {\n    bn = batchnorm(x)\n  }\n  output y = body.bn\n}\n\
-             adapt {\n  adapter in body before bn\n}\n",
+             adapt {\n  lora rank=1 on body.bn\n  adapter in body before bn\n}\n",
+        );
+        let rendered = sources.render_all(&out.diagnostics, false);
+        assert!(
+            rendered.contains("an adapter needs an NCHW input with known channels and spatial sizes"),
+            "{rendered}"
         );
     }
 }

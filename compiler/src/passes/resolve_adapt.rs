@@ -7,7 +7,8 @@
 //!
 //! Checks, each an error naming the rule:
 //! * a selector that selects nothing, or only layers a rule cannot apply to
-//!   (`lora` needs linear or conv2d layers; an adapter needs a 4-D input);
+//!   (`lora` needs linear or conv2d layers; an adapter needs a 4-D input with known
+//!   channels and spatial sizes);
 //! * unknown op kinds, unknown or bad options (`rank=0`, `act=tanhh`);
 //! * two rules that claim one parameter in conflicting ways (LoRA on a weight another
 //!   rule tunes; two LoRA branches or two adapters at one layer), showing both rules.
@@ -355,13 +356,16 @@ impl Cx<'_> {
                     continue;
                 }
                 let input = g.inputs(n).first().and_then(|v| g.value_type(*v)).cloned();
-                let channels = input.as_ref().filter(|t| t.rank() == 4).and_then(|t| t.known_dim(1));
+                // The adapter's 1x1 convs need known channels and spatial sizes.
+                let nchw =
+                    input.as_ref().filter(|t| t.rank() == 4 && t.known_dim(2).is_some() && t.known_dim(3).is_some());
+                let channels = nchw.and_then(|t| t.known_dim(1));
                 let Some(c) = channels else {
                     diags.push(
                         Diagnostic::error(
                             Code::BadSelector,
                             format!(
-                                "an adapter needs an NCHW input, but `{}` takes {}",
+                                "an adapter needs an NCHW input with known channels and spatial sizes, but `{}` takes {}",
                                 node.path,
                                 show(input.as_ref())
                             ),
