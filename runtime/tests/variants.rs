@@ -1,17 +1,18 @@
 //! Variants: each runs with its own tensors (checked against naive references computed
 //! here from the weights), switching is exact and reversible, a run sees one variant while
 //! another thread switches, variants survive a file round trip, and bad variant tables or
-//! keys are refused with errors naming them. Also the plan checks the executor relies on.
+//! keys are refused with errors naming them (the other plan checks: `plan_checks.rs`).
 
 mod common;
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use readi_plan::VariantKey;
 use readi_runtime::exec::{RunError, Session, VariantSwitch};
 use readi_runtime::plan::{BASE_VARIANT, FORMAT_VERSION, Plan, PlanError, Replacement, VariantTable};
 use readi_runtime::testdata::data;
-use std::collections::HashMap;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 
 use common::*;
 

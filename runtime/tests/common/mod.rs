@@ -2,6 +2,10 @@
 //! references computed from their weights, and helpers to run and edit them.
 #![allow(dead_code)]
 
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
 use readi_plan::ops::{BinaryOp, ChannelAffine, Conv2d, LayerNorm, Linear, Pure, Window2};
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
@@ -10,9 +14,6 @@ use readi_runtime::plan::{
     Step, Storage, TensorSpec, ValueSpec, VariantTable,
 };
 use readi_runtime::testdata::data;
-use std::collections::HashMap;
-use std::path::PathBuf;
-use std::sync::Arc;
 
 // ---------------------------------------------------------------------------------------
 // Building plans by hand
