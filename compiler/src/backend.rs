@@ -46,8 +46,8 @@ pub fn compile_variants(
     let inputs = BackendInputs { base, base_name, variants: sources, opts };
     let warnings = passes::run_backend(&mut m, &inputs, None)?;
     let lowered = m.lowered.take().ok_or_else(|| ice(module, "the back end produced no plan".into()))?;
-    let data: Vec<Vec<f32>> = lowered.data.iter().map(|d| d.to_vec()).collect();
-    let plan = Plan::new(lowered.manifest, data).map_err(|e| ice(module, format!("the plan is invalid: {e}")))?;
+    let plan =
+        Plan::new(lowered.manifest, lowered.data).map_err(|e| ice(module, format!("the plan is invalid: {e}")))?;
     Ok((plan, warnings))
 }
 

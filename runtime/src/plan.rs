@@ -32,6 +32,7 @@ use std::collections::HashMap;
 use std::fmt;
 use std::ops::Range;
 use std::path::Path;
+use std::sync::Arc;
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
@@ -108,7 +109,7 @@ impl std::error::Error for PlanError {}
 /// Where the tensor bytes are.
 enum Weights {
     /// Straight from the compiler.
-    Owned(Vec<Vec<f32>>),
+    Owned(Vec<Arc<[f32]>>),
     /// Borrowed from a memory-mapped file: byte range of each tensor.
     Mapped { map: memmap2::Mmap, ranges: Vec<Range<usize>> },
 }
@@ -226,8 +227,10 @@ impl fmt::Debug for Plan {
 }
 
 impl Plan {
-    /// A plan from the compiler: the manifest and one f32 vector per manifest tensor.
-    pub fn new(manifest: Manifest, tensors: Vec<Vec<f32>>) -> Result<Plan, PlanError> {
+    /// A plan from the compiler: the manifest and the data of each manifest tensor, in
+    /// manifest order (shared data, such as the compiler's `Arc<[f32]>`, is not copied).
+    pub fn new<T: Into<Arc<[f32]>>>(manifest: Manifest, tensors: Vec<T>) -> Result<Plan, PlanError> {
+        let tensors = tensors.into_iter().map(Into::into).collect();
         Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")
     }
 
