@@ -51,8 +51,8 @@ fn run(cli: Cli) -> ExitCode {
         Command::Check { files, model, deny_warnings } => cli::check::run(&mut s, &files, &model, deny_warnings),
         Command::Ast { file, debug } => cli::ast::run(&mut s, &file, debug),
         Command::Ir { file, stop_after, model, backend } => cli::ir::run(&mut s, &file, &model, stop_after, &backend),
-        Command::Graph { file, output, stop_after, model } => {
-            cli::ir::graph(&mut s, &file, output.as_deref(), &model, stop_after)
+        Command::Graph { file, output, stop_after, model, backend } => {
+            cli::ir::graph(&mut s, &file, output.as_deref(), &model, stop_after, &backend)
         }
         Command::Params { file, buffers, model } => cli::params::run(&mut s, &file, buffers, &model),
         Command::Passes => cli::ir::passes(),

@@ -486,3 +486,32 @@ fn variant_keys_are_read_by_meaning_by_every_command() {
     assert!(stderr(&o).contains("declares no variant `fog=0.02`"), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn ir_reaches_every_back_end_pass() {
+    // After fold_batchnorm each BatchNorm of ResNet-18 is in its conv's epilogue.
+    let o = readi(&["ir", "models/resnet18.readi", "--stop-after", "fold_batchnorm"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("conv1 (+bn1) = conv2d") && !out.contains("= batchnorm("), "{out}");
+    assert!(stderr(&o).contains("seeded weights"), "{}", stderr(&o));
+    // From lower on, the schedule, as readi inspect lists it.
+    let o = readi(&["ir", "models/resnet18.readi", "--stop-after", "plan_buffers"]);
+    let out = stdout(&o);
+    assert!(out.starts_with("schedule: 40 steps") && out.contains("conv1 (+bn1, relu#0)"), "{out}");
+    assert!(out.contains("buffers: 3 slots"), "{out}");
+    // With seeded variants, the variant tables.
+    let o = readi(&[
+        "ir",
+        "tests/cases/ok/adapt_and_variants.readi",
+        "--stop-after",
+        "lower",
+        "--seeded-variant",
+        "fog=0.030",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("variant fog=0.03: replaces"), "{}", stdout(&o));
+    // A schedule is not a graph.
+    let o = readi(&["graph", "models/resnet18.readi", "--stop-after", "lower"]);
+    assert!(!o.status.success() && stderr(&o).contains("not a graph"), "{}", stderr(&o));
+}

@@ -86,11 +86,14 @@ pub enum Command {
         /// Output file (default: stdout).
         #[arg(short, long)]
         output: Option<PathBuf>,
-        /// Stop after this pass (see `readi passes`).
+        /// Stop after this pass (see `readi passes`); a back-end pass compiles with the
+        /// weights and variants below (before `lower`: the schedule is not a graph).
         #[arg(long, value_name = "PASS", value_parser = parse_pass)]
         stop_after: Option<Pass>,
         #[command(flatten)]
         model: ModelArgs,
+        #[command(flatten)]
+        backend: BackendArgs,
     },
     /// Print every parameter (name, shape, count) and the total.
     #[command(after_help = "Example:\n  readi params models/resnet18.readi --set num_classes=10")]

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use readi_compiler::backend::{self, CompileOptions, LoraMode, WeightSet};
 use readi_compiler::passes::{self, BackendInputs, PIPELINE, Pass};
-use readi_compiler::print;
+use readi_compiler::{Module, print};
 
 use super::args::{BackendArgs, LoraArg, ModelArgs};
 use super::deploy;
@@ -22,9 +22,63 @@ pub fn run(
     stop_after: Option<Pass>,
     backend: &BackendArgs,
 ) -> Result<(), ExitCode> {
-    let Some(pass) = stop_after.filter(|p| p.is_backend()) else {
+    if !stop_after.is_some_and(|p| p.is_backend()) {
         return with_module(s, file, model, stop_after, |m| print!("{}", print::to_text(m)));
+    }
+    let module = compiled(s, file, model, stop_after, backend)?;
+    match &module.lowered {
+        Some(l) => {
+            print!("{}", readi::inspect::schedule(&l.manifest, true));
+            print!("{}", readi::inspect::buffers(&l.manifest));
+            print!("{}", readi::inspect::variant_tables(&l.manifest));
+        }
+        None => print!("{}", print::to_text(&module)),
+    }
+    Ok(())
+}
+
+/// `readi graph`: the graph as DOT, to stdout or to `output`, after the front end or
+/// after `stop_after` (a back-end pass before `lower`).
+pub fn graph(
+    s: &mut Frontend,
+    file: &Path,
+    output: Option<&Path>,
+    model: &ModelArgs,
+    stop_after: Option<Pass>,
+    backend: &BackendArgs,
+) -> Result<(), ExitCode> {
+    let dot = if stop_after.is_some_and(|p| p.is_backend()) {
+        if stop_after.is_some_and(|p| p >= Pass::Lower) {
+            eprintln!("error: after `lower` the model is a schedule, not a graph; use `readi ir --stop-after lower`");
+            return Err(ExitCode::FAILURE);
+        }
+        print::to_dot(&compiled(s, file, model, stop_after, backend)?.graph)
+    } else {
+        let mut dot = String::new();
+        with_module(s, file, model, stop_after, |m| dot = print::to_dot(&m.graph))?;
+        dot
     };
+    match output {
+        Some(p) => std::fs::write(p, dot).map_err(|e| {
+            eprintln!("error: cannot write {}: {e}", p.display());
+            ExitCode::from(2)
+        }),
+        None => {
+            print!("{dot}");
+            Ok(())
+        }
+    }
+}
+
+/// The module after back-end pass `stop_after`, compiled with `backend`'s weights (or
+/// seeded ones) and variants.
+fn compiled(
+    s: &mut Frontend,
+    file: &Path,
+    model: &ModelArgs,
+    stop_after: Option<Pass>,
+    backend: &BackendArgs,
+) -> Result<Module, ExitCode> {
     let (out, _) = s.compile(file, model, None)?;
     let Some(mut module) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
         eprintln!("error: {}", summary_line(&file.display().to_string(), &out.diagnostics));
@@ -59,46 +113,9 @@ pub fn run(
     };
     let opts = CompileOptions { lora, melds: backend.melds.clone(), ..CompileOptions::default() };
     let inputs = BackendInputs { base: &weights, base_name: &name, variants: &sources, opts: &opts };
-    let warnings = passes::run_backend(&mut module, &inputs, Some(pass)).map_err(|d| report(s, d))?;
+    let warnings = passes::run_backend(&mut module, &inputs, stop_after).map_err(|d| report(s, d))?;
     s.report(&warnings);
-    match &module.lowered {
-        Some(l) => {
-            print!("{}", readi::inspect::schedule(&l.manifest, true));
-            print!("{}", readi::inspect::buffers(&l.manifest));
-            print!("{}", readi::inspect::variant_tables(&l.manifest));
-        }
-        None => print!("{}", print::to_text(&module)),
-    }
-    Ok(())
-}
-
-/// `readi graph`: the graph as DOT, to stdout or to `output`.
-pub fn graph(
-    s: &mut Frontend,
-    file: &Path,
-    output: Option<&Path>,
-    model: &ModelArgs,
-    stop_after: Option<Pass>,
-) -> Result<(), ExitCode> {
-    let mut write_err = None;
-    let code = with_module(s, file, model, stop_after, |m| {
-        let dot = print::to_dot(&m.graph);
-        match &output {
-            Some(p) => {
-                if let Err(e) = std::fs::write(p, dot) {
-                    write_err = Some(format!("error: cannot write {}: {e}", p.display()));
-                }
-            }
-            None => print!("{dot}"),
-        }
-    });
-    match write_err {
-        Some(e) => {
-            eprintln!("{e}");
-            Err(ExitCode::from(2))
-        }
-        None => code,
-    }
+    Ok(module)
 }
 
 /// `readi passes`: the pipeline's passes in order, the names `--stop-after` takes.
