@@ -65,8 +65,9 @@ fn previous(pass: Pass) -> Pass {
     PIPELINE[i - 1].0
 }
 
-/// The module (or its schedule) as text after `stop`, for a case.
-fn after(rel: &str, text: &str, h: &Header, stop: Pass) -> String {
+/// The module (or its schedule) as text after `stop`, for a case, and the rules `stop`
+/// applied (`fold_into_conv x2`), if it is a back-end pass.
+fn after(rel: &str, text: &str, h: &Header, stop: Pass) -> (String, Vec<String>) {
     let mut sources = SourceMap::new();
     let file = sources.add(rel, text);
     let front_stop = if stop.is_backend() { None } else { Some(stop) };
@@ -74,7 +75,7 @@ fn after(rel: &str, text: &str, h: &Header, stop: Pass) -> String {
     assert!(!out.diagnostics.has_errors(), "{rel}: {}", sources.render_all(&out.diagnostics, false));
     let mut module: Module = out.module.unwrap_or_else(|| panic!("{rel}: no module"));
     if !stop.is_backend() {
-        return to_text(&module);
+        return (to_text(&module), Vec::new());
     }
     let mut weights = backend::seeded_weights(&module.graph, h.seed);
     for name in &h.zero {
@@ -84,15 +85,17 @@ fn after(rel: &str, text: &str, h: &Header, stop: Pass) -> String {
     let sources_v = backend::seeded_variants(&module, &h.variants, h.seed + 1);
     let opts = CompileOptions { lora: h.lora, melds: h.melds.clone(), ..CompileOptions::default() };
     let inputs = BackendInputs { base: &weights, base_name: "seeded", variants: &sources_v, opts: &opts };
-    passes::run_backend(&mut module, &inputs, Some(stop))
+    let run = passes::run_backend(&mut module, &inputs, Some(stop))
         .unwrap_or_else(|d| panic!("{rel}: {}", sources.render_all(&d, false)));
-    match &module.lowered {
+    let rules = run.applied.iter().filter(|a| a.pass == stop).map(|a| format!("{} x{}", a.rule, a.count)).collect();
+    let text = match &module.lowered {
         Some(l) => {
             let m = &l.manifest;
             readi::inspect::schedule(m, true) + &readi::inspect::buffers(m) + &readi::inspect::variant_tables(m)
         }
         None => to_text(&module),
-    }
+    };
+    (text, rules)
 }
 
 #[test]
@@ -105,8 +108,8 @@ fn pass_cases() {
         let text = std::fs::read_to_string(path).expect("read the case");
         let h = header(&text, &rel);
         let expect = h.expect_change.unwrap_or_else(|| panic!("{rel}: no `# expect:` line"));
-        let before = after(&rel, &text, &h, previous(pass));
-        let now = after(&rel, &text, &h, pass);
+        let (before, _) = after(&rel, &text, &h, previous(pass));
+        let (now, rules) = after(&rel, &text, &h, pass);
         assert_eq!(
             before != now,
             expect,
@@ -121,7 +124,8 @@ fn pass_cases() {
             (_, true) => "(no change)\n".to_string(),
             (_, false) => diff,
         };
-        insta::assert_snapshot!(format!("{comment}\n--- after {dir}\n{now}\n--- diff from before\n{shown}"));
+        let rules = if rules.is_empty() { String::new() } else { format!("rules applied: {}\n", rules.join(", ")) };
+        insta::assert_snapshot!(format!("{comment}\n--- after {dir}\n{rules}{now}\n--- diff from before\n{shown}"));
         count += 1;
     });
     assert!(count >= 25, "expected at least 25 pass cases, found {count}");

@@ -44,7 +44,7 @@ pub fn compile_variants(
 ) -> Result<(Plan, Diagnostics), Diagnostics> {
     let mut m = module.clone();
     let inputs = BackendInputs { base, base_name, variants: sources, opts };
-    let warnings = passes::run_backend(&mut m, &inputs, None)?;
+    let warnings = passes::run_backend(&mut m, &inputs, None)?.warnings;
     let lowered = m.lowered.take().ok_or_else(|| ice(module, "the back end produced no plan".into()))?;
     let plan =
         Plan::new(lowered.manifest, lowered.data).map_err(|e| ice(module, format!("the plan is invalid: {e}")))?;

@@ -113,8 +113,11 @@ fn compiled(
     };
     let opts = CompileOptions { lora, melds: backend.melds.clone(), ..CompileOptions::default() };
     let inputs = BackendInputs { base: &weights, base_name: &name, variants: &sources, opts: &opts };
-    let warnings = passes::run_backend(&mut module, &inputs, stop_after).map_err(|d| report(s, d))?;
-    s.report(&warnings);
+    let run = passes::run_backend(&mut module, &inputs, stop_after).map_err(|d| report(s, d))?;
+    s.report(&run.warnings);
+    for a in &run.applied {
+        eprintln!("note: {}: {} x{}", a.pass.name(), a.rule, a.count);
+    }
     Ok(module)
 }
 

@@ -217,20 +217,37 @@ pub fn apply(module: &mut Module, patch: Patch) {
 
 /// Applies the patches of one round; a patch touching a node an earlier one of the round
 /// touched is left for the next round (the pass finds it again if it still applies).
-/// Returns how many were applied.
-fn apply_round(module: &mut Module, patches: Vec<Patch>) -> usize {
+/// Counts the rules applied into `log`.
+fn apply_round(module: &mut Module, patches: Vec<Patch>, pass: Pass, log: &mut Vec<Applied>) {
     let mut touched: HashSet<NodeId> = HashSet::new();
-    let mut applied = 0;
     for p in patches {
         let t = p.touched();
         if t.iter().any(|n| touched.contains(n)) {
             continue;
         }
         touched.extend(t);
+        match log.iter_mut().find(|a| a.pass == pass && a.rule == p.rule) {
+            Some(a) => a.count += 1,
+            None => log.push(Applied { pass, rule: p.rule, count: 1 }),
+        }
         apply(module, p);
-        applied += 1;
     }
-    applied
+}
+
+/// How often a pass applied one of its rules.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Applied {
+    pub pass: Pass,
+    pub rule: &'static str,
+    pub count: usize,
+}
+
+/// What a back-end run reports besides the module: its warnings and the rules each pass
+/// applied, in order.
+#[derive(Debug, Default)]
+pub struct BackendRun {
+    pub warnings: Diagnostics,
+    pub applied: Vec<Applied>,
 }
 
 /// Options of a pipeline run.
@@ -435,13 +452,15 @@ const MAX_ROUNDS: usize = 1000;
 
 /// Runs the back end on a module the front end checked, from `bind_weights` to
 /// `plan_buffers` or up to `stop_after`, verifying after every pass. Returns the
-/// warnings; on errors the module is left as the failing pass found it.
+/// warnings and the rules applied; on errors the module is left as the failing pass
+/// found it.
 pub fn run_backend(
     module: &mut Module,
     inputs: &BackendInputs<'_>,
     stop_after: Option<Pass>,
-) -> Result<Diagnostics, Diagnostics> {
+) -> Result<BackendRun, Diagnostics> {
     let mut warnings = Diagnostics::default();
+    let mut applied = Vec::new();
     for &(pass, name, _) in PIPELINE.iter().filter(|p| p.0.is_backend()) {
         if stop_after.is_some_and(|s| s < pass) {
             break;
@@ -455,7 +474,7 @@ pub fn run_backend(
                 Output::Lowered(l) => module.lowered = Some(*l),
                 Output::Patches(p) if p.is_empty() => break,
                 Output::Patches(p) => {
-                    apply_round(module, p);
+                    apply_round(module, p, pass, &mut applied);
                     rounds += 1;
                     if rounds < MAX_ROUNDS {
                         continue;
@@ -477,7 +496,7 @@ pub fn run_backend(
             return Err(diags);
         }
     }
-    Ok(warnings)
+    Ok(BackendRun { warnings, applied })
 }
 
 /// An internal compiler error: a bug, never the user's. Passes report them without a
