@@ -1,0 +1,169 @@
+//! Hostile specs (issue 10): inputs a user could write that must give a clear error at
+//! their span, in bounded time and memory, and never a panic.
+
+mod common;
+
+use common::compile_text;
+use proptest::prelude::*;
+use readi_compiler::select::Matcher;
+use readi_grammar::ast::{Pattern, PatternSeg};
+use readi_grammar::diag::{Diagnostic, SourceMap, Span};
+
+/// An error and its `line:col`.
+type Located = (Diagnostic, (usize, usize));
+
+/// The errors of compiling `text`, rendered, with each error's `line:col`.
+fn errors(text: &str) -> (String, Vec<Located>) {
+    let (sources, out) = compile_text("hostile.readi", text, &[], None);
+    let rendered = sources.render_all(&out.diagnostics, false);
+    let errs = out
+        .diagnostics
+        .iter()
+        .filter(|d| d.is_error())
+        .map(|d| (d.clone(), sources.line_col(d.primary_span().expect("every error has a span"))))
+        .collect();
+    (rendered, errs)
+}
+
+/// `line:col` of the first occurrence of `needle` in `text` (1-based, as diagnostics print).
+fn place_of(text: &str, needle: &str) -> (usize, usize) {
+    let at = text.find(needle).unwrap_or_else(|| panic!("`{needle}` not in the spec"));
+    let mut sources = SourceMap::new();
+    let file = sources.add("x", text);
+    sources.line_col(Span::new(file, at, at + needle.len()))
+}
+
+// --- selectors --------------------------------------------------------------------------
+
+/// A 30-deep path: 30 nested blocks, the innermost holding `fc`.
+fn deep_spec(selector: &str) -> String {
+    let mut s = String::from("block B0(x: tensor) {\n  fc = linear(x, 4)\n  return fc\n}\n");
+    for i in 1..30 {
+        s += &format!("block B{i}(x: tensor) {{\n  s = B{}(x)\n  return s\n}}\n", i - 1);
+    }
+    s += "model m {\n  input x: f32[N, 4]\n  s = B29(x)\n  output y = s\n}\n";
+    s += &format!("adapt {{\n  tune {selector}\n}}\n");
+    s
+}
+
+#[test]
+fn ten_double_stars_on_a_30_deep_path() {
+    let stars = ["**"; 10].join(".");
+    // Matches: the spec checks.
+    let (rendered, errs) = errors(&deep_spec(&format!("{stars}.fc")));
+    assert!(errs.is_empty(), "{rendered}");
+    // Matches nothing: the ordinary error, at the selector, after a search of every split.
+    let sel = format!("{stars}.x");
+    let spec = deep_spec(&sel);
+    let (rendered, errs) = errors(&spec);
+    assert_eq!(errs.len(), 1, "{rendered}");
+    assert!(errs[0].0.message.contains("matches no layer"), "{rendered}");
+    assert_eq!(errs[0].1, place_of(&spec, &sel), "{rendered}");
+}
+
+#[test]
+fn twenty_two_brace_groups() {
+    let spec = |sel: &str| {
+        format!(
+            "model m {{\n  input x: f32[N, 4]\n  {name} = linear(x, 2)\n  output y = {name}\n}}\nadapt {{\n  tune {sel}\n}}\n",
+            name = "ab".repeat(11)
+        )
+    };
+    let groups = "{a,b}".repeat(22);
+    let (rendered, errs) = errors(&spec(&groups));
+    assert!(errs.is_empty(), "{rendered}");
+    let near_miss = format!("{groups}c");
+    let (rendered, errs) = errors(&spec(&near_miss));
+    assert_eq!(errs.len(), 1, "{rendered}");
+    assert!(errs[0].0.message.contains("matches no layer"), "{rendered}");
+}
+
+#[test]
+fn too_complex_a_selector_is_an_error_at_its_span() {
+    let sel = "{a,b}".repeat(40);
+    let spec = format!(
+        "model m {{\n  input x: f32[N, 4]\n  fc = linear(x, 2)\n  output y = fc\n}}\nadapt {{\n  tune fc\n  tune {sel}\n}}\n"
+    );
+    let (rendered, errs) = errors(&spec);
+    assert_eq!(errs.len(), 1, "{rendered}");
+    assert!(errs[0].0.message.contains("too complex") && errs[0].0.message.contains("80"), "{rendered}");
+    assert_eq!(errs[0].1, place_of(&spec, &sel), "{rendered}");
+    let long = format!("{}.fc", ["**"; 100].join("."));
+    let spec = deep_spec(&long);
+    let (rendered, errs) = errors(&spec);
+    assert_eq!(errs.len(), 1, "{rendered}");
+    assert!(errs[0].0.message.contains("characters long"), "{rendered}");
+    assert_eq!(errs[0].1, place_of(&spec, &long), "{rendered}");
+}
+
+/// A direct, backtracking reading of the selector definition (exponential, small cases only).
+mod naive {
+    fn glob(p: &[u8], s: &[u8]) -> bool {
+        match p.split_first() {
+            None => s.is_empty(),
+            Some((b'*', rest)) => (0..=s.len()).any(|k| glob(rest, &s[k..])),
+            Some((b'{', _)) => {
+                let close = p.iter().position(|&c| c == b'}').expect("closed group");
+                let rest = &p[close + 1..];
+                p[1..close].split(|&c| c == b',').any(|alt| glob(&[alt, rest].concat(), s))
+            }
+            Some((c, rest)) => s.first() == Some(c) && glob(rest, &s[1..]),
+        }
+    }
+
+    pub fn matches(p: &[&str], s: &[&str]) -> bool {
+        match p.split_first() {
+            None => s.is_empty(),
+            Some((&"**", rest)) => (0..=s.len()).any(|k| matches(rest, &s[k..])),
+            Some((w, rest)) => !s.is_empty() && glob(w.as_bytes(), s[0].as_bytes()) && matches(rest, &s[1..]),
+        }
+    }
+}
+
+fn pattern(text: &str) -> Pattern {
+    let segments = text
+        .split('.')
+        .map(|s| if s == "**" { PatternSeg::AnyDepth } else { PatternSeg::Word(s.to_string()) })
+        .collect();
+    Pattern { segments, text: text.to_string(), span: Span::default() }
+}
+
+/// A segment glob over a two-letter alphabet, with `*` and `{a,b}` groups.
+fn glob_strategy() -> impl Strategy<Value = String> {
+    let piece = prop_oneof![
+        Just("a".to_string()),
+        Just("b".to_string()),
+        Just("*".to_string()),
+        prop::collection::vec(prop::collection::vec(prop_oneof![Just('a'), Just('b'), Just('*')], 1..3), 1..4)
+            .prop_map(|alts| format!(
+                "{{{}}}",
+                alts.iter().map(|a| a.iter().collect::<String>()).collect::<Vec<_>>().join(",")
+            )),
+    ];
+    prop::collection::vec(piece, 1..4).prop_map(|p| p.concat())
+}
+
+fn pattern_strategy() -> impl Strategy<Value = String> {
+    let seg = prop_oneof![1 => Just("**".to_string()), 3 => glob_strategy()];
+    prop::collection::vec(seg, 1..5).prop_map(|s| s.join("."))
+}
+
+fn path_strategy() -> impl Strategy<Value = String> {
+    let seg = prop::collection::vec(prop_oneof![Just('a'), Just('b')], 1..4).prop_map(|c| c.into_iter().collect());
+    prop::collection::vec(seg, 1..6).prop_map(|s: Vec<String>| s.join("."))
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+
+    /// The compiled matcher agrees with the backtracking definition, exactly and on prefixes.
+    #[test]
+    fn matcher_agrees_with_backtracking(p in pattern_strategy(), path in path_strategy()) {
+        let m = Matcher::new(&pattern(&p)).expect("small patterns are within the limits");
+        let ps: Vec<&str> = p.split('.').collect();
+        let s: Vec<&str> = path.split('.').collect();
+        prop_assert_eq!(m.matches_exactly(&path), naive::matches(&ps, &s), "{} on {}", p, path);
+        let prefix = (1..=s.len()).any(|k| naive::matches(&ps, &s[..k]));
+        prop_assert_eq!(m.selects(&path), prefix, "{} selects {}", p, path);
+    }
+}
