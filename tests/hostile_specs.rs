@@ -167,3 +167,128 @@ proptest! {
         prop_assert_eq!(m.selects(&path), prefix, "{} selects {}", p, path);
     }
 }
+
+// --- derived tensors --------------------------------------------------------------------
+
+use readi_compiler::Module;
+use readi_compiler::backend::{self, CompileOptions, VariantSource, WeightSet};
+
+const BN_SPEC: &str = "model m {
+  input x: f32[N, 4, 4, 4]
+  conv1 = conv2d(x, 4, kernel=1, bias=false)
+  bn1 = batchnorm(conv1)
+  output y = bn1
+}
+";
+
+const LORA_SPEC: &str = "model m {
+  input x: f32[N, 8] @camera
+  fc = linear(x, 4)
+  output y = fc
+}
+adapt {
+  lora rank=2 alpha=2 on fc
+}
+variants {
+  axis fog on camera: 0.01, 0.02 clear 0
+}
+";
+
+fn module_of(text: &str) -> Module {
+    let (sources, out) = compile_text("hostile.readi", text, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    out.module.expect("module")
+}
+
+/// The back end's errors for `text` with seeded weights edited by `edit_base` and seeded
+/// variants `keys` edited by `edit_variants`, each with its `line:col`.
+fn backend_errors(
+    text: &str,
+    edit_base: impl Fn(&mut WeightSet),
+    keys: &[&str],
+    edit_variants: impl Fn(&mut Vec<VariantSource>),
+) -> Vec<Located> {
+    let m = module_of(text);
+    let mut w = backend::seeded_weights(&m.graph, 7);
+    edit_base(&mut w);
+    let keys: Vec<String> = keys.iter().map(|k| k.to_string()).collect();
+    let mut vs = backend::seeded_variants(&m, &keys, 8);
+    edit_variants(&mut vs);
+    let Err(diags) = backend::compile_variants(&m, &w, "base.safetensors", &vs, &CompileOptions::default()) else {
+        panic!("the back end should refuse");
+    };
+    let mut sources = SourceMap::new();
+    sources.add("hostile.readi", text);
+    diags.iter().map(|d| (d.clone(), sources.line_col(d.primary_span().expect("a span")))).collect()
+}
+
+fn set(w: &mut WeightSet, name: &str, i: usize, x: f32) {
+    let names: Vec<String> = w.tensors.keys().cloned().collect();
+    w.tensors.get_mut(name).unwrap_or_else(|| panic!("no `{name}` in {names:?}")).1[i] = x;
+}
+
+#[test]
+fn negative_running_var_is_named_as_the_cause() {
+    let errs = backend_errors(BN_SPEC, |w| set(w, "bn1.running_var", 3, -1.0), &[], |_| {});
+    assert_eq!(errs.len(), 1, "{errs:?}");
+    let m = &errs[0].0.message;
+    assert!(m.contains("bn1.running_var[3] = -1 is negative"), "{m}");
+    assert!(m.contains("BatchNorm `bn1` cannot be folded"), "{m}");
+    assert!(!m.contains("internal"), "{m}");
+    assert_eq!(errs[0].1, place_of(BN_SPEC, "batchnorm(conv1)"), "{m}");
+}
+
+#[test]
+fn overflowing_fold_names_the_derived_tensor_and_its_sources() {
+    // A finite but huge gamma over a zero variance: the folded scale overflows f32.
+    let edit = |w: &mut WeightSet| {
+        set(w, "bn1.weight", 2, 3e38);
+        set(w, "bn1.running_var", 2, 0.0);
+    };
+    let errs = backend_errors(BN_SPEC, edit, &[], |_| {});
+    assert_eq!(errs.len(), 2, "the scale and the shift: {errs:?}");
+    assert!(errs[1].0.message.contains("derived tensor `bn1@shift` is -inf"), "{errs:?}");
+    assert_eq!(errs[0].1, place_of(BN_SPEC, "batchnorm(conv1)"), "{errs:?}");
+    let m = &errs[0].0.message;
+    assert!(m.contains("derived tensor `bn1@scale` is inf at flat index 2"), "{m}");
+    assert!(m.contains("overflows f32") && m.contains("`bn1.weight[2]` = 3e38"), "{m}");
+    assert!(m.contains("`bn1.weight`, `bn1.running_var`"), "{m}");
+}
+
+#[test]
+fn overflowing_lora_merge_names_the_lora_tensors() {
+    let errs = backend_errors(
+        LORA_SPEC,
+        |_| {},
+        &["fog=0.01"],
+        |vs| {
+            for (name, (_, data)) in vs[0].weights.tensors.iter_mut() {
+                if name.contains("lora_") {
+                    data.fill(1e30);
+                }
+            }
+        },
+    );
+    assert_eq!(errs.len(), 1, "{errs:?}");
+    let m = &errs[0].0.message;
+    assert!(m.contains("derived tensor `fc.weight` in variant `fog=0.01` is inf"), "{m}");
+    assert!(m.contains("`fc.lora_A.weight`") && m.contains("`fc.lora_B.weight`"), "{m}");
+    assert!(m.contains("overflows f32"), "{m}");
+    assert_eq!(errs[0].1, place_of(LORA_SPEC, "linear(x, 4)"), "{m}");
+}
+
+#[test]
+fn adabn_statistics_that_overflow_f32_are_refused() {
+    use readi_runtime::calibrate::{BnCalibrator, CalibrateError};
+    use readi_runtime::exec::Input;
+    let m = module_of(BN_SPEC);
+    let w = backend::seeded_weights(&m.graph, 7);
+    let (plan, _) = backend::compile(&m, &w, "seeded", &CompileOptions::default()).expect("compiles");
+    let mut cal = BnCalibrator::new(std::sync::Arc::new(plan), 1).expect("calibrator");
+    // Finite inputs whose variance (~1e40) is finite in f64 but not in f32.
+    let x: Vec<f32> = (0..2 * 4 * 16).map(|i| if i % 2 == 0 { 1e20 } else { -1e20 }).collect();
+    cal.add_batch(&[Input { name: "x", data: &x, shape: &[2, 4, 4, 4] }]).expect("the batch is finite in f64");
+    let e = cal.statistics().expect_err("running_var overflows f32");
+    assert!(matches!(&e, CalibrateError::Derived { tensor, .. } if tensor == "bn1.running_var"), "{e}");
+    assert!(e.to_string().contains("overflows f32"), "{e}");
+}

@@ -474,6 +474,7 @@ pub fn run_backend(
                 Output::Lowered(l) => module.lowered = Some(*l),
                 Output::Patches(p) if p.is_empty() => break,
                 Output::Patches(p) => {
+                    check_derived(module, &p, name)?;
                     apply_round(module, p, pass, &mut applied);
                     rounds += 1;
                     if rounds < MAX_ROUNDS {
@@ -497,6 +498,35 @@ pub fn run_backend(
         }
     }
     Ok(BackendRun { warnings, applied })
+}
+
+/// Every tensor a round of patches derives (folded, merged, moved) must be finite, in the
+/// base and in every variant: a NaN or infinity there would silently make the model
+/// output constants. The error names the tensor, its sources and the cause, and points
+/// at the layer the tensor belongs to.
+fn check_derived(module: &Module, patches: &[Patch], pass: &str) -> Result<(), Diagnostics> {
+    let Some(table) = module.tensors.as_ref() else { return Ok(()) };
+    let mut diags = Diagnostics::default();
+    for p in patches {
+        for (name, t) in &p.tensors {
+            if let Err(m) = table.check_finite(name, t) {
+                let g = &module.graph;
+                // The layer of its first source (`bn1.weight`: `bn1`), else the rewritten node.
+                let owner = t.sources.first().and_then(|s| s.rsplit_once('.')).map(|(l, _)| l);
+                let layer = g
+                    .node_ids()
+                    .find(|&n| Some(g.node(n).path.as_str()) == owner)
+                    .or_else(|| p.rewrite.first().map(|r| r.0));
+                let span = layer.map_or(g.scopes[0].span, |n| g.node(n).span);
+                diags.push(
+                    Diagnostic::error(Code::Weights, m)
+                        .with_primary(span, format!("in `{pass}` (rule `{}`)", p.rule))
+                        .with_note("the weights are finite, but the tensor computed from them is not"),
+                );
+            }
+        }
+    }
+    if diags.has_errors() { Err(diags) } else { Ok(()) }
 }
 
 /// An internal compiler error: a bug, never the user's. Passes report them without a
