@@ -292,3 +292,100 @@ fn adabn_statistics_that_overflow_f32_are_refused() {
     assert!(matches!(&e, CalibrateError::Derived { tensor, .. } if tensor == "bn1.running_var"), "{e}");
     assert!(e.to_string().contains("overflows f32"), "{e}");
 }
+
+// --- arithmetic and sizes ---------------------------------------------------------------
+
+/// Compiles `text` expecting exactly one error containing `message`, at `needle`.
+fn one_error_at(text: &str, message: &str, needle: &str) {
+    let (rendered, errs) = errors(text);
+    assert_eq!(errs.len(), 1, "{rendered}");
+    assert!(errs[0].0.message.contains(message), "wanted `{message}` in\n{rendered}");
+    assert!(!rendered.contains("internal compiler error"), "{rendered}");
+    assert_eq!(errs[0].1, place_of(text, needle), "{rendered}");
+}
+
+#[test]
+fn infinite_arithmetic_is_an_error_at_its_span() {
+    let text = "model m {\n  input x: f32[N, 4]\n  output y = x * (0 ** -1)\n}\n";
+    one_error_at(text, "`0 ** -1` gives inf", "0 ** -1");
+    let text = "model m {\n  input x: f32[N, 4]\n  output y = x * (1e300 * 1e300)\n}\n";
+    one_error_at(text, "gives inf", "1e300 * 1e300");
+}
+
+#[test]
+fn huge_parameters_are_refused_not_wrapped() {
+    let text = "model m {\n  input x: f32[N, 65536]\n  fc = linear(x, 65537)\n  output y = fc\n}\n";
+    one_error_at(text, "parameter `fc.weight` of shape [65537, 65536] has 4295032832 elements", "linear(x, 65537)");
+}
+
+#[test]
+fn a_concat_of_65537_inputs_is_a_limit_not_an_internal_error() {
+    let xs = vec!["x"; 65_537].join(", ");
+    let text = format!("model m {{\n  input x: f32[N, 1]\n  output y = concat([{xs}], axis=1)\n}}\n");
+    one_error_at(&text, "`concat` has 65537 inputs, over the limit of 65535", "concat(");
+    // One fewer is the limit itself.
+    let xs = vec!["x"; 65_535].join(", ");
+    let text = format!("model m {{\n  input x: f32[N, 1]\n  output y = concat([{xs}], axis=1)\n}}\n");
+    let (rendered, errs) = errors(&text);
+    assert!(errs.is_empty(), "{}", &rendered[..rendered.len().min(2000)]);
+}
+
+#[test]
+fn huge_inputs_are_refused_at_their_declaration() {
+    let text = "model m {\n  input x: f32[99999999999, 4]\n  output y = relu(x)\n}\n";
+    one_error_at(text, "1490.1 GiB at batch size 1, over the activation limit of 4.0 GiB", "input x");
+    let text = "model m {\n  input x: f32[N, 99999999999, 99999999999, 99999999999]\n  output y = relu(x)\n}\n";
+    one_error_at(text, "its size in bytes overflows", "input x");
+}
+
+#[test]
+fn upsample_to_65536_squared_is_refused_at_compile_time() {
+    let text = "model m {\n  input x: f32[N, 3, 8, 8]\n  output y = upsample(x, size=[65536, 65536])\n}\n";
+    one_error_at(text, "48.0 GiB at batch size 1", "upsample(");
+}
+
+#[test]
+fn the_activation_peak_is_checked_against_the_limit() {
+    use readi_compiler::passes::{self, Options};
+    let text = "model m {\n  input x: f32[N, 1024, 1024]\n  a = relu(x)\n  b = relu(x)\n  c = relu(x)\n  \
+                output y = a + b + c\n}\n";
+    let run = |limit: u64| {
+        let mut sources = SourceMap::new();
+        let file = sources.add("peak.readi", text);
+        let mut opts = Options::default();
+        opts.elab.max_activation_bytes = Some(limit);
+        let out = passes::run(file, text, &opts);
+        (sources.render_all(&out.diagnostics, false), out.diagnostics.error_count())
+    };
+    // Four 4 MiB values are alive when `c` runs.
+    let (rendered, n) = run(12 << 20);
+    assert_eq!(n, 1, "{rendered}");
+    assert!(rendered.contains("peak at 16.0 MiB (4 values alive together at `c`)"), "{rendered}");
+    assert!(rendered.contains("peak.readi:2:3"), "{rendered}");
+    assert_eq!(run(16 << 20).1, 0);
+    // A single value over the limit is refused where it is made.
+    let (rendered, n) = run(2 << 20);
+    assert!(n >= 1 && rendered.contains("4.0 MiB at batch size 1, over the activation limit of 2.0 MiB"), "{rendered}");
+}
+
+#[test]
+fn max_activation_memory_flag() {
+    let dir = std::env::temp_dir().join(format!("readi-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let spec = dir.join("up.readi");
+    std::fs::write(&spec, "model m {\n  input x: f32[N, 3, 8, 8]\n  output y = upsample(x, size=[65536, 65536])\n}\n")
+        .expect("write");
+    let spec = spec.to_str().expect("utf-8");
+    let out = common::readi(&["check", spec]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("over the activation limit of 4.0 GiB"), "{err}");
+    let out = common::readi(&["check", spec, "--max-activation-memory", "64G"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for bad in ["0", "2X", "99999999999T", "1.5G"] {
+        let out = common::readi(&["check", spec, "--max-activation-memory", bad]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{bad}: {err}");
+        assert!(err.contains("--max-activation-memory"), "{err}");
+    }
+}

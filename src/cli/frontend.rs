@@ -57,7 +57,9 @@ impl Frontend {
 }
 
 fn options(model: &ModelArgs, stop_after: Option<Pass>) -> Options {
-    Options { stop_after, ..Options::with_overrides(&model.set) }
+    let mut opts = Options { stop_after, ..Options::with_overrides(&model.set) };
+    opts.elab.max_activation_bytes = model.max_activation_memory;
+    opts
 }
 
 pub fn summary_line(path: &str, diags: &Diagnostics) -> String {

@@ -264,8 +264,68 @@ impl Options {
     pub fn with_overrides<K: AsRef<str>, V: AsRef<str>>(pairs: &[(K, V)]) -> Options {
         let overrides =
             pairs.iter().map(|(k, v)| (k.as_ref().to_string(), crate::elaborate::Literal::parse(v.as_ref()))).collect();
-        Options { elab: ElabOptions { overrides }, stop_after: None }
+        Options { elab: ElabOptions { overrides, ..ElabOptions::default() }, stop_after: None }
     }
+}
+
+/// The activations a model needs at batch size 1, over `limit`: the values alive at once
+/// when the nodes run in order, each freed after its last reader (values nothing reads,
+/// the outputs, live to the end). Elaboration refuses a single value over the limit; this
+/// is their sum at the peak, an error at the largest of them with the next ones labelled.
+fn activation_peak_error(g: &crate::ir::Graph, limit: u64) -> Option<Diagnostic> {
+    use crate::elaborate::bytes_at_batch_1;
+    let order = g.topo_order()?;
+    let size = |n: NodeId| -> u64 {
+        g.node(n).outputs.iter().map(|t| bytes_at_batch_1(t).unwrap_or(u64::MAX)).fold(0u64, u64::saturating_add)
+    };
+    let position: std::collections::HashMap<NodeId, usize> = order.iter().enumerate().map(|(i, &n)| (n, i)).collect();
+    // The step after which each node's values are freed (`None`: never).
+    let last_use = |n: NodeId| g.users(n).iter().filter_map(|u| position.get(u).copied()).max();
+    let mut frees: Vec<Vec<NodeId>> = vec![Vec::new(); order.len()];
+    for &n in &order {
+        if let Some(i) = last_use(n) {
+            frees[i].push(n);
+        }
+    }
+    let (mut live, mut peak, mut at) = (0u64, 0u64, 0usize);
+    for (i, &n) in order.iter().enumerate() {
+        live = live.saturating_add(size(n));
+        if live > peak {
+            (peak, at) = (live, i);
+        }
+        for &f in &frees[i] {
+            live = live.saturating_sub(size(f));
+        }
+    }
+    if peak <= limit {
+        return None;
+    }
+    // The values alive at the peak, largest first.
+    let mut alive: Vec<(u64, NodeId)> = order[..=at]
+        .iter()
+        .filter(|&&n| last_use(n).is_none_or(|i| i >= at))
+        .map(|&n| (size(n), n))
+        .filter(|&(b, _)| b > 0)
+        .collect();
+    alive.sort_by_key(|a| std::cmp::Reverse(a.0));
+    let show = |n: NodeId| if g.node(n).path.is_empty() { "<model>".to_string() } else { g.node(n).path.clone() };
+    let (b0, n0) = *alive.first()?;
+    let mut d = Diagnostic::error(
+        Code::Limit,
+        format!(
+            "the activations at batch size 1 peak at {} ({} values alive together at `{}`), over the activation \
+             limit of {}",
+            crate::print::bytes(peak),
+            alive.len(),
+            show(order[at]),
+            crate::print::bytes(limit)
+        ),
+    )
+    .with_primary(g.node(n0).span, format!("the largest: `{}`, {}", show(n0), crate::print::bytes(b0)));
+    for &(b, n) in alive.iter().skip(1).take(3) {
+        d = d.with_secondary(g.node(n).span, format!("`{}`, {}", show(n), crate::print::bytes(b)));
+    }
+    Some(d.with_note("`readi compile --max-activation-memory` sets the limit (default 4G)"))
 }
 
 /// The outcome of a front-end run: the module as far as it got, and every diagnostic.
@@ -333,6 +393,10 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                         Some(p) => apply(&mut module, p),
                         None => break,
                     }
+                }
+                let limit = opts.elab.max_activation_bytes.unwrap_or(crate::elaborate::DEFAULT_MAX_ACTIVATION_BYTES);
+                if let Some(d) = activation_peak_error(&module.graph, limit) {
+                    diags.push(d);
                 }
             }
             Pass::ResolveAdapt => {
