@@ -389,3 +389,117 @@ fn max_activation_memory_flag() {
         assert!(err.contains("--max-activation-memory"), "{err}");
     }
 }
+
+// --- variant files ----------------------------------------------------------------------
+
+const TUNE_SPEC: &str = "model m {
+  input x: f32[N, 8] @camera
+  fc = linear(x, 4)
+  output y = fc
+}
+adapt {
+  tune fc
+}
+variants {
+  axis fog on camera: 0.01, 0.02 clear 0
+}
+";
+
+/// A fresh directory with the spec, seeded base weights and variant files holding the
+/// named tensors of a seeded variant.
+fn variant_dir(tag: &str, files: &[(&str, &[&str])]) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("readi-hostile-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    std::fs::write(dir.join("m.readi"), TUNE_SPEC).expect("write spec");
+    let m = module_of(TUNE_SPEC);
+    let base = backend::seeded_weights(&m.graph, 7);
+    std::fs::write(dir.join("base.safetensors"), base.to_safetensors().expect("serialises")).expect("write");
+    let seeded = backend::seeded_variants(&m, &["fog=0.01".to_string()], 8).remove(0).weights;
+    for (file, names) in files {
+        let mut w = WeightSet::default();
+        for n in *names {
+            w.tensors.insert(n.to_string(), seeded.tensors[*n].clone());
+        }
+        std::fs::write(dir.join(file), w.to_safetensors().expect("serialises")).expect("write");
+    }
+    dir
+}
+
+fn run_in(dir: &std::path::Path, args: &[&str]) -> (bool, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_readi"))
+        .args(args)
+        .current_dir(dir)
+        .env("NO_COLOR", "1")
+        .output()
+        .expect("run readi");
+    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+}
+
+#[test]
+fn a_variant_key_given_twice_merges_disjoint_files() {
+    let dir = variant_dir("merge", &[("a.safetensors", &["fc.weight"]), ("b.safetensors", &["fc.bias"])]);
+    let compile = ["compile", "m.readi", "--weights", "base.safetensors", "-o", "m.plan", "--strict"];
+    // One file alone is missing a tensor the variant owns: with --strict, an error.
+    let (ok, out) = run_in(&dir, &[&compile[..], &["--variant", "fog=0.01=a.safetensors"]].concat());
+    assert!(!ok && out.contains("fc.bias"), "{out}");
+    // Both files: their tensors merge (before, `a` was silently dropped).
+    let both = ["--variant", "fog=0.01=a.safetensors", "--variant", "fog=0.01=b.safetensors"];
+    let (ok, out) = run_in(&dir, &[&compile[..], &both].concat());
+    assert!(ok, "{out}");
+    // The same rule in a deployment manifest that lists the key twice.
+    let yaml = "spec: m.readi\nweights: base.safetensors\nvariants:\n  - key: fog=0.01\n    params: a.safetensors\n  \
+                - key: fog=0.01\n    params: b.safetensors\n";
+    std::fs::write(dir.join("deploy.yaml"), yaml).expect("write");
+    let (ok, out) = run_in(&dir, &["compile", "--deploy", "deploy.yaml", "-o", "d.plan", "--strict"]);
+    assert!(ok, "{out}");
+}
+
+#[test]
+fn a_variant_key_given_twice_with_overlapping_files_is_an_error() {
+    let dir = variant_dir("overlap", &[("a.safetensors", &["fc.weight", "fc.bias"]), ("b.safetensors", &["fc.bias"])]);
+    let args = ["compile", "m.readi", "--weights", "base.safetensors", "-o", "m.plan"];
+    let both = ["--variant", "fog=0.01=a.safetensors", "--variant", "fog=0.01=b.safetensors"];
+    let (ok, out) = run_in(&dir, &[&args[..], &both].concat());
+    assert!(!ok, "{out}");
+    assert!(
+        out.contains("variant `fog=0.01`: tensor `fc.bias` is given by both a.safetensors and b.safetensors"),
+        "{out}"
+    );
+    let yaml = "spec: m.readi\nweights: base.safetensors\nvariants:\n  - key: fog=0.01\n    params: a.safetensors\n  \
+                - key: fog=0.01\n    params: b.safetensors\n";
+    std::fs::write(dir.join("deploy.yaml"), yaml).expect("write");
+    let (ok, out) = run_in(&dir, &["compile", "--deploy", "deploy.yaml", "-o", "d.plan"]);
+    assert!(!ok && out.contains("tensor `fc.bias` is given by both"), "{out}");
+}
+
+#[test]
+fn weight_files_must_be_regular_files() {
+    let dir = variant_dir("devzero", &[]);
+    let (ok, out) = run_in(&dir, &["compile", "m.readi", "--weights", "/dev/zero", "-o", "m.plan"]);
+    assert!(!ok && out.contains("cannot read /dev/zero: it is not a regular file"), "{out}");
+    let variant = ["compile", "m.readi", "--weights", "base.safetensors", "-o", "m.plan"];
+    let (ok, out) = run_in(&dir, &[&variant[..], &["--variant", "fog=0.01=/dev/zero"]].concat());
+    assert!(!ok && out.contains("cannot read /dev/zero: it is not a regular file"), "{out}");
+    let (ok, out) = run_in(&dir, &["check", "/dev/zero"]);
+    assert!(!ok && out.contains("not a regular file"), "{out}");
+    // A PEFT directory whose weights are a device.
+    let peft = dir.join("adapter");
+    std::fs::create_dir_all(&peft).expect("dir");
+    std::fs::write(peft.join("adapter_config.json"), "{}").expect("write");
+    std::os::unix::fs::symlink("/dev/zero", peft.join("adapter_model.safetensors")).expect("symlink");
+    let (ok, out) = run_in(&dir, &[&variant[..], &["--variant", "fog=0.01=adapter"]].concat());
+    assert!(!ok && out.contains("adapter_model.safetensors: it is not a regular file"), "{out}");
+    // A spec that is a device, for the other front-end commands too.
+    let (ok, out) = run_in(&dir, &["ir", "/dev/zero"]);
+    assert!(!ok && out.contains("not a regular file"), "{out}");
+}
+
+#[test]
+fn read_bounded_refuses_files_over_the_limit() {
+    let dir = variant_dir("limit", &[]);
+    let big = dir.join("big.readi");
+    std::fs::write(&big, vec![b' '; (4 << 20) + 1]).expect("write");
+    let (ok, out) = run_in(&dir, &["check", "big.readi"]);
+    assert!(!ok && out.contains("big.readi is 4194305 bytes, over the limit of 4194304 bytes"), "{out}");
+}

@@ -130,7 +130,8 @@ pub enum Command {
         #[arg(long)]
         deploy: Option<PathBuf>,
         /// A variant's parameters, `KEY=PATH` (repeatable): a safetensors file of the tensors
-        /// it owns, or a PEFT adapter directory; give a key twice to combine both.
+        /// it owns, or a PEFT adapter directory. A key given twice merges its files (a tensor
+        /// in two of them is an error), as in deploy.yaml.
         #[arg(long = "variant", value_name = "KEY=PATH", value_parser = parse_variant_arg)]
         variants: Vec<(String, String)>,
         /// How LoRA runs: merged into the adapted weights per variant (no run-time cost) or

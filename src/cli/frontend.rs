@@ -18,7 +18,9 @@ pub struct Frontend {
 
 impl Frontend {
     pub fn load(&mut self, path: &Path) -> Result<(FileId, String), ExitCode> {
-        match std::fs::read(path) {
+        // The parser refuses longer sources; reading more would only spend memory.
+        let limit = readi_grammar::parser::MAX_SOURCE_BYTES as u64;
+        match super::deploy::read_bounded(path, limit) {
             Ok(bytes) => match String::from_utf8(bytes) {
                 Ok(text) => Ok((self.sources.add(path.display().to_string(), text.clone()), text)),
                 Err(e) => {
@@ -31,7 +33,7 @@ impl Frontend {
                 }
             },
             Err(e) => {
-                eprintln!("error: cannot read {}: {e}", path.display());
+                eprintln!("error: {e}");
                 Err(ExitCode::from(2))
             }
         }

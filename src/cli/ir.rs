@@ -91,8 +91,8 @@ fn compiled(
     let (weights, name) = match &backend.weights {
         Some(path) => {
             let name = path.display().to_string();
-            let bytes = std::fs::read(path).map_err(|e| {
-                eprintln!("error: cannot read {name}: {e}");
+            let bytes = deploy::read_bounded(path, deploy::MAX_WEIGHTS_BYTES).map_err(|e| {
+                eprintln!("error: {e}");
                 ExitCode::FAILURE
             })?;
             (WeightSet::from_safetensors(&name, &bytes).map_err(|d| report(s, d))?, name)
