@@ -503,3 +503,15 @@ fn read_bounded_refuses_files_over_the_limit() {
     let (ok, out) = run_in(&dir, &["check", "big.readi"]);
     assert!(!ok && out.contains("big.readi is 4194305 bytes, over the limit of 4194304 bytes"), "{out}");
 }
+
+#[test]
+fn an_adapter_too_large_for_the_parameter_limit_is_refused_at_its_rule() {
+    let text = "block B(x: tensor) {\n  bn2 = batchnorm(x)\n  return bn2\n}\nmodel m {\n  \
+                input x: f32[N, 1048576, 1, 1]\n  b = B(x)\n  output y = b\n}\nadapt {\n  \
+                adapter squeeze=2 in B before bn2\n}\n";
+    one_error_at(
+        text,
+        "parameter `b.bn2.adapter.down.weight` of shape [524288, 1048576, 1, 1] has 549755813888 elements",
+        "adapter squeeze=2",
+    );
+}

@@ -414,6 +414,24 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                             .with_primary(span, "please report this with the input file"),
                     );
                 }
+                // Elaboration bounds the spec's own parameters; an adapter on a wide layer
+                // adds `C * C/r` elements, which must fit the same limit.
+                let g = &module.graph;
+                let max = crate::elaborate::MAX_PARAM_ELEMENTS;
+                if let Some((name, id, slot)) = g.param_table().into_iter().find(|(_, _, s)| s.numel() > max) {
+                    diags.push(
+                        Diagnostic::error(
+                            Code::Limit,
+                            format!(
+                                "parameter `{name}` of shape {:?} has {} elements, over the limit of {max}",
+                                slot.shape,
+                                slot.numel()
+                            ),
+                        )
+                        .with_primary(g.node(id).span, "an adaptation rule adds this layer")
+                        .with_note("a larger squeeze ratio makes an adapter smaller"),
+                    );
+                }
             }
             Pass::CheckVariants => {
                 if let Some(section) = out.ast.variant_sections().next() {
