@@ -515,3 +515,24 @@ fn an_adapter_too_large_for_the_parameter_limit_is_refused_at_its_rule() {
         "adapter squeeze=2",
     );
 }
+
+#[test]
+fn adabn_train_mode_scales_that_overflow_f32_are_refused() {
+    use readi_runtime::calibrate::{BnCalibrator, CalibrateError};
+    use readi_runtime::exec::Input;
+    let m = module_of(BN_SPEC);
+    let mut w = backend::seeded_weights(&m.graph, 7);
+    // Finite when folded with the running variance (about 1), infinite over a batch
+    // variance of 0: gamma / sqrt(0 + 1e-5).
+    set(&mut w, "bn1.weight", 1, 3e38);
+    let (plan, _) = backend::compile(&m, &w, "seeded", &CompileOptions::default()).expect("compiles");
+    let mut cal = BnCalibrator::new(std::sync::Arc::new(plan), 1).expect("calibrator");
+    let x = vec![0.5f32; 2 * 4 * 16];
+    let e = cal.add_batch(&[Input { name: "x", data: &x, shape: &[2, 4, 4, 4] }]).expect_err("the scale overflows");
+    assert!(
+        matches!(&e, CalibrateError::Derived { tensor, index: 1, .. } if tensor == "bn1@scale (train mode)"),
+        "{e}"
+    );
+    assert!(e.to_string().contains("`bn1.weight[1]` = 3e38"), "{e}");
+    assert_eq!(cal.batches(), 0, "a failed batch adds nothing");
+}

@@ -376,7 +376,7 @@ fn train_mode_batchnorm(
                 index: ch,
                 value,
                 cause: format!(
-                    "from `{name}.weight[{ch}]` = {}, `{name}.bias[{ch}]` = {}, batch mean {mean:e} and variance \
+                    "from `{name}.weight[{ch}]` = {:e}, `{name}.bias[{ch}]` = {:e}, batch mean {mean:e} and variance \
                      {var:e} with eps {:e}: gamma / sqrt(var + eps) overflows f32",
                     gamma[ch], beta[ch], layer.info.eps
                 ),
