@@ -536,3 +536,16 @@ fn adabn_train_mode_scales_that_overflow_f32_are_refused() {
     assert!(e.to_string().contains("`bn1.weight[1]` = 3e38"), "{e}");
     assert_eq!(cal.batches(), 0, "a failed batch adds nothing");
 }
+
+#[test]
+fn adabn_samples_must_be_regular_files() {
+    let dir = variant_dir("adabn-samples", &[]);
+    let m = module_of(BN_SPEC);
+    let w = backend::seeded_weights(&m.graph, 7);
+    let (plan, _) = backend::compile(&m, &w, "seeded", &CompileOptions::default()).expect("compiles");
+    plan.write(&dir.join("bn.plan")).expect("write the plan");
+    std::os::unix::fs::symlink("/dev/zero", dir.join("zero.safetensors")).expect("symlink");
+    let args = ["adapt-bn", "bn.plan", "--variant", "fog=0.01", "--samples", "zero.safetensors", "-o", "s.safetensors"];
+    let (ok, out) = run_in(&dir, &args);
+    assert!(!ok && out.contains("cannot read zero.safetensors: it is not a regular file"), "{out}");
+}
