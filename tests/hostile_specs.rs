@@ -52,6 +52,11 @@ fn ten_double_stars_on_a_30_deep_path() {
     // Matches: the spec checks.
     let (rendered, errs) = errors(&deep_spec(&format!("{stars}.fc")));
     assert!(errs.is_empty(), "{rendered}");
+    // As a scope of kinds, and as an exact path in a block instance.
+    let (rendered, errs) = errors(&deep_spec(&format!("linear in {stars}.s")));
+    assert!(errs.is_empty(), "{rendered}");
+    let (rendered, errs) = errors(&deep_spec(&format!("linear in {stars}.q")));
+    assert!(errs.len() == 1 && errs[0].0.message.contains("matches no layer"), "{rendered}");
     // Matches nothing: the ordinary error, at the selector, after a search of every split.
     let sel = format!("{stars}.x");
     let spec = deep_spec(&sel);
