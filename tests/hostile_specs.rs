@@ -452,6 +452,10 @@ fn a_variant_key_given_twice_merges_disjoint_files() {
     let both = ["--variant", "fog=0.01=a.safetensors", "--variant", "fog=0.01=b.safetensors"];
     let (ok, out) = run_in(&dir, &[&compile[..], &both].concat());
     assert!(ok, "{out}");
+    // Keys match by value: `fog=0.010` is `fog=0.01`.
+    let respelt = ["--variant", "fog=0.01=a.safetensors", "--variant", "fog=0.010=b.safetensors"];
+    let (ok, out) = run_in(&dir, &[&compile[..], &respelt].concat());
+    assert!(ok, "{out}");
     // The same rule in a deployment manifest that lists the key twice.
     let yaml = "spec: m.readi\nweights: base.safetensors\nvariants:\n  - key: fog=0.01\n    params: a.safetensors\n  \
                 - key: fog=0.01\n    params: b.safetensors\n";

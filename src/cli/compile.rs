@@ -78,7 +78,7 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
     };
     let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| report(s, d))?;
     let mut sources = Vec::new();
-    for files in &variant_files {
+    for files in &deploy::regroup_by_value(variant_files, &module) {
         sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
     }
     let opts =

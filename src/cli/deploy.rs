@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 
 use readi_compiler::Module;
 use readi_compiler::backend::{VariantSource, WeightSet, peft};
+use readi_compiler::weights::variants::canonical_key;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use serde::Deserialize;
 
@@ -104,6 +105,30 @@ pub fn group_by_key(entries: impl IntoIterator<Item = (String, VariantFile)>) ->
         }
     }
     out
+}
+
+/// [`group_by_key`] again with keys compared by value, now that the spec's declared keys
+/// are known: `fog=0.01` and `fog=0.010` are one key, whose files merge. A key the spec
+/// does not declare stays as written (binding reports it).
+pub fn regroup_by_value(variants: Vec<VariantFiles>, module: &Module) -> Vec<VariantFiles> {
+    let declared = module.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
+    let mut shown: Vec<(String, String)> = Vec::new();
+    let entries: Vec<(String, VariantFile)> = variants
+        .into_iter()
+        .flat_map(|v| {
+            let canonical = canonical_key(&v.key, &declared).map_or_else(|| v.key.clone(), |k| k.to_string());
+            // Keep the first spelling given, for messages.
+            let key = match shown.iter().find(|(c, _)| *c == canonical) {
+                Some((_, first)) => first.clone(),
+                None => {
+                    shown.push((canonical, v.key.clone()));
+                    v.key.clone()
+                }
+            };
+            v.files.into_iter().map(move |f| (key.clone(), f)).collect::<Vec<_>>()
+        })
+        .collect();
+    group_by_key(entries)
 }
 
 /// Adds the tensors of one file to a variant's, the one rule for combining a variant's

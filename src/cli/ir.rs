@@ -103,7 +103,7 @@ fn compiled(
         }
     };
     let mut sources = Vec::new();
-    for files in deploy::variant_args(&backend.variants) {
+    for files in deploy::regroup_by_value(deploy::variant_args(&backend.variants), &module) {
         sources.push(deploy::read_variant(&files, &module).map_err(|d| report(s, d))?);
     }
     sources.extend(backend::seeded_variants(&module, &backend.seeded_variants, backend.seed + 1));
