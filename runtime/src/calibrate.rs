@@ -46,6 +46,9 @@ pub enum CalibrateError {
     NotFinite { layer: String, channel: usize },
     /// Statistics were asked for before any batch.
     NoBatches,
+    /// A tensor AdaBN derives (a running statistic, or the batch's normalisation scale
+    /// and shift) is NaN or infinite although the batch statistics are finite.
+    Derived { tensor: String, index: usize, value: f32, cause: String },
 }
 
 impl fmt::Display for CalibrateError {
@@ -74,6 +77,9 @@ impl fmt::Display for CalibrateError {
                 write!(f, "BatchNorm `{layer}`: the batch statistics of channel {channel} are not finite")
             }
             CalibrateError::NoBatches => f.write_str("no batch has been calibrated"),
+            CalibrateError::Derived { tensor, index, value, cause } => {
+                write!(f, "derived tensor `{tensor}` is {value} at flat index {index}: {cause}")
+            }
         }
     }
 }
@@ -237,15 +243,32 @@ impl BnCalibrator {
             return Err(CalibrateError::NoBatches);
         }
         let k = self.batches as f64;
-        Ok(self
-            .layers
+        let average = |name: &str, what: &str, sums: &[f64]| -> Result<Vec<f32>, CalibrateError> {
+            let out: Vec<f32> = sums.iter().map(|s| (s / k) as f32).collect();
+            match out.iter().position(|x| !x.is_finite()) {
+                None => Ok(out),
+                Some(i) => Err(CalibrateError::Derived {
+                    tensor: format!("{name}.{what}"),
+                    index: i,
+                    value: out[i],
+                    cause: format!(
+                        "the average over {} batches of the batch statistic of channel {i}, {:e}, overflows f32",
+                        self.batches,
+                        sums[i] / k
+                    ),
+                }),
+            }
+        };
+        self.layers
             .iter()
-            .map(|l| BnStats {
-                name: l.info.name.clone(),
-                running_mean: l.sum_mean.iter().map(|s| (s / k) as f32).collect(),
-                running_var: l.sum_var.iter().map(|s| (s / k) as f32).collect(),
+            .map(|l| {
+                Ok(BnStats {
+                    name: l.info.name.clone(),
+                    running_mean: average(&l.info.name, "running_mean", &l.sum_mean)?,
+                    running_var: average(&l.info.name, "running_var", &l.sum_var)?,
+                })
             })
-            .collect())
+            .collect()
     }
 }
 
@@ -344,7 +367,22 @@ fn train_mode_batchnorm(
         layer.batch_mean[ch] = mean;
         layer.batch_var[ch] = unbiased;
         let (a, b) = batchnorm_channel(gamma[ch] as f64, beta[ch] as f64, mean, var, layer.info.eps);
-        affine.push((a as f32, b as f32));
+        let (a, b) = (a as f32, b as f32);
+        if !(a.is_finite() && b.is_finite()) {
+            let name = &layer.info.name;
+            let (what, value) = if a.is_finite() { ("shift", b) } else { ("scale", a) };
+            return Err(CalibrateError::Derived {
+                tensor: format!("{name}@{what} (train mode)"),
+                index: ch,
+                value,
+                cause: format!(
+                    "from `{name}.weight[{ch}]` = {:e}, `{name}.bias[{ch}]` = {:e}, batch mean {mean:e} and variance \
+                     {var:e} with eps {:e}: gamma / sqrt(var + eps) overflows f32",
+                    gamma[ch], beta[ch], layer.info.eps
+                ),
+            });
+        }
+        affine.push((a, b));
     }
     let relu = layer.relu;
     x.par_chunks_mut(inner.max(1)).with_min_len((CHUNK / inner.max(1)).max(1)).enumerate().for_each(|(row, xs)| {

@@ -133,7 +133,7 @@ fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, Stri
     if ext != "safetensors" {
         return Err(format!("{shown}: samples are read from .npy or .safetensors files"));
     }
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let bytes = super::deploy::read_bounded(path, super::deploy::MAX_WEIGHTS_BYTES)?;
     let st = SafeTensors::deserialize(&bytes).map_err(|e| format!("{shown}: not a safetensors file ({e})"))?;
     let held: Vec<String> = st.names().into_iter().map(String::from).collect();
     let single = inputs.len() == 1 && held.len() == 1;

@@ -43,6 +43,11 @@ pub struct ModelArgs {
     /// Set a model parameter, overriding its default (repeatable): `--set num_classes=10`.
     #[arg(long = "set", value_name = "NAME=VALUE", value_parser = parse_set)]
     pub set: Vec<(String, String)>,
+    /// Refuse a model whose activations at batch size 1 take more than SIZE (one value,
+    /// or the values alive at once): bytes, or with a suffix K, M, G, T (powers of 1024):
+    /// `512M`, `2G` [default: 4G].
+    #[arg(long, value_name = "SIZE", value_parser = parse_size)]
+    pub max_activation_memory: Option<u64>,
 }
 
 #[derive(Subcommand)]
@@ -125,7 +130,8 @@ pub enum Command {
         #[arg(long)]
         deploy: Option<PathBuf>,
         /// A variant's parameters, `KEY=PATH` (repeatable): a safetensors file of the tensors
-        /// it owns, or a PEFT adapter directory; give a key twice to combine both.
+        /// it owns, or a PEFT adapter directory. A key given twice merges its files (a tensor
+        /// in two of them is an error), as in deploy.yaml.
         #[arg(long = "variant", value_name = "KEY=PATH", value_parser = parse_variant_arg)]
         variants: Vec<(String, String)>,
         /// How LoRA runs: merged into the adapted weights per variant (no run-time cost) or
@@ -247,6 +253,27 @@ pub enum Command {
         #[arg(long, default_value_t = 8)]
         frames: usize,
     },
+}
+
+/// `4096`, `512K`, `512M`, `2G`, `1T` (also `2GiB`, `2GB`: powers of 1024 all), not 0.
+pub fn parse_size(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let digits = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
+    let (num, unit) = t.split_at(digits);
+    let shift = match unit.to_ascii_lowercase().as_str() {
+        "" | "b" => 0,
+        "k" | "kb" | "kib" => 10,
+        "m" | "mb" | "mib" => 20,
+        "g" | "gb" | "gib" => 30,
+        "t" | "tb" | "tib" => 40,
+        _ => return Err(format!("`{s}` is not a size: write bytes, or a number with K, M, G or T (`512M`, `2G`)")),
+    };
+    let n: u64 = num.parse().map_err(|_| format!("`{s}` is not a size: it must start with a whole number"))?;
+    let bytes = n.checked_mul(1u64 << shift).ok_or_else(|| format!("`{s}` is too large a size"))?;
+    if bytes == 0 {
+        return Err("the size must be more than 0".to_string());
+    }
+    Ok(bytes)
 }
 
 fn parse_set(s: &str) -> Result<(String, String), String> {

@@ -34,10 +34,10 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
     };
     let mut model = args.model;
     let mut melds = args.melds.clone();
-    let (spec, weights, mut variant_files, mut lora) = match &args.deploy {
+    let (spec, weights, variant_files, mut lora) = match &args.deploy {
         Some(path) => {
-            let text =
-                std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read {}: {e}", path.display())))?;
+            let bytes = deploy::read_bounded(path, deploy::MAX_CONFIG_BYTES).map_err(fail)?;
+            let text = String::from_utf8(bytes).map_err(|_| fail(format!("{} is not UTF-8 text", path.display())))?;
             let d = deploy::parse(path, &text).map_err(fail)?;
             model.set.extend(d.set);
             melds.extend(d.melds);
@@ -56,7 +56,9 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
             _ => return Err(fail("give a spec and --weights, or --deploy".into())),
         },
     };
-    variant_files.extend(deploy::variant_args(&args.variants));
+    // A key given twice, in the manifest, on the command line or both, merges its files.
+    let entries = variant_files.into_iter().flat_map(|v| v.files.into_iter().map(move |f| (v.key.clone(), f)));
+    let variant_files = deploy::group_by_key(entries.chain(deploy::variant_arg_files(&args.variants)));
     if let Some(l) = args.lora {
         lora = Some(match l {
             LoraArg::Merge => LoraMode::Merge,
@@ -69,14 +71,14 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         return Err(ExitCode::FAILURE);
     };
     let wname = weights.display().to_string();
-    let bytes = std::fs::read(&weights).map_err(|e| fail(format!("cannot read {wname}: {e}")))?;
+    let bytes = deploy::read_bounded(&weights, deploy::MAX_WEIGHTS_BYTES).map_err(fail)?;
     let report = |s: &Frontend, d: Diagnostics| {
         s.report(&d);
         ExitCode::FAILURE
     };
     let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| report(s, d))?;
     let mut sources = Vec::new();
-    for files in &variant_files {
+    for files in &deploy::regroup_by_value(variant_files, &module) {
         sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
     }
     let opts =

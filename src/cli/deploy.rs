@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 
 use readi_compiler::Module;
 use readi_compiler::backend::{VariantSource, WeightSet, peft};
+use readi_compiler::weights::variants::canonical_key;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use serde::Deserialize;
 
@@ -37,12 +38,123 @@ pub struct Deployment {
     pub melds: Vec<String>,
 }
 
-/// Where one variant's parameters are.
+/// Where one variant's parameters are: every file given for its key, in order.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct VariantFiles {
     pub key: String,
-    pub params: Option<PathBuf>,
-    pub peft: Option<PathBuf>,
+    pub files: Vec<VariantFile>,
+}
+
+/// One file of a variant's parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub enum VariantFile {
+    /// A safetensors file of the tensors it owns, by PyTorch name.
+    Params(PathBuf),
+    /// A PEFT LoRA adapter directory.
+    Peft(PathBuf),
+}
+
+impl VariantFile {
+    pub fn path(&self) -> &Path {
+        match self {
+            VariantFile::Params(p) | VariantFile::Peft(p) => p,
+        }
+    }
+}
+
+/// Most bytes a weights file (base, variant, PEFT adapter) may have: 16 GiB.
+pub const MAX_WEIGHTS_BYTES: u64 = 16 << 30;
+/// Most bytes of a PEFT `adapter_config.json` or a deployment manifest: 1 MiB.
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// Reads a file that must be a regular file of at most `limit` bytes: a device
+/// (`/dev/zero`), a pipe or a directory is refused before anything is read, and so is a
+/// file over the limit (or one that grows past it while it is read).
+pub fn read_bounded(path: &Path, limit: u64) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let shown = path.display();
+    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    if meta.is_dir() {
+        return Err(format!("cannot read {shown}: it is a directory"));
+    }
+    if !meta.is_file() {
+        return Err(format!("cannot read {shown}: it is not a regular file (a device, a pipe or a socket)"));
+    }
+    let too_large = |n: u64| format!("{shown} is {n} bytes, over the limit of {limit} bytes for this kind of file");
+    if meta.len() > limit {
+        return Err(too_large(meta.len()));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    std::fs::File::open(path)
+        .and_then(|f| f.take(limit.saturating_add(1)).read_to_end(&mut bytes))
+        .map_err(|e| format!("cannot read {shown}: {e}"))?;
+    if bytes.len() as u64 > limit {
+        return Err(too_large(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
+
+/// The variants with the files of each key together, keys in order of first appearance:
+/// a key given twice (on the command line, in a manifest, or both) reads all its files.
+pub fn group_by_key(entries: impl IntoIterator<Item = (String, VariantFile)>) -> Vec<VariantFiles> {
+    let mut out: Vec<VariantFiles> = Vec::new();
+    for (key, file) in entries {
+        match out.iter_mut().find(|v| v.key == key) {
+            Some(v) => v.files.push(file),
+            None => out.push(VariantFiles { key, files: vec![file] }),
+        }
+    }
+    out
+}
+
+/// [`group_by_key`] again with keys compared by value, now that the spec's declared keys
+/// are known: `fog=0.01` and `fog=0.010` are one key, whose files merge. A key the spec
+/// does not declare stays as written (binding reports it).
+pub fn regroup_by_value(variants: Vec<VariantFiles>, module: &Module) -> Vec<VariantFiles> {
+    let declared = module.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
+    let mut shown: Vec<(String, String)> = Vec::new();
+    let entries: Vec<(String, VariantFile)> = variants
+        .into_iter()
+        .flat_map(|v| {
+            let canonical = canonical_key(&v.key, &declared).map_or_else(|| v.key.clone(), |k| k.to_string());
+            // Keep the first spelling given, for messages.
+            let key = match shown.iter().find(|(c, _)| *c == canonical) {
+                Some((_, first)) => first.clone(),
+                None => {
+                    shown.push((canonical, v.key.clone()));
+                    v.key.clone()
+                }
+            };
+            v.files.into_iter().map(move |f| (key.clone(), f)).collect::<Vec<_>>()
+        })
+        .collect();
+    group_by_key(entries)
+}
+
+/// Adds the tensors of one file to a variant's, the one rule for combining a variant's
+/// files: files that give disjoint tensors merge; a tensor given by two files is an
+/// error naming it and both files (`from` records which file gave each tensor).
+pub fn merge_tensors(
+    key: &str,
+    into: &mut WeightSet,
+    from: &mut BTreeMap<String, String>,
+    file: &str,
+    tensors: WeightSet,
+) -> Result<(), Diagnostics> {
+    for (name, t) in tensors.tensors {
+        if let Some(first) = from.get(&name) {
+            return Err(Diagnostics(vec![
+                Diagnostic::error(
+                    Code::VariantWeights,
+                    format!("variant `{key}`: tensor `{name}` is given by both {first} and {file}"),
+                )
+                .with_note("a key given twice merges its files only when they give different tensors"),
+            ]));
+        }
+        from.insert(name.clone(), file.to_string());
+        into.tensors.insert(name, t);
+    }
+    Ok(())
 }
 
 #[derive(Deserialize)]
@@ -89,13 +201,15 @@ pub fn parse(path: &Path, text: &str) -> Result<Deployment, String> {
         };
         set.push((k, value));
     }
-    let mut variants = Vec::new();
+    let mut entries = Vec::new();
     for (i, v) in raw.variants.into_iter().enumerate() {
         if v.params.is_none() && v.peft.is_none() {
             return Err(format!("{name}: variant {} (`{}`) gives neither `params` nor `peft`", i + 1, v.key));
         }
-        variants.push(VariantFiles { key: v.key, params: v.params.map(resolve), peft: v.peft.map(resolve) });
+        entries.extend(v.params.map(|p| (v.key.clone(), VariantFile::Params(resolve(p)))));
+        entries.extend(v.peft.map(|p| (v.key.clone(), VariantFile::Peft(resolve(p)))));
     }
+    let variants = group_by_key(entries);
     Ok(Deployment {
         spec: resolve(raw.spec),
         set,
@@ -107,58 +221,46 @@ pub fn parse(path: &Path, text: &str) -> Result<Deployment, String> {
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, Diagnostics> {
-    std::fs::read(path).map_err(|e| {
-        Diagnostics(vec![Diagnostic::error(Code::VariantWeights, format!("cannot read {}: {e}", path.display()))])
-    })
+    read_bounded(path, MAX_WEIGHTS_BYTES).map_err(|e| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, e)]))
 }
 
-/// Reads a variant's files into one set of tensors by readi name.
+/// Reads a variant's files into one set of tensors by readi name, merged by
+/// [`merge_tensors`].
 pub fn read_variant(files: &VariantFiles, module: &Module) -> Result<VariantSource, Diagnostics> {
     let mut weights = WeightSet::default();
+    let mut from = BTreeMap::new();
     let mut origin = Vec::new();
-    if let Some(p) = &files.params {
-        let name = p.display().to_string();
-        weights = WeightSet::from_safetensors(&name, &read(p)?)?;
-        origin.push(name);
-    }
-    if let Some(dir) = &files.peft {
-        let name = dir.display().to_string();
-        let config = String::from_utf8_lossy(&read(&dir.join(peft::CONFIG_FILE))?).into_owned();
-        let adapter = peft::read_adapter(&name, &config, &read(&dir.join(peft::WEIGHTS_FILE))?, module)?;
-        for (k, v) in adapter.tensors {
-            if weights.tensors.contains_key(&k) {
-                return Err(Diagnostics(vec![Diagnostic::error(
-                    Code::VariantWeights,
-                    format!("variant `{}`: tensor `{k}` is in both {} and {name}", files.key, origin.join(", ")),
-                )]));
+    for file in &files.files {
+        let name = file.path().display().to_string();
+        let tensors = match file {
+            VariantFile::Params(p) => WeightSet::from_safetensors(&name, &read(p)?)?,
+            VariantFile::Peft(dir) => {
+                let config = read_bounded(&dir.join(peft::CONFIG_FILE), MAX_CONFIG_BYTES)
+                    .map_err(|e| Diagnostics(vec![Diagnostic::error(Code::VariantWeights, e)]))?;
+                let config = String::from_utf8_lossy(&config).into_owned();
+                peft::read_adapter(&name, &config, &read(&dir.join(peft::WEIGHTS_FILE))?, module)?
             }
-            weights.tensors.insert(k, v);
-        }
+        };
+        merge_tensors(&files.key, &mut weights, &mut from, &name, tensors)?;
         origin.push(name);
     }
     Ok(VariantSource { key: files.key.clone(), weights, origin: origin.join(" + ") })
 }
 
 /// `KEY=PATH` from the command line: a directory is a PEFT adapter, a file a parameter
-/// file. Giving a key twice combines its files.
+/// file. Giving a key twice combines its files ([`group_by_key`]).
 pub fn variant_args(args: &[(String, String)]) -> Vec<VariantFiles> {
-    let mut out: Vec<VariantFiles> = Vec::new();
-    for (key, path) in args {
-        let path = PathBuf::from(path);
-        let i = match out.iter().position(|v| v.key == *key) {
-            Some(i) => i,
-            None => {
-                out.push(VariantFiles { key: key.clone(), ..Default::default() });
-                out.len() - 1
-            }
-        };
-        if path.is_dir() {
-            out[i].peft = Some(path);
-        } else {
-            out[i].params = Some(path);
-        }
-    }
-    out
+    group_by_key(args.iter().map(|(key, path)| (key.clone(), variant_file(path))))
+}
+
+/// The command line's files, each with its key, ungrouped (to group with a manifest's).
+pub fn variant_arg_files(args: &[(String, String)]) -> Vec<(String, VariantFile)> {
+    args.iter().map(|(key, path)| (key.clone(), variant_file(path))).collect()
+}
+
+fn variant_file(path: &str) -> VariantFile {
+    let path = PathBuf::from(path);
+    if path.is_dir() { VariantFile::Peft(path) } else { VariantFile::Params(path) }
 }
 
 #[cfg(test)]
@@ -173,8 +275,8 @@ mod tests {
         assert_eq!(d.weights, Path::new("deploy/w.safetensors"));
         assert_eq!(d.set, vec![("img".to_string(), "64".to_string()), ("num_classes".to_string(), "10".to_string())]);
         assert_eq!(d.variants.len(), 2);
-        assert_eq!(d.variants[0].params.as_deref(), Some(Path::new("deploy/fog.safetensors")));
-        assert_eq!(d.variants[1].peft.as_deref(), Some(Path::new("deploy/adapters/g")));
+        assert_eq!(d.variants[0].files, [VariantFile::Params("deploy/fog.safetensors".into())]);
+        assert_eq!(d.variants[1].files, [VariantFile::Peft("deploy/adapters/g".into())]);
     }
 
     #[test]

@@ -18,7 +18,9 @@ pub struct Frontend {
 
 impl Frontend {
     pub fn load(&mut self, path: &Path) -> Result<(FileId, String), ExitCode> {
-        match std::fs::read(path) {
+        // The parser refuses longer sources; reading more would only spend memory.
+        let limit = readi_grammar::parser::MAX_SOURCE_BYTES as u64;
+        match super::deploy::read_bounded(path, limit) {
             Ok(bytes) => match String::from_utf8(bytes) {
                 Ok(text) => Ok((self.sources.add(path.display().to_string(), text.clone()), text)),
                 Err(e) => {
@@ -31,7 +33,7 @@ impl Frontend {
                 }
             },
             Err(e) => {
-                eprintln!("error: cannot read {}: {e}", path.display());
+                eprintln!("error: {e}");
                 Err(ExitCode::from(2))
             }
         }
@@ -57,7 +59,9 @@ impl Frontend {
 }
 
 fn options(model: &ModelArgs, stop_after: Option<Pass>) -> Options {
-    Options { stop_after, ..Options::with_overrides(&model.set) }
+    let mut opts = Options { stop_after, ..Options::with_overrides(&model.set) };
+    opts.elab.max_activation_bytes = model.max_activation_memory;
+    opts
 }
 
 pub fn summary_line(path: &str, diags: &Diagnostics) -> String {

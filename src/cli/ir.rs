@@ -91,8 +91,8 @@ fn compiled(
     let (weights, name) = match &backend.weights {
         Some(path) => {
             let name = path.display().to_string();
-            let bytes = std::fs::read(path).map_err(|e| {
-                eprintln!("error: cannot read {name}: {e}");
+            let bytes = deploy::read_bounded(path, deploy::MAX_WEIGHTS_BYTES).map_err(|e| {
+                eprintln!("error: {e}");
                 ExitCode::FAILURE
             })?;
             (WeightSet::from_safetensors(&name, &bytes).map_err(|d| report(s, d))?, name)
@@ -103,7 +103,7 @@ fn compiled(
         }
     };
     let mut sources = Vec::new();
-    for files in deploy::variant_args(&backend.variants) {
+    for files in deploy::regroup_by_value(deploy::variant_args(&backend.variants), &module) {
         sources.push(deploy::read_variant(&files, &module).map_err(|d| report(s, d))?);
     }
     sources.extend(backend::seeded_variants(&module, &backend.seeded_variants, backend.seed + 1));

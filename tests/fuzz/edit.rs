@@ -39,8 +39,16 @@ pub(super) fn edit() -> impl Strategy<Value = Edit> {
         (any::<usize>(), any::<usize>()).prop_map(|(a, b)| Edit::SwapLines { a, b }),
         (any::<usize>(), prop::sample::select(TOKENS)).prop_map(|(nth, with)| Edit::ReplaceNumber { nth, with }),
         (any::<usize>(), any::<usize>()).prop_map(|(nth, pick)| Edit::ReplaceWord { nth, pick }),
+        (any::<usize>(), prop::sample::select(HOSTILE_NUMBERS))
+            .prop_map(|(nth, with)| Edit::ReplaceNumber { nth, with }),
     ]
 }
+
+/// Numbers a hostile user would try (issue 10): sizes over the activation limit or that
+/// overflow, a port count past 16 bits, infinite and negative results. Front end only:
+/// a spec that checks with them could be gigabytes at batch 1.
+pub(super) const HOSTILE_NUMBERS: &[&str] =
+    &["65536", "65537", "4294967296", "99999999999", "9223372036854775807", "-1", "1e300", "0.0", "** -1"];
 
 /// Sizes and factors an edit may put in place of a number and still often have a spec
 /// that checks.

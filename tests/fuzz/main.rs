@@ -153,6 +153,8 @@ const TOKENS: &[&str] = &[
     "layer1",
     "head.*",
     "**",
+    "**.**.**.**.**.**.**.**.**.**.x",
+    "{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}{a,b}",
     "camera",
     "lidar",
     "é",

@@ -353,7 +353,15 @@ impl<'a> Elab<'a> {
             }
             Pow => {
                 if y < 0 {
-                    return Value::Float((x as f64).powf(y as f64));
+                    let v = (x as f64).powf(y as f64);
+                    if v.is_finite() {
+                        return Value::Float(v);
+                    }
+                    // `0 ** -1`: infinite, which no plan can hold.
+                    return self.error(
+                        Diagnostic::error(Code::BadValue, format!("`{x} ** {y}` gives {v}"))
+                            .with_primary(span, "not a finite number"),
+                    );
                 }
                 u32::try_from(y).ok().and_then(|e| x.checked_pow(e))
             }

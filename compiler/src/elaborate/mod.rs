@@ -42,6 +42,20 @@ pub const MAX_RANGE: i64 = 100_000;
 /// Maximum number of expression evaluations in one elaboration.
 pub const MAX_STEPS: u64 = 5_000_000;
 
+/// Default limit on the activation memory of a model at batch size 1 (4 GiB): one value,
+/// and the peak of the values alive at once. `readi compile --max-activation-memory`.
+pub const DEFAULT_MAX_ACTIVATION_BYTES: u64 = 4 << 30;
+/// Most elements one parameter tensor may have (2^32, 16 GiB as f32).
+pub const MAX_PARAM_ELEMENTS: u64 = 1 << 32;
+/// Most inputs one op may take (its input ports are 16-bit).
+pub const MAX_OP_INPUTS: usize = u16::MAX as usize;
+
+/// The bytes of a tensor at batch size 1 (every symbolic dimension 1), or `None` if the
+/// count overflows `u64`.
+pub fn bytes_at_batch_1(t: &TensorType) -> Option<u64> {
+    t.shape.iter().try_fold(t.dtype.size_bytes(), |acc, d| acc.checked_mul(d.coef().max(0) as u64))
+}
+
 /// A value given on the command line for a model parameter (`--set num_classes=10`).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Literal {
@@ -73,12 +87,16 @@ impl Literal {
 pub struct ElabOptions {
     /// Model parameter values that replace the defaults.
     pub overrides: Vec<(String, Literal)>,
+    /// Most bytes one value may take at batch size 1
+    /// ([`DEFAULT_MAX_ACTIVATION_BYTES`] when `None`).
+    pub max_activation_bytes: Option<u64>,
 }
 
 /// Elaborates the model of `file` into a graph. Returns the graph (complete only when the
 /// diagnostics hold no errors) and the diagnostics.
 pub fn elaborate(file: &ast::SourceFile, file_id: FileId, opts: &ElabOptions) -> (Option<Graph>, Diagnostics) {
     let mut e = Elab::new(file_id);
+    e.max_value_bytes = opts.max_activation_bytes.unwrap_or(DEFAULT_MAX_ACTIVATION_BYTES);
     let graph = e.run(file, opts);
     e.diags.sort();
     (graph, e.diags)
@@ -125,6 +143,8 @@ struct Elab<'a> {
     steps: u64,
     aborted: bool,
     symbols_allowed: bool,
+    /// See [`ElabOptions::max_activation_bytes`].
+    max_value_bytes: u64,
 }
 
 impl<'a> Elab<'a> {
@@ -141,6 +161,7 @@ impl<'a> Elab<'a> {
             steps: 0,
             aborted: false,
             symbols_allowed: false,
+            max_value_bytes: DEFAULT_MAX_ACTIVATION_BYTES,
         }
     }
 
@@ -421,6 +442,16 @@ impl<'a> Elab<'a> {
             }
         };
         let path = join_path(&self.graph.scope(scope).path, &name);
+        if inputs.len() > MAX_OP_INPUTS {
+            return self.error(
+                Diagnostic::error(
+                    Code::Limit,
+                    format!("`{}` has {} inputs, over the limit of {MAX_OP_INPUTS}", op.kind_name(), inputs.len()),
+                )
+                .with_primary(span, "too many inputs")
+                .with_note("combine the inputs in stages (a concat of concats)"),
+            );
+        }
         let types: Vec<TensorType> = inputs.iter().filter_map(|v| self.graph.value_type(*v).cloned()).collect();
         let type_refs: Vec<&TensorType> = types.iter().collect();
         let outputs = match op.infer(&type_refs) {
@@ -439,7 +470,27 @@ impl<'a> Elab<'a> {
                 return self.error(d);
             }
         };
+        if let Some(d) = self.size_error(&path, &outputs, span) {
+            return self.error(d);
+        }
         let params = op.param_slots();
+        for p in &params {
+            let numel = p.shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(d.max(0) as u64));
+            if numel.is_none_or(|n| n > MAX_PARAM_ELEMENTS) {
+                let shown = numel.map_or("more than 2^64".to_string(), |n| n.to_string());
+                return self.error(
+                    Diagnostic::error(
+                        Code::Limit,
+                        format!(
+                            "parameter `{path}.{}` of shape {:?} has {shown} elements, over the limit of \
+                             {MAX_PARAM_ELEMENTS}",
+                            p.name, p.shape
+                        ),
+                    )
+                    .with_primary(span, "too large a parameter"),
+                );
+            }
+        }
         if !params.is_empty() && path.split('.').any(|seg| seg.contains('#')) {
             let slot = params[0].name;
             return self.error(
@@ -453,6 +504,31 @@ impl<'a> Elab<'a> {
         }
         let id = self.graph.add_node(Node::new(op, path, scope, params, outputs, span), &inputs);
         Value::Tensor { value: ValueRef { node: id, port: 0 }, scope: None }
+    }
+}
+
+impl Elab<'_> {
+    /// An error if a value `path` creates is too large at batch size 1: its byte count
+    /// overflows, or is over the activation limit.
+    fn size_error(&self, path: &str, outputs: &[TensorType], span: Span) -> Option<Diagnostic> {
+        let limit = self.max_value_bytes;
+        outputs.iter().find_map(|t| {
+            let message = match bytes_at_batch_1(t) {
+                None => format!("`{}` is {t}: its size in bytes overflows", display_path(path)),
+                Some(b) if b > limit => format!(
+                    "`{}` is {t}: {} at batch size 1, over the activation limit of {}",
+                    display_path(path),
+                    crate::print::bytes(b),
+                    crate::print::bytes(limit)
+                ),
+                Some(_) => return None,
+            };
+            Some(
+                Diagnostic::error(Code::Limit, message)
+                    .with_primary(span, "too large a tensor")
+                    .with_note("`readi compile --max-activation-memory` sets the limit (default 4G)"),
+            )
+        })
     }
 }
 

@@ -136,6 +136,11 @@ impl<'a> Elab<'a> {
             return;
         }
         let ty = TensorType::new(decl.dtype.0, shape);
+        if let Some(d) = self.size_error(name, std::slice::from_ref(&ty), span) {
+            self.error(d);
+            frame.vars.insert(name.clone(), Value::Poison);
+            return;
+        }
         let op = Op::Input(InputAttrs {
             name: name.clone(),
             modality: decl.modality.as_ref().map(|m| m.name.clone()),

@@ -104,7 +104,9 @@ impl ParamSlot {
     }
     /// Number of elements.
     pub fn numel(&self) -> u64 {
-        self.shape.iter().map(|&d| d.max(0) as u64).product()
+        // Saturating: elaboration refuses parameters over `MAX_PARAM_ELEMENTS`, so this
+        // only guards sums over a graph that was not elaborated.
+        self.shape.iter().fold(1u64, |acc, &d| acc.saturating_mul(d.max(0) as u64))
     }
 }
 

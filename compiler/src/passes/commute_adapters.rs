@@ -68,6 +68,7 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
                 let mut ins: Vec<&str> = vec![&wb];
                 ins.extend(params.iter().map(String::as_str));
                 let shape = table.get(&wb).map(|t| t.shape.clone()).unwrap_or_default();
+                super::fold_batchnorm::check_variance(table, &params[3], g.node(bn))?;
                 let eps = bn_eps(g, bn);
                 let scaled = table
                     .derive_one(&ins, "moved behind its BatchNorm", shape, |v| scale_lora_b(v, eps))

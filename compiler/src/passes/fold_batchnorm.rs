@@ -14,7 +14,7 @@
 //! parameters. Does nothing when no BatchNorm is left. Assumes the adaptations are placed
 //! (`drop_inactive`, `commute_adapters`, `merge_lora`).
 
-use readi_grammar::diag::Diagnostics;
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use readi_plan::ops::{ChannelAffine, batchnorm_affine, batchnorm_channel};
 
 use super::bind_variants::not_bound;
@@ -46,6 +46,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             }
             _ => None,
         });
+        check_variance(table, &var, node)?;
         let scale_name = format!("{}@scale", node.path);
         let shift_name = format!("{}@shift", node.path);
         let scale = table
@@ -107,5 +108,31 @@ fn shift_tensor(table: &TensorTable, bn: [&str; 4], prior: Option<&str>, c: usiz
     table.derive_one(&ins, "folded into", vec![c], |v| {
         let (_, t) = batchnorm_affine(v[2], v[0], v[1], v[3], eps, v.get(4).copied());
         t.into_iter().map(|x| x as f32).collect()
+    })
+}
+
+/// An error at the BatchNorm `node` if its variance `var` is negative anywhere.
+pub(super) fn check_variance(table: &TensorTable, var: &str, node: &crate::ir::Node) -> Result<(), Diagnostics> {
+    let Some(m) = negative_variance(table, var) else { return Ok(()) };
+    Err(Diagnostics(vec![
+        Diagnostic::error(Code::Weights, format!("{m}: BatchNorm `{}` cannot be folded", node.path))
+            .with_primary(node.span, "its scale would be gamma / sqrt(running_var + eps)")
+            .with_note(
+                "a variance is never negative; the weights file is corrupt or was not exported from a BatchNorm",
+            ),
+    ]))
+}
+
+/// `bn1.running_var[3] = -1 is negative` (and the variant, if it is one's value): the
+/// first negative (or NaN) variance in the base or a variant. `sqrt` would make it NaN.
+pub fn negative_variance(table: &TensorTable, var: &str) -> Option<String> {
+    let t = table.get(var)?;
+    (0..=t.variants.len()).filter(|&v| v == 0 || t.variants[v - 1].is_some()).find_map(|v| {
+        let i = t.value(v).iter().position(|x| x.is_nan() || *x < 0.0)?;
+        let variant = match v.checked_sub(1).and_then(|i| table.variants.get(i)) {
+            Some(info) => format!(" in variant `{}`", info.key),
+            None => String::new(),
+        };
+        Some(format!("{var}[{i}] = {} is negative{variant}", t.value(v)[i]))
     })
 }

@@ -17,7 +17,7 @@ use readi_plan::VariantKey;
 use super::bind_variants::{not_bound, same_bits};
 use super::{BackendInputs, Output};
 use crate::module::Module;
-use crate::weights::tensors::{Data, TensorTable, VariantInfo};
+use crate::weights::tensors::{Data, TensorTable, VariantInfo, first_non_finite};
 use crate::weights::variants::canonical_key;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
@@ -40,6 +40,15 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
         }
         let values = meld(&table, &parts, &lambdas);
         let shown: Vec<String> = melded.part_keys().map(|k| k.to_string()).collect();
+        for (name, data) in &values {
+            if let Some((i, x)) = first_non_finite(data) {
+                let terms: Vec<String> = shown.iter().zip(&lambdas).map(|(k, l)| format!("{l} * `{k}`")).collect();
+                return Err(err(format!(
+                    "melded tensor `{name}` of `{melded}` is {x} at flat index {i}: the sum {} overflows f32",
+                    terms.join(" + ")
+                )));
+            }
+        }
         let origin = format!("meld of {}", shown.join(" and "));
         table.variants.push(VariantInfo { key: melded, fallback: Vec::new(), origin });
         let v = table.variant_count();

@@ -264,8 +264,68 @@ impl Options {
     pub fn with_overrides<K: AsRef<str>, V: AsRef<str>>(pairs: &[(K, V)]) -> Options {
         let overrides =
             pairs.iter().map(|(k, v)| (k.as_ref().to_string(), crate::elaborate::Literal::parse(v.as_ref()))).collect();
-        Options { elab: ElabOptions { overrides }, stop_after: None }
+        Options { elab: ElabOptions { overrides, ..ElabOptions::default() }, stop_after: None }
     }
+}
+
+/// The activations a model needs at batch size 1, over `limit`: the values alive at once
+/// when the nodes run in order, each freed after its last reader (values nothing reads,
+/// the outputs, live to the end). Elaboration refuses a single value over the limit; this
+/// is their sum at the peak, an error at the largest of them with the next ones labelled.
+fn activation_peak_error(g: &crate::ir::Graph, limit: u64) -> Option<Diagnostic> {
+    use crate::elaborate::bytes_at_batch_1;
+    let order = g.topo_order()?;
+    let size = |n: NodeId| -> u64 {
+        g.node(n).outputs.iter().map(|t| bytes_at_batch_1(t).unwrap_or(u64::MAX)).fold(0u64, u64::saturating_add)
+    };
+    let position: std::collections::HashMap<NodeId, usize> = order.iter().enumerate().map(|(i, &n)| (n, i)).collect();
+    // The step after which each node's values are freed (`None`: never).
+    let last_use = |n: NodeId| g.users(n).iter().filter_map(|u| position.get(u).copied()).max();
+    let mut frees: Vec<Vec<NodeId>> = vec![Vec::new(); order.len()];
+    for &n in &order {
+        if let Some(i) = last_use(n) {
+            frees[i].push(n);
+        }
+    }
+    let (mut live, mut peak, mut at) = (0u64, 0u64, 0usize);
+    for (i, &n) in order.iter().enumerate() {
+        live = live.saturating_add(size(n));
+        if live > peak {
+            (peak, at) = (live, i);
+        }
+        for &f in &frees[i] {
+            live = live.saturating_sub(size(f));
+        }
+    }
+    if peak <= limit {
+        return None;
+    }
+    // The values alive at the peak, largest first.
+    let mut alive: Vec<(u64, NodeId)> = order[..=at]
+        .iter()
+        .filter(|&&n| last_use(n).is_none_or(|i| i >= at))
+        .map(|&n| (size(n), n))
+        .filter(|&(b, _)| b > 0)
+        .collect();
+    alive.sort_by_key(|a| std::cmp::Reverse(a.0));
+    let show = |n: NodeId| if g.node(n).path.is_empty() { "<model>".to_string() } else { g.node(n).path.clone() };
+    let (b0, n0) = *alive.first()?;
+    let mut d = Diagnostic::error(
+        Code::Limit,
+        format!(
+            "the activations at batch size 1 peak at {} ({} values alive together at `{}`), over the activation \
+             limit of {}",
+            crate::print::bytes(peak),
+            alive.len(),
+            show(order[at]),
+            crate::print::bytes(limit)
+        ),
+    )
+    .with_primary(g.node(n0).span, format!("the largest: `{}`, {}", show(n0), crate::print::bytes(b0)));
+    for &(b, n) in alive.iter().skip(1).take(3) {
+        d = d.with_secondary(g.node(n).span, format!("`{}`, {}", show(n), crate::print::bytes(b)));
+    }
+    Some(d.with_note("`readi compile --max-activation-memory` sets the limit (default 4G)"))
 }
 
 /// The outcome of a front-end run: the module as far as it got, and every diagnostic.
@@ -334,6 +394,10 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                         None => break,
                     }
                 }
+                let limit = opts.elab.max_activation_bytes.unwrap_or(crate::elaborate::DEFAULT_MAX_ACTIVATION_BYTES);
+                if let Some(d) = activation_peak_error(&module.graph, limit) {
+                    diags.push(d);
+                }
             }
             Pass::ResolveAdapt => {
                 if let Some(section) = out.ast.adapt_sections().next() {
@@ -348,6 +412,24 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                     diags.push(
                         Diagnostic::error(Code::Internal, format!("internal compiler error in `inject_adapt`: {e}"))
                             .with_primary(span, "please report this with the input file"),
+                    );
+                }
+                // Elaboration bounds the spec's own parameters; an adapter on a wide layer
+                // adds `C * C/r` elements, which must fit the same limit.
+                let g = &module.graph;
+                let max = crate::elaborate::MAX_PARAM_ELEMENTS;
+                if let Some((name, id, slot)) = g.param_table().into_iter().find(|(_, _, s)| s.numel() > max) {
+                    diags.push(
+                        Diagnostic::error(
+                            Code::Limit,
+                            format!(
+                                "parameter `{name}` of shape {:?} has {} elements, over the limit of {max}",
+                                slot.shape,
+                                slot.numel()
+                            ),
+                        )
+                        .with_primary(g.node(id).span, "an adaptation rule adds this layer")
+                        .with_note("a larger squeeze ratio makes an adapter smaller"),
                     );
                 }
             }
@@ -474,6 +556,7 @@ pub fn run_backend(
                 Output::Lowered(l) => module.lowered = Some(*l),
                 Output::Patches(p) if p.is_empty() => break,
                 Output::Patches(p) => {
+                    check_derived(module, &p, name)?;
                     apply_round(module, p, pass, &mut applied);
                     rounds += 1;
                     if rounds < MAX_ROUNDS {
@@ -497,6 +580,35 @@ pub fn run_backend(
         }
     }
     Ok(BackendRun { warnings, applied })
+}
+
+/// Every tensor a round of patches derives (folded, merged, moved) must be finite, in the
+/// base and in every variant: a NaN or infinity there would silently make the model
+/// output constants. The error names the tensor, its sources and the cause, and points
+/// at the layer the tensor belongs to.
+fn check_derived(module: &Module, patches: &[Patch], pass: &str) -> Result<(), Diagnostics> {
+    let Some(table) = module.tensors.as_ref() else { return Ok(()) };
+    let mut diags = Diagnostics::default();
+    for p in patches {
+        for (name, t) in &p.tensors {
+            if let Err(m) = table.check_finite(name, t) {
+                let g = &module.graph;
+                // The layer of its first source (`bn1.weight`: `bn1`), else the rewritten node.
+                let owner = t.sources.first().and_then(|s| s.rsplit_once('.')).map(|(l, _)| l);
+                let layer = g
+                    .node_ids()
+                    .find(|&n| Some(g.node(n).path.as_str()) == owner)
+                    .or_else(|| p.rewrite.first().map(|r| r.0));
+                let span = layer.map_or(g.scopes[0].span, |n| g.node(n).span);
+                diags.push(
+                    Diagnostic::error(Code::Weights, m)
+                        .with_primary(span, format!("in `{pass}` (rule `{}`)", p.rule))
+                        .with_note("the weights are finite, but the tensor computed from them is not"),
+                );
+            }
+        }
+    }
+    if diags.has_errors() { Err(diags) } else { Ok(()) }
 }
 
 /// An internal compiler error: a bug, never the user's. Passes report them without a

@@ -20,14 +20,14 @@
 //! * `adapter` with squeeze `r` on `C` channels: a 1x1 conv `C -> C/r` and a 1x1 conv
 //!   `C/r -> C`, both with bias: `2 * C * C/r + C/r + C`.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use readi_grammar::ast::{AdaptKind, AdaptSection, OptionValue, Pattern, RuleOption, SelItem, Selector, SourceFile};
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
 
 pub use crate::adapt::{AdaptPlan, Injection, ResolvedRule, RuleKind, Target};
 use crate::ir::{Activation, Graph, NodeId, Op, ScopeKind};
-use crate::select;
+use crate::select::Matcher;
 
 /// Whether `word` names an op kind a selector may use (a builtin op, not an alias).
 fn is_op_kind(word: &str) -> bool {
@@ -77,6 +77,8 @@ impl Cx<'_> {
     /// Resolves a selector to layers, reporting items that select nothing.
     fn select(&self, selector: &Selector, diags: &mut Diagnostics) -> Option<Vec<Selected>> {
         let mut out: Vec<Selected> = Vec::new();
+        // Where each node is in `out`: items may select a node again.
+        let mut at: HashMap<NodeId, usize> = HashMap::new();
         let mut ok = true;
         for item in &selector.items {
             match self.select_item(item) {
@@ -86,8 +88,8 @@ impl Cx<'_> {
                 }
                 Ok(found) => {
                     for s in found {
-                        match out.iter_mut().find(|o| o.node == s.node) {
-                            Some(o) => match (&mut o.slots, s.slots) {
+                        match at.get(&s.node) {
+                            Some(&i) => match (&mut out[i].slots, s.slots) {
                                 (Some(a), Some(b)) => {
                                     for x in b {
                                         if !a.contains(&x) {
@@ -97,7 +99,10 @@ impl Cx<'_> {
                                 }
                                 (slots, _) => *slots = None,
                             },
-                            None => out.push(s),
+                            None => {
+                                at.insert(s.node, out.len());
+                                out.push(s);
+                            }
                         }
                     }
                 }
@@ -153,22 +158,19 @@ impl Cx<'_> {
                         .map(|node| Selected { node, slots: None })
                         .collect());
                 }
+                let m = Matcher::new(p)?;
                 let mut out = Vec::new();
                 for n in g.node_ids() {
                     let node = g.node(n);
                     if matches!(node.op, Op::Input(_)) {
                         continue;
                     }
-                    if select::selects(p, &node.path) {
+                    if m.selects(&node.path) {
                         out.push(Selected { node: n, slots: None });
                         continue;
                     }
-                    let slots: Vec<&'static str> = node
-                        .params
-                        .iter()
-                        .filter(|s| select::matches_exactly(p, &node.param_name(s)))
-                        .map(|s| s.name)
-                        .collect();
+                    let slots: Vec<&'static str> =
+                        node.params.iter().filter(|s| m.matches_exactly(&node.param_name(s))).map(|s| s.name).collect();
                     if !slots.is_empty() {
                         out.push(Selected { node: n, slots: Some(slots) });
                     }
@@ -177,13 +179,15 @@ impl Cx<'_> {
             }
             SelItem::KindsIn { kinds, scopes, .. } => {
                 self.check_kinds(kinds)?;
+                let scopes =
+                    scopes.iter().map(|s| Ok((s, Matcher::new(s)?))).collect::<Result<Vec<_>, Diagnostic>>()?;
                 let mut out = Vec::new();
                 for n in g.node_ids() {
                     let node = g.node(n);
                     if !kinds.iter().any(|k| k.name == node.op.kind_name()) {
                         continue;
                     }
-                    if scopes.iter().any(|s| self.in_scope(n, s)) {
+                    if scopes.iter().any(|(s, m)| self.in_scope(n, s, m)) {
                         out.push(Selected { node: n, slots: None });
                     }
                 }
@@ -193,7 +197,7 @@ impl Cx<'_> {
     }
 
     /// Whether a node lies in an instance of the named block, or under a path pattern.
-    fn in_scope(&self, n: NodeId, scope: &Pattern) -> bool {
+    fn in_scope(&self, n: NodeId, scope: &Pattern, m: &Matcher) -> bool {
         let node = self.graph.node(n);
         match scope.as_single_word().filter(|w| self.blocks.contains(w)) {
             Some(block) => {
@@ -201,7 +205,7 @@ impl Cx<'_> {
             }
             None => {
                 let parent = node.path.rsplit_once('.').map(|(p, _)| p).unwrap_or("");
-                select::selects(scope, parent)
+                m.selects(parent)
             }
         }
     }
@@ -323,7 +327,17 @@ impl Cx<'_> {
                 Some(block) => (0..g.scopes.len())
                     .filter(|&i| matches!(&g.scopes[i].kind, ScopeKind::Block(b) if b == block))
                     .collect(),
-                None => (1..g.scopes.len()).filter(|&i| select::matches_exactly(sp, &g.scopes[i].path)).collect(),
+                None => {
+                    let m = match Matcher::new(sp) {
+                        Ok(m) => m,
+                        Err(d) => {
+                            diags.push(d);
+                            ok = false;
+                            continue;
+                        }
+                    };
+                    (1..g.scopes.len()).filter(|&i| m.matches_exactly(&g.scopes[i].path)).collect()
+                }
             };
             if found.is_empty() {
                 let mut d = Diagnostic::error(Code::BadSelector, format!("`{}` matches no block instance", sp.text))
@@ -340,19 +354,38 @@ impl Cx<'_> {
             return None;
         }
         let kind_target = before.as_single_word().filter(|w| is_op_kind(w));
+        let before_m = match kind_target {
+            Some(_) => None,
+            None => match Matcher::new(before) {
+                Ok(m) => Some(m),
+                Err(d) => {
+                    diags.push(d);
+                    return None;
+                }
+            },
+        };
+        // The nodes under each path prefix, in node order: an instance's nodes are those
+        // under its path, found without a scan of the graph per instance.
+        let mut under: HashMap<&str, Vec<NodeId>> = HashMap::new();
+        for n in g.node_ids() {
+            let path = g.node(n).path.as_str();
+            for (i, _) in path.match_indices('.') {
+                under.entry(&path[..i]).or_default().push(n);
+            }
+        }
         let mut targets: Vec<Target> = Vec::new();
+        let mut taken: HashSet<NodeId> = HashSet::new();
         for &inst in &instances {
-            let prefix = &g.scopes[inst].path;
-            for n in g.node_ids() {
+            let prefix = g.scopes[inst].path.as_str();
+            for &n in under.get(prefix).map(Vec::as_slice).unwrap_or_default() {
                 let node = g.node(n);
-                let Some(rel) = node.path.strip_prefix(prefix.as_str()).and_then(|r| r.strip_prefix('.')) else {
-                    continue;
+                let rel = &node.path[prefix.len() + 1..];
+                let hit = match (&before_m, kind_target) {
+                    (Some(m), _) => m.matches_exactly(rel),
+                    (None, Some(kind)) => node.op.kind_name() == kind,
+                    (None, None) => false,
                 };
-                let hit = match kind_target {
-                    Some(kind) => node.op.kind_name() == kind,
-                    None => select::matches_exactly(before, rel),
-                };
-                if !hit || targets.iter().any(|t| t.node == n) {
+                if !hit || taken.contains(&n) {
                     continue;
                 }
                 let input = g.inputs(n).first().and_then(|v| g.value_type(*v)).cloned();
@@ -390,6 +423,7 @@ impl Cx<'_> {
                 }
                 let mid = c / squeeze;
                 let added = (2 * c * mid + mid + c) as u64;
+                taken.insert(n);
                 targets.push(Target { node: n, slots: vec![], tuned: 0, added });
             }
         }

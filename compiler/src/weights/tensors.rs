@@ -65,6 +65,11 @@ impl Tensor {
     }
 }
 
+/// The first value that is NaN or infinite, with its index.
+pub fn first_non_finite(data: &[f32]) -> Option<(usize, f32)> {
+    data.iter().position(|x| !x.is_finite()).map(|i| (i, data[i]))
+}
+
 /// A variant of the plan being compiled.
 #[derive(Clone, Debug, PartialEq)]
 pub struct VariantInfo {
@@ -203,6 +208,50 @@ impl TensorTable {
                 how: Some(how),
             })
             .collect())
+    }
+
+    /// Checks that a derived tensor `name` holds only finite values, in the base and in
+    /// every variant with a value of its own. The error names the tensor, its sources,
+    /// the variant and the cause: a source that is not finite, or else the arithmetic
+    /// overflowing f32, with the source value of largest magnitude (which is usually
+    /// what overflowed).
+    pub fn check_finite(&self, name: &str, t: &Tensor) -> Result<(), String> {
+        for v in 0..=t.variants.len() {
+            if v > 0 && t.variants[v - 1].is_none() {
+                continue;
+            }
+            let Some((i, x)) = first_non_finite(t.value(v)) else { continue };
+            let sources: Vec<String> = t.sources.iter().map(|s| format!("`{s}`")).collect();
+            let variant = match v.checked_sub(1).and_then(|i| self.variants.get(i)) {
+                Some(info) => format!(" in variant `{}`", info.key),
+                None => String::new(),
+            };
+            let mut largest: Option<(&str, usize, f32)> = None;
+            let mut cause = None;
+            for s in &t.sources {
+                let Some(src) = self.value(s, v) else { continue };
+                if let Some((j, y)) = first_non_finite(src) {
+                    cause = Some(format!("its source `{s}[{j}]` = {y}"));
+                    break;
+                }
+                for (j, &y) in src.iter().enumerate() {
+                    if largest.is_none_or(|(_, _, l)| y.abs() > l.abs()) {
+                        largest = Some((s.as_str(), j, y));
+                    }
+                }
+            }
+            let cause = cause.unwrap_or_else(|| match largest {
+                Some((s, j, y)) => {
+                    format!("the arithmetic overflows f32 (the largest source value is `{s}[{j}]` = {y:e})")
+                }
+                None => "the arithmetic overflows f32".to_string(),
+            });
+            return Err(format!(
+                "derived tensor `{name}`{variant} is {x} at flat index {i}: {cause}; it derives from {}",
+                sources.join(", ")
+            ));
+        }
+        Ok(())
     }
 
     /// One tensor derived from `inputs` by `f` (see [`derive`](TensorTable::derive)).
