@@ -11,7 +11,7 @@ use std::fmt::{self, Write};
 use std::path::Path;
 
 use readi_compiler::print;
-use readi_runtime::plan::{Kernel, Manifest, Plan, Storage, show_shape};
+use readi_runtime::plan::{Kernel, Manifest, Plan, Storage, escaped, show_shape};
 
 /// Runs a writer into a new string.
 fn render(f: impl FnOnce(&mut String) -> fmt::Result) -> String {
@@ -47,18 +47,19 @@ pub fn spec_parameters(m: &Manifest) -> u64 {
 pub fn header(plan: &Plan, path: &Path) -> String {
     render(|out| {
         let m = &plan.manifest;
-        let params: Vec<String> = m.model_params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+        let params: Vec<String> =
+            m.model_params.iter().map(|(k, v)| format!("{} = {}", escaped(k), escaped(v))).collect();
         writeln!(out, "plan {} (format version {}, checksum ok)", path.display(), m.format_version)?;
-        writeln!(out, "model {}({})", m.model, params.join(", "))?;
+        writeln!(out, "model {}({})", escaped(&m.model), params.join(", "))?;
         writeln!(out, "inputs:")?;
         for i in &m.inputs {
-            let modality = i.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
+            let modality = i.modality.as_deref().map(|m| format!(" @{}", escaped(m))).unwrap_or_default();
             let opt = if i.optional { " optional" } else { "" };
-            writeln!(out, "  {}: f32{}{modality}{opt}", i.name, show_shape(&i.shape))?;
+            writeln!(out, "  {}: f32{}{modality}{opt}", escaped(&i.name), show_shape(&i.shape))?;
         }
         writeln!(out, "outputs:")?;
         for o in &m.outputs {
-            writeln!(out, "  {}: f32{}", o.name, show_shape(&m.values[o.value].shape))?;
+            writeln!(out, "  {}: f32{}", escaped(&o.name), show_shape(&m.values[o.value].shape))?;
         }
         writeln!(
             out,
@@ -74,7 +75,7 @@ pub fn header(plan: &Plan, path: &Path) -> String {
 pub fn params(m: &Manifest) -> String {
     render(|out| {
         for p in &m.params {
-            writeln!(out, "  {:<40} {:?} {}", p.name, p.shape, p.stored_as)?;
+            writeln!(out, "  {:<40} {:?} {}", escaped(&p.name), p.shape, escaped(&p.stored_as))?;
         }
         Ok(())
     })
@@ -133,7 +134,8 @@ pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
                         } else {
                             ""
                         };
-                    writeln!(out, "      {} -> {}{shared}", m.tensors[r.base].name, m.tensors[r.with].name)?;
+                    let (base, with) = (escaped(&m.tensors[r.base].name), escaped(&m.tensors[r.with].name));
+                    writeln!(out, "      {base} -> {with}{shared}")?;
                 }
             }
         }
@@ -171,7 +173,7 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
                     kernel_detail(&st.kernel),
                     ins.join(", "),
                     show_shape(&m.values[st.output].shape),
-                    st.path
+                    escaped(&st.path)
                 )?;
             }
         }
@@ -184,7 +186,7 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
 pub fn variant_tables(m: &Manifest) -> String {
     render(|out| {
         for v in &m.variants {
-            let names: Vec<&str> = v.replaces.iter().map(|r| m.tensors[r.base].name.as_str()).collect();
+            let names: Vec<String> = v.replaces.iter().map(|r| escaped(&m.tensors[r.base].name).into_owned()).collect();
             let own: HashSet<usize> = v.replaces.iter().map(|r| r.with).collect();
             let bytes: usize = own.iter().map(|&t| m.tensors[t].numel() * 4).sum();
             writeln!(out, "variant {}: replaces {} ({})", v.key, names.join(", "), print::bytes(bytes as u64))?;
@@ -263,7 +265,7 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
         writeln!(out, "slowest steps:")?;
         for (k, t) in steps.iter().take(12) {
             let st = &m.steps[*k];
-            writeln!(out, "  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), st.path)?;
+            writeln!(out, "  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), escaped(&st.path))?;
         }
         Ok(())
     })

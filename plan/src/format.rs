@@ -12,6 +12,7 @@
 //!
 //! [safetensors]: https://huggingface.co/docs/safetensors
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 
 use serde::{Deserialize, Serialize};
@@ -27,6 +28,31 @@ pub const FORMAT_VERSION: u32 = 2;
 
 /// The key of variant 0, the base model; no variant table may use it.
 pub const BASE_VARIANT: &str = crate::key::BASE_KEY;
+
+/// A name read from a plan (an input, output, step path, tensor, BatchNorm or axis name),
+/// as messages and listings print it: characters that do not print (control characters
+/// such as the terminal escape `\x1b`, line breaks, Unicode format characters) are written
+/// as Rust's `escape_debug` writes them (`\u{1b}`, `\n`), and a backslash is doubled, so
+/// a hostile plan cannot drive the terminal and an escaped name reads unambiguously.
+/// Ordinary names come back as they are, without a copy.
+///
+/// Every place that prints a plan-provided name goes through this function.
+pub fn escaped(name: &str) -> Cow<'_, str> {
+    // Quotes print as themselves; `escape_debug` would add a backslash.
+    let plain = |c: char| c == '"' || c == '\'' || (c != '\\' && c.escape_debug().len() == 1);
+    if name.chars().all(plain) {
+        return Cow::Borrowed(name);
+    }
+    let mut out = String::with_capacity(name.len() + 8);
+    for c in name.chars() {
+        if plain(c) {
+            out.push(c);
+        } else {
+            out.extend(c.escape_debug());
+        }
+    }
+    Cow::Owned(out)
+}
 
 /// Everything about a plan except the tensor bytes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -301,5 +327,22 @@ impl Kernel {
             Kernel::LayerNorm { weight, bias, .. } => weight.iter().chain(bias).copied().collect(),
             Kernel::Pure(_) => Vec::new(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_that_do_not_print_are_escaped() {
+        assert!(matches!(escaped("layer1.0.conv1 (+bn1, relu#0)"), Cow::Borrowed(_)));
+        assert_eq!(escaped("it's \"x\""), "it's \"x\"");
+        assert_eq!(escaped("a\u{1b}[2Jb"), "a\\u{1b}[2Jb");
+        assert_eq!(escaped("two\nlines\r\t"), "two\\nlines\\r\\t");
+        assert_eq!(escaped("back\\slash"), "back\\\\slash");
+        // A right-to-left override (a format character) and a bell.
+        assert_eq!(escaped("x\u{202e}y\u{7}"), "x\\u{202e}y\\u{7}");
+        assert_eq!(escaped("Grüße, 画像"), "Grüße, 画像");
     }
 }

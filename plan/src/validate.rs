@@ -4,8 +4,8 @@
 //! message naming the step, value or tensor at fault, never reach a kernel with sizes it
 //! does not expect. [`manifest`] checks, in order:
 //!
-//! 1. every index (inputs, values, slots, tensors) is in range, and every dimension is a
-//!    non-negative coefficient over declared symbols;
+//! 1. the symbols are distinct identifiers; every index (inputs, values, slots, tensors)
+//!    is in range, and every dimension is a non-negative coefficient over declared symbols;
 //! 2. each input's declared shape is its value's, and a value stored as a tensor has the
 //!    tensor's (known) shape;
 //! 3. the schedule: each step writes an activation buffer not written before, reads only
@@ -25,7 +25,7 @@
 use std::collections::HashSet;
 
 use crate::dim::Dim;
-use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage};
+use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage, escaped};
 use crate::ops::{self, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
@@ -45,20 +45,32 @@ fn bad_dim(d: &Dim, symbols: &[String]) -> bool {
     d.coef() < 0 || d.symbols().iter().any(|s| !symbols.contains(s))
 }
 
+/// An identifier: ASCII letters, digits and `_`, not starting with a digit.
+fn is_identifier(s: &str) -> bool {
+    let mut chars = s.chars();
+    chars.next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
+}
+
 /// 1 and 2.
 fn indices(m: &Manifest) -> Result<(), String> {
     let nv = m.values.len();
+    for (i, s) in m.symbols.iter().enumerate() {
+        if !is_identifier(s) || m.symbols[..i].contains(s) {
+            return Err(format!("symbol `{}` is not an identifier, or is declared twice", escaped(s)));
+        }
+    }
     for (i, inp) in m.inputs.iter().enumerate() {
         if inp.value >= nv || m.values[inp.value].storage != Storage::Input(i) {
-            return Err(format!("input `{}` refers to an invalid value", inp.name));
+            return Err(format!("input `{}` refers to an invalid value", escaped(&inp.name)));
         }
         if let Some(d) = inp.shape.iter().find(|d| bad_dim(d, &m.symbols)) {
-            return Err(format!("input `{}` has an invalid dimension {d}", inp.name));
+            return Err(format!("input `{}` has an invalid dimension {d}", escaped(&inp.name)));
         }
         if inp.shape != m.values[inp.value].shape {
             return Err(format!(
                 "input `{}` is declared as {} but its value has shape {}",
-                inp.name,
+                escaped(&inp.name),
                 crate::show_shape(&inp.shape),
                 crate::show_shape(&m.values[inp.value].shape)
             ));
@@ -74,7 +86,7 @@ fn indices(m: &Manifest) -> Result<(), String> {
                 if shape != v.shape {
                     return Err(format!(
                         "value {i} is stored tensor `{}` of shape {:?}, but has shape {}",
-                        m.tensors[t].name,
+                        escaped(&m.tensors[t].name),
                         m.tensors[t].shape,
                         crate::show_shape(&v.shape)
                     ));
@@ -102,7 +114,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
         }
     }
     for (k, step) in m.steps.iter().enumerate() {
-        let at = format!("step {k} (`{}`)", step.path);
+        let at = format!("step {k} (`{}`)", escaped(&step.path));
         let Some(Storage::Slot(out_slot)) = m.values.get(step.output).map(|v| v.storage) else {
             return Err(format!("{at} writes an invalid value"));
         };
@@ -139,7 +151,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
     }
     for o in &m.outputs {
         if o.value >= nv || !written[o.value] {
-            return Err(format!("output `{}` is never computed", o.name));
+            return Err(format!("output `{}` is never computed", escaped(&o.name)));
         }
     }
     Ok(())
@@ -155,7 +167,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if numel(t) as u64 != channels as u64 {
                 return Err(format!(
                     "epilogue tensor `{}` has {} values for {channels} channels",
-                    m.tensors[t].name,
+                    escaped(&m.tensors[t].name),
                     numel(t)
                 ));
             }
@@ -174,7 +186,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if numel(*weight) != algo.packed_len(&s) {
                 return Err(format!(
                     "conv2d weight `{}` has {} values, `{}` needs {}",
-                    m.tensors[*weight].name,
+                    escaped(&m.tensors[*weight].name),
                     numel(*weight),
                     algo.name(),
                     algo.packed_len(&s)
@@ -187,7 +199,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if numel(*weight) as u64 != want {
                 return Err(format!(
                     "linear weight `{}` has {} values, not {want}",
-                    m.tensors[*weight].name,
+                    escaped(&m.tensors[*weight].name),
                     numel(*weight)
                 ));
             }
@@ -219,7 +231,7 @@ fn batchnorms(m: &Manifest) -> Result<(), String> {
     for (k, step) in m.steps.iter().enumerate() {
         let Some(ep) = step.kernel.epilogue() else { continue };
         let Some(bn) = &ep.bn else { continue };
-        let at = format!("step {k} (`{}`), BatchNorm `{}`", step.path, bn.name);
+        let at = format!("step {k} (`{}`), BatchNorm `{}`", escaped(&step.path), escaped(&bn.name));
         let conv = matches!(step.kernel, Kernel::Conv2d { .. });
         if !conv && !matches!(step.kernel, Kernel::ChannelAffine { .. }) {
             return Err(format!("{at}: only conv2d and channel_affine steps fold a BatchNorm"));
@@ -246,7 +258,8 @@ fn batchnorms(m: &Manifest) -> Result<(), String> {
                 Some(spec) if &spec.shape != shape => {
                     return Err(format!(
                         "{at}: tensor {t} (`{}`) has shape {:?}, the scale {shape:?}",
-                        spec.name, spec.shape
+                        escaped(&spec.name),
+                        spec.shape
                     ));
                 }
                 Some(_) => {}
@@ -296,7 +309,7 @@ fn variants(m: &Manifest) -> Result<(), String> {
             m.variants.len()
         ));
     }
-    let name = |t: usize| &m.tensors[t].name;
+    let name = |t: usize| escaped(&m.tensors[t].name);
     let mut keys: HashSet<String> = HashSet::with_capacity(m.variants.len());
     let mut replaced = vec![usize::MAX; n];
     for (i, v) in m.variants.iter().enumerate() {

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use readi_runtime::exec::{Input, Session};
-use readi_runtime::plan::Plan;
+use readi_runtime::plan::{Plan, escaped};
 
 use super::{load_plan, threads_or_default};
 
@@ -72,7 +72,7 @@ pub fn run(
     times.sort_by(f64::total_cmp);
     println!(
         "{} ({}): batch {}, {} threads, {} runs: median {:.2} ms, p90 {:.2} ms, min {:.2} ms",
-        plan.manifest.model,
+        escaped(&plan.manifest.model),
         session.variant(),
         batch.max(1),
         threads,

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use readi_runtime::conditions;
 use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::plan::escaped;
 
 use super::{load_plan, tensor_io, threads_or_default};
 
@@ -78,7 +79,7 @@ pub fn run(
     let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
     let elapsed = start.elapsed();
     for (name, t) in &result {
-        println!("{name}: {}", describe(t));
+        println!("{}: {}", escaped(name), describe(t));
     }
     println!(
         "ran variant {} in {:.2} ms on {} threads",

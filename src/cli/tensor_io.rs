@@ -6,6 +6,7 @@ use std::path::Path;
 use ndarray::{ArrayD, IxDyn};
 use ndarray_npy::{ReadNpyExt, WriteNpyExt};
 use readi_runtime::exec::Tensor;
+use readi_runtime::plan::escaped;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 /// A tensor read from a file: f32 data and shape.
@@ -39,7 +40,8 @@ pub fn read_input(name: &str, path: &Path) -> Result<Loaded, String> {
             } else if names.len() == 1 {
                 names[0].to_string()
             } else {
-                return Err(format!("{shown} has no tensor `{name}` (it has: {})", names.join(", ")));
+                let names: Vec<String> = names.iter().map(|n| escaped(n).into_owned()).collect();
+                return Err(format!("{shown} has no tensor `{}` (it has: {})", escaped(name), names.join(", ")));
             };
             let view = st.tensor(&key).map_err(|e| format!("{shown}: {e}"))?;
             let data = view.data();
@@ -51,7 +53,9 @@ pub fn read_input(name: &str, path: &Path) -> Result<Loaded, String> {
                     .collect(),
                 Dtype::F16 => data.chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
                 Dtype::BF16 => data.chunks_exact(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
-                other => return Err(format!("{shown}: tensor `{key}` has dtype {other:?}; inputs are floats")),
+                other => {
+                    return Err(format!("{shown}: tensor `{}` has dtype {other:?}; inputs are floats", escaped(&key)));
+                }
             };
             Ok((view.shape().to_vec(), values))
         }
@@ -65,7 +69,7 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), St
     match extension(path).as_str() {
         "npy" => {
             let [(_, t)] = outputs else {
-                let names: Vec<&str> = outputs.iter().map(|(n, _)| n.as_str()).collect();
+                let names: Vec<String> = outputs.iter().map(|(n, _)| escaped(n).into_owned()).collect();
                 return Err(format!(
                     "the model has {} outputs ({}); write them to a .safetensors file, or pick one with --output NAME={shown}",
                     outputs.len(),
@@ -79,7 +83,8 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), St
                 outputs.iter().map(|(_, t)| t.data.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
             let mut views = Vec::new();
             for ((name, t), b) in outputs.iter().zip(&bytes) {
-                let view = TensorView::new(Dtype::F32, t.shape.clone(), b).map_err(|e| format!("{name}: {e}"))?;
+                let view =
+                    TensorView::new(Dtype::F32, t.shape.clone(), b).map_err(|e| format!("{}: {e}", escaped(name)))?;
                 views.push((name.clone(), view));
             }
             let data = safetensors::serialize(views, None::<HashMap<String, String>>).map_err(|e| e.to_string())?;

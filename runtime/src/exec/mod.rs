@@ -39,7 +39,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use readi_plan::VariantKey;
 
-use crate::plan::Plan;
+use crate::plan::{Plan, escaped};
 
 pub(crate) use bind::Bound;
 pub(crate) use run::{Run, run_step};
@@ -91,27 +91,30 @@ const KEYS_SHOWN: usize = 24;
 
 impl fmt::Display for RunError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        // Names come from the plan (or the caller): printed escaped.
+        let e = |name: &str| escaped(name).into_owned();
         match self {
             RunError::UnknownInput { name, known } => {
-                write!(f, "the model has no input `{name}` (its inputs: {})", known.join(", "))
+                let known: Vec<String> = known.iter().map(|k| e(k)).collect();
+                write!(f, "the model has no input `{}` (its inputs: {})", e(name), known.join(", "))
             }
-            RunError::MissingInput { name } => write!(f, "input `{name}` is required but was not given"),
-            RunError::DuplicateInput { name } => write!(f, "input `{name}` is given twice"),
+            RunError::MissingInput { name } => write!(f, "input `{}` is required but was not given", e(name)),
+            RunError::DuplicateInput { name } => write!(f, "input `{}` is given twice", e(name)),
             RunError::InputShape { name, expected, got, detail } => {
-                write!(f, "input `{name}` has shape {got:?}, but the model expects {expected}: {detail}")
+                write!(f, "input `{}` has shape {got:?}, but the model expects {expected}: {detail}", e(name))
             }
             RunError::InputLength { name, len, shape } => {
-                write!(f, "input `{name}`: {len} values do not fill shape {shape:?}")
+                write!(f, "input `{}`: {len} values do not fill shape {shape:?}", e(name))
             }
             RunError::NotFinite { name, index, value } => {
-                write!(f, "input `{name}` holds {value} at flat index {index}; inputs must be finite")
+                write!(f, "input `{}` holds {value} at flat index {index}; inputs must be finite", e(name))
             }
-            RunError::BadPlan { step, detail } => write!(f, "invalid plan at {step}: {detail}"),
+            RunError::BadPlan { step, detail } => write!(f, "invalid plan at {}: {}", e(step), e(detail)),
             RunError::Threads(e) => write!(f, "cannot start the thread pool: {e}"),
             RunError::UnknownVariant { key, known, nearest, malformed } => {
                 match malformed {
-                    None => write!(f, "the plan has no variant `{key}`")?,
-                    Some(why) => write!(f, "`{key}` is not a variant key: {why}")?,
+                    None => write!(f, "the plan has no variant `{}`", e(key))?,
+                    Some(why) => write!(f, "`{}` is not a variant key: {}", e(key), e(why))?,
                 }
                 if let Some(near) = nearest {
                     write!(f, "; did you mean `{near}`?")?;
@@ -154,6 +157,8 @@ pub struct Session {
     profile: Option<Vec<f64>>,
 }
 
+/// A [`RunError::BadPlan`] at `step` (`step 3 (`conv1`)`, names as the plan has them:
+/// the message escapes them).
 pub(crate) fn bad(step: &str, detail: impl Into<String>) -> RunError {
     RunError::BadPlan { step: step.to_string(), detail: detail.into() }
 }

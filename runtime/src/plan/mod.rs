@@ -90,6 +90,7 @@ impl fmt::Display for PlanError {
         match self {
             PlanError::Io { path, error } => write!(f, "{path}: {error}"),
             PlanError::Container { path, detail } => {
+                let detail = escaped(detail);
                 write!(f, "{path}: not a valid plan file ({detail}); the file may be truncated or corrupted")
             }
             PlanError::NotAPlan { path, missing } => {
@@ -97,13 +98,17 @@ impl fmt::Display for PlanError {
             }
             PlanError::Version { path, found } => write!(
                 f,
-                "{path}: plan format version {found}, but this readi reads version {FORMAT_VERSION}; recompile the plan"
+                "{path}: plan format version {}, but this readi reads version {FORMAT_VERSION}; recompile the plan",
+                escaped(found)
             ),
             PlanError::Manifest { path, detail } => write!(f, "{path}: invalid plan manifest: {detail}"),
             PlanError::Checksum { path, stored, computed } => {
+                let stored = escaped(stored);
                 write!(f, "{path}: checksum mismatch (stored {stored}, computed {computed:08x}): the file is corrupted")
             }
-            PlanError::Tensor { path, name, detail } => write!(f, "{path}: tensor `{name}`: {detail}"),
+            PlanError::Tensor { path, name, detail } => {
+                write!(f, "{path}: tensor `{}`: {}", escaped(name), escaped(detail))
+            }
         }
     }
 }
@@ -232,8 +237,9 @@ impl Plan {
         }
         let json = get(KEY_MANIFEST)?;
         let stored = get(KEY_CHECKSUM)?;
-        let manifest: Manifest =
-            serde_json::from_str(json).map_err(|e| PlanError::Manifest { path: path.into(), detail: e.to_string() })?;
+        // serde's message may quote the text it could not read: escaped like a name.
+        let manifest: Manifest = serde_json::from_str(json)
+            .map_err(|e| PlanError::Manifest { path: path.into(), detail: escaped(&e.to_string()).into_owned() })?;
         if manifest.format_version != FORMAT_VERSION {
             return Err(PlanError::Version { path: path.into(), found: manifest.format_version.to_string() });
         }

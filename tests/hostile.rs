@@ -1,0 +1,132 @@
+//! Hostile plan files, input files and flags, as a user of the `readi` binary would try
+//! them: each gets an error naming the file and the problem and exit status 1, never a
+//! panic, an abort or a hang.
+//!
+//! Hostile plans are a valid plan (tests/cases/ok/all_ops.readi with seeded weights)
+//! whose manifest is edited and written back with a correct checksum, as an attacker
+//! would: the checksum guards against accidents only.
+
+mod common;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use readi_compiler::backend::{self, CompileOptions};
+use readi_runtime::plan::{Manifest, Plan};
+use safetensors::tensor::{Dtype, TensorView};
+
+use common::readi;
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A user error: exit status 1 and a message on stderr (not a panic: that is status 3, an
+/// abort a signal).
+#[track_caller]
+fn refused(o: &Output) -> String {
+    let err = stderr(o);
+    assert_eq!(o.status.code(), Some(1), "expected exit status 1\nstdout: {}\nstderr: {err}", stdout(o));
+    assert!(err.starts_with("error: ") || err.contains("\nerror: "), "{err}");
+    err
+}
+
+/// A directory of its own for each test.
+fn temp_dir(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("readi-hostile-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+fn s(p: &Path) -> String {
+    p.to_str().expect("utf-8 path").to_string()
+}
+
+/// The manifest and tensor data of tests/cases/ok/all_ops.readi (every kernel; inputs
+/// `img: [N, 4, 16, 16]` and optional `seq_in: [N, 10, 32]`) with seeded weights.
+fn all_ops() -> (Manifest, Vec<Vec<f32>>) {
+    let (sources, out) = common::compile("tests/cases/ok/all_ops.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = backend::seeded_weights(&module.graph, 3);
+    let plan = backend::compile(&module, &weights, "seeded", &CompileOptions::default()).expect("compiles").0;
+    let tensors = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    (plan.manifest, tensors)
+}
+
+/// A plan file of `m` and `tensors` as `Plan::write` lays it out (format version,
+/// manifest, CRC-32 of the manifest text and the tensors' bytes), without the checks
+/// `Plan::new` makes: what a hand-edited file looks like.
+fn plan_bytes(m: &Manifest, tensors: &[Vec<f32>]) -> Vec<u8> {
+    let json = serde_json::to_string(m).expect("manifest as JSON");
+    let bytes: Vec<Vec<u8>> = tensors.iter().map(|t| t.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(json.as_bytes());
+    for b in &bytes {
+        crc.update(b);
+    }
+    let views: Vec<(String, TensorView<'_>)> = m
+        .tensors
+        .iter()
+        .zip(&bytes)
+        .map(|(spec, b)| (spec.name.clone(), TensorView::new(Dtype::F32, spec.shape.clone(), b).expect("a view")))
+        .collect();
+    let metadata = HashMap::from([
+        ("readi.format_version".to_string(), m.format_version.to_string()),
+        ("readi.manifest".to_string(), json),
+        ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
+    ]);
+    safetensors::serialize(views, Some(metadata)).expect("serialise")
+}
+
+/// Writes all_ops's plan with its manifest edited by `edit` to `dir/name`.
+fn hostile_plan(dir: &Path, name: &str, edit: impl FnOnce(&mut Manifest)) -> PathBuf {
+    let (mut m, tensors) = all_ops();
+    edit(&mut m);
+    let path = dir.join(name);
+    std::fs::write(&path, plan_bytes(&m, &tensors)).expect("write plan");
+    path
+}
+
+#[test]
+fn the_unedited_plan_is_accepted() {
+    // The helpers write what Plan::write writes: the edits below are the only fault.
+    let (m, tensors) = all_ops();
+    let dir = temp_dir("ok");
+    let path = dir.join("ok.plan");
+    std::fs::write(&path, plan_bytes(&m, &tensors)).expect("write");
+    let plan = Plan::load(&path).expect("loads");
+    assert_eq!(plan.manifest, m);
+    let o = readi(&["inspect", &s(&path)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn names_from_plans_are_printed_escaped() {
+    let dir = temp_dir("escape");
+    // Clear the screen, then a line that looks like readi's own output.
+    let evil = "img\u{1b}[2J\nerror: all good";
+    let path = hostile_plan(&dir, "escape.plan", |m| {
+        m.model = "m\u{1b}]0;title\u{7}".into();
+        m.inputs[0].name = evil.into();
+        m.steps[0].path = "conv\u{1b}[31m".into();
+    });
+    let o = readi(&["inspect", &s(&path), "--verbose"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(!out.contains('\u{1b}') && !out.contains('\u{7}'), "raw escape sequences in: {out:?}");
+    assert!(out.contains("model m\\u{1b}]0;title\\u{7}("), "{out}");
+    assert!(out.contains("  img\\u{1b}[2J\\nerror: all good: f32[N, 4, 16, 16]"), "{out}");
+    assert!(out.contains("conv\\u{1b}[31m"), "{out}");
+    // In an error message too: the required input is not given.
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(!err.contains('\u{1b}'), "{err:?}");
+    assert!(err.contains("input `img\\u{1b}[2J\\nerror: all good` is required"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
