@@ -130,3 +130,102 @@ fn names_from_plans_are_printed_escaped() {
     assert!(err.contains("input `img\\u{1b}[2J\\nerror: all good` is required"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The unedited all_ops plan at `dir/ok.plan`.
+fn ok_plan(dir: &Path) -> PathBuf {
+    hostile_plan(dir, "ok.plan", |_| {})
+}
+
+#[test]
+fn a_batch_over_the_memory_limit_is_refused_before_allocating() {
+    let dir = temp_dir("budget");
+    let path = ok_plan(&dir);
+    // 10^9 images of 4x16x16 floats: terabytes, refused by the default limit.
+    let err = refused(&readi(&["bench", &s(&path), "--batch", "1000000000", "--runs", "1", "--warmup", "0"]));
+    assert!(err.contains("over the limit of"), "{err}");
+    assert!(err.contains("N = 1000000000") && err.contains("largest: "), "{err}");
+    // The largest parts are named with their bytes.
+    assert!(err.contains("bytes)"), "{err}");
+    // A batch whose sizes overflow a 64-bit byte count.
+    let err = refused(&readi(&["bench", &s(&path), "--batch", "18446744073709551615", "--runs", "1"]));
+    assert!(err.contains("does not fit in memory"), "{err}");
+    // A small limit refuses batch 1 too, in run and bench.
+    let err = refused(&readi(&["bench", &s(&path), "--max-memory", "1K", "--runs", "1"]));
+    assert!(err.contains("over the limit of 1.0 KiB (1024 bytes)"), "{err}");
+    let o = readi(&["bench", &s(&path), "--max-memory", "64M", "--runs", "1", "--warmup", "0"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn inspect_shows_the_recorded_footprint_and_the_limit() {
+    let dir = temp_dir("footprint");
+    let path = ok_plan(&dir);
+    let o = readi(&["inspect", &s(&path), "--max-memory", "1G"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("memory at batch 1: "), "{out}");
+    assert!(out.contains("memory limit 1.0 GiB (1073741824 bytes): batches up to "), "{out}");
+    // A plan written before footprints were recorded loads and says so.
+    let old = hostile_plan(&dir, "old.plan", |m| m.footprint = None);
+    let o = readi(&["inspect", &s(&old)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("memory: not recorded in the plan"), "{}", stdout(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_huge_slot_count_is_refused_at_load() {
+    let dir = temp_dir("slots");
+    let path = hostile_plan(&dir, "slots.plan", |m| m.slots = 1 << 36);
+    for cmd in ["inspect", "run", "bench"] {
+        let err = refused(&readi(&[cmd, &s(&path)]));
+        assert!(err.contains("activation buffers for") && err.contains("at most one per value"), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_value_no_step_writes_takes_no_memory() {
+    // A huge value in a buffer that no step writes: nothing reads it, nothing is allocated.
+    let dir = temp_dir("unread");
+    let path = hostile_plan(&dir, "unread.plan", |m| {
+        let slot = match m.values.iter().find_map(|v| match v.storage {
+            readi_runtime::plan::Storage::Slot(s) => Some(s),
+            _ => None,
+        }) {
+            Some(s) => s,
+            None => panic!("a slot"),
+        };
+        let huge = readi_runtime::plan::Dim::from(1usize << 34);
+        m.values.push(readi_runtime::plan::ValueSpec {
+            shape: vec![huge.clone(), huge],
+            storage: readi_runtime::plan::Storage::Slot(slot),
+        });
+    });
+    let o = readi(&["bench", &s(&path), "--runs", "1", "--warmup", "0", "--max-memory", "64M"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn zero_and_huge_counts_are_refused() {
+    let dir = temp_dir("counts");
+    let path = ok_plan(&dir);
+    for (flag, value, want) in [
+        ("--batch", "0", "at least 1"),
+        ("--runs", "0", "at least 1"),
+        ("--threads", "0", "1 to 256"),
+        ("--threads", "100000", "1 to 256"),
+        ("--max-memory", "0", "more than 0"),
+        ("--max-memory", "12X", "unknown unit"),
+    ] {
+        let o = readi(&["bench", &s(&path), flag, value]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {err}");
+        assert!(err.contains(want), "{flag} {value}: {err}");
+    }
+    let o = readi(&["run", &s(&path), "--threads", "0"]);
+    assert!(stderr(&o).contains("1 to 256"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}

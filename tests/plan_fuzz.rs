@@ -36,7 +36,7 @@ use readi_compiler::backend::{self, CompileOptions, LoraMode};
 use readi_plan::format::{Kernel, Manifest, Storage};
 use readi_plan::ops::{self, ConvAlgo};
 use readi_plan::{Dim, TensorType};
-use readi_runtime::exec::{Input, Session};
+use readi_runtime::exec::{Input, Session, SessionOptions};
 use readi_runtime::plan::Plan;
 use serde_json::Value;
 
@@ -268,10 +268,10 @@ fn apply(m: &Mutation, manifest: &mut Value, tensors: &mut HashMap<String, Vec<f
     match *m {
         Mutation::Number { at, arg } => {
             let Some(p) = pick(at, &|v| v.is_number()) else { return };
-            if let Some(n) = node(manifest, &p.path) {
-                if let Value::Number(old) = n {
-                    *n = mutate_number(old, arg);
-                }
+            if let Some(n) = node(manifest, &p.path)
+                && let Value::Number(old) = n
+            {
+                *n = mutate_number(old, arg);
             }
         }
         Mutation::Graft { at, arg } => {
@@ -497,8 +497,7 @@ fn exercise(path: &std::path::Path) -> Reached {
 }
 
 fn session(plan: Arc<Plan>) -> Result<Session, readi_runtime::exec::RunError> {
-    let _ = BUDGET;
-    Session::new(plan, 1)
+    Session::with_options(plan, SessionOptions { threads: 1, max_memory: BUDGET })
 }
 
 /// Runs a case on its own thread and fails it when it takes longer than [`HANG`]; the

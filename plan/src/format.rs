@@ -84,6 +84,26 @@ pub struct Manifest {
     /// choosing a variant from the inputs; `None` for specs without a variants section.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub conditions: Option<Conditions>,
+    /// The memory a run takes at the compiled batch size, as the plan writer computed it;
+    /// `None` in plans written before it was recorded (they load as before: the field is
+    /// optional, so the format version did not change). For listings only: the runtime
+    /// computes the footprint of every binding itself and never trusts this one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub footprint: Option<PlanFootprint>,
+}
+
+/// [`Manifest::footprint`]: bytes a run takes with every symbol bound to `batch`, on one
+/// thread.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PlanFootprint {
+    pub batch: u64,
+    /// The activation buffers.
+    pub activations: u64,
+    /// The conv kernels' scratch on one thread.
+    pub scratch: u64,
+    /// Everything a run takes: buffers, scratch, zeros for absent optional inputs, the
+    /// inputs and the outputs.
+    pub total: u64,
 }
 
 impl Manifest {

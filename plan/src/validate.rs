@@ -4,8 +4,9 @@
 //! message naming the step, value or tensor at fault, never reach a kernel with sizes it
 //! does not expect. [`manifest`] checks, in order:
 //!
-//! 1. the symbols are distinct identifiers; every index (inputs, values, slots, tensors)
-//!    is in range, and every dimension is a non-negative coefficient over declared symbols;
+//! 1. the symbols are distinct identifiers; there are no more activation buffers (slots)
+//!    than values; every index (inputs, values, slots, tensors) is in range, and every
+//!    dimension is a non-negative coefficient over declared symbols;
 //! 2. each input's declared shape is its value's, and a value stored as a tensor has the
 //!    tensor's (known) shape;
 //! 3. the schedule: each step writes an activation buffer not written before, reads only
@@ -55,6 +56,9 @@ fn is_identifier(s: &str) -> bool {
 /// 1 and 2.
 fn indices(m: &Manifest) -> Result<(), String> {
     let nv = m.values.len();
+    if m.slots > nv {
+        return Err(format!("{} activation buffers for {nv} values: a plan has at most one per value", m.slots));
+    }
     for (i, s) in m.symbols.iter().enumerate() {
         if !is_identifier(s) || m.symbols[..i].contains(s) {
             return Err(format!("symbol `{}` is not an identifier, or is declared twice", escaped(s)));

@@ -13,11 +13,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use readi_grammar::diag::suggest;
 use readi_plan::VariantKey;
 use readi_runtime::calibrate::{BnCalibrator, BnStats};
-use readi_runtime::exec::Input;
+use readi_runtime::exec::{Input, SessionOptions};
 use readi_runtime::plan::{BASE_VARIANT, Plan};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use super::{tensor_io, threads_or_default};
+use super::tensor_io;
 
 /// What `readi adapt-bn` was asked to do.
 pub struct Args<'a> {
@@ -26,6 +26,8 @@ pub struct Args<'a> {
     pub samples: &'a [PathBuf],
     pub output: &'a Path,
     pub threads: usize,
+    /// `--max-memory`: each batch's footprint is checked against it before it runs.
+    pub max_memory: usize,
 }
 
 /// Runs `readi adapt-bn`; the error is the message to print.
@@ -44,6 +46,11 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
         // One batch in memory at a time: read, run, drop.
         let batch = read_batch(&plan, path, &bar)?;
         let inputs: Vec<Input<'_>> = batch.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
+        let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
+        readi_runtime::exec::check_fits(&plan, &inputs, &options).map_err(|e| {
+            bar.abandon();
+            format!("{}: {e}", path.display())
+        })?;
         cal.add_batch(&inputs).map_err(|e| {
             bar.abandon();
             format!("{}: {e}", path.display())
@@ -195,9 +202,9 @@ pub fn run(
     variant: &str,
     samples: &[PathBuf],
     output: &Path,
-    threads: Option<usize>,
+    session: SessionOptions,
 ) -> Result<(), ExitCode> {
-    let args = Args { plan, variant, samples, output, threads: threads_or_default(threads) };
+    let args = Args { plan, variant, samples, output, threads: session.threads, max_memory: session.max_memory };
     adapt(&args).map_err(|msg| {
         eprintln!("error: {msg}");
         ExitCode::FAILURE

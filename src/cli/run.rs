@@ -6,10 +6,10 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use readi_runtime::conditions;
-use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::exec::{Input, Session, SessionOptions, Tensor};
 use readi_runtime::plan::escaped;
 
-use super::{load_plan, tensor_io, threads_or_default};
+use super::{load_plan, tensor_io};
 
 /// Which variant a run uses.
 pub enum Choice {
@@ -35,7 +35,7 @@ pub fn run(
     plan_path: &Path,
     inputs: &[(String, String)],
     outputs: &[String],
-    threads: Option<usize>,
+    options: SessionOptions,
     choice: Choice,
     drop_views: &[(String, Vec<usize>)],
 ) -> Result<(), ExitCode> {
@@ -54,7 +54,7 @@ pub fn run(
         };
         conditions::drop_views(data, shape, views).map_err(|e| fail(format!("input `{name}`: {e}")))?;
     }
-    let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
+    let mut session = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
     let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
     match choice {
         Choice::Base => {

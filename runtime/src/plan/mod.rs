@@ -146,9 +146,13 @@ impl fmt::Debug for Plan {
 impl Plan {
     /// A plan from the compiler: the manifest and the data of each manifest tensor, in
     /// manifest order (shared data, such as the compiler's `Arc<[f32]>`, is not copied).
+    /// Records the plan's footprint at batch 1 on one thread in
+    /// [`Manifest::footprint`] (`None` if it does not fit in memory at all).
     pub fn new<T: Into<Arc<[f32]>>>(manifest: Manifest, tensors: Vec<T>) -> Result<Plan, PlanError> {
         let tensors = tensors.into_iter().map(Into::into).collect();
-        Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")
+        let mut plan = Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")?;
+        plan.manifest.footprint = crate::exec::compiled_footprint(&plan);
+        Ok(plan)
     }
 
     /// Validates and builds the variant maps.

@@ -109,6 +109,11 @@ pub fn scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
     parts(s, algo, threads) * part_scratch(s, algo)
 }
 
+/// [`scratch_len`], or `None` if it overflows.
+pub fn checked_scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> Option<usize> {
+    parts(s, algo, threads).checked_mul(part_scratch(s, algo))
+}
+
 /// Computes one conv layer: `out = epilogue(conv(x, weight))`, where `packed_weight` came
 /// from [`pack_weight`] for the same `algo`, `scratch` holds at least [`scratch_len`]
 /// floats, and the epilogue's `scale`/`shift` (if any) have `cout` values.
