@@ -229,3 +229,160 @@ fn zero_and_huge_counts_are_refused() {
     assert!(stderr(&o).contains("1 to 256"), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A plan of one step: input `x` of `shape` (`None`: the batch symbol `N`), the step's
+/// `kernel` writing `out` into buffer 0, the output `y`; `tensors` its stored tensors.
+fn one_step(
+    x: &[Option<usize>],
+    kernel: readi_runtime::plan::Kernel,
+    out: &[Option<usize>],
+    tensors: &[(&str, Vec<usize>)],
+) -> (Manifest, Vec<Vec<f32>>) {
+    use readi_runtime::plan::{Dim, FORMAT_VERSION, InputSpec, OutputSpec, Step, Storage, TensorSpec, ValueSpec};
+    let dims = |s: &[Option<usize>]| -> Vec<Dim> { s.iter().map(|d| d.map_or(Dim::symbol("N"), Dim::from)).collect() };
+    let m = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "one_step".into(),
+        model_params: Vec::new(),
+        symbols: vec!["N".into()],
+        inputs: vec![InputSpec { name: "x".into(), shape: dims(x), modality: None, optional: false, value: 0 }],
+        outputs: vec![OutputSpec { name: "y".into(), value: 1 }],
+        values: vec![
+            ValueSpec { shape: dims(x), storage: Storage::Input(0) },
+            ValueSpec { shape: dims(out), storage: Storage::Slot(0) },
+        ],
+        steps: vec![Step { path: "the\u{1b}step".into(), kernel, inputs: vec![0], output: 1 }],
+        slots: 1,
+        tensors: tensors.iter().map(|(n, s)| TensorSpec { name: n.to_string(), shape: s.clone() }).collect(),
+        params: Vec::new(),
+        variants: Vec::new(),
+        conditions: None,
+        footprint: None,
+    };
+    let data = tensors.iter().map(|(_, s)| vec![0.5; s.iter().product()]).collect();
+    (m, data)
+}
+
+/// Writes a plan and returns `readi run`'s refusal of it, with `x` given at batch 1 of
+/// `x_shape` (from an .npy file), so that any check (load, bind, kernel) can be reached.
+fn run_refused(dir: &Path, name: &str, plan: (Manifest, Vec<Vec<f32>>), x_shape: &[usize]) -> String {
+    let path = dir.join(name);
+    std::fs::write(&path, plan_bytes(&plan.0, &plan.1)).expect("write plan");
+    let x = dir.join(format!("{name}.x.npy"));
+    write_npy(&x, x_shape);
+    refused(&readi(&["run", &s(&path), "--input", &format!("x={}", s(&x))]))
+}
+
+/// A .npy file of f32 zeros of `shape` (version 1.0 header).
+fn write_npy(path: &Path, shape: &[usize]) {
+    let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
+    let tuple = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {tuple}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    bytes.extend(std::iter::repeat_n(0u8, 4 * shape.iter().product::<usize>()));
+    std::fs::write(path, bytes).expect("write npy");
+}
+
+#[test]
+fn a_conv_algorithm_that_does_not_fit_its_layer_is_refused() {
+    use readi_plan::ops::ConvAlgo;
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("algo");
+    // all_ops's conv is 3x1, stride 2x1, two input channels per group: none of these fit.
+    for algo in [ConvAlgo::Depthwise, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Gemm1x1] {
+        let path = hostile_plan(&dir, "algo.plan", |m| {
+            if let Kernel::Conv2d { algo: a, .. } = &mut m.steps[0].kernel {
+                *a = algo;
+            }
+        });
+        let err = refused(&readi(&["run", &s(&path)]));
+        assert!(err.contains("step 0 (`conv (+bn, relu#0)`)"), "{algo}: {err}");
+        assert!(err.contains(&format!("conv algorithm `{algo}` cannot compute this layer")), "{algo}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_input_declared_unlike_its_value_is_refused() {
+    let dir = temp_dir("declared");
+    let path = hostile_plan(&dir, "declared.plan", |m| {
+        m.inputs[0].shape[3] = readi_runtime::plan::Dim::from(8usize);
+    });
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(err.contains("input `img` is declared as [N, 4, 16, 8] but its value has shape [N, 4, 16, 16]"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("window");
+    let path = hostile_plan(&dir, "window.plan", |m| {
+        if let Kernel::Conv2d { conv, .. } = &mut m.steps[0].kernel {
+            conv.window.kernel = [40, 1];
+        }
+    });
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(err.contains("step 0 (`conv (+bn, relu#0)`)") && err.contains("does not fit"), "{err}");
+    // A conv of one step whose kernel is larger than its input, the output declared as
+    // if it fitted.
+    use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
+    let window = Window2 { kernel: [5, 5], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
+    let conv = Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 };
+    let kernel = Kernel::Conv2d { conv, algo: ConvAlgo::Im2col, weight: 0, epilogue: Default::default() };
+    let plan =
+        one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
+    let err = run_refused(&dir, "small.plan", plan, &[1, 1, 3, 3]);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains("does not fit"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_linear_with_zero_input_features_is_refused() {
+    use readi_plan::ops::Linear;
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("linear0");
+    let kernel =
+        Kernel::Linear { linear: Linear { in_features: 0, out_features: 4 }, weight: 0, epilogue: Default::default() };
+    let plan = one_step(&[None, Some(0)], kernel, &[None, Some(4)], &[("w", vec![0, 4])]);
+    let err = run_refused(&dir, "linear0.plan", plan, &[1, 0]);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");
+    assert!(err.contains("linear from 0 to 4 features: both must be at least 1"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_upsample_of_an_empty_tensor_is_refused() {
+    use readi_plan::ops::{Pure, Upsample, UpsampleMode};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("upsample0");
+    for mode in [UpsampleMode::Nearest, UpsampleMode::Bilinear] {
+        let up = Upsample { size: [4, 4], scale: None, mode, align_corners: false };
+        let plan = one_step(
+            &[None, Some(2), Some(0), Some(3)],
+            Kernel::Pure(Pure::Upsample(up)),
+            &[None, Some(2), Some(4), Some(4)],
+            &[],
+        );
+        let err = run_refused(&dir, "upsample0.plan", plan, &[1, 2, 0, 3]);
+        assert!(err.contains("upsample0.plan: invalid plan at step 0 (`the\\u{1b}step`)"), "{err}");
+        assert!(err.contains("upsample of an empty input [1, 2, 0, 3] to [1, 2, 4, 4]"), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn duplicate_output_names_are_refused() {
+    let dir = temp_dir("outputs");
+    let path = hostile_plan(&dir, "outputs.plan", |m| m.outputs[1].name = "pooled".into());
+    let out = dir.join("out.safetensors");
+    let err = refused(&readi(&["run", &s(&path), "--output", &s(&out)]));
+    assert!(err.contains("output `pooled` is declared twice"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -7,8 +7,8 @@
 //! 1. the symbols are distinct identifiers; there are no more activation buffers (slots)
 //!    than values; every index (inputs, values, slots, tensors) is in range, and every
 //!    dimension is a non-negative coefficient over declared symbols;
-//! 2. each input's declared shape is its value's, and a value stored as a tensor has the
-//!    tensor's (known) shape;
+//! 2. input names are unique, and so are output names; each input's declared shape is its
+//!    value's, and a value stored as a tensor has the tensor's (known) shape;
 //! 3. the schedule: each step writes an activation buffer not written before, reads only
 //!    values already written, and does not read the buffer it writes;
 //! 4. each step's output shape is what its operator's shape rule ([`crate::ops`]) computes
@@ -62,6 +62,18 @@ fn indices(m: &Manifest) -> Result<(), String> {
     for (i, s) in m.symbols.iter().enumerate() {
         if !is_identifier(s) || m.symbols[..i].contains(s) {
             return Err(format!("symbol `{}` is not an identifier, or is declared twice", escaped(s)));
+        }
+    }
+    let mut names: HashSet<&str> = HashSet::new();
+    for inp in &m.inputs {
+        if !names.insert(&inp.name) {
+            return Err(format!("input `{}` is declared twice", escaped(&inp.name)));
+        }
+    }
+    names.clear();
+    for o in &m.outputs {
+        if !names.insert(&o.name) {
+            return Err(format!("output `{}` is declared twice", escaped(&o.name)));
         }
     }
     for (i, inp) in m.inputs.iter().enumerate() {

@@ -60,8 +60,9 @@ pub fn run(
     session.bind_batch(batch).map_err(|e| fail(format!("{}: batch {batch}: {e}", plan_path.display())))?;
     let data = synthetic_inputs(&plan, batch, 42);
     let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
+    let shown = plan_path.display();
     for _ in 0..warmup {
-        session.run(&given).map_err(|e| fail(e.to_string()))?;
+        session.run(&given).map_err(|e| fail(format!("{shown}: {e}")))?;
     }
     if profile {
         session.enable_profiling();
@@ -69,7 +70,7 @@ pub fn run(
     let mut times = Vec::with_capacity(runs);
     for _ in 0..runs {
         let t = Instant::now();
-        session.run(&given).map_err(|e| fail(e.to_string()))?;
+        session.run(&given).map_err(|e| fail(format!("{shown}: {e}")))?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
     }
     times.sort_by(f64::total_cmp);

@@ -76,7 +76,7 @@ pub fn run(
         }
     }
     let start = Instant::now();
-    let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
+    let result = session.run(&given).map_err(|e| fail(format!("{}: {e}", plan_path.display())))?;
     let elapsed = start.elapsed();
     for (name, t) in &result {
         println!("{}: {}", escaped(name), describe(t));

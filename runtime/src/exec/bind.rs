@@ -6,7 +6,10 @@
 use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
-use crate::plan::{Kernel, Manifest, Plan, Step, Storage, show_shape};
+use crate::kernels::{elementwise, layout as layout_k, linear, norm, pool, reduce, resize, softmax};
+use readi_plan::ops::Pure;
+
+use crate::plan::{EpilogueSpec, Kernel, Manifest, Plan, Step, Storage, show_shape};
 
 use super::{Input, RunError, bad};
 
@@ -331,12 +334,62 @@ fn conv_params(step: &Step, shapes: &[Vec<usize>], at: &str) -> Result<Option<(C
     Ok(Some((s, algo)))
 }
 
-/// Checks a step at the bound shapes against its kernel's preconditions.
-fn check_step(_plan: &Plan, _step: &Step, _shapes: &[Vec<usize>]) -> Result<(), String> {
-    Ok(())
+/// Checks a step at the bound shapes against its kernel's preconditions (each kernel
+/// module's `check`, which the kernel also asserts in debug builds), so that no input of
+/// the declared shapes can make it panic.
+fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), String> {
+    let base = plan.base_tensors();
+    let len = |t: usize| base.get(t).len();
+    let ep = |e: &EpilogueSpec| [e.scale.map(len), e.shift.map(len)];
+    let arity = match &step.kernel {
+        Kernel::Pure(Pure::MatMul(_) | Pure::Binary(_)) => Some(2),
+        Kernel::Pure(Pure::Concat(_)) => None,
+        _ => Some(1),
+    };
+    if step.inputs.is_empty() || arity.is_some_and(|n| step.inputs.len() != n) {
+        return Err(format!("{} inputs for a `{}` kernel", step.inputs.len(), step.kernel.name()));
+    }
+    let x = shapes[step.inputs[0]].as_slice();
+    let input = |j: usize| shapes[step.inputs[j]].as_slice();
+    let out = shapes[step.output].as_slice();
+    let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
+    match &step.kernel {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue } => {
+            let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
+            if cin != u(c.in_channels)? {
+                return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
+            }
+            let s = conv::layer_shape(c, n, h, w);
+            let (xl, ol) = (numel(x).ok_or("conv2d input too large")?, numel(out).ok_or("conv2d output too large")?);
+            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue))
+        }
+        Kernel::Linear { linear: l, weight, epilogue } => {
+            linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue))
+        }
+        Kernel::ChannelAffine { affine, epilogue } => {
+            norm::check_channel_affine(x, u(affine.channels)?, ep(epilogue), out)
+        }
+        Kernel::LayerNorm { norm: ln, weight, bias } => {
+            norm::check_layernorm(x, u(ln.features)?, [weight.map(len), bias.map(len)], out)
+        }
+        Kernel::Pure(op) => match op {
+            Pure::MatMul(_) => linear::check_matmul(x, input(1), out),
+            Pure::Binary(_) => elementwise::check_binary(x, input(1), out),
+            Pure::Scalar(_) | Pure::Activation(_) | Pure::Reshape(_) => elementwise::check_same_length(x, out),
+            Pure::Softmax(sm) => softmax::check(x, sm.axis, out),
+            Pure::Concat(c) => {
+                let parts: Vec<&[usize]> = (0..step.inputs.len()).map(input).collect();
+                layout_k::check_concat(&parts, c.axis, out)
+            }
+            Pure::Permute(p) => layout_k::check_permute(x, &p.perm, out),
+            Pure::Pool(p) => pool::check(p, x, out),
+            Pure::GlobalAvgPool(_) => pool::check_global_avgpool(x, out),
+            Pure::Upsample(_) => resize::check(x, out),
+            Pure::Mean(m) => reduce::check_mean(x, &m.axes, out),
+        },
+    }
 }
 
-#[allow(dead_code)]
 fn numel(shape: &[usize]) -> Option<usize> {
     shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d))
 }
