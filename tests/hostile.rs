@@ -386,3 +386,90 @@ fn duplicate_output_names_are_refused() {
     assert!(err.contains("output `pooled` is declared twice"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The manifest and tensors of tests/cases/ok/adapt_and_variants.readi with seeded
+/// weights and two seeded variants: a plan with conditions.
+fn with_conditions() -> (Manifest, Vec<Vec<f32>>) {
+    let (sources, out) = common::compile("tests/cases/ok/adapt_and_variants.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = backend::seeded_weights(&module.graph, 1);
+    let keys = ["fog=0.03".to_string(), "gamma=0.25".to_string()];
+    let variants = backend::seeded_variants(&module, &keys, 2);
+    let (plan, _) = backend::compile_variants(&module, &weights, "seeded", &variants, &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let tensors = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    (plan.manifest, tensors)
+}
+
+/// An edit of a manifest.
+type Edit = dyn Fn(&mut Manifest);
+
+#[test]
+fn conditions_are_checked_at_load() {
+    use readi_plan::conditions::KeySource;
+    let dir = temp_dir("conditions");
+    let cases: Vec<(&str, Box<Edit>)> = vec![
+        (
+            "reads input `camera`, which the plan does not have (its inputs: image, points)",
+            Box::new(|m: &mut Manifest| {
+                let c = m.conditions.as_mut().expect("conditions");
+                for s in &mut c.selectors {
+                    if let KeySource::Stat { input, .. } = &mut s.source {
+                        *input = "camera".into();
+                    }
+                }
+            }),
+        ),
+        (
+            "the selector of axis `rain`: no such axis (the axes: gamma, fog)",
+            Box::new(|m: &mut Manifest| m.conditions.as_mut().expect("conditions").selectors[0].axis = "rain".into()),
+        ),
+        (
+            "arm 0 selects level 0.5, which the axis does not declare",
+            Box::new(|m: &mut Manifest| {
+                let c = m.conditions.as_mut().expect("conditions");
+                let s = c.selectors.iter_mut().find(|s| !s.arms.is_empty()).expect("a selector with arms");
+                s.arms[0].level = Some(0.5);
+            }),
+        ),
+        (
+            "axis `fog`: the name is not an identifier, or is declared twice",
+            Box::new(|m: &mut Manifest| {
+                let c = m.conditions.as_mut().expect("conditions");
+                c.axes[0].name = "fog".into();
+            }),
+        ),
+        (
+            "the meld lambda of `radar`: no such modality",
+            Box::new(|m: &mut Manifest| {
+                let meld = m.conditions.as_mut().expect("conditions").meld.as_mut().expect("a meld rule");
+                meld.weights[0].0 = "radar".into();
+            }),
+        ),
+    ];
+    let (m, tensors) = with_conditions();
+    for (want, edit) in cases {
+        let mut edited = m.clone();
+        edit(&mut edited);
+        let path = dir.join("conditions.plan");
+        std::fs::write(&path, plan_bytes(&edited, &tensors)).expect("write plan");
+        let err = refused(&readi(&["run", &s(&path), "--auto"]));
+        assert!(err.contains("invalid plan manifest: ") && err.contains(want), "want `{want}`: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn metadata_no_selector_reads_is_refused() {
+    let dir = temp_dir("meta");
+    let (m, tensors) = with_conditions();
+    let path = dir.join("meta.plan");
+    std::fs::write(&path, plan_bytes(&m, &tensors)).expect("write plan");
+    let err = refused(&readi(&["run", &s(&path), "--auto", "--meta", "weather.fog=0.05"]));
+    assert!(
+        err.contains("no selector reads metadata `weather.fog` (the plan's selectors read: `weather.fog_density`)"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -18,15 +18,24 @@
 //!    scale and a shift, with unique names, a finite eps and tensors of the scale's shape;
 //! 6. variant tables: keys unique and not `base`, replacements of tensors some step reads,
 //!    at most once each, by tensors of exactly their shape (so checking the base covers
-//!    every variant).
+//!    every variant);
+//! 7. the conditions block, which variant selection reads without further checks: axes
+//!    with unique identifier names, a modality and distinct finite levels; one selector
+//!    at most per declared axis, reading an input the plan has (or a named metadata
+//!    value), with finite thresholds and arm levels among the axis's; missing-modality
+//!    policies for modalities of optional inputs, once each; a meld rule whose lambdas
+//!    are finite, positive and name modalities or axes the conditions declare; and every
+//!    variant key made of declared axis levels and missing modalities.
 //!
 //! Nothing here depends on the kernels' code: a conv's packed weight length is
 //! [`crate::ops::ConvAlgo::packed_len`], defined with the algorithms.
 
 use std::collections::HashSet;
 
+use crate::conditions::{KeySource, MeldBy, MissingPolicy};
 use crate::dim::Dim;
 use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage, escaped};
+use crate::key::KeyPart;
 use crate::ops::{self, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
@@ -39,7 +48,8 @@ pub fn manifest(m: &Manifest) -> Result<(), String> {
     indices(m)?;
     schedule(m)?;
     batchnorms(m)?;
-    variants(m)
+    variants(m)?;
+    conditions(m)
 }
 
 fn bad_dim(d: &Dim, symbols: &[String]) -> bool {
@@ -357,6 +367,118 @@ fn variants(m: &Manifest) -> Result<(), String> {
             }
             if std::mem::replace(&mut replaced[r.base], i) == i {
                 return Err(format!("{at} replaces tensor {} (`{}`) twice", r.base, name(r.base)));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// 7.
+fn conditions(m: &Manifest) -> Result<(), String> {
+    let Some(c) = &m.conditions else { return Ok(()) };
+    let e = |s: &str| escaped(s).into_owned();
+    let modalities: Vec<&str> = m.inputs.iter().filter_map(|i| i.modality.as_deref()).collect();
+    for (i, a) in c.axes.iter().enumerate() {
+        let at = format!("conditions: axis `{}`", e(&a.name));
+        if !is_identifier(&a.name) || c.axes[..i].iter().any(|b| b.name == a.name) {
+            return Err(format!("{at}: the name is not an identifier, or is declared twice"));
+        }
+        if a.modality.is_empty() {
+            return Err(format!("{at}: no modality"));
+        }
+        if a.levels.is_empty() {
+            return Err(format!("{at}: no levels"));
+        }
+        for (j, l) in a.levels.iter().enumerate() {
+            if !l.is_finite() || a.levels[..j].contains(l) {
+                return Err(format!("{at}: level {l} is not a finite number, or is declared twice"));
+            }
+        }
+        if a.clear.is_some_and(|l| !l.is_finite() || a.levels.contains(&l)) {
+            return Err(format!("{at}: the clear level is not finite, or is also a variant level"));
+        }
+    }
+    for (i, s) in c.selectors.iter().enumerate() {
+        let at = format!("conditions: the selector of axis `{}`", e(&s.axis));
+        let Some(axis) = c.axis(&s.axis) else {
+            let known: Vec<String> = c.axes.iter().map(|a| e(&a.name)).collect();
+            return Err(format!("{at}: no such axis (the axes: {})", known.join(", ")));
+        };
+        if c.selectors[..i].iter().any(|o| o.axis == s.axis) {
+            return Err(format!("{at}: the axis has two selectors"));
+        }
+        match &s.source {
+            KeySource::Meta(k) => {
+                // Dotted paths (`weather.fog_density`) are names too.
+                if k.split('.').any(|part| !is_identifier(part)) {
+                    return Err(format!("{at}: metadata name `{}` is not a dotted identifier", e(k)));
+                }
+            }
+            KeySource::Stat { input, .. } => {
+                if !m.inputs.iter().any(|i| &i.name == input) {
+                    let known: Vec<String> = m.inputs.iter().map(|i| e(&i.name)).collect();
+                    return Err(format!(
+                        "{at} reads input `{}`, which the plan does not have (its inputs: {})",
+                        e(input),
+                        known.join(", ")
+                    ));
+                }
+            }
+        }
+        for (j, arm) in s.arms.iter().enumerate() {
+            if let Some((t, _)) = arm.below
+                && !t.is_finite()
+            {
+                return Err(format!("{at}: arm {j} has threshold {t}, not a finite number"));
+            }
+            if arm.below.is_none() && j + 1 != s.arms.len() {
+                return Err(format!("{at}: arm {j} has no bound but is not the last"));
+            }
+            if let Some(l) = arm.level
+                && !axis.levels.contains(&l)
+            {
+                return Err(format!("{at}: arm {j} selects level {l}, which the axis does not declare"));
+            }
+        }
+    }
+    for (i, (modality, policy)) in c.missing.iter().enumerate() {
+        let at = format!("conditions: the missing policy of `{}`", e(modality));
+        if c.missing[..i].iter().any(|(o, _)| o == modality) {
+            return Err(format!("{at}: declared twice"));
+        }
+        let optional = m.inputs.iter().any(|inp| inp.optional && inp.modality.as_deref() == Some(modality.as_str()));
+        if *policy == MissingPolicy::Variant && !optional {
+            return Err(format!("{at}: no optional input of the plan has this modality"));
+        }
+    }
+    if let Some(meld) = &c.meld {
+        for (i, (name, l)) in meld.weights.iter().enumerate() {
+            let at = format!("conditions: the meld lambda of `{}`", e(name));
+            if !(l.is_finite() && *l > 0.0) {
+                return Err(format!("{at}: {l} is not a positive finite number"));
+            }
+            if meld.weights[..i].iter().any(|(o, _)| o == name) {
+                return Err(format!("{at}: declared twice"));
+            }
+            let known = match meld.by {
+                MeldBy::Axis => c.axis(name).is_some(),
+                MeldBy::Modality => modalities.contains(&name.as_str()) || c.axes.iter().any(|a| &a.modality == name),
+            };
+            if !known {
+                return Err(format!("{at}: no such {}", if meld.by == MeldBy::Axis { "axis" } else { "modality" }));
+            }
+        }
+    }
+    for v in &m.variants {
+        for p in v.key.parts() {
+            let declared = match p {
+                KeyPart::Level { axis, level } => c.axis(axis).is_some_and(|a| a.levels.contains(level)),
+                KeyPart::Missing { modality } => {
+                    c.missing.iter().any(|(mm, p)| mm == modality && *p == MissingPolicy::Variant)
+                }
+            };
+            if !declared {
+                return Err(format!("variant `{}`: its part `{p}` is not declared by the plan's conditions", v.key));
             }
         }
     }

@@ -158,6 +158,8 @@ pub enum SelectError {
     NoMeld { conditions: Vec<String> },
     /// A required input is absent.
     MissingRequired { input: String },
+    /// Metadata that no selector reads (a misspelt name would otherwise be ignored).
+    UnknownMeta { name: String, known: Vec<String> },
 }
 
 impl std::fmt::Display for SelectError {
@@ -170,6 +172,11 @@ impl std::fmt::Display for SelectError {
                 conditions.join(" and ")
             ),
             SelectError::MissingRequired { input } => write!(f, "required input `{}` is absent", escaped(input)),
+            SelectError::UnknownMeta { name, known } => {
+                let known: Vec<String> = known.iter().map(|k| format!("`{}`", escaped(k))).collect();
+                let read = if known.is_empty() { "none".to_string() } else { known.join(", ") };
+                write!(f, "no selector reads metadata `{}` (the plan's selectors read: {read})", escaped(name))
+            }
         }
     }
 }
@@ -322,6 +329,21 @@ pub fn select(plan: &Plan, inputs: &[Input<'_>], meta: &[(String, f64)]) -> Resu
         if !spec.optional && !inputs.iter().any(|i| i.name == spec.name) {
             return Err(SelectError::MissingRequired { input: spec.name.clone() });
         }
+    }
+    let read_meta: Vec<&str> = m
+        .conditions
+        .iter()
+        .flat_map(|c| &c.selectors)
+        .filter_map(|s| match &s.source {
+            KeySource::Meta(k) => Some(k.as_str()),
+            KeySource::Stat { .. } => None,
+        })
+        .collect();
+    if let Some((name, _)) = meta.iter().find(|(n, _)| !read_meta.contains(&n.as_str())) {
+        return Err(SelectError::UnknownMeta {
+            name: name.clone(),
+            known: read_meta.iter().map(|k| k.to_string()).collect(),
+        });
     }
     let Some(c) = &m.conditions else {
         return Ok(Selection { key: VariantKey::base(), reasons: vec!["the plan declares no conditions".into()] });
