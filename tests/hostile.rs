@@ -473,3 +473,67 @@ fn metadata_no_selector_reads_is_refused() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn an_output_flag_naming_no_output_is_refused() {
+    let dir = temp_dir("output");
+    let path = ok_plan(&dir);
+    let x = dir.join("img.npy");
+    write_npy(&x, &[1, 4, 16, 16]);
+    let input = format!("img={}", s(&x));
+    let file = dir.join("yy=out.npy");
+    let err =
+        refused(&readi(&["run", &s(&path), "--input", &input, "--output", &format!("yy={}", s(&dir.join("out.npy")))]));
+    assert!(err.contains("the model has no output `yy` (its outputs: `pooled`, `tokens`, `avg`)"), "{err}");
+    assert!(!dir.join("out.npy").exists() && !file.exists());
+    // A known name writes that output; a path with `=` in its file name is a file.
+    let o = readi(&["run", &s(&path), "--input", &input, "--output", &format!("avg={}", s(&dir.join("avg.npy")))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("avg.npy").exists());
+    let o = readi(&["run", &s(&path), "--input", &input, "--output", &s(&dir.join("all=outputs.safetensors"))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("all=outputs.safetensors").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_truncated_npy_input_is_reported_as_truncated() {
+    let dir = temp_dir("truncated");
+    let path = ok_plan(&dir);
+    let x = dir.join("img.npy");
+    write_npy(&x, &[1, 4, 16, 16]);
+    let bytes = std::fs::read(&x).expect("read");
+    std::fs::write(&x, &bytes[..bytes.len() - 100]).expect("write");
+    let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&x))]));
+    assert!(err.contains("img.npy: truncated .npy file"), "{err}");
+    assert!(
+        err.contains("its header declares shape [1, 4, 16, 16], 4096 bytes of data, but the file holds 3996"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[cfg(unix)]
+#[test]
+fn devices_and_directories_are_not_read_as_files() {
+    let dir = temp_dir("devices");
+    let path = ok_plan(&dir);
+    // A plan that is a device, or a directory.
+    let err = refused(&readi(&["inspect", "/dev/zero"]));
+    assert!(err.contains("/dev/zero: not a regular file"), "{err}");
+    let err = refused(&readi(&["run", &s(&dir)]));
+    assert!(err.contains("not a regular file"), "{err}");
+    // Inputs that are devices, whatever their name says.
+    for name in ["zero.npy", "zero.safetensors"] {
+        let link = dir.join(name);
+        std::os::unix::fs::symlink("/dev/zero", &link).expect("symlink");
+        let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&link))]));
+        assert!(err.contains(&format!("{name} is not a regular file")), "{err}");
+    }
+    // An input file over the memory limit.
+    let x = dir.join("img.npy");
+    write_npy(&x, &[1, 4, 16, 16]);
+    let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&x)), "--max-memory", "1K"]));
+    assert!(err.contains("more than the limit of 1024 bytes"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

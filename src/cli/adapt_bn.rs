@@ -44,7 +44,7 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     for path in args.samples {
         bar.set_message(path.display().to_string());
         // One batch in memory at a time: read, run, drop.
-        let batch = read_batch(&plan, path, &bar)?;
+        let batch = read_batch(&plan, path, args.max_memory, &bar)?;
         let inputs: Vec<Input<'_>> = batch.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
         let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
         readi_runtime::exec::check_fits(&plan, &inputs, &options).map_err(|e| {
@@ -120,7 +120,7 @@ type Batch = Vec<(String, Vec<usize>, Vec<f32>)>;
 /// Reads one sample file: a `.npy` for a model with one input, or a `.safetensors` holding
 /// the inputs by name (a single tensor serves a single-input model whatever its name).
 /// Absent optional inputs are left to the runtime (zero-filled).
-fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, String> {
+fn read_batch(plan: &Plan, path: &Path, limit: usize, bar: &ProgressBar) -> Result<Batch, String> {
     let shown = path.display();
     let inputs = &plan.manifest.inputs;
     let names: Vec<&str> = inputs.iter().map(|i| i.name.as_str()).collect();
@@ -134,13 +134,13 @@ fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, Stri
                 names.join(", ")
             ));
         };
-        let (shape, data) = tensor_io::read_input(&only.name, path)?;
+        let (shape, data) = tensor_io::read_input(&only.name, path, limit)?;
         return Ok(vec![(only.name.clone(), shape, data)]);
     }
     if ext != "safetensors" {
         return Err(format!("{shown}: samples are read from .npy or .safetensors files"));
     }
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let bytes = tensor_io::read_limited(path, limit)?;
     let st = SafeTensors::deserialize(&bytes).map_err(|e| format!("{shown}: not a safetensors file ({e})"))?;
     let held: Vec<String> = st.names().into_iter().map(String::from).collect();
     let single = inputs.len() == 1 && held.len() == 1;
@@ -162,7 +162,7 @@ fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, Stri
             }
             return Err(format!("{shown}: no tensor for input `{}` (it holds: {})", spec.name, held.join(", ")));
         }
-        let (shape, data) = tensor_io::read_input(&spec.name, path)?;
+        let (shape, data) = tensor_io::read_input(&spec.name, path, limit)?;
         batch.push((spec.name.clone(), shape, data));
     }
     Ok(batch)

@@ -44,6 +44,9 @@ mod variants;
 use variants::VariantMaps;
 pub use variants::VariantTensors;
 
+/// Largest plan file [`Plan::load`] accepts: 64 GiB.
+pub const MAX_PLAN_BYTES: u64 = 64 << 30;
+
 const KEY_VERSION: &str = "readi.format_version";
 const KEY_MANIFEST: &str = "readi.manifest";
 const KEY_CHECKSUM: &str = "readi.checksum";
@@ -54,6 +57,12 @@ pub enum PlanError {
     Io {
         path: String,
         error: std::io::Error,
+    },
+    /// Not a regular file (a device such as `/dev/zero`, a FIFO, a directory), or one
+    /// larger than [`MAX_PLAN_BYTES`].
+    NotAFile {
+        path: String,
+        detail: String,
     },
     /// The file is not a readable safetensors container (truncated, corrupted header).
     Container {
@@ -89,6 +98,7 @@ impl fmt::Display for PlanError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             PlanError::Io { path, error } => write!(f, "{path}: {error}"),
+            PlanError::NotAFile { path, detail } => write!(f, "{path}: {detail}"),
             PlanError::Container { path, detail } => {
                 let detail = escaped(detail);
                 write!(f, "{path}: not a valid plan file ({detail}); the file may be truncated or corrupted")
@@ -220,10 +230,20 @@ impl Plan {
         std::fs::write(path, bytes).map_err(|error| PlanError::Io { path: path.display().to_string(), error })
     }
 
-    /// Maps a plan file and checks it. The weights stay in the mapping.
+    /// Maps a plan file and checks it. The weights stay in the mapping. The file must be
+    /// a regular file of at most [`MAX_PLAN_BYTES`].
     pub fn load(path: &Path) -> Result<Plan, PlanError> {
         let name = path.display().to_string();
         let file = std::fs::File::open(path).map_err(|error| PlanError::Io { path: name.clone(), error })?;
+        // Of the opened file, so that it cannot be swapped between the check and the map.
+        let meta = file.metadata().map_err(|error| PlanError::Io { path: name.clone(), error })?;
+        if !meta.is_file() {
+            return Err(PlanError::NotAFile { path: name, detail: "not a regular file".into() });
+        }
+        if meta.len() > MAX_PLAN_BYTES {
+            let detail = format!("{} bytes, more than the {MAX_PLAN_BYTES} a plan may have", meta.len());
+            return Err(PlanError::NotAFile { path: name, detail });
+        }
         let map = map_file(&file).map_err(|error| PlanError::Io { path: name.clone(), error })?;
         Plan::from_map(map, &name)
     }
