@@ -18,7 +18,7 @@
 //! behind the manifest validation (kernel preconditions, the memory budget) instead of
 //! being refused by the first shape comparison.
 //!
-//! Case count: `PLAN_FUZZ_CASES` (default 256). The long run is described in
+//! Case count: `PLAN_FUZZ_CASES` (default 1024: about 20 s in a debug build). The long run is described in
 //! `docs/security.md`. A failure is persisted by proptest and printed as the minimal
 //! mutation list; the plan file of the failing case is kept in the temporary directory.
 
@@ -476,6 +476,13 @@ fn exercise(path: &std::path::Path) -> Reached {
     };
     let _ = readi::inspect::plan(&plan, path, true);
     let keys: Vec<String> = plan.variant_keys().take(3).map(str::to_string).collect();
+    let plan = Arc::new(plan);
+    let Ok(mut session) = session(Arc::clone(&plan)) else { return Reached::Failed };
+    // Bound first, under the budget (which counts the inputs): the inputs below are made
+    // only for a plan whose footprint at batch 1 fits, as `readi bench` does.
+    if session.bind_batch(1).is_err() {
+        return Reached::Failed;
+    }
     let inputs: Vec<(String, Vec<usize>, Vec<f32>)> = plan
         .manifest
         .input_shapes(1)
@@ -485,7 +492,6 @@ fn exercise(path: &std::path::Path) -> Reached {
             (name.to_string(), shape, (0..n).map(|k| ((k * 7919) % 255) as f32 / 127.0 - 1.0).collect())
         })
         .collect();
-    let Ok(mut session) = session(Arc::new(plan)) else { return Reached::Failed };
     let given: Vec<Input<'_>> = inputs.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
     let mut reached = Reached::Failed;
     for key in std::iter::once("base").chain(keys.iter().map(String::as_str)) {
@@ -524,7 +530,7 @@ fn exercise_in_time(path: std::path::PathBuf, seed: &str) -> Reached {
 }
 
 fn cases() -> u32 {
-    std::env::var("PLAN_FUZZ_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(256)
+    std::env::var("PLAN_FUZZ_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(1024)
 }
 
 /// Builds a case's plan file and exercises it.

@@ -165,8 +165,10 @@ pub struct TensorSpec {
 }
 
 impl TensorSpec {
+    /// Elements of the shape; saturates at `usize::MAX` (which no stored tensor has, so a
+    /// manifest declaring such a shape is refused when its data is compared).
     pub fn numel(&self) -> usize {
-        self.shape.iter().product()
+        self.shape.iter().fold(1usize, |a, &d| a.saturating_mul(d))
     }
 }
 
