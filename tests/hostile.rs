@@ -537,3 +537,20 @@ fn devices_and_directories_are_not_read_as_files() {
     assert!(err.contains("more than the limit of 1024 bytes"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn an_empty_tensor_with_huge_inner_axes_is_refused() {
+    // [N, 0, 2^40, 2^40] holds no element, but a kernel multiplying its inner axes
+    // would overflow: binding refuses it.
+    use readi_plan::ops::{Activation, Pure};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("empty-huge");
+    let huge = 1usize << 40;
+    let shape = [None, Some(0), Some(huge), Some(huge)];
+    let plan = one_step(&shape, Kernel::Pure(Pure::Activation(Activation::Relu)), &shape, &[]);
+    let path = dir.join("empty.plan");
+    std::fs::write(&path, plan_bytes(&plan.0, &plan.1)).expect("write plan");
+    let err = refused(&readi(&["bench", &s(&path), "--runs", "1", "--warmup", "0"]));
+    assert!(err.contains("value 0 (input `x`) at N = 1 does not fit in memory"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

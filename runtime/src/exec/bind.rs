@@ -177,7 +177,14 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         let s: Option<Vec<usize>> = v.shape.iter().map(|d| d.eval(&bindings)).collect();
         let what = || format!("{} at {}", value_name(m, writer[i], i), show_bindings(m, symbols));
         let s = s.ok_or_else(|| overflow(format!("a dimension of {}", what())))?;
-        let n = s.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or_else(|| overflow(what()))?;
+        // The product of the axes other than 0 must fit too: the kernels multiply any
+        // run of axes (an empty tensor `[0, 2^40, 2^40]` has 0 elements but 2^80 in its
+        // inner axes).
+        let nonzero = s.iter().try_fold(1usize, |a, &d| a.checked_mul(d.max(1)));
+        let n = if s.contains(&0) { 0 } else { nonzero.unwrap_or(0) };
+        if nonzero.is_none() {
+            return Err(overflow(what()));
+        }
         bytes_of(n, what)?;
         shapes.push(s);
         numels.push(n);
