@@ -12,7 +12,8 @@
 //! another node of the manifest with the same field name in its place (indices, shapes,
 //! kernels, keys, variant tables), edit an array (drop, duplicate, swap, clear), replace a
 //! string (another name of the plan, a kernel or algorithm name, control characters),
-//! change a conv's algorithm, or poison a tensor's data (NaN, infinity, huge). Half of the
+//! change a conv's algorithm, poison a tensor's data (NaN, infinity, huge), or grow an axis
+//! of an input (to reach the memory budget once the shapes behind it are repaired). Half of the
 //! cases are then *repaired* ([`repair`]): value shapes re-inferred by the operators'
 //! rules, tensor sizes made to fit their kernels, so that the mutation reaches the checks
 //! behind the manifest validation (kernel preconditions, the memory budget) instead of
@@ -119,6 +120,7 @@ enum Mutation {
     Text { at: usize, arg: usize },
     Algorithm { at: usize, arg: usize },
     Poison { at: usize, arg: u64 },
+    Grow { at: usize, arg: u64 },
 }
 
 fn mutation() -> impl Strategy<Value = Mutation> {
@@ -130,6 +132,7 @@ fn mutation() -> impl Strategy<Value = Mutation> {
         2 => (at, any::<usize>()).prop_map(|(at, arg)| Mutation::Text { at, arg }),
         2 => (at, any::<usize>()).prop_map(|(at, arg)| Mutation::Algorithm { at, arg }),
         1 => (at, any::<u64>()).prop_map(|(at, arg)| Mutation::Poison { at, arg }),
+        2 => (at, any::<u64>()).prop_map(|(at, arg)| Mutation::Grow { at, arg }),
     ]
 }
 
@@ -319,6 +322,28 @@ fn apply(m: &Mutation, manifest: &mut Value, tensors: &mut HashMap<String, Vec<f
             let Some(p) = pick(at, &|v| v.get("algo").is_some()) else { return };
             if let Some(n) = node(manifest, &p.path) {
                 n["algo"] = serde_json::to_value(ALGOS[arg % ALGOS.len()]).expect("an algorithm is JSON");
+            }
+        }
+        Mutation::Grow { at, arg } => {
+            // An axis of an input (and its value) grown to 2^8..2^39: once repaired, the
+            // shapes behind it follow, and the memory budget is what refuses the plan.
+            let Some(inputs) = manifest["inputs"].as_array() else { return };
+            if inputs.is_empty() {
+                return;
+            }
+            let i = at % inputs.len();
+            let (Some(value), Some(rank)) = (inputs[i]["value"].as_u64(), inputs[i]["shape"].as_array().map(Vec::len))
+            else {
+                return;
+            };
+            if rank == 0 {
+                return;
+            }
+            let j = (at / inputs.len()) % rank;
+            let coef = Value::from(1u64 << (8 + arg % 32));
+            manifest["inputs"][i]["shape"][j]["coef"] = coef.clone();
+            if let Some(d) = manifest["values"].get_mut(value as usize).and_then(|v| v["shape"].get_mut(j)) {
+                d["coef"] = coef;
             }
         }
         Mutation::Poison { at, arg } => {
