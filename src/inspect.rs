@@ -11,7 +11,7 @@ use std::fmt::{self, Write};
 use std::path::Path;
 
 use readi_compiler::print;
-use readi_runtime::plan::{Kernel, Manifest, Plan, Storage, show_shape};
+use readi_runtime::plan::{Kernel, Manifest, Plan, Storage, escaped, show_shape};
 
 /// Runs a writer into a new string.
 fn render(f: impl FnOnce(&mut String) -> fmt::Result) -> String {
@@ -33,13 +33,19 @@ pub fn plan(plan: &Plan, path: &Path, verbose: bool) -> String {
     }
     out += &schedule(m, verbose);
     out += &buffers(m);
+    out += &footprint(m);
     out
 }
 
 /// The parameters the spec declares (trainable, not added by adaptation): the base model's
 /// size, which the variants' budgets are shares of.
 pub fn spec_parameters(m: &Manifest) -> u64 {
-    m.params.iter().filter(|p| p.trainable && !p.added).map(|p| p.shape.iter().product::<usize>()).sum::<usize>() as u64
+    // Saturating: a hand-edited plan may declare any shape.
+    m.params
+        .iter()
+        .filter(|p| p.trainable && !p.added)
+        .map(|p| p.shape.iter().fold(1u64, |a, &d| a.saturating_mul(d as u64)))
+        .fold(0u64, u64::saturating_add)
 }
 
 /// The plan file, the model and its parameter values, the inputs and outputs with their
@@ -47,18 +53,19 @@ pub fn spec_parameters(m: &Manifest) -> u64 {
 pub fn header(plan: &Plan, path: &Path) -> String {
     render(|out| {
         let m = &plan.manifest;
-        let params: Vec<String> = m.model_params.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+        let params: Vec<String> =
+            m.model_params.iter().map(|(k, v)| format!("{} = {}", escaped(k), escaped(v))).collect();
         writeln!(out, "plan {} (format version {}, checksum ok)", path.display(), m.format_version)?;
-        writeln!(out, "model {}({})", m.model, params.join(", "))?;
+        writeln!(out, "model {}({})", escaped(&m.model), params.join(", "))?;
         writeln!(out, "inputs:")?;
         for i in &m.inputs {
-            let modality = i.modality.as_deref().map(|m| format!(" @{m}")).unwrap_or_default();
+            let modality = i.modality.as_deref().map(|m| format!(" @{}", escaped(m))).unwrap_or_default();
             let opt = if i.optional { " optional" } else { "" };
-            writeln!(out, "  {}: f32{}{modality}{opt}", i.name, show_shape(&i.shape))?;
+            writeln!(out, "  {}: f32{}{modality}{opt}", escaped(&i.name), show_shape(&i.shape))?;
         }
         writeln!(out, "outputs:")?;
         for o in &m.outputs {
-            writeln!(out, "  {}: f32{}", o.name, show_shape(&m.values[o.value].shape))?;
+            writeln!(out, "  {}: f32{}", escaped(&o.name), show_shape(&m.values[o.value].shape))?;
         }
         writeln!(
             out,
@@ -74,7 +81,7 @@ pub fn header(plan: &Plan, path: &Path) -> String {
 pub fn params(m: &Manifest) -> String {
     render(|out| {
         for p in &m.params {
-            writeln!(out, "  {:<40} {:?} {}", p.name, p.shape, p.stored_as)?;
+            writeln!(out, "  {:<40} {:?} {}", escaped(&p.name), p.shape, escaped(&p.stored_as))?;
         }
         Ok(())
     })
@@ -133,7 +140,8 @@ pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
                         } else {
                             ""
                         };
-                    writeln!(out, "      {} -> {}{shared}", m.tensors[r.base].name, m.tensors[r.with].name)?;
+                    let (base, with) = (escaped(&m.tensors[r.base].name), escaped(&m.tensors[r.with].name));
+                    writeln!(out, "      {base} -> {with}{shared}")?;
                 }
             }
         }
@@ -171,7 +179,7 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
                     kernel_detail(&st.kernel),
                     ins.join(", "),
                     show_shape(&m.values[st.output].shape),
-                    st.path
+                    escaped(&st.path)
                 )?;
             }
         }
@@ -184,7 +192,7 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
 pub fn variant_tables(m: &Manifest) -> String {
     render(|out| {
         for v in &m.variants {
-            let names: Vec<&str> = v.replaces.iter().map(|r| m.tensors[r.base].name.as_str()).collect();
+            let names: Vec<String> = v.replaces.iter().map(|r| escaped(&m.tensors[r.base].name).into_owned()).collect();
             let own: HashSet<usize> = v.replaces.iter().map(|r| r.with).collect();
             let bytes: usize = own.iter().map(|&t| m.tensors[t].numel() * 4).sum();
             writeln!(out, "variant {}: replaces {} ({})", v.key, names.join(", "), print::bytes(bytes as u64))?;
@@ -211,28 +219,81 @@ pub fn kernel_detail(k: &Kernel) -> String {
 }
 
 /// The activation buffers: how many, and their bytes at batch 1 with and without the
-/// planned reuse.
+/// planned reuse. Sizes saturate (a hand-edited plan may declare any shape; binding
+/// refuses what does not fit).
 pub fn buffers(m: &Manifest) -> String {
     render(|out| {
         let ones = m.batch_bindings(1);
-        let mut slot_len = vec![0usize; m.slots];
-        let mut total_values = 0usize;
+        let mut slot_len = vec![0u64; m.slots.min(m.values.len())];
+        let mut total_values = 0u64;
         for v in &m.values {
             if let Storage::Slot(s) = v.storage {
-                let n: usize = v.shape.iter().map(|d| d.eval(&ones).unwrap_or(0)).product();
-                slot_len[s] = slot_len[s].max(n);
-                total_values += n;
+                let n = v.shape.iter().map(|d| d.eval(&ones).unwrap_or(0) as u64).fold(1u64, u64::saturating_mul);
+                if let Some(len) = slot_len.get_mut(s) {
+                    *len = (*len).max(n);
+                }
+                total_values = total_values.saturating_add(n);
             }
         }
-        let planned: usize = slot_len.iter().sum();
+        let planned = slot_len.iter().fold(0u64, |a, &b| a.saturating_add(b));
         writeln!(
             out,
             "buffers: {} slots, {} at batch 1 ({} without reuse)",
             m.slots,
-            print::bytes(planned as u64 * 4),
-            print::bytes(total_values as u64 * 4)
+            print::bytes(planned.saturating_mul(4)),
+            print::bytes(total_values.saturating_mul(4))
         )
     })
+}
+
+/// The footprint the plan records ([`Manifest::footprint`]): what a run takes at the
+/// compiled batch size on one thread. Plans written before it was recorded say so.
+pub fn footprint(m: &Manifest) -> String {
+    render(|out| match &m.footprint {
+        Some(f) => writeln!(
+            out,
+            "memory at batch {}: {} per run (buffers {}, scratch {} on one thread, the rest inputs and outputs)",
+            f.batch,
+            print::bytes(f.total),
+            print::bytes(f.activations),
+            print::bytes(f.scratch)
+        ),
+        None => writeln!(out, "memory: not recorded in the plan (compiled before footprints were)"),
+    })
+}
+
+/// The memory limit line of `readi inspect`: the footprint at batch 1 on `threads`
+/// threads, computed now, against `limit`, and the largest batch size within it.
+pub fn memory_limit(plan: &Plan, threads: usize, limit: usize) -> String {
+    use readi_runtime::exec::{self, show_bytes};
+    render(|out| {
+        let fits = |batch: usize| exec::footprint(plan, batch, threads).is_ok_and(|f| f.total <= limit);
+        match exec::footprint(plan, 1, threads) {
+            Err(e) => writeln!(out, "memory limit {}: the plan cannot be bound: {e}", show_bytes(limit)),
+            Ok(f) if f.total > limit => writeln!(
+                out,
+                "memory limit {}: batch 1 on {threads} threads needs {}, over the limit",
+                show_bytes(limit),
+                show_bytes(f.total)
+            ),
+            Ok(_) if m_has_no_symbols(&plan.manifest) => {
+                writeln!(out, "memory limit {}: the plan fits (its shapes are fixed)", show_bytes(limit))
+            }
+            Ok(_) => {
+                // The largest batch that fits: the footprint grows with the batch.
+                let (mut lo, mut hi) = (1usize, 1usize << 40);
+                while lo < hi {
+                    let mid = lo + (hi - lo).div_ceil(2);
+                    if fits(mid) { lo = mid } else { hi = mid - 1 }
+                }
+                writeln!(out, "memory limit {}: batches up to {lo} fit on {threads} threads", show_bytes(limit))
+            }
+        }
+    })
+}
+
+fn m_has_no_symbols(m: &Manifest) -> bool {
+    m.symbols.is_empty()
 }
 
 /// Per-kernel-kind and per-step time from a profiled session (`seconds`, one per step,
@@ -263,7 +324,7 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
         writeln!(out, "slowest steps:")?;
         for (k, t) in steps.iter().take(12) {
             let st = &m.steps[*k];
-            writeln!(out, "  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), st.path)?;
+            writeln!(out, "  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), escaped(&st.path))?;
         }
         Ok(())
     })

@@ -61,22 +61,24 @@ fn run(cli: Cli) -> ExitCode {
                 cli::compile::CompileArgs { spec, weights, deploy, variants, lora, strict, melds, allow_unused, model };
             cli::compile::run(&mut s, args, &output)
         }
-        Command::Run { plan, inputs, outputs, threads, variant, auto, meta, drop_views } => {
+        Command::Run { plan, inputs, outputs, threads, max_memory, variant, auto, meta, drop_views } => {
             let choice = match variant {
                 Some(v) => cli::run::Choice::Key(v),
                 None if auto => cli::run::Choice::Auto(meta),
                 None => cli::run::Choice::Base,
             };
-            cli::run::run(&plan, &inputs, &outputs, threads, choice, &drop_views)
+            let session = cli::session_options(threads, max_memory);
+            cli::run::run(&plan, &inputs, &outputs, session, choice, &drop_views)
         }
-        Command::Bench { plan, threads, runs, warmup, batch, profile, variant } => {
-            cli::bench::run(&plan, threads, runs, warmup, batch, profile, variant.as_deref())
+        Command::Bench { plan, threads, runs, warmup, batch, profile, variant, max_memory } => {
+            let session = cli::session_options(threads, max_memory);
+            cli::bench::run(&plan, session, runs, warmup, batch, profile, variant.as_deref())
         }
-        Command::Inspect { plan, verbose } => cli::inspect::run(&plan, verbose),
+        Command::Inspect { plan, verbose, max_memory } => cli::inspect::run(&plan, verbose, max_memory),
         Command::Demo { threads, frames } => cli::demo::run(&mut s, cli::threads_or_default(threads), frames),
         Command::Simulate(args) => cli::simulate::run(&args),
-        Command::AdaptBn { plan, variant, samples, output, threads } => {
-            cli::adapt_bn::run(&plan, &variant, &samples, &output, threads)
+        Command::AdaptBn { plan, variant, samples, output, threads, max_memory } => {
+            cli::adapt_bn::run(&plan, &variant, &samples, &output, cli::session_options(threads, max_memory))
         }
     };
     match result {

@@ -12,6 +12,7 @@
 //!
 //! [safetensors]: https://huggingface.co/docs/safetensors
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 
 use serde::{Deserialize, Serialize};
@@ -27,6 +28,31 @@ pub const FORMAT_VERSION: u32 = 2;
 
 /// The key of variant 0, the base model; no variant table may use it.
 pub const BASE_VARIANT: &str = crate::key::BASE_KEY;
+
+/// A name read from a plan (an input, output, step path, tensor, BatchNorm or axis name),
+/// as messages and listings print it: characters that do not print (control characters
+/// such as the terminal escape `\x1b`, line breaks, Unicode format characters) are written
+/// as Rust's `escape_debug` writes them (`\u{1b}`, `\n`), and a backslash is doubled, so
+/// a hostile plan cannot drive the terminal and an escaped name reads unambiguously.
+/// Ordinary names come back as they are, without a copy.
+///
+/// Every place that prints a plan-provided name goes through this function.
+pub fn escaped(name: &str) -> Cow<'_, str> {
+    // Quotes print as themselves; `escape_debug` would add a backslash.
+    let plain = |c: char| c == '"' || c == '\'' || (c != '\\' && c.escape_debug().len() == 1);
+    if name.chars().all(plain) {
+        return Cow::Borrowed(name);
+    }
+    let mut out = String::with_capacity(name.len() + 8);
+    for c in name.chars() {
+        if plain(c) {
+            out.push(c);
+        } else {
+            out.extend(c.escape_debug());
+        }
+    }
+    Cow::Owned(out)
+}
 
 /// Everything about a plan except the tensor bytes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -58,6 +84,26 @@ pub struct Manifest {
     /// choosing a variant from the inputs; `None` for specs without a variants section.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub conditions: Option<Conditions>,
+    /// The memory a run takes at the compiled batch size, as the plan writer computed it;
+    /// `None` in plans written before it was recorded (they load as before: the field is
+    /// optional, so the format version did not change). For listings only: the runtime
+    /// computes the footprint of every binding itself and never trusts this one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub footprint: Option<PlanFootprint>,
+}
+
+/// [`Manifest::footprint`]: bytes a run takes with every symbol bound to `batch`, on one
+/// thread.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PlanFootprint {
+    pub batch: u64,
+    /// The activation buffers.
+    pub activations: u64,
+    /// The conv kernels' scratch on one thread.
+    pub scratch: u64,
+    /// Everything a run takes: buffers, scratch, zeros for absent optional inputs, the
+    /// inputs and the outputs.
+    pub total: u64,
 }
 
 impl Manifest {
@@ -119,8 +165,10 @@ pub struct TensorSpec {
 }
 
 impl TensorSpec {
+    /// Elements of the shape; saturates at `usize::MAX` (which no stored tensor has, so a
+    /// manifest declaring such a shape is refused when its data is compared).
     pub fn numel(&self) -> usize {
-        self.shape.iter().product()
+        self.shape.iter().fold(1usize, |a, &d| a.saturating_mul(d))
     }
 }
 
@@ -301,5 +349,22 @@ impl Kernel {
             Kernel::LayerNorm { weight, bias, .. } => weight.iter().chain(bias).copied().collect(),
             Kernel::Pure(_) => Vec::new(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_that_do_not_print_are_escaped() {
+        assert!(matches!(escaped("layer1.0.conv1 (+bn1, relu#0)"), Cow::Borrowed(_)));
+        assert_eq!(escaped("it's \"x\""), "it's \"x\"");
+        assert_eq!(escaped("a\u{1b}[2Jb"), "a\\u{1b}[2Jb");
+        assert_eq!(escaped("two\nlines\r\t"), "two\\nlines\\r\\t");
+        assert_eq!(escaped("back\\slash"), "back\\\\slash");
+        // A right-to-left override (a format character) and a bell.
+        assert_eq!(escaped("x\u{202e}y\u{7}"), "x\\u{202e}y\\u{7}");
+        assert_eq!(escaped("Grüße, 画像"), "Grüße, 画像");
     }
 }

@@ -4,10 +4,11 @@
 //! message naming the step, value or tensor at fault, never reach a kernel with sizes it
 //! does not expect. [`manifest`] checks, in order:
 //!
-//! 1. every index (inputs, values, slots, tensors) is in range, and every dimension is a
-//!    non-negative coefficient over declared symbols;
-//! 2. each input's declared shape is its value's, and a value stored as a tensor has the
-//!    tensor's (known) shape;
+//! 1. the symbols are distinct identifiers; there are no more activation buffers (slots)
+//!    than values; every index (inputs, values, slots, tensors) is in range, and every
+//!    dimension is a non-negative coefficient over declared symbols;
+//! 2. input names are unique, and so are output names; each input's declared shape is its
+//!    value's, and a value stored as a tensor has the tensor's (known) shape;
 //! 3. the schedule: each step writes an activation buffer not written before, reads only
 //!    values already written, and does not read the buffer it writes;
 //! 4. each step's output shape is what its operator's shape rule ([`crate::ops`]) computes
@@ -17,15 +18,24 @@
 //!    scale and a shift, with unique names, a finite eps and tensors of the scale's shape;
 //! 6. variant tables: keys unique and not `base`, replacements of tensors some step reads,
 //!    at most once each, by tensors of exactly their shape (so checking the base covers
-//!    every variant).
+//!    every variant);
+//! 7. the conditions block, which variant selection reads without further checks: axes
+//!    with unique identifier names, a modality and distinct finite levels; one selector
+//!    at most per declared axis, reading an input the plan has (or a named metadata
+//!    value), with finite thresholds and arm levels among the axis's; missing-modality
+//!    policies for modalities of optional inputs, once each; a meld rule whose lambdas
+//!    are finite, positive and name modalities or axes the conditions declare; and every
+//!    variant key made of declared axis levels and missing modalities.
 //!
 //! Nothing here depends on the kernels' code: a conv's packed weight length is
 //! [`crate::ops::ConvAlgo::packed_len`], defined with the algorithms.
 
 use std::collections::HashSet;
 
+use crate::conditions::{KeySource, MeldBy, MissingPolicy};
 use crate::dim::Dim;
-use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage};
+use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage, escaped};
+use crate::key::KeyPart;
 use crate::ops::{self, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
@@ -38,27 +48,55 @@ pub fn manifest(m: &Manifest) -> Result<(), String> {
     indices(m)?;
     schedule(m)?;
     batchnorms(m)?;
-    variants(m)
+    variants(m)?;
+    conditions(m)
 }
 
 fn bad_dim(d: &Dim, symbols: &[String]) -> bool {
     d.coef() < 0 || d.symbols().iter().any(|s| !symbols.contains(s))
 }
 
+/// An identifier: ASCII letters, digits and `_`, not starting with a digit.
+fn is_identifier(s: &str) -> bool {
+    let mut chars = s.chars();
+    chars.next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
+}
+
 /// 1 and 2.
 fn indices(m: &Manifest) -> Result<(), String> {
     let nv = m.values.len();
+    if m.slots > nv {
+        return Err(format!("{} activation buffers for {nv} values: a plan has at most one per value", m.slots));
+    }
+    for (i, s) in m.symbols.iter().enumerate() {
+        if !is_identifier(s) || m.symbols[..i].contains(s) {
+            return Err(format!("symbol `{}` is not an identifier, or is declared twice", escaped(s)));
+        }
+    }
+    let mut names: HashSet<&str> = HashSet::new();
+    for inp in &m.inputs {
+        if !names.insert(&inp.name) {
+            return Err(format!("input `{}` is declared twice", escaped(&inp.name)));
+        }
+    }
+    names.clear();
+    for o in &m.outputs {
+        if !names.insert(&o.name) {
+            return Err(format!("output `{}` is declared twice", escaped(&o.name)));
+        }
+    }
     for (i, inp) in m.inputs.iter().enumerate() {
         if inp.value >= nv || m.values[inp.value].storage != Storage::Input(i) {
-            return Err(format!("input `{}` refers to an invalid value", inp.name));
+            return Err(format!("input `{}` refers to an invalid value", escaped(&inp.name)));
         }
         if let Some(d) = inp.shape.iter().find(|d| bad_dim(d, &m.symbols)) {
-            return Err(format!("input `{}` has an invalid dimension {d}", inp.name));
+            return Err(format!("input `{}` has an invalid dimension {d}", escaped(&inp.name)));
         }
         if inp.shape != m.values[inp.value].shape {
             return Err(format!(
                 "input `{}` is declared as {} but its value has shape {}",
-                inp.name,
+                escaped(&inp.name),
                 crate::show_shape(&inp.shape),
                 crate::show_shape(&m.values[inp.value].shape)
             ));
@@ -74,7 +112,7 @@ fn indices(m: &Manifest) -> Result<(), String> {
                 if shape != v.shape {
                     return Err(format!(
                         "value {i} is stored tensor `{}` of shape {:?}, but has shape {}",
-                        m.tensors[t].name,
+                        escaped(&m.tensors[t].name),
                         m.tensors[t].shape,
                         crate::show_shape(&v.shape)
                     ));
@@ -102,7 +140,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
         }
     }
     for (k, step) in m.steps.iter().enumerate() {
-        let at = format!("step {k} (`{}`)", step.path);
+        let at = format!("step {k} (`{}`)", escaped(&step.path));
         let Some(Storage::Slot(out_slot)) = m.values.get(step.output).map(|v| v.storage) else {
             return Err(format!("{at} writes an invalid value"));
         };
@@ -139,7 +177,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
     }
     for o in &m.outputs {
         if o.value >= nv || !written[o.value] {
-            return Err(format!("output `{}` is never computed", o.name));
+            return Err(format!("output `{}` is never computed", escaped(&o.name)));
         }
     }
     Ok(())
@@ -155,7 +193,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if numel(t) as u64 != channels as u64 {
                 return Err(format!(
                     "epilogue tensor `{}` has {} values for {channels} channels",
-                    m.tensors[t].name,
+                    escaped(&m.tensors[t].name),
                     numel(t)
                 ));
             }
@@ -174,7 +212,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if numel(*weight) != algo.packed_len(&s) {
                 return Err(format!(
                     "conv2d weight `{}` has {} values, `{}` needs {}",
-                    m.tensors[*weight].name,
+                    escaped(&m.tensors[*weight].name),
                     numel(*weight),
                     algo.name(),
                     algo.packed_len(&s)
@@ -187,7 +225,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if numel(*weight) as u64 != want {
                 return Err(format!(
                     "linear weight `{}` has {} values, not {want}",
-                    m.tensors[*weight].name,
+                    escaped(&m.tensors[*weight].name),
                     numel(*weight)
                 ));
             }
@@ -219,7 +257,7 @@ fn batchnorms(m: &Manifest) -> Result<(), String> {
     for (k, step) in m.steps.iter().enumerate() {
         let Some(ep) = step.kernel.epilogue() else { continue };
         let Some(bn) = &ep.bn else { continue };
-        let at = format!("step {k} (`{}`), BatchNorm `{}`", step.path, bn.name);
+        let at = format!("step {k} (`{}`), BatchNorm `{}`", escaped(&step.path), escaped(&bn.name));
         let conv = matches!(step.kernel, Kernel::Conv2d { .. });
         if !conv && !matches!(step.kernel, Kernel::ChannelAffine { .. }) {
             return Err(format!("{at}: only conv2d and channel_affine steps fold a BatchNorm"));
@@ -246,7 +284,8 @@ fn batchnorms(m: &Manifest) -> Result<(), String> {
                 Some(spec) if &spec.shape != shape => {
                     return Err(format!(
                         "{at}: tensor {t} (`{}`) has shape {:?}, the scale {shape:?}",
-                        spec.name, spec.shape
+                        escaped(&spec.name),
+                        spec.shape
                     ));
                 }
                 Some(_) => {}
@@ -296,7 +335,7 @@ fn variants(m: &Manifest) -> Result<(), String> {
             m.variants.len()
         ));
     }
-    let name = |t: usize| &m.tensors[t].name;
+    let name = |t: usize| escaped(&m.tensors[t].name);
     let mut keys: HashSet<String> = HashSet::with_capacity(m.variants.len());
     let mut replaced = vec![usize::MAX; n];
     for (i, v) in m.variants.iter().enumerate() {
@@ -328,6 +367,118 @@ fn variants(m: &Manifest) -> Result<(), String> {
             }
             if std::mem::replace(&mut replaced[r.base], i) == i {
                 return Err(format!("{at} replaces tensor {} (`{}`) twice", r.base, name(r.base)));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// 7.
+fn conditions(m: &Manifest) -> Result<(), String> {
+    let Some(c) = &m.conditions else { return Ok(()) };
+    let e = |s: &str| escaped(s).into_owned();
+    let modalities: Vec<&str> = m.inputs.iter().filter_map(|i| i.modality.as_deref()).collect();
+    for (i, a) in c.axes.iter().enumerate() {
+        let at = format!("conditions: axis `{}`", e(&a.name));
+        if !is_identifier(&a.name) || c.axes[..i].iter().any(|b| b.name == a.name) {
+            return Err(format!("{at}: the name is not an identifier, or is declared twice"));
+        }
+        if a.modality.is_empty() {
+            return Err(format!("{at}: no modality"));
+        }
+        if a.levels.is_empty() {
+            return Err(format!("{at}: no levels"));
+        }
+        for (j, l) in a.levels.iter().enumerate() {
+            if !l.is_finite() || a.levels[..j].contains(l) {
+                return Err(format!("{at}: level {l} is not a finite number, or is declared twice"));
+            }
+        }
+        if a.clear.is_some_and(|l| !l.is_finite() || a.levels.contains(&l)) {
+            return Err(format!("{at}: the clear level is not finite, or is also a variant level"));
+        }
+    }
+    for (i, s) in c.selectors.iter().enumerate() {
+        let at = format!("conditions: the selector of axis `{}`", e(&s.axis));
+        let Some(axis) = c.axis(&s.axis) else {
+            let known: Vec<String> = c.axes.iter().map(|a| e(&a.name)).collect();
+            return Err(format!("{at}: no such axis (the axes: {})", known.join(", ")));
+        };
+        if c.selectors[..i].iter().any(|o| o.axis == s.axis) {
+            return Err(format!("{at}: the axis has two selectors"));
+        }
+        match &s.source {
+            KeySource::Meta(k) => {
+                // Dotted paths (`weather.fog_density`) are names too.
+                if k.split('.').any(|part| !is_identifier(part)) {
+                    return Err(format!("{at}: metadata name `{}` is not a dotted identifier", e(k)));
+                }
+            }
+            KeySource::Stat { input, .. } => {
+                if !m.inputs.iter().any(|i| &i.name == input) {
+                    let known: Vec<String> = m.inputs.iter().map(|i| e(&i.name)).collect();
+                    return Err(format!(
+                        "{at} reads input `{}`, which the plan does not have (its inputs: {})",
+                        e(input),
+                        known.join(", ")
+                    ));
+                }
+            }
+        }
+        for (j, arm) in s.arms.iter().enumerate() {
+            if let Some((t, _)) = arm.below
+                && !t.is_finite()
+            {
+                return Err(format!("{at}: arm {j} has threshold {t}, not a finite number"));
+            }
+            if arm.below.is_none() && j + 1 != s.arms.len() {
+                return Err(format!("{at}: arm {j} has no bound but is not the last"));
+            }
+            if let Some(l) = arm.level
+                && !axis.levels.contains(&l)
+            {
+                return Err(format!("{at}: arm {j} selects level {l}, which the axis does not declare"));
+            }
+        }
+    }
+    for (i, (modality, policy)) in c.missing.iter().enumerate() {
+        let at = format!("conditions: the missing policy of `{}`", e(modality));
+        if c.missing[..i].iter().any(|(o, _)| o == modality) {
+            return Err(format!("{at}: declared twice"));
+        }
+        let optional = m.inputs.iter().any(|inp| inp.optional && inp.modality.as_deref() == Some(modality.as_str()));
+        if *policy == MissingPolicy::Variant && !optional {
+            return Err(format!("{at}: no optional input of the plan has this modality"));
+        }
+    }
+    if let Some(meld) = &c.meld {
+        for (i, (name, l)) in meld.weights.iter().enumerate() {
+            let at = format!("conditions: the meld lambda of `{}`", e(name));
+            if !(l.is_finite() && *l > 0.0) {
+                return Err(format!("{at}: {l} is not a positive finite number"));
+            }
+            if meld.weights[..i].iter().any(|(o, _)| o == name) {
+                return Err(format!("{at}: declared twice"));
+            }
+            let known = match meld.by {
+                MeldBy::Axis => c.axis(name).is_some(),
+                MeldBy::Modality => modalities.contains(&name.as_str()) || c.axes.iter().any(|a| &a.modality == name),
+            };
+            if !known {
+                return Err(format!("{at}: no such {}", if meld.by == MeldBy::Axis { "axis" } else { "modality" }));
+            }
+        }
+    }
+    for v in &m.variants {
+        for p in v.key.parts() {
+            let declared = match p {
+                KeyPart::Level { axis, level } => c.axis(axis).is_some_and(|a| a.levels.contains(level)),
+                KeyPart::Missing { modality } => {
+                    c.missing.iter().any(|(mm, p)| mm == modality && *p == MissingPolicy::Variant)
+                }
+            };
+            if !declared {
+                return Err(format!("variant `{}`: its part `{p}` is not declared by the plan's conditions", v.key));
             }
         }
     }

@@ -110,6 +110,7 @@ fn plan() -> Plan {
         params: Vec::new(),
         variants,
         conditions: None,
+        footprint: None,
     };
     Plan::new(manifest, tensors).expect("a valid plan")
 }

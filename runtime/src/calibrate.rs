@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use crate::exec::{Bound, Input, Run, RunError, Session, run_step};
 use readi_plan::ops::batchnorm_channel;
 
-use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage};
+use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
 
 /// Why calibration failed.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,10 +56,11 @@ impl fmt::Display for CalibrateError {
         match self {
             CalibrateError::Run(e) => e.fmt(f),
             CalibrateError::NoBatchNorm { model } => {
+                let model = escaped(model);
                 write!(f, "model `{model}` has no BatchNorm layer: there are no statistics to estimate")
             }
             CalibrateError::NotRecorded { missing } => {
-                let shown: Vec<&str> = missing.iter().take(3).map(String::as_str).collect();
+                let shown: Vec<String> = missing.iter().take(3).map(|n| escaped(n).into_owned()).collect();
                 let more = if missing.len() > 3 { format!(" and {} more", missing.len() - 3) } else { String::new() };
                 write!(
                     f,
@@ -70,11 +71,12 @@ impl fmt::Display for CalibrateError {
             }
             CalibrateError::OneValue { layer, shape } => write!(
                 f,
-                "BatchNorm `{layer}` sees one value per channel (input shape {shape:?}); PyTorch refuses this in train \
-                 mode: give batches of more samples"
+                "BatchNorm `{}` sees one value per channel (input shape {shape:?}); PyTorch refuses this in train \
+                 mode: give batches of more samples",
+                escaped(layer)
             ),
             CalibrateError::NotFinite { layer, channel } => {
-                write!(f, "BatchNorm `{layer}`: the batch statistics of channel {channel} are not finite")
+                write!(f, "BatchNorm `{}`: the batch statistics of channel {channel} are not finite", escaped(layer))
             }
             CalibrateError::NoBatches => f.write_str("no batch has been calibrated"),
             CalibrateError::Derived { tensor, index, value, cause } => {

@@ -28,7 +28,7 @@ use readi_plan::key::VariantKey;
 pub use readi_plan::key::fmt_level;
 
 use crate::exec::Input;
-use crate::plan::Plan;
+use crate::plan::{Plan, escaped};
 
 /// Sum and sum of squares in sixteen f32 lanes (so the loop vectorises), folded in f64
 /// every block so long inputs keep their precision; blocks run in parallel.
@@ -158,6 +158,8 @@ pub enum SelectError {
     NoMeld { conditions: Vec<String> },
     /// A required input is absent.
     MissingRequired { input: String },
+    /// Metadata that no selector reads (a misspelt name would otherwise be ignored).
+    UnknownMeta { name: String, known: Vec<String> },
 }
 
 impl std::fmt::Display for SelectError {
@@ -169,7 +171,12 @@ impl std::fmt::Display for SelectError {
                  add a `meld` rule to the variants section",
                 conditions.join(" and ")
             ),
-            SelectError::MissingRequired { input } => write!(f, "required input `{input}` is absent"),
+            SelectError::MissingRequired { input } => write!(f, "required input `{}` is absent", escaped(input)),
+            SelectError::UnknownMeta { name, known } => {
+                let known: Vec<String> = known.iter().map(|k| format!("`{}`", escaped(k))).collect();
+                let read = if known.is_empty() { "none".to_string() } else { known.join(", ") };
+                write!(f, "no selector reads metadata `{}` (the plan's selectors read: {read})", escaped(name))
+            }
         }
     }
 }
@@ -195,10 +202,12 @@ pub fn select_frame(
         if !absent_modalities.contains(&m) {
             absent_modalities.push(m);
             match policy {
-                MissingPolicy::ZeroFill => reasons.push(format!("`{}` is absent: zero-filled ({m} policy)", i.name)),
+                MissingPolicy::ZeroFill => {
+                    reasons.push(format!("`{}` is absent: zero-filled ({} policy)", escaped(i.name), escaped(m)))
+                }
                 MissingPolicy::Variant => {
                     let key = VariantKey::missing(m);
-                    reasons.push(format!("`{}` is absent: the {m} policy selects `{key}`", i.name));
+                    reasons.push(format!("`{}` is absent: the {} policy selects `{key}`", escaped(i.name), escaped(m)));
                     picked.push((key, None));
                 }
             }
@@ -211,16 +220,16 @@ pub fn select_frame(
         }
         let (value, source) = match &s.source {
             KeySource::Meta(k) => match meta.iter().find(|(n, _)| n == k) {
-                Some((_, v)) => (*v, format!("meta `{k}` = {}", fmt_value(*v))),
+                Some((_, v)) => (*v, format!("meta `{}` = {}", escaped(k), fmt_value(*v))),
                 None => {
-                    reasons.push(format!("{}: no metadata `{k}`; clear", s.axis));
+                    reasons.push(format!("{}: no metadata `{}`; clear", escaped(&s.axis), escaped(k)));
                     continue;
                 }
             },
             KeySource::Stat { stat, input } => match inputs.iter().find(|i| i.name == input).and_then(|i| i.data) {
                 Some((data, shape)) => {
                     let v = statistic(*stat, data, shape);
-                    (v, format!("{}({input}) = {}", stat.name(), fmt_value(v)))
+                    (v, format!("{}({}) = {}", stat.name(), escaped(input), fmt_value(v)))
                 }
                 None => continue,
             },
@@ -237,10 +246,10 @@ pub fn select_frame(
                 .and_then(|a| a.level)
         };
         match level {
-            None => reasons.push(format!("{}: {source} -> clear", s.axis)),
+            None => reasons.push(format!("{}: {source} -> clear", escaped(&s.axis))),
             Some(l) => {
                 let key = VariantKey::level(&s.axis, l);
-                reasons.push(format!("{}: {source} -> {key}", s.axis));
+                reasons.push(format!("{}: {source} -> {key}", escaped(&s.axis)));
                 picked.push((key, Some(axis)));
             }
         }
@@ -321,6 +330,21 @@ pub fn select(plan: &Plan, inputs: &[Input<'_>], meta: &[(String, f64)]) -> Resu
             return Err(SelectError::MissingRequired { input: spec.name.clone() });
         }
     }
+    let read_meta: Vec<&str> = m
+        .conditions
+        .iter()
+        .flat_map(|c| &c.selectors)
+        .filter_map(|s| match &s.source {
+            KeySource::Meta(k) => Some(k.as_str()),
+            KeySource::Stat { .. } => None,
+        })
+        .collect();
+    if let Some((name, _)) = meta.iter().find(|(n, _)| !read_meta.contains(&n.as_str())) {
+        return Err(SelectError::UnknownMeta {
+            name: name.clone(),
+            known: read_meta.iter().map(|k| k.to_string()).collect(),
+        });
+    }
     let Some(c) = &m.conditions else {
         return Ok(Selection { key: VariantKey::base(), reasons: vec!["the plan declares no conditions".into()] });
     };
@@ -365,7 +389,7 @@ pub fn missing_variant(plan: &Plan, inputs: &[Input<'_>]) -> Option<(VariantKey,
         let policy = c.missing.iter().find(|(mm, _)| mm == m).map(|(_, p)| *p)?;
         let key = VariantKey::missing(m);
         (policy == MissingPolicy::Variant && plan.variant_index_of(&key).is_some()).then(|| {
-            let why = format!("`{}` is absent: the {m} policy selects `{key}`", i.name);
+            let why = format!("`{}` is absent: the {} policy selects `{key}`", escaped(&i.name), escaped(m));
             (key, why)
         })
     })

@@ -38,3 +38,12 @@ fn an_input_with_an_undeclared_symbol_is_refused() {
     let e = Plan::new(m, tensors).expect_err("must be refused").to_string();
     assert!(e.contains("input `x` has an invalid dimension M"), "{e}");
 }
+
+#[test]
+fn a_symbol_that_is_not_an_identifier_is_refused() {
+    // Symbols are printed in every shape: one that could hold escape sequences is refused.
+    let (mut m, tensors) = edited(Vec::clear);
+    m.symbols[0] = "N\u{1b}[2J".into();
+    let e = Plan::new(m, tensors).expect_err("must be refused").to_string();
+    assert!(e.contains("symbol `N\\u{1b}[2J` is not an identifier"), "{e}");
+}

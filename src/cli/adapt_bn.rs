@@ -13,11 +13,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use readi_grammar::diag::suggest;
 use readi_plan::VariantKey;
 use readi_runtime::calibrate::{BnCalibrator, BnStats};
-use readi_runtime::exec::Input;
+use readi_runtime::exec::{Input, SessionOptions};
 use readi_runtime::plan::{BASE_VARIANT, Plan};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use super::{tensor_io, threads_or_default};
+use super::tensor_io;
 
 /// What `readi adapt-bn` was asked to do.
 pub struct Args<'a> {
@@ -26,6 +26,8 @@ pub struct Args<'a> {
     pub samples: &'a [PathBuf],
     pub output: &'a Path,
     pub threads: usize,
+    /// `--max-memory`: each batch's footprint is checked against it before it runs.
+    pub max_memory: usize,
 }
 
 /// Runs `readi adapt-bn`; the error is the message to print.
@@ -42,8 +44,13 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     for path in args.samples {
         bar.set_message(path.display().to_string());
         // One batch in memory at a time: read, run, drop.
-        let batch = read_batch(&plan, path, &bar)?;
+        let batch = read_batch(&plan, path, args.max_memory, &bar)?;
         let inputs: Vec<Input<'_>> = batch.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
+        let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
+        readi_runtime::exec::check_fits(&plan, &inputs, &options).map_err(|e| {
+            bar.abandon();
+            format!("{}: {e}", path.display())
+        })?;
         cal.add_batch(&inputs).map_err(|e| {
             bar.abandon();
             format!("{}: {e}", path.display())
@@ -113,7 +120,7 @@ type Batch = Vec<(String, Vec<usize>, Vec<f32>)>;
 /// Reads one sample file: a `.npy` for a model with one input, or a `.safetensors` holding
 /// the inputs by name (a single tensor serves a single-input model whatever its name).
 /// Absent optional inputs are left to the runtime (zero-filled).
-fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, String> {
+fn read_batch(plan: &Plan, path: &Path, limit: usize, bar: &ProgressBar) -> Result<Batch, String> {
     let shown = path.display();
     let inputs = &plan.manifest.inputs;
     let names: Vec<&str> = inputs.iter().map(|i| i.name.as_str()).collect();
@@ -127,13 +134,13 @@ fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, Stri
                 names.join(", ")
             ));
         };
-        let (shape, data) = tensor_io::read_input(&only.name, path)?;
+        let (shape, data) = tensor_io::read_input(&only.name, path, limit)?;
         return Ok(vec![(only.name.clone(), shape, data)]);
     }
     if ext != "safetensors" {
         return Err(format!("{shown}: samples are read from .npy or .safetensors files"));
     }
-    let bytes = super::deploy::read_bounded(path, super::deploy::MAX_WEIGHTS_BYTES)?;
+    let bytes = tensor_io::read_limited(path, limit)?;
     let st = SafeTensors::deserialize(&bytes).map_err(|e| format!("{shown}: not a safetensors file ({e})"))?;
     let held: Vec<String> = st.names().into_iter().map(String::from).collect();
     let single = inputs.len() == 1 && held.len() == 1;
@@ -155,7 +162,7 @@ fn read_batch(plan: &Plan, path: &Path, bar: &ProgressBar) -> Result<Batch, Stri
             }
             return Err(format!("{shown}: no tensor for input `{}` (it holds: {})", spec.name, held.join(", ")));
         }
-        let (shape, data) = tensor_io::read_input(&spec.name, path)?;
+        let (shape, data) = tensor_io::read_input(&spec.name, path, limit)?;
         batch.push((spec.name.clone(), shape, data));
     }
     Ok(batch)
@@ -195,9 +202,9 @@ pub fn run(
     variant: &str,
     samples: &[PathBuf],
     output: &Path,
-    threads: Option<usize>,
+    session: SessionOptions,
 ) -> Result<(), ExitCode> {
-    let args = Args { plan, variant, samples, output, threads: threads_or_default(threads) };
+    let args = Args { plan, variant, samples, output, threads: session.threads, max_memory: session.max_memory };
     adapt(&args).map_err(|msg| {
         eprintln!("error: {msg}");
         ExitCode::FAILURE

@@ -46,8 +46,8 @@ pub struct ModelArgs {
     /// Refuse a model whose activations at batch size 1 take more than SIZE (one value,
     /// or the values alive at once): bytes, or with a suffix K, M, G, T (powers of 1024):
     /// `512M`, `2G` [default: 4G].
-    #[arg(long, value_name = "SIZE", value_parser = parse_size)]
-    pub max_activation_memory: Option<u64>,
+    #[arg(long, value_name = "SIZE", value_parser = parse_memory)]
+    pub max_activation_memory: Option<usize>,
 }
 
 #[derive(Subcommand)]
@@ -167,9 +167,13 @@ pub enum Command {
         /// only output), or `NAME=FILE.npy` for one output (repeatable).
         #[arg(long = "output", value_name = "FILE")]
         outputs: Vec<String>,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
+        /// Worker threads, 1 to 256 (default: all cores).
+        #[arg(long, value_parser = parse_threads)]
         threads: Option<usize>,
+        /// Most memory a run may take (activation buffers, scratch, inputs, outputs): bytes, or
+        /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
+        #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
+        max_memory: Option<usize>,
         /// The variant to run, by key (`fog=0.03`); default the base model.
         #[arg(long, value_name = "KEY", conflicts_with = "auto")]
         variant: Option<String>,
@@ -188,17 +192,17 @@ pub enum Command {
     #[command(after_help = "Example:\n  readi bench r18.plan --threads 2 --runs 50")]
     Bench {
         plan: PathBuf,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
+        /// Worker threads, 1 to 256 (default: all cores).
+        #[arg(long, value_parser = parse_threads)]
         threads: Option<usize>,
-        /// Timed runs.
-        #[arg(long, default_value_t = 20)]
+        /// Timed runs (at least 1).
+        #[arg(long, default_value_t = 20, value_parser = parse_positive)]
         runs: usize,
         /// Untimed runs first.
         #[arg(long, default_value_t = 3)]
         warmup: usize,
-        /// Batch size bound to the plan's symbolic batch dimension.
-        #[arg(long, default_value_t = 1)]
+        /// Batch size bound to the plan's symbolic batch dimension (at least 1).
+        #[arg(long, default_value_t = 1, value_parser = parse_positive)]
         batch: usize,
         /// Also print the time of each step (the slowest first) and per kernel kind.
         #[arg(long)]
@@ -206,6 +210,10 @@ pub enum Command {
         /// The variant to time, by key; default the base model.
         #[arg(long, value_name = "KEY")]
         variant: Option<String>,
+        /// Most memory a run may take (activation buffers, scratch, inputs, outputs): bytes, or
+        /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
+        #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
+        max_memory: Option<usize>,
     },
     /// Describe a plan: inputs, outputs, parameters, bytes, schedule and buffers.
     #[command(after_help = "Example:\n  readi inspect r18.plan")]
@@ -214,6 +222,10 @@ pub enum Command {
         /// Also list every parameter and every step.
         #[arg(long)]
         verbose: bool,
+        /// The memory limit to compare the plan's footprint with (as for `readi run`):
+        /// bytes, or `512M`, `2G`; default half the physical memory.
+        #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
+        max_memory: Option<usize>,
     },
     /// Apply the paper's conditions to an input: lidar fog or snow, camera gamma and/or blur.
     #[command(after_help = readi::simulate::EXAMPLES)]
@@ -240,9 +252,13 @@ pub enum Command {
         /// The safetensors file to write (`<bn>.running_mean`, `<bn>.running_var`).
         #[arg(short, long)]
         output: PathBuf,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
+        /// Worker threads, 1 to 256 (default: all cores).
+        #[arg(long, value_parser = parse_threads)]
         threads: Option<usize>,
+        /// Most memory a run may take (activation buffers, scratch, inputs, outputs): bytes, or
+        /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
+        #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
+        max_memory: Option<usize>,
     },
     /// Compile the bundled BEVFusion-tiny model with seeded weights and variants; drive through changing conditions.
     Demo {
@@ -255,23 +271,55 @@ pub enum Command {
     },
 }
 
-/// `4096`, `512K`, `512M`, `2G`, `1T` (also `2GiB`, `2GB`: powers of 1024 all), not 0.
-pub fn parse_size(s: &str) -> Result<u64, String> {
+/// Most worker threads `--threads` accepts.
+pub const MAX_THREADS: usize = 256;
+
+/// `--threads`: 1 to [`MAX_THREADS`].
+fn parse_threads(s: &str) -> Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(n @ 1..=MAX_THREADS) => Ok(n),
+        Ok(n) => Err(format!("{n} threads: give 1 to {MAX_THREADS}")),
+        Err(_) => Err(format!("`{s}` is not a thread count (1 to {MAX_THREADS})")),
+    }
+}
+
+/// A count of at least 1 (`--batch`, `--runs`).
+fn parse_positive(s: &str) -> Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(_) => Err(format!("`{s}` is not a positive whole number")),
+    }
+}
+
+/// A memory size: bytes (`1048576`), or a number with a unit `K`, `M`, `G` or `T`
+/// (powers of 1024; `KiB`, `MB` and `GiB` are read the same), `1.5G` too.
+pub fn parse_memory(s: &str) -> Result<usize, String> {
     let t = s.trim();
-    let digits = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
-    let (num, unit) = t.split_at(digits);
-    let shift = match unit.to_ascii_lowercase().as_str() {
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (number, unit) = t.split_at(split);
+    let shift = match unit.trim().to_ascii_lowercase().as_str() {
         "" | "b" => 0,
         "k" | "kb" | "kib" => 10,
         "m" | "mb" | "mib" => 20,
         "g" | "gb" | "gib" => 30,
         "t" | "tb" | "tib" => 40,
-        _ => return Err(format!("`{s}` is not a size: write bytes, or a number with K, M, G or T (`512M`, `2G`)")),
+        _ => return Err(format!("`{s}`: unknown unit `{unit}`; write bytes, or a number with K, M, G or T")),
     };
-    let n: u64 = num.parse().map_err(|_| format!("`{s}` is not a size: it must start with a whole number"))?;
-    let bytes = n.checked_mul(1u64 << shift).ok_or_else(|| format!("`{s}` is too large a size"))?;
+    let bad = || format!("`{s}` is not a memory size (bytes, or a number with K, M, G or T: 512M, 2G)");
+    let bytes = if let Ok(n) = number.parse::<u64>() {
+        n.checked_mul(1u64 << shift).ok_or_else(bad)?
+    } else {
+        let x: f64 = number.parse().map_err(|_| bad())?;
+        let b = x * (1u64 << shift) as f64;
+        if !(b.is_finite() && b >= 0.0 && b < u64::MAX as f64) {
+            return Err(bad());
+        }
+        b as u64
+    };
+    let bytes = usize::try_from(bytes).map_err(|_| bad())?;
     if bytes == 0 {
-        return Err("the size must be more than 0".to_string());
+        return Err(format!("`{s}`: the memory limit must be more than 0 bytes"));
     }
     Ok(bytes)
 }
@@ -338,4 +386,33 @@ fn parse_pass(s: &str) -> Result<Pass, String> {
         let names: Vec<&str> = PIPELINE.iter().map(|p| p.1).collect();
         format!("unknown pass `{s}`; passes: {}", names.join(", "))
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn memory_sizes() {
+        assert_eq!(parse_memory("1048576"), Ok(1 << 20));
+        assert_eq!(parse_memory("512M"), Ok(512 << 20));
+        assert_eq!(parse_memory("2G"), Ok(2 << 30));
+        assert_eq!(parse_memory("2GiB"), Ok(2 << 30));
+        assert_eq!(parse_memory("1.5g"), Ok(3 << 29));
+        assert_eq!(parse_memory("64 KiB"), Ok(64 << 10));
+        assert!(parse_memory("0").expect_err("zero").contains("more than 0"));
+        assert!(parse_memory("12X").expect_err("unit").contains("unknown unit"));
+        assert!(parse_memory("-1G").is_err());
+        assert!(parse_memory("99999999999T").is_err());
+        assert!(parse_memory("").is_err());
+    }
+
+    #[test]
+    fn counts_and_threads() {
+        assert_eq!(parse_positive("3"), Ok(3));
+        assert!(parse_positive("0").expect_err("zero").contains("at least 1"));
+        assert_eq!(parse_threads("256"), Ok(256));
+        assert!(parse_threads("0").expect_err("zero").contains("1 to 256"));
+        assert!(parse_threads("100000").expect_err("too many").contains("1 to 256"));
+    }
 }

@@ -4,10 +4,10 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use readi_runtime::exec::{Input, Session};
-use readi_runtime::plan::Plan;
+use readi_runtime::exec::{Input, Session, SessionOptions};
+use readi_runtime::plan::{Plan, escaped};
 
-use super::{load_plan, threads_or_default};
+use super::load_plan;
 
 /// Seeded inputs for every input of a plan at the given batch size.
 fn synthetic_inputs(plan: &Plan, batch: usize, seed: u64) -> Vec<(String, Vec<usize>, Vec<f32>)> {
@@ -38,7 +38,7 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 
 pub fn run(
     plan_path: &Path,
-    threads: Option<usize>,
+    options: SessionOptions,
     runs: usize,
     warmup: usize,
     batch: usize,
@@ -50,36 +50,40 @@ pub fn run(
         eprintln!("error: {msg}");
         ExitCode::FAILURE
     };
-    let threads = threads_or_default(threads);
-    let mut session = Session::new(plan.clone(), threads).map_err(|e| fail(e.to_string()))?;
+    let threads = options.threads;
+    let mut session = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
     if let Some(key) = variant {
         session.set_variant(key).map_err(|e| fail(e.to_string()))?;
     }
-    let data = synthetic_inputs(&plan, batch.max(1), 42);
+    // Bound first: a batch too large for the memory limit (or for the address space) is
+    // refused before the inputs are made.
+    session.bind_batch(batch).map_err(|e| fail(format!("{}: batch {batch}: {e}", plan_path.display())))?;
+    let data = synthetic_inputs(&plan, batch, 42);
     let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
+    let shown = plan_path.display();
     for _ in 0..warmup {
-        session.run(&given).map_err(|e| fail(e.to_string()))?;
+        session.run(&given).map_err(|e| fail(format!("{shown}: {e}")))?;
     }
     if profile {
         session.enable_profiling();
     }
-    let mut times = Vec::with_capacity(runs.max(1));
-    for _ in 0..runs.max(1) {
+    let mut times = Vec::with_capacity(runs);
+    for _ in 0..runs {
         let t = Instant::now();
-        session.run(&given).map_err(|e| fail(e.to_string()))?;
+        session.run(&given).map_err(|e| fail(format!("{shown}: {e}")))?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
     }
     times.sort_by(f64::total_cmp);
     println!(
         "{} ({}): batch {}, {} threads, {} runs: median {:.2} ms, p90 {:.2} ms, min {:.2} ms",
-        plan.manifest.model,
+        escaped(&plan.manifest.model),
         session.variant(),
-        batch.max(1),
+        batch,
         threads,
         times.len(),
         percentile(&times, 0.5),
         percentile(&times, 0.9),
-        times[0]
+        times.first().copied().unwrap_or(0.0)
     );
     if let Some(p) = session.profile() {
         print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));

@@ -60,7 +60,7 @@ impl Frontend {
 
 fn options(model: &ModelArgs, stop_after: Option<Pass>) -> Options {
     let mut opts = Options { stop_after, ..Options::with_overrides(&model.set) };
-    opts.elab.max_activation_bytes = model.max_activation_memory;
+    opts.elab.max_activation_bytes = model.max_activation_memory.map(|b| b as u64);
     opts
 }
 

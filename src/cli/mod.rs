@@ -5,6 +5,7 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::sync::Arc;
 
+use readi_runtime::exec::SessionOptions;
 use readi_runtime::plan::Plan;
 
 pub mod adapt_bn;
@@ -26,6 +27,16 @@ pub mod tensor_io;
 /// `--threads`, or every core.
 pub fn threads_or_default(threads: Option<usize>) -> usize {
     threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)).max(1)
+}
+
+/// `--threads` and `--max-memory` as session options (defaults: every core, half the
+/// physical memory).
+pub fn session_options(threads: Option<usize>, max_memory: Option<usize>) -> SessionOptions {
+    let options = SessionOptions::default().threads(threads_or_default(threads));
+    match max_memory {
+        Some(bytes) => options.max_memory(bytes),
+        None => options,
+    }
 }
 
 /// Loads a plan file; the error is printed.

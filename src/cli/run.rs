@@ -6,9 +6,10 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use readi_runtime::conditions;
-use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::exec::{Input, Session, SessionOptions, Tensor};
+use readi_runtime::plan::escaped;
 
-use super::{load_plan, tensor_io, threads_or_default};
+use super::{load_plan, tensor_io};
 
 /// Which variant a run uses.
 pub enum Choice {
@@ -34,7 +35,7 @@ pub fn run(
     plan_path: &Path,
     inputs: &[(String, String)],
     outputs: &[String],
-    threads: Option<usize>,
+    options: SessionOptions,
     choice: Choice,
     drop_views: &[(String, Vec<usize>)],
 ) -> Result<(), ExitCode> {
@@ -43,9 +44,10 @@ pub fn run(
         eprintln!("error: {msg}");
         ExitCode::FAILURE
     };
+    let destinations = destinations(&plan.manifest, outputs).map_err(fail)?;
     let mut loaded = Vec::new();
     for (name, file) in inputs {
-        loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file)).map_err(fail)?));
+        loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file), options.max_memory).map_err(fail)?));
     }
     for (name, views) in drop_views {
         let Some((_, (shape, data))) = loaded.iter_mut().find(|(n, _)| n == name) else {
@@ -53,7 +55,7 @@ pub fn run(
         };
         conditions::drop_views(data, shape, views).map_err(|e| fail(format!("input `{name}`: {e}")))?;
     }
-    let mut session = Session::new(plan.clone(), threads_or_default(threads)).map_err(|e| fail(e.to_string()))?;
+    let mut session = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
     let given: Vec<Input<'_>> = loaded.iter().map(|(name, (shape, data))| Input { name, data, shape }).collect();
     match choice {
         Choice::Base => {
@@ -75,10 +77,10 @@ pub fn run(
         }
     }
     let start = Instant::now();
-    let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
+    let result = session.run(&given).map_err(|e| fail(format!("{}: {e}", plan_path.display())))?;
     let elapsed = start.elapsed();
     for (name, t) in &result {
-        println!("{name}: {}", describe(t));
+        println!("{}: {}", escaped(name), describe(t));
     }
     println!(
         "ran variant {} in {:.2} ms on {} threads",
@@ -86,17 +88,50 @@ pub fn run(
         elapsed.as_secs_f64() * 1e3,
         session.threads()
     );
-    let names: Vec<&str> = result.iter().map(|(n, _)| n.as_str()).collect();
-    for spec in outputs {
-        match spec.split_once('=').filter(|(n, _)| names.contains(n)) {
-            Some((name, file)) => {
-                let t = result.iter().find(|(n, _)| n == name).map(|(_, t)| t);
-                if let Some(t) = t {
+    for dest in destinations {
+        match dest {
+            Destination::One(name, file) => {
+                if let Some((_, t)) = result.iter().find(|(n, _)| n == name) {
                     tensor_io::write_npy(Path::new(file), t).map_err(fail)?;
                 }
             }
-            None => tensor_io::write_outputs(Path::new(spec), &result).map_err(fail)?,
+            Destination::All(file) => tensor_io::write_outputs(Path::new(file), &result).map_err(fail)?,
         }
     }
     Ok(())
+}
+
+/// Where `--output` writes.
+enum Destination<'a> {
+    /// `NAME=FILE.npy`: one output.
+    One(&'a str, &'a str),
+    /// `FILE`: every output (or the only one).
+    All(&'a str),
+}
+
+/// Reads the `--output` arguments before anything runs: `NAME=FILE` names an output of
+/// the plan (an unknown name is an error listing them); an argument whose part before
+/// `=` holds a path separator is a file name (`./a=b.npy`).
+fn destinations<'a>(m: &readi_runtime::plan::Manifest, specs: &'a [String]) -> Result<Vec<Destination<'a>>, String> {
+    let mut out = Vec::with_capacity(specs.len());
+    for spec in specs {
+        match spec.split_once('=') {
+            Some((name, file)) if !name.contains(['/', '\\']) => {
+                if !m.outputs.iter().any(|o| o.name == name) {
+                    let names: Vec<String> = m.outputs.iter().map(|o| format!("`{}`", escaped(&o.name))).collect();
+                    return Err(format!(
+                        "--output {}: the model has no output `{}` (its outputs: {}); to write a file whose name \
+                         holds `=`, write it as ./{}",
+                        escaped(spec),
+                        escaped(name),
+                        names.join(", "),
+                        escaped(spec)
+                    ));
+                }
+                out.push(Destination::One(name, file));
+            }
+            _ => out.push(Destination::All(spec)),
+        }
+    }
+    Ok(out)
 }

@@ -6,6 +6,7 @@ use std::path::Path;
 use ndarray::{ArrayD, IxDyn};
 use ndarray_npy::{ReadNpyExt, WriteNpyExt};
 use readi_runtime::exec::Tensor;
+use readi_runtime::plan::escaped;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 /// A tensor read from a file: f32 data and shape.
@@ -15,12 +16,79 @@ fn extension(path: &Path) -> String {
     path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
 }
 
+/// Checks that `path` is a regular file of at most `limit` bytes (not a device such as
+/// `/dev/zero`, a FIFO or a directory) and returns its length.
+pub fn check_file(path: &Path, limit: usize) -> Result<u64, String> {
+    let shown = path.display();
+    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    if !meta.is_file() {
+        return Err(format!("{shown} is not a regular file"));
+    }
+    if meta.len() > limit as u64 {
+        return Err(format!(
+            "{shown} holds {} bytes, more than the limit of {limit} bytes (raise it with --max-memory)",
+            meta.len()
+        ));
+    }
+    Ok(meta.len())
+}
+
+/// Reads a whole file after [`check_file`].
+pub fn read_limited(path: &Path, limit: usize) -> Result<Vec<u8>, String> {
+    check_file(path, limit)?;
+    std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
+}
+
+/// The shape and data bytes a `.npy` header declares and the bytes the file holds after
+/// the header, when the header can be read (`None`: the reader reports what is wrong).
+fn npy_sizes(path: &Path, file_len: u64) -> Option<(Vec<usize>, u64, u64)> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).ok()?;
+    let mut head = [0u8; 12];
+    f.read_exact(&mut head[..10]).ok()?;
+    if &head[..6] != b"\x93NUMPY" {
+        return None;
+    }
+    let (len, prefix) = match head[6] {
+        1 => (u16::from_le_bytes([head[8], head[9]]) as u64, 10),
+        2 | 3 => {
+            f.read_exact(&mut head[10..12]).ok()?;
+            (u32::from_le_bytes([head[8], head[9], head[10], head[11]]) as u64, 12)
+        }
+        _ => return None,
+    };
+    if len > 1 << 20 || prefix + len > file_len {
+        return None;
+    }
+    let mut header = vec![0u8; len as usize];
+    f.read_exact(&mut header).ok()?;
+    let header = String::from_utf8(header).ok()?;
+    let descr = header.split("'descr'").nth(1)?.split('\'').nth(1)?;
+    let item: u64 = descr.get(2..)?.parse().ok()?;
+    let shape_text = header.split("'shape'").nth(1)?.split('(').nth(1)?.split(')').next()?;
+    let shape: Option<Vec<usize>> =
+        shape_text.split(',').map(str::trim).filter(|d| !d.is_empty()).map(|d| d.parse().ok()).collect();
+    let shape = shape?;
+    let want = shape.iter().try_fold(item, |a, &d| a.checked_mul(d as u64))?;
+    Some((shape, want, file_len - prefix - len))
+}
+
 /// Reads the tensor for input `name` from a `.npy` file, or from a `.safetensors` file
-/// (the tensor called `name`, or its only tensor). f64, f16 and bf16 are converted.
-pub fn read_input(name: &str, path: &Path) -> Result<Loaded, String> {
+/// (the tensor called `name`, or its only tensor), a regular file of at most `limit`
+/// bytes. f64, f16 and bf16 are converted.
+pub fn read_input(name: &str, path: &Path, limit: usize) -> Result<Loaded, String> {
     let shown = path.display();
     match extension(path).as_str() {
         "npy" => {
+            let len = check_file(path, limit)?;
+            if let Some((shape, want, have)) = npy_sizes(path, len)
+                && have < want
+            {
+                return Err(format!(
+                    "{shown}: truncated .npy file: its header declares shape {shape:?}, {want} bytes of data, \
+                     but the file holds {have}"
+                ));
+            }
             let file = || std::fs::File::open(path).map_err(|e| format!("cannot read {shown}: {e}"));
             if let Ok(a) = ArrayD::<f32>::read_npy(file()?) {
                 return Ok((a.shape().to_vec(), a.iter().copied().collect()));
@@ -31,7 +99,7 @@ pub fn read_input(name: &str, path: &Path) -> Result<Loaded, String> {
             }
         }
         "safetensors" => {
-            let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+            let bytes = read_limited(path, limit)?;
             let st = SafeTensors::deserialize(&bytes).map_err(|e| format!("{shown}: not a safetensors file ({e})"))?;
             let names = st.names();
             let key = if names.contains(&name) {
@@ -39,7 +107,8 @@ pub fn read_input(name: &str, path: &Path) -> Result<Loaded, String> {
             } else if names.len() == 1 {
                 names[0].to_string()
             } else {
-                return Err(format!("{shown} has no tensor `{name}` (it has: {})", names.join(", ")));
+                let names: Vec<String> = names.iter().map(|n| escaped(n).into_owned()).collect();
+                return Err(format!("{shown} has no tensor `{}` (it has: {})", escaped(name), names.join(", ")));
             };
             let view = st.tensor(&key).map_err(|e| format!("{shown}: {e}"))?;
             let data = view.data();
@@ -51,7 +120,9 @@ pub fn read_input(name: &str, path: &Path) -> Result<Loaded, String> {
                     .collect(),
                 Dtype::F16 => data.chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
                 Dtype::BF16 => data.chunks_exact(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
-                other => return Err(format!("{shown}: tensor `{key}` has dtype {other:?}; inputs are floats")),
+                other => {
+                    return Err(format!("{shown}: tensor `{}` has dtype {other:?}; inputs are floats", escaped(&key)));
+                }
             };
             Ok((view.shape().to_vec(), values))
         }
@@ -65,7 +136,7 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), St
     match extension(path).as_str() {
         "npy" => {
             let [(_, t)] = outputs else {
-                let names: Vec<&str> = outputs.iter().map(|(n, _)| n.as_str()).collect();
+                let names: Vec<String> = outputs.iter().map(|(n, _)| escaped(n).into_owned()).collect();
                 return Err(format!(
                     "the model has {} outputs ({}); write them to a .safetensors file, or pick one with --output NAME={shown}",
                     outputs.len(),
@@ -79,7 +150,8 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), St
                 outputs.iter().map(|(_, t)| t.data.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
             let mut views = Vec::new();
             for ((name, t), b) in outputs.iter().zip(&bytes) {
-                let view = TensorView::new(Dtype::F32, t.shape.clone(), b).map_err(|e| format!("{name}: {e}"))?;
+                let view =
+                    TensorView::new(Dtype::F32, t.shape.clone(), b).map_err(|e| format!("{}: {e}", escaped(name)))?;
                 views.push((name.clone(), view));
             }
             let data = safetensors::serialize(views, None::<HashMap<String, String>>).map_err(|e| e.to_string())?;
@@ -108,11 +180,21 @@ mod tests {
         let t = Tensor { shape: vec![2, 3], data: vec![1.0, -2.0, 3.5, 0.0, 5.0, -6.25] };
         let npy = dir.join("x.npy");
         write_npy(&npy, &t).expect("write npy");
-        assert_eq!(read_input("x", &npy).expect("read npy"), (t.shape.clone(), t.data.clone()));
+        assert_eq!(read_input("x", &npy, 1 << 20).expect("read npy"), (t.shape.clone(), t.data.clone()));
         let st = dir.join("out.safetensors");
         write_outputs(&st, &[("y".into(), t.clone()), ("z".into(), t.clone())]).expect("write safetensors");
-        assert_eq!(read_input("z", &st).expect("read by name"), (t.shape.clone(), t.data.clone()));
-        assert!(read_input("w", &st).expect_err("no such tensor").contains("has no tensor `w`"));
+        assert_eq!(read_input("z", &st, 1 << 20).expect("read by name"), (t.shape.clone(), t.data.clone()));
+        assert!(read_input("w", &st, 1 << 20).expect_err("no such tensor").contains("has no tensor `w`"));
+        // Truncated: the header is intact, the data short.
+        let bytes = std::fs::read(&npy).expect("read back");
+        let cut = dir.join("cut.npy");
+        std::fs::write(&cut, &bytes[..bytes.len() - 5]).expect("write");
+        let err = read_input("x", &cut, 1 << 20).expect_err("truncated");
+        assert!(
+            err.contains("cut.npy: truncated .npy file") && err.contains("24 bytes of data, but the file holds 19"),
+            "{err}"
+        );
+        assert!(read_input("x", &npy, 16).expect_err("over the limit").contains("more than the limit of 16 bytes"));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -109,6 +109,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         params,
         variants: Vec::new(),
         conditions: module.variants.clone(),
+        footprint: None,
     };
     // The tensors a variant may replace: those a kernel reads or a value stores (not the
     // BatchNorm records, which only AdaBN reads).

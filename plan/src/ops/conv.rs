@@ -106,7 +106,7 @@ impl Conv2dShape {
 
     /// Rows of the im2col matrix: one per (input channel of a group, ky, kx).
     pub fn k(&self) -> usize {
-        self.cin_g() * self.kh * self.kw
+        self.cin_g().saturating_mul(self.kh).saturating_mul(self.kw)
     }
 
     /// A 3x3, stride-1, undilated layer: what Winograd computes.
@@ -202,13 +202,15 @@ impl ConvAlgo {
         }
     }
 
-    /// Length of the weight packed for this algorithm.
+    /// Length of the weight packed for this algorithm; saturates at `usize::MAX` (which
+    /// no stored tensor has, so a plan declaring such a layer is refused).
     pub fn packed_len(self, s: &Conv2dShape) -> usize {
-        match self {
-            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => s.cout * s.k(),
-            ConvAlgo::Winograd2 => 16 * s.cout * s.cin_g(),
-            ConvAlgo::Winograd4 => 36 * s.cout * s.cin_g(),
-        }
+        let per = match self {
+            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => s.k(),
+            ConvAlgo::Winograd2 => s.cin_g().saturating_mul(16),
+            ConvAlgo::Winograd4 => s.cin_g().saturating_mul(36),
+        };
+        s.cout.saturating_mul(per)
     }
 }
 

@@ -40,7 +40,7 @@ impl Operator for Pool2d {
             return Err(ShapeError::new(format!("{name} has dilation {}, but pooling supports 1", pair(w.dilation))));
         }
         for i in 0..2 {
-            if w.padding[i] * 2 > w.kernel[i] {
+            if w.padding[i].checked_mul(2).is_none_or(|p| p > w.kernel[i]) {
                 return Err(ShapeError::new(format!(
                     "{name} padding {} must be at most half the kernel size {}",
                     w.padding[i], w.kernel[i]

@@ -6,7 +6,10 @@
 use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
-use crate::plan::{Kernel, Manifest, Plan, Step, Storage, show_shape};
+use crate::kernels::{elementwise, layout as layout_k, linear, norm, pool, reduce, resize, softmax};
+use readi_plan::ops::Pure;
+
+use crate::plan::{EpilogueSpec, Kernel, Manifest, Plan, Step, Storage, show_shape};
 
 use super::{Input, RunError, bad};
 
@@ -21,6 +24,8 @@ pub(crate) struct Bound {
     pub(crate) convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
     /// Zero-filled buffers for absent optional inputs, by input index.
     pub(super) zeros: Vec<Vec<f32>>,
+    /// What this binding takes.
+    pub(super) footprint: Footprint,
 }
 
 /// Binds the symbols from the given inputs' shapes into `symbols` (in `m.symbols` order)
@@ -95,71 +100,303 @@ pub(super) fn bind_symbols(
     Ok(())
 }
 
-/// Evaluates shapes, checks the steps, and allocates buffers for one binding of the
-/// symbols (values in `manifest.symbols` order).
-///
-/// The checks read the base's tensors. Every variant's replacement has exactly its base
-/// tensor's shape (checked when the plan was built), so they hold under every variant
-/// and a switch needs no new check.
-pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize) -> Result<Bound, RunError> {
+/// Values shown by name in a [`RunError::OverBudget`] message.
+const LARGEST_SHOWN: usize = 3;
+
+/// The memory a run at one binding of the symbols takes, in bytes, by part: what
+/// [`bind`] allocates (activation buffers, conv scratch, zeros for absent optional
+/// inputs) and what the caller holds or receives (the given inputs, the returned
+/// outputs). Computed with checked arithmetic before anything is allocated.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Footprint {
+    /// The activation buffers (one per slot of the buffer plan, each as large as the
+    /// largest value a step writes into it).
+    pub activations: usize,
+    /// The conv kernels' scratch, for every worker thread.
+    pub scratch: usize,
+    /// Zero-filled stand-ins for absent optional inputs that a step or an output reads.
+    pub zeros: usize,
+    /// The inputs at these shapes (the caller's memory).
+    pub inputs: usize,
+    /// The outputs a run returns.
+    pub outputs: usize,
+    /// Everything above.
+    pub total: usize,
+    /// The largest parts, largest first: a description (`buffer 3, written by step 7
+    /// (`conv1`) as [1, 64, 112, 112]`) and its bytes. Names as the plan has them.
+    pub largest: Vec<(String, usize)>,
+}
+
+/// The layout of one binding: shapes, buffer sizes and conv parameters, and its
+/// [`Footprint`]. Allocates nothing proportional to the shapes.
+pub(super) struct Layout {
+    shapes: Vec<Vec<usize>>,
+    slot_len: Vec<usize>,
+    scratch_len: usize,
+    convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
+    /// Per input, the zeros an absent optional input needs (0 for the others).
+    zeros_len: Vec<usize>,
+    pub(super) footprint: Footprint,
+}
+
+fn overflow(what: String) -> RunError {
+    RunError::TooLarge { what }
+}
+
+/// Floats to bytes, checked.
+fn bytes_of(floats: usize, what: impl FnOnce() -> String) -> Result<usize, RunError> {
+    floats.checked_mul(size_of::<f32>()).ok_or_else(|| overflow(what()))
+}
+
+/// Evaluates every value's shape for one binding of the symbols (values in
+/// `manifest.symbols` order), checks every step against its kernel's preconditions, and
+/// sizes the buffers, all with checked arithmetic. Only values a step writes get a
+/// buffer; an optional input gets zeros only when something reads it.
+pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<Layout, RunError> {
     let m = &plan.manifest;
     let base = plan.base_tensors();
     let bindings: HashMap<String, usize> = m.symbols.iter().cloned().zip(symbols.iter().copied()).collect();
     let mut shapes = Vec::with_capacity(m.values.len());
-    for (i, v) in m.values.iter().enumerate() {
-        let s: Option<Vec<usize>> = v.shape.iter().map(|d| d.eval(&bindings)).collect();
-        let s = s.ok_or_else(|| bad(&format!("value {i}"), "a dimension cannot be evaluated"))?;
-        if s.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).is_none_or(|n| n > (1usize << 36)) {
-            return Err(bad(&format!("value {i}"), format!("shape {s:?} is too large")));
+    let mut numels = Vec::with_capacity(m.values.len());
+    let read = read_values(m);
+    let mut writer = vec![None; m.values.len()];
+    for (k, step) in m.steps.iter().enumerate() {
+        if let Some(w) = writer.get_mut(step.output) {
+            *w = Some(k);
         }
-        shapes.push(s);
     }
-    let numel = |i: usize| shapes[i].iter().product::<usize>();
-    let mut slot_len = vec![0usize; m.slots];
     for (i, v) in m.values.iter().enumerate() {
-        match v.storage {
-            Storage::Slot(s) => slot_len[s] = slot_len[s].max(numel(i)),
-            Storage::Tensor(t) => {
-                if base.get(t).len() != numel(i) {
-                    return Err(bad(&format!("value {i}"), "stored tensor does not match the value's shape"));
-                }
-            }
-            Storage::Input(_) => {}
+        // A value nothing reads or writes (validation saw to it that no step reads a value
+        // before it is written) is never touched: no size, no buffer.
+        let written = matches!(v.storage, Storage::Input(_) | Storage::Tensor(_)) || writer[i].is_some();
+        if !read[i] && !written {
+            shapes.push(Vec::new());
+            numels.push(0);
+            continue;
+        }
+        let s: Option<Vec<usize>> = v.shape.iter().map(|d| d.eval(&bindings)).collect();
+        let what = || format!("{} at {}", value_name(m, writer[i], i), show_bindings(m, symbols));
+        let s = s.ok_or_else(|| overflow(format!("a dimension of {}", what())))?;
+        // The product of the axes other than 0 must fit too: the kernels multiply any
+        // run of axes (an empty tensor `[0, 2^40, 2^40]` has 0 elements but 2^80 in its
+        // inner axes).
+        let nonzero = s.iter().try_fold(1usize, |a, &d| a.checked_mul(d.max(1)));
+        let n = if s.contains(&0) { 0 } else { nonzero.unwrap_or(0) };
+        if nonzero.is_none() {
+            return Err(overflow(what()));
+        }
+        bytes_of(n, what)?;
+        shapes.push(s);
+        numels.push(n);
+    }
+    // Per slot, its floats and the value that sets them.
+    let mut slot_len = vec![0usize; m.slots.min(m.values.len())];
+    let mut slot_by: Vec<Option<usize>> = vec![None; slot_len.len()];
+    for step in &m.steps {
+        let i = step.output;
+        if let Some(Storage::Slot(s)) = m.values.get(i).map(|v| v.storage)
+            && let Some(len) = slot_len.get_mut(s)
+            && numels[i] > *len
+        {
+            *len = numels[i];
+            slot_by[s] = Some(i);
+        }
+    }
+    for (i, v) in m.values.iter().enumerate() {
+        if let Storage::Tensor(t) = v.storage
+            && base.get(t).len() != numels[i]
+        {
+            return Err(bad(&format!("value {i}"), "stored tensor does not match the value's shape"));
         }
     }
     let mut convs = Vec::with_capacity(m.steps.len());
-    let mut scratch = 0usize;
+    let (mut scratch_len, mut scratch_by) = (0usize, None);
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
+        check_step(plan, step, &shapes).map_err(|e| bad(&at, e))?;
         let conv = conv_params(step, &shapes, &at)?;
         if let Some((s, algo)) = &conv {
-            scratch = scratch.max(conv::scratch_len(s, *algo, threads));
+            let need =
+                conv::checked_scratch_len(s, *algo, threads).ok_or_else(|| overflow(format!("the scratch of {at}")))?;
+            if need > scratch_len {
+                (scratch_len, scratch_by) = (need, Some(k));
+            }
         }
         convs.push(conv);
     }
-    let zeros =
-        m.inputs.iter().map(|spec| if spec.optional { vec![0.0; numel(spec.value)] } else { Vec::new() }).collect();
+    let zeros_len: Vec<usize> =
+        m.inputs.iter().map(|spec| if spec.optional && read[spec.value] { numels[spec.value] } else { 0 }).collect();
+
+    // The footprint, part by part, each with a description for the message.
+    let mut parts: Vec<(String, usize)> = Vec::new();
+    let shape_of = |i: usize| format!("{:?}", shapes[i]);
+    for (s, (&len, by)) in slot_len.iter().zip(&slot_by).enumerate() {
+        if let Some(i) = *by {
+            let what = format!("buffer {s} for {} {}", value_name(m, writer[i], i), shape_of(i));
+            let b = bytes_of(len, || what.clone())?;
+            parts.push((what, b));
+        }
+    }
+    let activations = sum(parts.iter().map(|p| p.1), "the activation buffers")?;
+    let scratch = bytes_of(scratch_len, || "the conv scratch".into())?;
+    if let Some(k) = scratch_by {
+        parts.push((format!("conv scratch of step {k} (`{}`) on {threads} threads", m.steps[k].path), scratch));
+    }
+    let mut zeros = 0usize;
+    let mut inputs = 0usize;
+    for (spec, &z) in m.inputs.iter().zip(&zeros_len) {
+        let b = bytes_of(numels[spec.value], || format!("input `{}`", spec.name))?;
+        inputs = sum([inputs, b], "the inputs")?;
+        if z > 0 {
+            zeros = sum([zeros, b], "the zeros of absent optional inputs")?;
+            parts.push((format!("zeros for optional input `{}` {}", spec.name, shape_of(spec.value)), b));
+        }
+        parts.push((format!("input `{}` {}", spec.name, shape_of(spec.value)), b));
+    }
+    let mut outputs = 0usize;
+    for o in &m.outputs {
+        let b = bytes_of(numels[o.value], || format!("output `{}`", o.name))?;
+        outputs = sum([outputs, b], "the outputs")?;
+        parts.push((format!("output `{}` {}", o.name, shape_of(o.value)), b));
+    }
+    let total = sum([activations, scratch, zeros, inputs, outputs], "the memory footprint")?;
+    parts.sort_by_key(|p| std::cmp::Reverse(p.1));
+    parts.truncate(LARGEST_SHOWN);
+    let footprint = Footprint { activations, scratch, zeros, inputs, outputs, total, largest: parts };
+    Ok(Layout { shapes, slot_len, scratch_len, convs, zeros_len, footprint })
+}
+
+fn sum(parts: impl IntoIterator<Item = usize>, what: &str) -> Result<usize, RunError> {
+    parts.into_iter().try_fold(0usize, |a, b| a.checked_add(b)).ok_or_else(|| overflow(what.to_string()))
+}
+
+/// Which values something reads: a step, or the outputs.
+fn read_values(m: &Manifest) -> Vec<bool> {
+    let mut read = vec![false; m.values.len()];
+    for i in m.steps.iter().flat_map(|s| s.inputs.iter()).chain(m.outputs.iter().map(|o| &o.value)) {
+        if let Some(r) = read.get_mut(*i) {
+            *r = true;
+        }
+    }
+    read
+}
+
+/// A value as messages name it: its index, and the step that writes it or the input it is.
+fn value_name(m: &Manifest, writer: Option<usize>, i: usize) -> String {
+    if let Some(k) = writer {
+        return format!("value {i} (the output of step {k} `{}`)", m.steps[k].path);
+    }
+    if let Some(Storage::Input(k)) = m.values.get(i).map(|v| v.storage)
+        && let Some(spec) = m.inputs.get(k)
+    {
+        return format!("value {i} (input `{}`)", spec.name);
+    }
+    format!("value {i}")
+}
+
+/// `N = 4` (every symbol and its value), for messages.
+pub(super) fn show_bindings(m: &Manifest, symbols: &[usize]) -> String {
+    let b: Vec<String> = m.symbols.iter().zip(symbols).map(|(s, v)| format!("{s} = {v}")).collect();
+    if b.is_empty() { "the plan's shapes".into() } else { b.join(", ") }
+}
+
+/// Refuses a layout whose footprint exceeds `limit` bytes, then allocates its buffers.
+///
+/// The checks read the base's tensors. Every variant's replacement has exactly its base
+/// tensor's shape (checked when the plan was built), so they hold under every variant
+/// and a switch needs no new check.
+pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize) -> Result<Bound, RunError> {
+    let layout = layout(plan, symbols, threads)?;
+    let f = &layout.footprint;
+    if f.total > limit {
+        return Err(RunError::OverBudget {
+            needed: f.total,
+            limit,
+            at: show_bindings(&plan.manifest, symbols),
+            largest: f.largest.clone(),
+        });
+    }
     Ok(Bound {
         symbols: symbols.to_vec(),
-        shapes,
-        slots: slot_len.into_iter().map(|n| vec![0.0; n]).collect(),
-        scratch: vec![0.0; scratch],
-        convs,
-        zeros,
+        shapes: layout.shapes,
+        slots: layout.slot_len.into_iter().map(|n| vec![0.0; n]).collect(),
+        scratch: vec![0.0; layout.scratch_len],
+        convs: layout.convs,
+        zeros: layout.zeros_len.into_iter().map(|n| vec![0.0; n]).collect(),
+        footprint: layout.footprint,
     })
 }
 
-/// The conv parameters of a conv step at the bound shapes. Every other requirement of a
-/// step (its shapes against its operator's rule, its tensors' sizes, the conv's algorithm
-/// and packed weight) was checked when the plan was built, on its symbolic shapes, so it
-/// holds at every batch size.
+/// The conv parameters of a conv step at the bound shapes (its preconditions checked
+/// by [`check_step`]).
 fn conv_params(step: &Step, shapes: &[Vec<usize>], at: &str) -> Result<Option<(Conv2dShape, ConvAlgo)>, RunError> {
     let Kernel::Conv2d { conv, algo, .. } = &step.kernel else { return Ok(None) };
     let algo = *algo;
     let x = &shapes[step.inputs[0]];
-    let s = conv::layer_shape(conv, x[0], x[2], x[3]);
+    let [n, _, h, w] = x[..] else { return Err(bad(at, "conv2d input is not 4-D")) };
+    let s = conv::layer_shape(conv, n, h, w);
     if shapes[step.output] != [s.n, s.cout, s.oh, s.ow] {
         return Err(bad(at, "conv2d output shape"));
     }
     Ok(Some((s, algo)))
+}
+
+/// Checks a step at the bound shapes against its kernel's preconditions (each kernel
+/// module's `check`, which the kernel also asserts in debug builds), so that no input of
+/// the declared shapes can make it panic.
+fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), String> {
+    let base = plan.base_tensors();
+    let len = |t: usize| base.get(t).len();
+    let ep = |e: &EpilogueSpec| [e.scale.map(len), e.shift.map(len)];
+    let arity = match &step.kernel {
+        Kernel::Pure(Pure::MatMul(_) | Pure::Binary(_)) => Some(2),
+        Kernel::Pure(Pure::Concat(_)) => None,
+        _ => Some(1),
+    };
+    if step.inputs.is_empty() || arity.is_some_and(|n| step.inputs.len() != n) {
+        return Err(format!("{} inputs for a `{}` kernel", step.inputs.len(), step.kernel.name()));
+    }
+    let x = shapes[step.inputs[0]].as_slice();
+    let input = |j: usize| shapes[step.inputs[j]].as_slice();
+    let out = shapes[step.output].as_slice();
+    let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
+    match &step.kernel {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue } => {
+            let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
+            if cin != u(c.in_channels)? {
+                return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
+            }
+            let s = conv::layer_shape(c, n, h, w);
+            let (xl, ol) = (numel(x).ok_or("conv2d input too large")?, numel(out).ok_or("conv2d output too large")?);
+            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue))
+        }
+        Kernel::Linear { linear: l, weight, epilogue } => {
+            linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue))
+        }
+        Kernel::ChannelAffine { affine, epilogue } => {
+            norm::check_channel_affine(x, u(affine.channels)?, ep(epilogue), out)
+        }
+        Kernel::LayerNorm { norm: ln, weight, bias } => {
+            norm::check_layernorm(x, u(ln.features)?, [weight.map(len), bias.map(len)], out)
+        }
+        Kernel::Pure(op) => match op {
+            Pure::MatMul(_) => linear::check_matmul(x, input(1), out),
+            Pure::Binary(_) => elementwise::check_binary(x, input(1), out),
+            Pure::Scalar(_) | Pure::Activation(_) | Pure::Reshape(_) => elementwise::check_same_length(x, out),
+            Pure::Softmax(sm) => softmax::check(x, sm.axis, out),
+            Pure::Concat(c) => {
+                let parts: Vec<&[usize]> = (0..step.inputs.len()).map(input).collect();
+                layout_k::check_concat(&parts, c.axis, out)
+            }
+            Pure::Permute(p) => layout_k::check_permute(x, &p.perm, out),
+            Pure::Pool(p) => pool::check(p, x, out),
+            Pure::GlobalAvgPool(_) => pool::check_global_avgpool(x, out),
+            Pure::Upsample(_) => resize::check(x, out),
+            Pure::Mean(m) => reduce::check_mean(x, &m.axes, out),
+        },
+    }
+}
+
+fn numel(shape: &[usize]) -> Option<usize> {
+    shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d))
 }

@@ -39,9 +39,10 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use readi_plan::VariantKey;
 
-use crate::plan::Plan;
+use crate::plan::{Plan, escaped};
 
 pub(crate) use bind::Bound;
+pub use bind::Footprint;
 pub(crate) use run::{Run, run_step};
 pub use switch::VariantSwitch;
 
@@ -84,6 +85,79 @@ pub enum RunError {
     UnknownVariant { key: String, known: Vec<String>, nearest: Option<String>, malformed: Option<String> },
     /// A variant index past the plan's variants.
     VariantIndex { index: usize, count: usize },
+    /// Binding at these shapes (`at`: `N = 4`) needs more memory than the session's
+    /// limit; `largest` are the largest parts (description, bytes).
+    OverBudget { needed: usize, limit: usize, at: String, largest: Vec<(String, usize)> },
+    /// A size (of `what`) does not fit in the address space.
+    TooLarge { what: String },
+}
+
+/// Checks that a run of `plan` on `inputs` fits `options.max_memory`, as the first run
+/// of a session with these options would, without allocating: the inputs are matched and
+/// their shapes bind the symbols, then the footprint is computed. For callers that run
+/// the plan through their own session (calibration).
+pub fn check_fits(plan: &Plan, inputs: &[Input<'_>], options: &SessionOptions) -> Result<Footprint, RunError> {
+    let m = &plan.manifest;
+    let mut given = vec![None; m.inputs.len()];
+    for (pos, inp) in inputs.iter().enumerate() {
+        match m.inputs.iter().position(|s| s.name == inp.name) {
+            Some(i) if given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
+            Some(i) => given[i] = Some(pos),
+            None => {
+                return Err(RunError::UnknownInput {
+                    name: inp.name.into(),
+                    known: m.inputs.iter().map(|s| s.name.clone()).collect(),
+                });
+            }
+        }
+    }
+    let mut symbols = vec![0; m.symbols.len()];
+    bind::bind_symbols(m, &given, inputs, &mut symbols)?;
+    let footprint = bind::layout(plan, &symbols, options.threads.max(1))?.footprint;
+    if footprint.total > options.max_memory {
+        return Err(RunError::OverBudget {
+            needed: footprint.total,
+            limit: options.max_memory,
+            at: bind::show_bindings(m, &symbols),
+            largest: footprint.largest,
+        });
+    }
+    Ok(footprint)
+}
+
+/// The footprint of `plan` with every symbol bound to `batch`, on `threads` threads,
+/// computed without allocating (see [`Footprint`]).
+pub fn footprint(plan: &Plan, batch: usize, threads: usize) -> Result<Footprint, RunError> {
+    let symbols = vec![batch; plan.manifest.symbols.len()];
+    Ok(bind::layout(plan, &symbols, threads.max(1))?.footprint)
+}
+
+/// The footprint [`Plan::new`] records: every symbol bound to 1, one thread; `None`
+/// when a shape overflows or a step fails its kernel's preconditions.
+pub(crate) fn compiled_footprint(plan: &Plan) -> Option<readi_plan::format::PlanFootprint> {
+    let symbols = vec![1; plan.manifest.symbols.len()];
+    let f = bind::layout(plan, &symbols, 1).ok()?.footprint;
+    let u = |n: usize| n as u64;
+    Some(readi_plan::format::PlanFootprint {
+        batch: 1,
+        activations: u(f.activations),
+        scratch: u(f.scratch),
+        total: u(f.total),
+    })
+}
+
+/// `1.5 GiB (1610612736 bytes)`.
+pub fn show_bytes(n: usize) -> String {
+    const UNITS: [&str; 5] = ["KiB", "MiB", "GiB", "TiB", "PiB"];
+    if n < 1024 {
+        return format!("{n} bytes");
+    }
+    let (mut v, mut unit) = (n as f64 / 1024.0, 0);
+    while v >= 1024.0 && unit + 1 < UNITS.len() {
+        v /= 1024.0;
+        unit += 1;
+    }
+    format!("{v:.1} {} ({n} bytes)", UNITS[unit])
 }
 
 /// Most keys an [`RunError::UnknownVariant`] message lists.
@@ -91,27 +165,30 @@ const KEYS_SHOWN: usize = 24;
 
 impl fmt::Display for RunError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        // Names come from the plan (or the caller): printed escaped.
+        let e = |name: &str| escaped(name).into_owned();
         match self {
             RunError::UnknownInput { name, known } => {
-                write!(f, "the model has no input `{name}` (its inputs: {})", known.join(", "))
+                let known: Vec<String> = known.iter().map(|k| e(k)).collect();
+                write!(f, "the model has no input `{}` (its inputs: {})", e(name), known.join(", "))
             }
-            RunError::MissingInput { name } => write!(f, "input `{name}` is required but was not given"),
-            RunError::DuplicateInput { name } => write!(f, "input `{name}` is given twice"),
+            RunError::MissingInput { name } => write!(f, "input `{}` is required but was not given", e(name)),
+            RunError::DuplicateInput { name } => write!(f, "input `{}` is given twice", e(name)),
             RunError::InputShape { name, expected, got, detail } => {
-                write!(f, "input `{name}` has shape {got:?}, but the model expects {expected}: {detail}")
+                write!(f, "input `{}` has shape {got:?}, but the model expects {expected}: {detail}", e(name))
             }
             RunError::InputLength { name, len, shape } => {
-                write!(f, "input `{name}`: {len} values do not fill shape {shape:?}")
+                write!(f, "input `{}`: {len} values do not fill shape {shape:?}", e(name))
             }
             RunError::NotFinite { name, index, value } => {
-                write!(f, "input `{name}` holds {value} at flat index {index}; inputs must be finite")
+                write!(f, "input `{}` holds {value} at flat index {index}; inputs must be finite", e(name))
             }
-            RunError::BadPlan { step, detail } => write!(f, "invalid plan at {step}: {detail}"),
+            RunError::BadPlan { step, detail } => write!(f, "invalid plan at {}: {}", e(step), e(detail)),
             RunError::Threads(e) => write!(f, "cannot start the thread pool: {e}"),
             RunError::UnknownVariant { key, known, nearest, malformed } => {
                 match malformed {
-                    None => write!(f, "the plan has no variant `{key}`")?,
-                    Some(why) => write!(f, "`{key}` is not a variant key: {why}")?,
+                    None => write!(f, "the plan has no variant `{}`", e(key))?,
+                    Some(why) => write!(f, "`{}` is not a variant key: {}", e(key), e(why))?,
                 }
                 if let Some(near) = nearest {
                     write!(f, "; did you mean `{near}`?")?;
@@ -127,17 +204,77 @@ impl fmt::Display for RunError {
             RunError::VariantIndex { index, count } => {
                 write!(f, "variant index {index} is out of range: the plan has {count} variants (0 is the base)")
             }
+            RunError::OverBudget { needed, limit, at, largest } => {
+                write!(
+                    f,
+                    "the plan needs {} of memory at {}, over the limit of {} (raise it with --max-memory); largest: ",
+                    show_bytes(*needed),
+                    e(at),
+                    show_bytes(*limit)
+                )?;
+                let parts: Vec<String> =
+                    largest.iter().map(|(what, b)| format!("{} {}", e(what), show_bytes(*b))).collect();
+                f.write_str(&parts.join(", "))
+            }
+            RunError::TooLarge { what } => {
+                write!(f, "the size of {} does not fit in memory (it overflows a 64-bit byte count)", e(what))
+            }
         }
     }
 }
 
 impl std::error::Error for RunError {}
 
+/// Memory limit when the physical memory is unknown: 4 GiB.
+const FALLBACK_MAX_MEMORY: usize = 4 << 30;
+
+/// The default memory limit of a session: half the physical memory (`MemTotal` in
+/// `/proc/meminfo`), or 4 GiB where that cannot be read.
+pub fn default_max_memory() -> usize {
+    let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|text| {
+        let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+        let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
+        kib.checked_mul(1024)
+    });
+    total.map_or(FALLBACK_MAX_MEMORY, |t| t / 2)
+}
+
+/// How a [`Session`] runs: its thread count and its memory limit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SessionOptions {
+    /// Worker threads (at least 1).
+    pub threads: usize,
+    /// Most bytes a binding may take ([`Footprint::total`]: activation buffers, scratch,
+    /// zeros, inputs and outputs); a binding over it is refused before anything is
+    /// allocated.
+    pub max_memory: usize,
+}
+
+impl Default for SessionOptions {
+    /// One thread per core, [`default_max_memory`].
+    fn default() -> SessionOptions {
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        SessionOptions { threads, max_memory: default_max_memory() }
+    }
+}
+
+impl SessionOptions {
+    pub fn threads(self, threads: usize) -> SessionOptions {
+        SessionOptions { threads, ..self }
+    }
+
+    pub fn max_memory(self, bytes: usize) -> SessionOptions {
+        SessionOptions { max_memory: bytes, ..self }
+    }
+}
+
 /// Runs one plan; reuses its buffers across runs.
 pub struct Session {
     plan: Arc<Plan>,
     pool: rayon::ThreadPool,
     threads: usize,
+    /// [`SessionOptions::max_memory`].
+    max_memory: usize,
     /// The active variant's index, shared with every [`VariantSwitch`]; always a valid
     /// index (stores are checked).
     active: Arc<AtomicUsize>,
@@ -154,15 +291,22 @@ pub struct Session {
     profile: Option<Vec<f64>>,
 }
 
+/// A [`RunError::BadPlan`] at `step` (`step 3 (`conv1`)`, names as the plan has them:
+/// the message escapes them).
 pub(crate) fn bad(step: &str, detail: impl Into<String>) -> RunError {
     RunError::BadPlan { step: step.to_string(), detail: detail.into() }
 }
 
 impl Session {
     /// A session running `plan` on `threads` threads (at least 1), under the base
-    /// variant.
+    /// variant, with the default memory limit ([`default_max_memory`]).
     pub fn new(plan: Arc<Plan>, threads: usize) -> Result<Session, RunError> {
-        let threads = threads.max(1);
+        Session::with_options(plan, SessionOptions::default().threads(threads))
+    }
+
+    /// A session running `plan` as `options` say, under the base variant.
+    pub fn with_options(plan: Arc<Plan>, options: SessionOptions) -> Result<Session, RunError> {
+        let threads = options.threads.max(1);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("readi-{i}"))
@@ -174,6 +318,7 @@ impl Session {
             plan,
             pool,
             threads,
+            max_memory: options.max_memory,
             active: Arc::new(AtomicUsize::new(0)),
             last_variant: None,
             bound: None,
@@ -199,6 +344,37 @@ impl Session {
 
     pub fn threads(&self) -> usize {
         self.threads
+    }
+
+    /// The memory limit ([`SessionOptions::max_memory`]).
+    pub fn max_memory(&self) -> usize {
+        self.max_memory
+    }
+
+    /// What a run with every symbol bound to `batch` would take on this session's
+    /// threads, computed without allocating; the error of a shape that overflows or a
+    /// step that fails its kernel's preconditions. Does not compare with the limit.
+    pub fn footprint(&self, batch: usize) -> Result<Footprint, RunError> {
+        footprint(&self.plan, batch, self.threads)
+    }
+
+    /// Binds the buffers for every symbol bound to `batch` now (as the first run at that
+    /// batch size would), refusing a footprint over the limit; returns the footprint.
+    pub fn bind_batch(&mut self, batch: usize) -> Result<&Footprint, RunError> {
+        self.symbols.fill(batch);
+        self.bind_current()
+    }
+
+    fn bind_current(&mut self) -> Result<&Footprint, RunError> {
+        if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
+            // Free the old buffers first: the new binding alone must fit.
+            self.bound = None;
+            self.bound = Some(bind::bind(&self.plan, &self.symbols, self.threads, self.max_memory)?);
+        }
+        match &self.bound {
+            Some(b) => Ok(&b.footprint),
+            None => Err(bad("bind", "no buffers")),
+        }
     }
 
     /// Makes variant `key` ([`BASE_VARIANT`](crate::plan::BASE_VARIANT) for the base)
@@ -311,9 +487,8 @@ impl Session {
                 return Err(RunError::NotFinite { name: spec.name.clone(), index, value: inputs[pos].data[index] });
             }
         }
-        if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
-            self.bound = Some(bind::bind(plan, &self.symbols, self.threads)?);
-        }
+        let _ = plan;
+        self.bind_current()?;
         Ok(())
     }
 }

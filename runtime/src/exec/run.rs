@@ -100,22 +100,23 @@ pub(crate) fn run_step(
                 conv::conv2d(s, *algo, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
             }
         }
+        // Rows from the leading axes, not by dividing the length: a last axis may be 0.
         Kernel::Linear { linear: l, weight, epilogue: ep } => {
             let fin = xs.last().copied().unwrap_or(1);
-            let rows = x.len() / fin.max(1);
+            let rows = xs[..xs.len().saturating_sub(1)].iter().product();
             let layout = linear::WeightLayout::InOut;
             let fout = l.out_features as usize;
             linear::linear(x, rows, fin, w.get(*weight), layout, fout, &epilogue(w, ep), out, threads);
         }
         Kernel::ChannelAffine { epilogue: ep, .. } => {
             let (n, c) = (xs[0], xs[1]);
-            let inner = x.len() / (n * c).max(1);
+            let inner = xs[2..].iter().product();
             let e = epilogue(w, ep);
             norm::channel_affine(x, n, c, inner, e.scale, e.shift, e.relu, out);
         }
         Kernel::LayerNorm { norm: ln, weight, bias } => {
             let f = xs.last().copied().unwrap_or(1);
-            let rows = x.len() / f.max(1);
+            let rows = xs[..xs.len().saturating_sub(1)].iter().product();
             norm::layernorm(x, rows, f, weight.map(|t| w.get(t)), bias.map(|t| w.get(t)), ln.eps as f32, out);
         }
         Kernel::Pure(op) => match op {

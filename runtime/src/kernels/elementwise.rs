@@ -26,6 +26,7 @@ pub fn binary(
     out: &mut [f32],
     out_shape: &[usize],
 ) {
+    debug_assert_eq!(check_binary(a_shape, b_shape, out_shape), Ok(()), "binary preconditions");
     assert_eq!(a.len(), a_shape.iter().product::<usize>(), "binary: a does not match its shape");
     assert_eq!(b.len(), b_shape.iter().product::<usize>(), "binary: b does not match its shape");
     assert_eq!(out.len(), out_shape.iter().product::<usize>(), "binary: out does not match its shape");
@@ -409,6 +410,26 @@ impl Broadcast {
             }
         }
     }
+}
+
+/// The preconditions of [`binary`]: each operand's rank at most the output's, and each
+/// of its axes (right-aligned) equal to the output's or 1.
+pub fn check_binary(a: &[usize], b: &[usize], out: &[usize]) -> Result<(), String> {
+    let fits =
+        |s: &[usize]| s.len() <= out.len() && s.iter().rev().zip(out.iter().rev()).all(|(&d, &o)| d == o || d == 1);
+    if !fits(a) || !fits(b) {
+        return Err(format!("{a:?} and {b:?} do not broadcast to {out:?}"));
+    }
+    Ok(())
+}
+
+/// The preconditions of [`scalar`] and [`activation`] (and of a reshape's copy): the
+/// output has the input's length.
+pub fn check_same_length(x: &[usize], out: &[usize]) -> Result<(), String> {
+    if x.iter().product::<usize>() != out.iter().product::<usize>() {
+        return Err(format!("output {out:?} does not have the length of input {x:?}"));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -175,6 +175,39 @@ pub fn concat(inputs: &[(&[f32], &[usize])], axis: usize, out: &mut [f32]) {
     }
 }
 
+/// The preconditions of [`permute`]: `perm` is a permutation of `x`'s axes and `out` is
+/// `x` permuted.
+pub fn check_permute(x: &[usize], perm: &[usize], out: &[usize]) -> Result<(), String> {
+    let mut seen = vec![false; x.len()];
+    let ok = perm.len() == x.len()
+        && perm.iter().all(|&p| p < x.len() && !std::mem::replace(&mut seen[p], true))
+        && out.len() == x.len()
+        && perm.iter().zip(out).all(|(&p, &o)| x[p] == o);
+    if !ok {
+        return Err(format!("permute {perm:?} of {x:?} cannot give {out:?}"));
+    }
+    Ok(())
+}
+
+/// The preconditions of [`concat`] along `axis`: at least one input, all of the output's
+/// rank, equal to it off `axis`, their sizes along `axis` summing to its.
+pub fn check_concat(inputs: &[&[usize]], axis: usize, out: &[usize]) -> Result<(), String> {
+    if inputs.is_empty() || axis >= out.len() {
+        return Err(format!("concat of {} inputs along axis {axis} into {out:?}", inputs.len()));
+    }
+    let mut along = 0usize;
+    for s in inputs {
+        if s.len() != out.len() || (0..s.len()).any(|a| a != axis && s[a] != out[a]) {
+            return Err(format!("concat input {s:?} differs from the output {out:?} off axis {axis}"));
+        }
+        along = along.checked_add(s[axis]).ok_or("concat: the axis overflows")?;
+    }
+    if along != out[axis] {
+        return Err(format!("concat inputs sum to {along} along axis {axis}, the output has {}", out[axis]));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -42,6 +42,18 @@ pub fn linear(
     out: &mut [f32],
     threads: usize,
 ) {
+    debug_assert_eq!(
+        check(
+            &[rows, in_features],
+            in_features,
+            out_features,
+            weight.len(),
+            &[rows, out_features],
+            [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)]
+        ),
+        Ok(()),
+        "linear preconditions"
+    );
     assert_eq!(x.len(), rows * in_features, "linear: input length");
     assert_eq!(weight.len(), out_features * in_features, "linear: weight length");
     assert_eq!(out.len(), rows * out_features, "linear: output length");
@@ -132,6 +144,7 @@ pub fn matmul(
     out_shape: &[usize],
     threads: usize,
 ) {
+    debug_assert_eq!(check_matmul(a_shape, b_shape, out_shape), Ok(()), "matmul preconditions");
     assert!(a_shape.len() >= 2 && b_shape.len() >= 2, "matmul: operands need rank ≥ 2: {a_shape:?}, {b_shape:?}");
     let (a_batch, &[m, k]) = a_shape.split_at(a_shape.len() - 2) else { unreachable!("rank ≥ 2") };
     let (b_batch, &[kb, n]) = b_shape.split_at(b_shape.len() - 2) else { unreachable!("rank ≥ 2") };
@@ -199,6 +212,64 @@ pub fn matmul(
     } else {
         out.chunks_mut(m * n).enumerate().for_each(|io| one(io, threads));
     }
+}
+
+/// The preconditions of [`linear`] as the executor calls it on a value of shape
+/// `x_shape` (rows: every axis but the last): at least one axis, the last of
+/// `in_features` values (0 is allowed: the output is the epilogue of zero), a weight of
+/// `in_features × out_features`, an output of `rows × out_features` and epilogue
+/// vectors of `out_features`. Checked at bind time; [`linear`] asserts it in debug
+/// builds.
+pub fn check(
+    x_shape: &[usize],
+    in_features: usize,
+    out_features: usize,
+    weight_len: usize,
+    out_shape: &[usize],
+    epilogue: [Option<usize>; 2],
+) -> Result<(), String> {
+    let Some((&last, rows)) = x_shape.split_last() else { return Err("linear of a scalar".into()) };
+    if last != in_features {
+        return Err(format!("linear needs {in_features} input features, its input is {x_shape:?}"));
+    }
+    if Some(weight_len) != in_features.checked_mul(out_features) {
+        return Err(format!("linear weight has {weight_len} values for {in_features} x {out_features}"));
+    }
+    let rows = numel(rows).ok_or("linear: too many rows")?;
+    if numel(out_shape) != rows.checked_mul(out_features) {
+        return Err(format!("linear output {out_shape:?} is not {rows} rows of {out_features}"));
+    }
+    if let Some(n) = epilogue.into_iter().flatten().find(|&n| n != out_features) {
+        return Err(format!("linear epilogue vector has {n} values for {out_features} outputs"));
+    }
+    Ok(())
+}
+
+/// The preconditions of [`matmul`]: ranks ≥ 2, equal inner sizes, batch axes that
+/// broadcast to the output's, the output's matrix `m × n`.
+pub fn check_matmul(a: &[usize], b: &[usize], out: &[usize]) -> Result<(), String> {
+    let fail = || Err(format!("matmul of {a:?} and {b:?} cannot give {out:?}"));
+    if a.len() < 2 || b.len() < 2 {
+        return fail();
+    }
+    let (ab, am) = a.split_at(a.len() - 2);
+    let (bb, bm) = b.split_at(b.len() - 2);
+    let rank = ab.len().max(bb.len());
+    if am[1] != bm[0] {
+        return Err(format!("matmul: inner sizes differ: {a:?} · {b:?}"));
+    }
+    if out.len() != rank + 2 || out[rank..] != [am[0], bm[1]] {
+        return fail();
+    }
+    let fits = |batch: &[usize]| batch.iter().rev().zip(out[..rank].iter().rev()).all(|(&d, &o)| d == o || d == 1);
+    if !fits(ab) || !fits(bb) {
+        return Err(format!("matmul: batch axes {a:?} and {b:?} do not broadcast to {out:?}"));
+    }
+    Ok(())
+}
+
+fn numel(shape: &[usize]) -> Option<usize> {
+    shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d))
 }
 
 #[cfg(test)]

@@ -53,6 +53,11 @@ pub fn channel_affine(
     relu: bool,
     out: &mut [f32],
 ) {
+    debug_assert_eq!(
+        check_channel_affine(&[n, c, inner], c, [scale.map(<[f32]>::len), shift.map(<[f32]>::len)], &[out.len()]),
+        Ok(()),
+        "channel_affine preconditions"
+    );
     assert_eq!(x.len(), n * c * inner, "channel_affine: x is not [n, c, inner]");
     assert_eq!(out.len(), x.len(), "channel_affine: out and x differ in length");
     assert!(scale.is_none_or(|s| s.len() == c), "channel_affine: scale must have length c");
@@ -77,6 +82,11 @@ pub fn layernorm(
     eps: f32,
     out: &mut [f32],
 ) {
+    debug_assert_eq!(
+        check_layernorm(&[rows, features], features, [weight.map(<[f32]>::len), bias.map(<[f32]>::len)], &[out.len()]),
+        Ok(()),
+        "layernorm preconditions"
+    );
     assert_eq!(x.len(), rows * features, "layernorm: x is not [rows, features]");
     assert_eq!(out.len(), x.len(), "layernorm: out and x differ in length");
     assert!(weight.is_none_or(|w| w.len() == features), "layernorm: weight must have length features");
@@ -196,6 +206,42 @@ impl<F: Fn(usize) -> (f32, f32)> pulp::WithSimd for AffineRows<'_, F> {
             pos += n;
         }
     }
+}
+
+/// The preconditions of [`channel_affine`] on a value of shape `x` (`[n, c, ...]`): at
+/// least two axes, `c` the affine's channels, vectors of `c` values, an output of `x`'s
+/// length.
+pub fn check_channel_affine(
+    x: &[usize],
+    channels: usize,
+    vectors: [Option<usize>; 2],
+    out: &[usize],
+) -> Result<(), String> {
+    if x.len() < 2 || x[1] != channels {
+        return Err(format!("channel_affine of {channels} channels on a value of shape {x:?}"));
+    }
+    if let Some(n) = vectors.into_iter().flatten().find(|&n| n != channels) {
+        return Err(format!("channel_affine vector has {n} values for {channels} channels"));
+    }
+    if x.iter().product::<usize>() != out.iter().product::<usize>() {
+        return Err(format!("channel_affine output {out:?} differs from its input {x:?}"));
+    }
+    Ok(())
+}
+
+/// The preconditions of [`layernorm`] on a value of shape `x`: its last axis holds
+/// `features` ≥ 1 values, the weight and bias `features` each, the output `x`'s length.
+pub fn check_layernorm(x: &[usize], features: usize, params: [Option<usize>; 2], out: &[usize]) -> Result<(), String> {
+    if x.last() != Some(&features) || features == 0 {
+        return Err(format!("layernorm over {features} features (at least 1) on a value of shape {x:?}"));
+    }
+    if let Some(n) = params.into_iter().flatten().find(|&n| n != features) {
+        return Err(format!("layernorm parameter has {n} values for {features} features"));
+    }
+    if x.iter().product::<usize>() != out.iter().product::<usize>() {
+        return Err(format!("layernorm output {out:?} differs from its input {x:?}"));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

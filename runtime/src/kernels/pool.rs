@@ -333,6 +333,11 @@ fn combine_into<'a, R: Reduction>(dst: &mut [f32], k: usize, src: impl Fn(usize)
 
 /// Mean of each of the `nc` rows of `x` (`[nc, hw]`), into `out` (`[nc]`).
 pub fn global_avgpool(x: &[f32], nc: usize, hw: usize, out: &mut [f32]) {
+    debug_assert_eq!(
+        check_global_avgpool(&[1, nc, hw, 1], &[1, out.len(), 1, 1]),
+        Ok(()),
+        "global_avgpool preconditions"
+    );
     assert_eq!(x.len(), nc * hw, "global_avgpool: x is not [nc, hw]");
     assert_eq!(out.len(), nc, "global_avgpool: out is not [nc]");
     if hw == 0 {
@@ -364,6 +369,39 @@ fn row_means(x: &[f32], out: &mut [f32]) {
         }
     }
     pulp::Arch::new().dispatch(Op(x, out));
+}
+
+/// The preconditions of [`pool2d`] on a 4-D value `x` (`[n, c, h, w]`) giving `out`:
+/// kernel and stride at least 1, padding at most half the kernel, the window fits and the
+/// output is `[n, c, oh, ow]` as the pooling formula gives.
+pub fn check(pool: &Pool2d, x: &[usize], out: &[usize]) -> Result<(), String> {
+    let &[n, c, h, w] = x else { return Err(format!("pool2d of a value of shape {x:?}, not 4-D")) };
+    let nc = n.checked_mul(c).ok_or("pool2d: too many planes")?;
+    let s = Pool2dShape::of(pool, nc, h, w);
+    if s.kh == 0 || s.kw == 0 || s.stride_h == 0 || s.stride_w == 0 {
+        return Err(format!("pool2d kernel {}x{} or stride {}x{} is 0", s.kh, s.kw, s.stride_h, s.stride_w));
+    }
+    if s.pad_h > s.kh / 2 || s.pad_w > s.kw / 2 {
+        return Err(format!("pool2d padding {}x{} exceeds half the kernel {}x{}", s.pad_h, s.pad_w, s.kh, s.kw));
+    }
+    let want = [
+        n,
+        c,
+        pooled_len(h, s.kh, s.stride_h, s.pad_h, s.ceil_mode),
+        pooled_len(w, s.kw, s.stride_w, s.pad_w, s.ceil_mode),
+    ];
+    if out != want || s.oh != want[2] || s.ow != want[3] {
+        return Err(format!("pool2d kernel {}x{} does not fit input {x:?} with output {out:?}", s.kh, s.kw));
+    }
+    Ok(())
+}
+
+/// The preconditions of [`global_avgpool`]: a 4-D input `[n, c, h, w]`, output `[n, c, 1, 1]`.
+pub fn check_global_avgpool(x: &[usize], out: &[usize]) -> Result<(), String> {
+    match *x {
+        [n, c, _, _] if out == [n, c, 1, 1] => Ok(()),
+        _ => Err(format!("global_avgpool of {x:?} cannot give {out:?}")),
+    }
 }
 
 #[cfg(test)]

@@ -196,6 +196,19 @@ impl View {
     }
 }
 
+/// The preconditions of [`mean`] over `axes` of `x`: the axes sorted, distinct and in
+/// range, the output as long as the kept axes.
+pub fn check_mean(x: &[usize], axes: &[usize], out: &[usize]) -> Result<(), String> {
+    if !axes.windows(2).all(|w| w[0] < w[1]) || axes.iter().any(|&a| a >= x.len()) {
+        return Err(format!("mean over axes {axes:?} of a value of shape {x:?}"));
+    }
+    let kept: usize = (0..x.len()).filter(|a| !axes.contains(a)).map(|a| x[a]).product();
+    if kept != out.iter().product::<usize>() {
+        return Err(format!("mean over axes {axes:?} of {x:?} cannot give {out:?}"));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

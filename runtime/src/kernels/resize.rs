@@ -93,6 +93,7 @@ pub fn upsample(
     oh: usize,
     ow: usize,
 ) {
+    debug_assert_eq!(check(&[1, nc, h, w], &[1, nc, oh, ow]), Ok(()), "upsample preconditions");
     assert_eq!(x.len(), nc * h * w, "upsample: x is not [nc, h, w]");
     assert_eq!(out.len(), nc * oh * ow, "upsample: out is not [nc, oh, ow]");
     if out.is_empty() {
@@ -205,6 +206,22 @@ simd_fn! {
             }
         }
     }
+}
+
+/// The preconditions of [`upsample`] on a 4-D value `x` giving `out`: the same planes,
+/// and a non-empty input wherever the output is not empty.
+pub fn check(x: &[usize], out: &[usize]) -> Result<(), String> {
+    let (&[n, c, h, w], &[on, oc, oh, ow]) = (x, out) else {
+        return Err(format!("upsample of {x:?} to {out:?}: both must be 4-D"));
+    };
+    if (n, c) != (on, oc) {
+        return Err(format!("upsample of {x:?} to {out:?} changes the planes"));
+    }
+    let out_len = [on, oc, oh, ow].iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+    if (h == 0 || w == 0) && out_len != Some(0) {
+        return Err(format!("upsample of an empty input {x:?} to {out:?}"));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

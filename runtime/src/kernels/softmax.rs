@@ -18,6 +18,7 @@ const TILE: usize = 64;
 /// walked in tiles of columns. Work is split across threads by `outer` rows only.
 /// A row containing NaN, or only `-inf`, comes out NaN, as in PyTorch.
 pub fn softmax(x: &[f32], outer: usize, axis_len: usize, inner: usize, out: &mut [f32]) {
+    debug_assert_eq!(check(&[outer, axis_len, inner], 1, &[out.len()]), Ok(()), "softmax preconditions");
     assert_eq!(x.len(), outer * axis_len * inner, "softmax: x is not [outer, axis_len, inner]");
     assert_eq!(out.len(), x.len(), "softmax: out and x differ in length");
     if x.is_empty() {
@@ -209,6 +210,18 @@ const LN2_LO: f32 = -2.121_944_4e-4;
 const ROUND: f32 = 12_582_912.0;
 /// Cephes' `expf` polynomial for `(e^r - 1 - r) / r²`, highest power first.
 const EXP_POLY: [f32; 6] = [1.987_569_2e-4, 1.398_199_9e-3, 8.333_452e-3, 4.166_579_6e-2, 1.666_666_5e-1, 0.5];
+
+/// The preconditions of [`softmax`] along `axis` of a value of shape `x`: the axis
+/// exists, the output has `x`'s length.
+pub fn check(x: &[usize], axis: usize, out: &[usize]) -> Result<(), String> {
+    if axis >= x.len() {
+        return Err(format!("softmax along axis {axis} of a value of shape {x:?}"));
+    }
+    if x.iter().product::<usize>() != out.iter().product::<usize>() {
+        return Err(format!("softmax output {out:?} differs from its input {x:?}"));
+    }
+    Ok(())
+}
 
 #[cfg(test)]
 mod tests {

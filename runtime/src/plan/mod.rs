@@ -44,6 +44,9 @@ mod variants;
 use variants::VariantMaps;
 pub use variants::VariantTensors;
 
+/// Largest plan file [`Plan::load`] accepts: 64 GiB.
+pub const MAX_PLAN_BYTES: u64 = 64 << 30;
+
 const KEY_VERSION: &str = "readi.format_version";
 const KEY_MANIFEST: &str = "readi.manifest";
 const KEY_CHECKSUM: &str = "readi.checksum";
@@ -54,6 +57,12 @@ pub enum PlanError {
     Io {
         path: String,
         error: std::io::Error,
+    },
+    /// Not a regular file (a device such as `/dev/zero`, a FIFO, a directory), or one
+    /// larger than [`MAX_PLAN_BYTES`].
+    NotAFile {
+        path: String,
+        detail: String,
     },
     /// The file is not a readable safetensors container (truncated, corrupted header).
     Container {
@@ -89,7 +98,9 @@ impl fmt::Display for PlanError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             PlanError::Io { path, error } => write!(f, "{path}: {error}"),
+            PlanError::NotAFile { path, detail } => write!(f, "{path}: {detail}"),
             PlanError::Container { path, detail } => {
+                let detail = escaped(detail);
                 write!(f, "{path}: not a valid plan file ({detail}); the file may be truncated or corrupted")
             }
             PlanError::NotAPlan { path, missing } => {
@@ -97,13 +108,17 @@ impl fmt::Display for PlanError {
             }
             PlanError::Version { path, found } => write!(
                 f,
-                "{path}: plan format version {found}, but this readi reads version {FORMAT_VERSION}; recompile the plan"
+                "{path}: plan format version {}, but this readi reads version {FORMAT_VERSION}; recompile the plan",
+                escaped(found)
             ),
             PlanError::Manifest { path, detail } => write!(f, "{path}: invalid plan manifest: {detail}"),
             PlanError::Checksum { path, stored, computed } => {
+                let stored = escaped(stored);
                 write!(f, "{path}: checksum mismatch (stored {stored}, computed {computed:08x}): the file is corrupted")
             }
-            PlanError::Tensor { path, name, detail } => write!(f, "{path}: tensor `{name}`: {detail}"),
+            PlanError::Tensor { path, name, detail } => {
+                write!(f, "{path}: tensor `{}`: {}", escaped(name), escaped(detail))
+            }
         }
     }
 }
@@ -141,9 +156,13 @@ impl fmt::Debug for Plan {
 impl Plan {
     /// A plan from the compiler: the manifest and the data of each manifest tensor, in
     /// manifest order (shared data, such as the compiler's `Arc<[f32]>`, is not copied).
+    /// Records the plan's footprint at batch 1 on one thread in
+    /// [`Manifest::footprint`] (`None` if it does not fit in memory at all).
     pub fn new<T: Into<Arc<[f32]>>>(manifest: Manifest, tensors: Vec<T>) -> Result<Plan, PlanError> {
         let tensors = tensors.into_iter().map(Into::into).collect();
-        Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")
+        let mut plan = Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")?;
+        plan.manifest.footprint = crate::exec::compiled_footprint(&plan);
+        Ok(plan)
     }
 
     /// Validates and builds the variant maps.
@@ -211,10 +230,20 @@ impl Plan {
         std::fs::write(path, bytes).map_err(|error| PlanError::Io { path: path.display().to_string(), error })
     }
 
-    /// Maps a plan file and checks it. The weights stay in the mapping.
+    /// Maps a plan file and checks it. The weights stay in the mapping. The file must be
+    /// a regular file of at most [`MAX_PLAN_BYTES`].
     pub fn load(path: &Path) -> Result<Plan, PlanError> {
         let name = path.display().to_string();
         let file = std::fs::File::open(path).map_err(|error| PlanError::Io { path: name.clone(), error })?;
+        // Of the opened file, so that it cannot be swapped between the check and the map.
+        let meta = file.metadata().map_err(|error| PlanError::Io { path: name.clone(), error })?;
+        if !meta.is_file() {
+            return Err(PlanError::NotAFile { path: name, detail: "not a regular file".into() });
+        }
+        if meta.len() > MAX_PLAN_BYTES {
+            let detail = format!("{} bytes, more than the {MAX_PLAN_BYTES} a plan may have", meta.len());
+            return Err(PlanError::NotAFile { path: name, detail });
+        }
         let map = map_file(&file).map_err(|error| PlanError::Io { path: name.clone(), error })?;
         Plan::from_map(map, &name)
     }
@@ -232,8 +261,9 @@ impl Plan {
         }
         let json = get(KEY_MANIFEST)?;
         let stored = get(KEY_CHECKSUM)?;
-        let manifest: Manifest =
-            serde_json::from_str(json).map_err(|e| PlanError::Manifest { path: path.into(), detail: e.to_string() })?;
+        // serde's message may quote the text it could not read: escaped like a name.
+        let manifest: Manifest = serde_json::from_str(json)
+            .map_err(|e| PlanError::Manifest { path: path.into(), detail: escaped(&e.to_string()).into_owned() })?;
         if manifest.format_version != FORMAT_VERSION {
             return Err(PlanError::Version { path: path.into(), found: manifest.format_version.to_string() });
         }

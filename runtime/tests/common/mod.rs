@@ -80,6 +80,7 @@ pub fn manifest(
         tensors,
         params: Vec::new(),
         variants,
+        footprint: None,
     }
 }
 

@@ -109,6 +109,101 @@ pub fn scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
     parts(s, algo, threads) * part_scratch(s, algo)
 }
 
+/// Most elements of a conv's input, output or weight [`check`] accepts: far beyond any
+/// memory budget, and small enough that the kernel's own size arithmetic (tiles, parts,
+/// scratch) cannot overflow.
+const MAX_ELEMENTS: usize = 1 << 48;
+
+/// [`scratch_len`] for a layer that passed [`check`], or `None` if it overflows.
+pub fn checked_scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> Option<usize> {
+    parts(s, algo, threads).checked_mul(part_scratch(s, algo))
+}
+
+/// The preconditions of [`conv2d`] on a layer: the geometry is consistent (groups
+/// divide the channels, the window fits the padded input and the output size is
+/// PyTorch's), `algo` can compute it (Gemm1x1: 1x1, stride 1, no padding; Winograd: 3x3,
+/// stride 1, no dilation; depthwise: one input channel per group), and the lengths of
+/// the packed weight, the input, the output and the epilogue's vectors fit the shape.
+/// The executor checks this at bind time; [`conv2d`] asserts it in debug builds.
+pub fn check(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    weight_len: usize,
+    x_len: usize,
+    out_len: usize,
+    epilogue: [Option<usize>; 2],
+) -> Result<(), String> {
+    if s.groups == 0 || !s.cin.is_multiple_of(s.groups) || !s.cout.is_multiple_of(s.groups) {
+        return Err(format!("groups={} must divide {} input and {} output channels", s.groups, s.cin, s.cout));
+    }
+    if s.cin == 0 || s.cout == 0 {
+        return Err(format!("{} input and {} output channels: a conv needs at least one", s.cin, s.cout));
+    }
+    if [s.kh, s.kw, s.stride_h, s.stride_w, s.dil_h, s.dil_w].contains(&0) {
+        return Err(format!(
+            "kernel {}x{}, stride {}x{}, dilation {}x{}: none may be 0",
+            s.kh, s.kw, s.stride_h, s.stride_w, s.dil_h, s.dil_w
+        ));
+    }
+    let out = |len: usize, k: usize, st: usize, p: usize, d: usize| {
+        let i = |v: usize| i64::try_from(v).ok();
+        readi_plan::ops::window_out(i(len)?, i(k)?, i(st)?, i(p)?, i(d)?, false).and_then(|o| usize::try_from(o).ok())
+    };
+    if out(s.h, s.kh, s.stride_h, s.pad_h, s.dil_h) != Some(s.oh)
+        || out(s.w, s.kw, s.stride_w, s.pad_w, s.dil_w) != Some(s.ow)
+    {
+        return Err(format!(
+            "kernel {}x{} (dilation {}x{}, padding {}x{}) does not fit input {}x{} with output {}x{}",
+            s.kh, s.kw, s.dil_h, s.dil_w, s.pad_h, s.pad_w, s.h, s.w, s.oh, s.ow
+        ));
+    }
+    if !algo.supports(s) {
+        let needs = match algo {
+            ConvAlgo::Gemm1x1 => "a 1x1 kernel, stride 1 and no padding",
+            ConvAlgo::Winograd2 | ConvAlgo::Winograd4 => "a 3x3 kernel, stride 1 and dilation 1",
+            ConvAlgo::Depthwise => "one input channel per group (groups = input channels)",
+            ConvAlgo::Im2col => "nothing",
+        };
+        return Err(format!(
+            "conv algorithm `{}` cannot compute this layer (kernel {}x{}, stride {}x{}, padding {}x{}, dilation {}x{},              {} input channels in {} groups): it needs {needs}",
+            algo.name(),
+            s.kh,
+            s.kw,
+            s.stride_h,
+            s.stride_w,
+            s.pad_h,
+            s.pad_w,
+            s.dil_h,
+            s.dil_w,
+            s.cin,
+            s.groups
+        ));
+    }
+    let product =
+        |dims: &[usize]| dims.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).filter(|&n| n <= MAX_ELEMENTS);
+    let (Some(_), Some(x), Some(o)) = (
+        product(&[s.cin_g(), s.kh, s.kw, s.cout]),
+        product(&[s.n, s.cin, s.h, s.w]),
+        product(&[s.n, s.cout, s.oh, s.ow]),
+    ) else {
+        return Err(format!("the layer is too large ({s:?})"));
+    };
+    if weight_len != packed_weight_len(s, algo) {
+        return Err(format!(
+            "packed weight has {weight_len} values, `{}` needs {}",
+            algo.name(),
+            packed_weight_len(s, algo)
+        ));
+    }
+    if x_len != x || out_len != o {
+        return Err(format!("input has {x_len} values (needs {x}), output {out_len} (needs {o})"));
+    }
+    if let Some(n) = epilogue.into_iter().flatten().find(|&n| n != s.cout) {
+        return Err(format!("an epilogue vector has {n} values for {} output channels", s.cout));
+    }
+    Ok(())
+}
+
 /// Computes one conv layer: `out = epilogue(conv(x, weight))`, where `packed_weight` came
 /// from [`pack_weight`] for the same `algo`, `scratch` holds at least [`scratch_len`]
 /// floats, and the epilogue's `scale`/`shift` (if any) have `cout` values.
@@ -127,6 +222,18 @@ pub fn conv2d(
     scratch: &mut [f32],
     threads: usize,
 ) {
+    debug_assert_eq!(
+        check(
+            s,
+            algo,
+            packed_weight.len(),
+            x.len(),
+            out.len(),
+            [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)]
+        ),
+        Ok(()),
+        "conv2d preconditions"
+    );
     check_shape(s);
     assert!(algo.supports(s), "conv: {} cannot compute {s:?}", algo.name());
     assert_eq!(packed_weight.len(), packed_weight_len(s, algo), "conv: packed weight length");

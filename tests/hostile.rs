@@ -1,0 +1,556 @@
+//! Hostile plan files, input files and flags, as a user of the `readi` binary would try
+//! them: each gets an error naming the file and the problem and exit status 1, never a
+//! panic, an abort or a hang.
+//!
+//! Hostile plans are a valid plan (tests/cases/ok/all_ops.readi with seeded weights)
+//! whose manifest is edited and written back with a correct checksum, as an attacker
+//! would: the checksum guards against accidents only.
+
+mod common;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use readi_compiler::backend::{self, CompileOptions};
+use readi_runtime::plan::{Manifest, Plan};
+use safetensors::tensor::{Dtype, TensorView};
+
+use common::readi;
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A user error: exit status 1 and a message on stderr (not a panic: that is status 3, an
+/// abort a signal).
+#[track_caller]
+fn refused(o: &Output) -> String {
+    let err = stderr(o);
+    assert_eq!(o.status.code(), Some(1), "expected exit status 1\nstdout: {}\nstderr: {err}", stdout(o));
+    assert!(err.starts_with("error: ") || err.contains("\nerror: "), "{err}");
+    err
+}
+
+/// A directory of its own for each test.
+fn temp_dir(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("readi-hostile-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+fn s(p: &Path) -> String {
+    p.to_str().expect("utf-8 path").to_string()
+}
+
+/// The manifest and tensor data of tests/cases/ok/all_ops.readi (every kernel; inputs
+/// `img: [N, 4, 16, 16]` and optional `seq_in: [N, 10, 32]`) with seeded weights.
+fn all_ops() -> (Manifest, Vec<Vec<f32>>) {
+    let (sources, out) = common::compile("tests/cases/ok/all_ops.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = backend::seeded_weights(&module.graph, 3);
+    let plan = backend::compile(&module, &weights, "seeded", &CompileOptions::default()).expect("compiles").0;
+    let tensors = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    (plan.manifest, tensors)
+}
+
+/// A plan file of `m` and `tensors` as `Plan::write` lays it out (format version,
+/// manifest, CRC-32 of the manifest text and the tensors' bytes), without the checks
+/// `Plan::new` makes: what a hand-edited file looks like.
+fn plan_bytes(m: &Manifest, tensors: &[Vec<f32>]) -> Vec<u8> {
+    let json = serde_json::to_string(m).expect("manifest as JSON");
+    let bytes: Vec<Vec<u8>> = tensors.iter().map(|t| t.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(json.as_bytes());
+    for b in &bytes {
+        crc.update(b);
+    }
+    let views: Vec<(String, TensorView<'_>)> = m
+        .tensors
+        .iter()
+        .zip(&bytes)
+        .map(|(spec, b)| (spec.name.clone(), TensorView::new(Dtype::F32, spec.shape.clone(), b).expect("a view")))
+        .collect();
+    let metadata = HashMap::from([
+        ("readi.format_version".to_string(), m.format_version.to_string()),
+        ("readi.manifest".to_string(), json),
+        ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
+    ]);
+    safetensors::serialize(views, Some(metadata)).expect("serialise")
+}
+
+/// Writes all_ops's plan with its manifest edited by `edit` to `dir/name`.
+fn hostile_plan(dir: &Path, name: &str, edit: impl FnOnce(&mut Manifest)) -> PathBuf {
+    let (mut m, tensors) = all_ops();
+    edit(&mut m);
+    let path = dir.join(name);
+    std::fs::write(&path, plan_bytes(&m, &tensors)).expect("write plan");
+    path
+}
+
+#[test]
+fn the_unedited_plan_is_accepted() {
+    // The helpers write what Plan::write writes: the edits below are the only fault.
+    let (m, tensors) = all_ops();
+    let dir = temp_dir("ok");
+    let path = dir.join("ok.plan");
+    std::fs::write(&path, plan_bytes(&m, &tensors)).expect("write");
+    let plan = Plan::load(&path).expect("loads");
+    assert_eq!(plan.manifest, m);
+    let o = readi(&["inspect", &s(&path)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn names_from_plans_are_printed_escaped() {
+    let dir = temp_dir("escape");
+    // Clear the screen, then a line that looks like readi's own output.
+    let evil = "img\u{1b}[2J\nerror: all good";
+    let path = hostile_plan(&dir, "escape.plan", |m| {
+        m.model = "m\u{1b}]0;title\u{7}".into();
+        m.inputs[0].name = evil.into();
+        m.steps[0].path = "conv\u{1b}[31m".into();
+    });
+    let o = readi(&["inspect", &s(&path), "--verbose"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(!out.contains('\u{1b}') && !out.contains('\u{7}'), "raw escape sequences in: {out:?}");
+    assert!(out.contains("model m\\u{1b}]0;title\\u{7}("), "{out}");
+    assert!(out.contains("  img\\u{1b}[2J\\nerror: all good: f32[N, 4, 16, 16]"), "{out}");
+    assert!(out.contains("conv\\u{1b}[31m"), "{out}");
+    // In an error message too: the required input is not given.
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(!err.contains('\u{1b}'), "{err:?}");
+    assert!(err.contains("input `img\\u{1b}[2J\\nerror: all good` is required"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The unedited all_ops plan at `dir/ok.plan`.
+fn ok_plan(dir: &Path) -> PathBuf {
+    hostile_plan(dir, "ok.plan", |_| {})
+}
+
+#[test]
+fn a_batch_over_the_memory_limit_is_refused_before_allocating() {
+    let dir = temp_dir("budget");
+    let path = ok_plan(&dir);
+    // 10^9 images of 4x16x16 floats: terabytes, refused by the default limit.
+    let err = refused(&readi(&["bench", &s(&path), "--batch", "1000000000", "--runs", "1", "--warmup", "0"]));
+    assert!(err.contains("over the limit of"), "{err}");
+    assert!(err.contains("N = 1000000000") && err.contains("largest: "), "{err}");
+    // The largest parts are named with their bytes.
+    assert!(err.contains("bytes)"), "{err}");
+    // A batch whose sizes overflow a 64-bit byte count.
+    let err = refused(&readi(&["bench", &s(&path), "--batch", "18446744073709551615", "--runs", "1"]));
+    assert!(err.contains("does not fit in memory"), "{err}");
+    // A small limit refuses batch 1 too, in run and bench.
+    let err = refused(&readi(&["bench", &s(&path), "--max-memory", "1K", "--runs", "1"]));
+    assert!(err.contains("over the limit of 1.0 KiB (1024 bytes)"), "{err}");
+    let o = readi(&["bench", &s(&path), "--max-memory", "64M", "--runs", "1", "--warmup", "0"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn inspect_shows_the_recorded_footprint_and_the_limit() {
+    let dir = temp_dir("footprint");
+    let path = ok_plan(&dir);
+    let o = readi(&["inspect", &s(&path), "--max-memory", "1G"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("memory at batch 1: "), "{out}");
+    assert!(out.contains("memory limit 1.0 GiB (1073741824 bytes): batches up to "), "{out}");
+    // A plan written before footprints were recorded loads and says so.
+    let old = hostile_plan(&dir, "old.plan", |m| m.footprint = None);
+    let o = readi(&["inspect", &s(&old)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("memory: not recorded in the plan"), "{}", stdout(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_huge_slot_count_is_refused_at_load() {
+    let dir = temp_dir("slots");
+    let path = hostile_plan(&dir, "slots.plan", |m| m.slots = 1 << 36);
+    for cmd in ["inspect", "run", "bench"] {
+        let err = refused(&readi(&[cmd, &s(&path)]));
+        assert!(err.contains("activation buffers for") && err.contains("at most one per value"), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_value_no_step_writes_takes_no_memory() {
+    // A huge value in a buffer that no step writes: nothing reads it, nothing is allocated.
+    let dir = temp_dir("unread");
+    let path = hostile_plan(&dir, "unread.plan", |m| {
+        let slot = match m.values.iter().find_map(|v| match v.storage {
+            readi_runtime::plan::Storage::Slot(s) => Some(s),
+            _ => None,
+        }) {
+            Some(s) => s,
+            None => panic!("a slot"),
+        };
+        let huge = readi_runtime::plan::Dim::from(1usize << 34);
+        m.values.push(readi_runtime::plan::ValueSpec {
+            shape: vec![huge.clone(), huge],
+            storage: readi_runtime::plan::Storage::Slot(slot),
+        });
+    });
+    let o = readi(&["bench", &s(&path), "--runs", "1", "--warmup", "0", "--max-memory", "64M"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn zero_and_huge_counts_are_refused() {
+    let dir = temp_dir("counts");
+    let path = ok_plan(&dir);
+    for (flag, value, want) in [
+        ("--batch", "0", "at least 1"),
+        ("--runs", "0", "at least 1"),
+        ("--threads", "0", "1 to 256"),
+        ("--threads", "100000", "1 to 256"),
+        ("--max-memory", "0", "more than 0"),
+        ("--max-memory", "12X", "unknown unit"),
+    ] {
+        let o = readi(&["bench", &s(&path), flag, value]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {err}");
+        assert!(err.contains(want), "{flag} {value}: {err}");
+    }
+    let o = readi(&["run", &s(&path), "--threads", "0"]);
+    assert!(stderr(&o).contains("1 to 256"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A plan of one step: input `x` of `shape` (`None`: the batch symbol `N`), the step's
+/// `kernel` writing `out` into buffer 0, the output `y`; `tensors` its stored tensors.
+fn one_step(
+    x: &[Option<usize>],
+    kernel: readi_runtime::plan::Kernel,
+    out: &[Option<usize>],
+    tensors: &[(&str, Vec<usize>)],
+) -> (Manifest, Vec<Vec<f32>>) {
+    use readi_runtime::plan::{Dim, FORMAT_VERSION, InputSpec, OutputSpec, Step, Storage, TensorSpec, ValueSpec};
+    let dims = |s: &[Option<usize>]| -> Vec<Dim> { s.iter().map(|d| d.map_or(Dim::symbol("N"), Dim::from)).collect() };
+    let m = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "one_step".into(),
+        model_params: Vec::new(),
+        symbols: vec!["N".into()],
+        inputs: vec![InputSpec { name: "x".into(), shape: dims(x), modality: None, optional: false, value: 0 }],
+        outputs: vec![OutputSpec { name: "y".into(), value: 1 }],
+        values: vec![
+            ValueSpec { shape: dims(x), storage: Storage::Input(0) },
+            ValueSpec { shape: dims(out), storage: Storage::Slot(0) },
+        ],
+        steps: vec![Step { path: "the\u{1b}step".into(), kernel, inputs: vec![0], output: 1 }],
+        slots: 1,
+        tensors: tensors.iter().map(|(n, s)| TensorSpec { name: n.to_string(), shape: s.clone() }).collect(),
+        params: Vec::new(),
+        variants: Vec::new(),
+        conditions: None,
+        footprint: None,
+    };
+    let data = tensors.iter().map(|(_, s)| vec![0.5; s.iter().product()]).collect();
+    (m, data)
+}
+
+/// Writes a plan and returns `readi run`'s refusal of it, with `x` given at batch 1 of
+/// `x_shape` (from an .npy file), so that any check (load, bind, kernel) can be reached.
+fn run_refused(dir: &Path, name: &str, plan: (Manifest, Vec<Vec<f32>>), x_shape: &[usize]) -> String {
+    let path = dir.join(name);
+    std::fs::write(&path, plan_bytes(&plan.0, &plan.1)).expect("write plan");
+    let x = dir.join(format!("{name}.x.npy"));
+    write_npy(&x, x_shape);
+    refused(&readi(&["run", &s(&path), "--input", &format!("x={}", s(&x))]))
+}
+
+/// A .npy file of f32 zeros of `shape` (version 1.0 header).
+fn write_npy(path: &Path, shape: &[usize]) {
+    let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
+    let tuple = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {tuple}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    bytes.extend(std::iter::repeat_n(0u8, 4 * shape.iter().product::<usize>()));
+    std::fs::write(path, bytes).expect("write npy");
+}
+
+#[test]
+fn a_conv_algorithm_that_does_not_fit_its_layer_is_refused() {
+    use readi_plan::ops::ConvAlgo;
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("algo");
+    // all_ops's conv is 3x1, stride 2x1, two input channels per group: none of these fit.
+    for algo in [ConvAlgo::Depthwise, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Gemm1x1] {
+        let path = hostile_plan(&dir, "algo.plan", |m| {
+            if let Kernel::Conv2d { algo: a, .. } = &mut m.steps[0].kernel {
+                *a = algo;
+            }
+        });
+        let err = refused(&readi(&["run", &s(&path)]));
+        assert!(err.contains("step 0 (`conv (+bn, relu#0)`)"), "{algo}: {err}");
+        assert!(err.contains(&format!("conv algorithm `{algo}` cannot compute this layer")), "{algo}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_input_declared_unlike_its_value_is_refused() {
+    let dir = temp_dir("declared");
+    let path = hostile_plan(&dir, "declared.plan", |m| {
+        m.inputs[0].shape[3] = readi_runtime::plan::Dim::from(8usize);
+    });
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(err.contains("input `img` is declared as [N, 4, 16, 8] but its value has shape [N, 4, 16, 16]"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("window");
+    let path = hostile_plan(&dir, "window.plan", |m| {
+        if let Kernel::Conv2d { conv, .. } = &mut m.steps[0].kernel {
+            conv.window.kernel = [40, 1];
+        }
+    });
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(err.contains("step 0 (`conv (+bn, relu#0)`)") && err.contains("does not fit"), "{err}");
+    // A conv of one step whose kernel is larger than its input, the output declared as
+    // if it fitted.
+    use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
+    let window = Window2 { kernel: [5, 5], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
+    let conv = Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 };
+    let kernel = Kernel::Conv2d { conv, algo: ConvAlgo::Im2col, weight: 0, epilogue: Default::default() };
+    let plan =
+        one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
+    let err = run_refused(&dir, "small.plan", plan, &[1, 1, 3, 3]);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains("does not fit"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_linear_with_zero_input_features_is_refused() {
+    use readi_plan::ops::Linear;
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("linear0");
+    let kernel =
+        Kernel::Linear { linear: Linear { in_features: 0, out_features: 4 }, weight: 0, epilogue: Default::default() };
+    let plan = one_step(&[None, Some(0)], kernel, &[None, Some(4)], &[("w", vec![0, 4])]);
+    let err = run_refused(&dir, "linear0.plan", plan, &[1, 0]);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");
+    assert!(err.contains("linear from 0 to 4 features: both must be at least 1"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_upsample_of_an_empty_tensor_is_refused() {
+    use readi_plan::ops::{Pure, Upsample, UpsampleMode};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("upsample0");
+    for mode in [UpsampleMode::Nearest, UpsampleMode::Bilinear] {
+        let up = Upsample { size: [4, 4], scale: None, mode, align_corners: false };
+        let plan = one_step(
+            &[None, Some(2), Some(0), Some(3)],
+            Kernel::Pure(Pure::Upsample(up)),
+            &[None, Some(2), Some(4), Some(4)],
+            &[],
+        );
+        let err = run_refused(&dir, "upsample0.plan", plan, &[1, 2, 0, 3]);
+        assert!(err.contains("upsample0.plan: invalid plan at step 0 (`the\\u{1b}step`)"), "{err}");
+        assert!(err.contains("upsample of an empty input [1, 2, 0, 3] to [1, 2, 4, 4]"), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn duplicate_output_names_are_refused() {
+    let dir = temp_dir("outputs");
+    let path = hostile_plan(&dir, "outputs.plan", |m| m.outputs[1].name = "pooled".into());
+    let out = dir.join("out.safetensors");
+    let err = refused(&readi(&["run", &s(&path), "--output", &s(&out)]));
+    assert!(err.contains("output `pooled` is declared twice"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The manifest and tensors of tests/cases/ok/adapt_and_variants.readi with seeded
+/// weights and two seeded variants: a plan with conditions.
+fn with_conditions() -> (Manifest, Vec<Vec<f32>>) {
+    let (sources, out) = common::compile("tests/cases/ok/adapt_and_variants.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = backend::seeded_weights(&module.graph, 1);
+    let keys = ["fog=0.03".to_string(), "gamma=0.25".to_string()];
+    let variants = backend::seeded_variants(&module, &keys, 2);
+    let (plan, _) = backend::compile_variants(&module, &weights, "seeded", &variants, &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let tensors = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    (plan.manifest, tensors)
+}
+
+/// An edit of a manifest.
+type Edit = dyn Fn(&mut Manifest);
+
+#[test]
+fn conditions_are_checked_at_load() {
+    use readi_plan::conditions::KeySource;
+    let dir = temp_dir("conditions");
+    let cases: Vec<(&str, Box<Edit>)> = vec![
+        (
+            "reads input `camera`, which the plan does not have (its inputs: image, points)",
+            Box::new(|m: &mut Manifest| {
+                let c = m.conditions.as_mut().expect("conditions");
+                for s in &mut c.selectors {
+                    if let KeySource::Stat { input, .. } = &mut s.source {
+                        *input = "camera".into();
+                    }
+                }
+            }),
+        ),
+        (
+            "the selector of axis `rain`: no such axis (the axes: gamma, fog)",
+            Box::new(|m: &mut Manifest| m.conditions.as_mut().expect("conditions").selectors[0].axis = "rain".into()),
+        ),
+        (
+            "arm 0 selects level 0.5, which the axis does not declare",
+            Box::new(|m: &mut Manifest| {
+                let c = m.conditions.as_mut().expect("conditions");
+                let s = c.selectors.iter_mut().find(|s| !s.arms.is_empty()).expect("a selector with arms");
+                s.arms[0].level = Some(0.5);
+            }),
+        ),
+        (
+            "axis `fog`: the name is not an identifier, or is declared twice",
+            Box::new(|m: &mut Manifest| {
+                let c = m.conditions.as_mut().expect("conditions");
+                c.axes[0].name = "fog".into();
+            }),
+        ),
+        (
+            "the meld lambda of `radar`: no such modality",
+            Box::new(|m: &mut Manifest| {
+                let meld = m.conditions.as_mut().expect("conditions").meld.as_mut().expect("a meld rule");
+                meld.weights[0].0 = "radar".into();
+            }),
+        ),
+    ];
+    let (m, tensors) = with_conditions();
+    for (want, edit) in cases {
+        let mut edited = m.clone();
+        edit(&mut edited);
+        let path = dir.join("conditions.plan");
+        std::fs::write(&path, plan_bytes(&edited, &tensors)).expect("write plan");
+        let err = refused(&readi(&["run", &s(&path), "--auto"]));
+        assert!(err.contains("invalid plan manifest: ") && err.contains(want), "want `{want}`: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn metadata_no_selector_reads_is_refused() {
+    let dir = temp_dir("meta");
+    let (m, tensors) = with_conditions();
+    let path = dir.join("meta.plan");
+    std::fs::write(&path, plan_bytes(&m, &tensors)).expect("write plan");
+    let err = refused(&readi(&["run", &s(&path), "--auto", "--meta", "weather.fog=0.05"]));
+    assert!(
+        err.contains("no selector reads metadata `weather.fog` (the plan's selectors read: `weather.fog_density`)"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_output_flag_naming_no_output_is_refused() {
+    let dir = temp_dir("output");
+    let path = ok_plan(&dir);
+    let x = dir.join("img.npy");
+    write_npy(&x, &[1, 4, 16, 16]);
+    let input = format!("img={}", s(&x));
+    let file = dir.join("yy=out.npy");
+    let err =
+        refused(&readi(&["run", &s(&path), "--input", &input, "--output", &format!("yy={}", s(&dir.join("out.npy")))]));
+    assert!(err.contains("the model has no output `yy` (its outputs: `pooled`, `tokens`, `avg`)"), "{err}");
+    assert!(!dir.join("out.npy").exists() && !file.exists());
+    // A known name writes that output; a path with `=` in its file name is a file.
+    let o = readi(&["run", &s(&path), "--input", &input, "--output", &format!("avg={}", s(&dir.join("avg.npy")))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("avg.npy").exists());
+    let o = readi(&["run", &s(&path), "--input", &input, "--output", &s(&dir.join("all=outputs.safetensors"))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("all=outputs.safetensors").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_truncated_npy_input_is_reported_as_truncated() {
+    let dir = temp_dir("truncated");
+    let path = ok_plan(&dir);
+    let x = dir.join("img.npy");
+    write_npy(&x, &[1, 4, 16, 16]);
+    let bytes = std::fs::read(&x).expect("read");
+    std::fs::write(&x, &bytes[..bytes.len() - 100]).expect("write");
+    let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&x))]));
+    assert!(err.contains("img.npy: truncated .npy file"), "{err}");
+    assert!(
+        err.contains("its header declares shape [1, 4, 16, 16], 4096 bytes of data, but the file holds 3996"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[cfg(unix)]
+#[test]
+fn devices_and_directories_are_not_read_as_files() {
+    let dir = temp_dir("devices");
+    let path = ok_plan(&dir);
+    // A plan that is a device, or a directory.
+    let err = refused(&readi(&["inspect", "/dev/zero"]));
+    assert!(err.contains("/dev/zero: not a regular file"), "{err}");
+    let err = refused(&readi(&["run", &s(&dir)]));
+    assert!(err.contains("not a regular file"), "{err}");
+    // Inputs that are devices, whatever their name says.
+    for name in ["zero.npy", "zero.safetensors"] {
+        let link = dir.join(name);
+        std::os::unix::fs::symlink("/dev/zero", &link).expect("symlink");
+        let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&link))]));
+        assert!(err.contains(&format!("{name} is not a regular file")), "{err}");
+    }
+    // An input file over the memory limit.
+    let x = dir.join("img.npy");
+    write_npy(&x, &[1, 4, 16, 16]);
+    let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&x)), "--max-memory", "1K"]));
+    assert!(err.contains("more than the limit of 1024 bytes"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_empty_tensor_with_huge_inner_axes_is_refused() {
+    // [N, 0, 2^40, 2^40] holds no element, but a kernel multiplying its inner axes
+    // would overflow: binding refuses it.
+    use readi_plan::ops::{Activation, Pure};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("empty-huge");
+    let huge = 1usize << 40;
+    let shape = [None, Some(0), Some(huge), Some(huge)];
+    let plan = one_step(&shape, Kernel::Pure(Pure::Activation(Activation::Relu)), &shape, &[]);
+    let path = dir.join("empty.plan");
+    std::fs::write(&path, plan_bytes(&plan.0, &plan.1)).expect("write plan");
+    let err = refused(&readi(&["bench", &s(&path), "--runs", "1", "--warmup", "0"]));
+    assert!(err.contains("value 0 (input `x`) at N = 1 does not fit in memory"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
