@@ -10,8 +10,8 @@ use readi_compiler::print;
 use readi_grammar::diag::Diagnostics;
 
 use super::args::{LoraArg, ModelArgs};
-use super::deploy;
 use super::frontend::{Frontend, summary_line};
+use super::{deploy, files};
 
 /// The arguments of `readi compile` but the output file.
 pub struct CompileArgs {
@@ -36,7 +36,7 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
     let mut melds = args.melds.clone();
     let (spec, weights, variant_files, mut lora) = match &args.deploy {
         Some(path) => {
-            let bytes = deploy::read_bounded(path, deploy::MAX_CONFIG_BYTES).map_err(fail)?;
+            let bytes = files::read_bounded(path, files::MAX_CONFIG_BYTES).map_err(fail)?;
             let text = String::from_utf8(bytes).map_err(|_| fail(format!("{} is not UTF-8 text", path.display())))?;
             let d = deploy::parse(path, &text).map_err(fail)?;
             model.set.extend(d.set);
@@ -71,7 +71,7 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         return Err(ExitCode::FAILURE);
     };
     let wname = weights.display().to_string();
-    let bytes = deploy::read_bounded(&weights, deploy::MAX_WEIGHTS_BYTES).map_err(fail)?;
+    let bytes = files::read_bounded(&weights, files::MAX_WEIGHTS_BYTES).map_err(fail)?;
     let report = |s: &Frontend, d: Diagnostics| {
         s.report(&d);
         ExitCode::FAILURE

@@ -62,37 +62,7 @@ impl VariantFile {
     }
 }
 
-/// Most bytes a weights file (base, variant, PEFT adapter) may have: 16 GiB.
-pub const MAX_WEIGHTS_BYTES: u64 = 16 << 30;
-/// Most bytes of a PEFT `adapter_config.json` or a deployment manifest: 1 MiB.
-pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
-
-/// Reads a file that must be a regular file of at most `limit` bytes: a device
-/// (`/dev/zero`), a pipe or a directory is refused before anything is read, and so is a
-/// file over the limit (or one that grows past it while it is read).
-pub fn read_bounded(path: &Path, limit: u64) -> Result<Vec<u8>, String> {
-    use std::io::Read;
-    let shown = path.display();
-    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
-    if meta.is_dir() {
-        return Err(format!("cannot read {shown}: it is a directory"));
-    }
-    if !meta.is_file() {
-        return Err(format!("cannot read {shown}: it is not a regular file (a device, a pipe or a socket)"));
-    }
-    let too_large = |n: u64| format!("{shown} is {n} bytes, over the limit of {limit} bytes for this kind of file");
-    if meta.len() > limit {
-        return Err(too_large(meta.len()));
-    }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
-    std::fs::File::open(path)
-        .and_then(|f| f.take(limit.saturating_add(1)).read_to_end(&mut bytes))
-        .map_err(|e| format!("cannot read {shown}: {e}"))?;
-    if bytes.len() as u64 > limit {
-        return Err(too_large(bytes.len() as u64));
-    }
-    Ok(bytes)
-}
+use super::files::{MAX_CONFIG_BYTES, MAX_WEIGHTS_BYTES, read_bounded};
 
 /// The variants with the files of each key together, keys in order of first appearance:
 /// a key given twice (on the command line, in a manifest, or both) reads all its files.

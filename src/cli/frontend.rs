@@ -20,7 +20,7 @@ impl Frontend {
     pub fn load(&mut self, path: &Path) -> Result<(FileId, String), ExitCode> {
         // The parser refuses longer sources; reading more would only spend memory.
         let limit = readi_grammar::parser::MAX_SOURCE_BYTES as u64;
-        match super::deploy::read_bounded(path, limit) {
+        match super::files::read_bounded(path, limit) {
             Ok(bytes) => match String::from_utf8(bytes) {
                 Ok(text) => Ok((self.sources.add(path.display().to_string(), text.clone()), text)),
                 Err(e) => {

@@ -9,8 +9,8 @@ use readi_compiler::passes::{self, BackendInputs, PIPELINE, Pass};
 use readi_compiler::{Module, print};
 
 use super::args::{BackendArgs, LoraArg, ModelArgs};
-use super::deploy;
 use super::frontend::{Frontend, summary_line, with_module};
+use super::{deploy, files};
 
 /// `readi ir`: the module as IR text after the front end or after `stop_after`; after a
 /// back-end pass it is compiled with `backend`'s weights and variants, and from `lower`
@@ -91,7 +91,7 @@ fn compiled(
     let (weights, name) = match &backend.weights {
         Some(path) => {
             let name = path.display().to_string();
-            let bytes = deploy::read_bounded(path, deploy::MAX_WEIGHTS_BYTES).map_err(|e| {
+            let bytes = files::read_bounded(path, files::MAX_WEIGHTS_BYTES).map_err(|e| {
                 eprintln!("error: {e}");
                 ExitCode::FAILURE
             })?;

@@ -16,6 +16,7 @@ pub mod check;
 pub mod compile;
 pub mod demo;
 pub mod deploy;
+pub mod files;
 pub mod frontend;
 pub mod inspect;
 pub mod ir;

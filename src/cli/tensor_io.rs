@@ -9,6 +9,8 @@ use readi_runtime::exec::Tensor;
 use readi_runtime::plan::escaped;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
+use super::files;
+
 /// A tensor read from a file: f32 data and shape.
 pub type Loaded = (Vec<usize>, Vec<f32>);
 
@@ -16,27 +18,14 @@ fn extension(path: &Path) -> String {
     path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
 }
 
-/// Checks that `path` is a regular file of at most `limit` bytes (not a device such as
-/// `/dev/zero`, a FIFO or a directory) and returns its length.
+/// [`files::check_file`] for inputs and samples, whose limit is `--max-memory`.
 pub fn check_file(path: &Path, limit: usize) -> Result<u64, String> {
-    let shown = path.display();
-    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
-    if !meta.is_file() {
-        return Err(format!("{shown} is not a regular file"));
-    }
-    if meta.len() > limit as u64 {
-        return Err(format!(
-            "{shown} holds {} bytes, more than the limit of {limit} bytes (raise it with --max-memory)",
-            meta.len()
-        ));
-    }
-    Ok(meta.len())
+    files::check_file(path, limit as u64).map_err(|e| format!("{e} (--max-memory)"))
 }
 
-/// Reads a whole file after [`check_file`].
+/// [`files::read_bounded`] for inputs and samples, whose limit is `--max-memory`.
 pub fn read_limited(path: &Path, limit: usize) -> Result<Vec<u8>, String> {
-    check_file(path, limit)?;
-    std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
+    files::read_bounded(path, limit as u64).map_err(|e| format!("{e} (--max-memory)"))
 }
 
 /// The shape and data bytes a `.npy` header declares and the bytes the file holds after
