@@ -26,7 +26,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::exec::{Bound, Input, Run, RunError, Session, run_step};
+use crate::exec::{Bound, Input, Run, RunError, Session, SessionOptions, run_step};
 use readi_plan::ops::batchnorm_channel;
 
 use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
@@ -149,6 +149,12 @@ impl BnCalibrator {
     /// the model has none, or if the plan does not record them (compiled by an older
     /// readi: every BatchNorm whose statistics the plan uses needs its [`BnInfo`]).
     pub fn new(plan: Arc<Plan>, threads: usize) -> Result<BnCalibrator, CalibrateError> {
+        BnCalibrator::with_options(plan, SessionOptions { threads, ..SessionOptions::default() })
+    }
+
+    /// [`BnCalibrator::new`] with the session's options: threads and the memory limit
+    /// every batch is bound under.
+    pub fn with_options(plan: Arc<Plan>, options: SessionOptions) -> Result<BnCalibrator, CalibrateError> {
         let m = &plan.manifest;
         let mut layers = Vec::new();
         let mut at_step = vec![None; m.steps.len()];
@@ -197,7 +203,7 @@ impl BnCalibrator {
         if layers.is_empty() {
             return Err(CalibrateError::NoBatchNorm { model: m.model.clone() });
         }
-        let session = Session::new(plan, threads)?;
+        let session = Session::with_options(plan, options)?;
         Ok(BnCalibrator { session, layers, at_step, batches: 0, samples: 0 })
     }
 

@@ -36,7 +36,8 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     let plan = Arc::new(Plan::load(args.plan).map_err(|e| e.to_string())?);
     let key = check_key(&plan, args.variant)?;
     let shown = args.plan.display();
-    let mut cal = BnCalibrator::new(plan.clone(), args.threads).map_err(|e| format!("{shown}: {e}"))?;
+    let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
+    let mut cal = BnCalibrator::with_options(plan.clone(), options).map_err(|e| format!("{shown}: {e}"))?;
     let bar = ProgressBar::new(args.samples.len() as u64);
     if let Ok(style) = ProgressStyle::with_template("{spinner} adapt-bn [{bar:30}] {pos}/{len} batches {msg}") {
         bar.set_style(style.progress_chars("=> "));
@@ -46,7 +47,6 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
         // One batch in memory at a time: read, run, drop.
         let batch = read_batch(&plan, path, args.max_memory, &bar)?;
         let inputs: Vec<Input<'_>> = batch.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
-        let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
         readi_runtime::exec::check_fits(&plan, &inputs, &options).map_err(|e| {
             bar.abandon();
             format!("{}: {e}", path.display())
