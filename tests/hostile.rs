@@ -528,13 +528,13 @@ fn devices_and_directories_are_not_read_as_files() {
         let link = dir.join(name);
         std::os::unix::fs::symlink("/dev/zero", &link).expect("symlink");
         let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&link))]));
-        assert!(err.contains(&format!("{name} is not a regular file")), "{err}");
+        assert!(err.contains(&format!("{name}: it is not a regular file")), "{err}");
     }
     // An input file over the memory limit.
     let x = dir.join("img.npy");
     write_npy(&x, &[1, 4, 16, 16]);
     let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&x)), "--max-memory", "1K"]));
-    assert!(err.contains("more than the limit of 1024 bytes"), "{err}");
+    assert!(err.contains("over the limit of 1024 bytes for this kind of file (--max-memory)"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

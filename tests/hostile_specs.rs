@@ -387,7 +387,11 @@ fn max_activation_memory_flag() {
     assert!(err.contains("over the activation limit of 4.0 GiB"), "{err}");
     let out = common::readi(&["check", spec, "--max-activation-memory", "64G"]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    for bad in ["0", "2X", "99999999999T", "1.5G"] {
+    // One size syntax with --max-memory: fractions of a unit too.
+    let out = common::readi(&["check", spec, "--max-activation-memory", "1.5G"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.code() == Some(1) && err.contains("over the activation limit of 1.5 GiB"), "{err}");
+    for bad in ["0", "2X", "99999999999T"] {
         let out = common::readi(&["check", spec, "--max-activation-memory", bad]);
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{bad}: {err}");

@@ -183,7 +183,11 @@ mod tests {
             err.contains("cut.npy: truncated .npy file") && err.contains("24 bytes of data, but the file holds 19"),
             "{err}"
         );
-        assert!(read_input("x", &npy, 16).expect_err("over the limit").contains("more than the limit of 16 bytes"));
+        assert!(
+            read_input("x", &npy, 16)
+                .expect_err("over the limit")
+                .contains("over the limit of 16 bytes for this kind of file (--max-memory)")
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
