@@ -131,6 +131,22 @@ fn names_from_plans_are_printed_escaped() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+#[test]
+fn symbols_in_shapes_are_printed_escaped() {
+    // A shape's symbol is refused (symbols must be declared identifiers), and the error
+    // that shows it must not carry its escape sequences to the terminal.
+    let dir = temp_dir("escape-sym");
+    let evil = "\u{1b}]0;owned\u{7}\u{1b}[2J";
+    let path = hostile_plan(&dir, "sym.plan", |m| {
+        let v = m.inputs[0].value;
+        m.values[v].shape[0] = readi_runtime::plan::Dim::symbol(evil);
+    });
+    let err = refused(&readi(&["inspect", &s(&path)]));
+    assert!(!err.contains('\u{1b}') && !err.contains('\u{7}'), "{err:?}");
+    assert!(err.contains("\\u{1b}]0;owned\\u{7}\\u{1b}[2J"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The unedited all_ops plan at `dir/ok.plan`.
 fn ok_plan(dir: &Path) -> PathBuf {
     hostile_plan(dir, "ok.plan", |_| {})

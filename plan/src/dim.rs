@@ -126,7 +126,14 @@ impl fmt::Display for Dim {
         if self.coef != 1 {
             write!(f, "{}*", self.coef)?;
         }
-        f.write_str(&self.syms.join("*"))
+        // Symbols from an untrusted plan may be anything until validation: printed escaped.
+        for (i, s) in self.syms.iter().enumerate() {
+            if i > 0 {
+                f.write_str("*")?;
+            }
+            f.write_str(&crate::format::escaped(s))?;
+        }
+        Ok(())
     }
 }
 
