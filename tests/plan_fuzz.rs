@@ -341,9 +341,16 @@ fn apply(m: &Mutation, manifest: &mut Value, tensors: &mut HashMap<String, Vec<f
             }
             let j = (at / inputs.len()) % rank;
             let coef = Value::from(1u64 << (8 + arg % 32));
-            manifest["inputs"][i]["shape"][j]["coef"] = coef.clone();
-            if let Some(d) = manifest["values"].get_mut(value as usize).and_then(|v| v["shape"].get_mut(j)) {
-                d["coef"] = coef;
+            // Earlier mutations may have made the axis something other than a dimension.
+            if let Some(d) = manifest["inputs"][i]["shape"].get_mut(j).and_then(Value::as_object_mut) {
+                d.insert("coef".into(), coef.clone());
+            }
+            if let Some(d) = manifest["values"]
+                .get_mut(value as usize)
+                .and_then(|v| v["shape"].get_mut(j))
+                .and_then(Value::as_object_mut)
+            {
+                d.insert("coef".into(), coef);
             }
         }
         Mutation::Poison { at, arg } => {
