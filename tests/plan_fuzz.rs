@@ -495,24 +495,34 @@ enum Reached {
     Ran,
 }
 
+/// Fails the case if `text`, printed to a terminal, would carry control characters
+/// (escape sequences) from the plan: names from plans are printed escaped.
+fn printable(what: &str, text: &str) {
+    if let Some(c) = text.chars().find(|&c| c.is_control() && c != '\n') {
+        panic!("{what} holds the raw control character {c:?}: {text:?}");
+    }
+}
+
 /// Loads, prints, binds and runs a plan file; a refusal is fine, a panic is not.
 fn exercise(path: &std::path::Path) -> Reached {
     let plan = match Plan::load(path) {
         Ok(plan) => plan,
         Err(e) => {
+            printable("the load error", &e.to_string());
             if std::env::var_os("PLAN_FUZZ_VERBOSE").is_some() {
                 eprintln!("refused: {e}");
             }
             return Reached::Refused;
         }
     };
-    let _ = readi::inspect::plan(&plan, path, true);
+    printable("the inspect listing", &readi::inspect::plan(&plan, path, true));
     let keys: Vec<String> = plan.variant_keys().take(3).map(str::to_string).collect();
     let plan = Arc::new(plan);
     let Ok(mut session) = session(Arc::clone(&plan)) else { return Reached::Failed };
     // Bound first, under the budget (which counts the inputs): the inputs below are made
     // only for a plan whose footprint at batch 1 fits, as `readi bench` does.
-    if session.bind_batch(1).is_err() {
+    if let Err(e) = session.bind_batch(1) {
+        printable("the bind error", &e.to_string());
         return Reached::Failed;
     }
     let inputs: Vec<(String, Vec<usize>, Vec<f32>)> = plan
@@ -527,8 +537,12 @@ fn exercise(path: &std::path::Path) -> Reached {
     let given: Vec<Input<'_>> = inputs.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
     let mut reached = Reached::Failed;
     for key in std::iter::once("base").chain(keys.iter().map(String::as_str)) {
-        if session.set_variant(key).is_ok() && session.run(&given).is_ok() {
-            reached = Reached::Ran;
+        match session.set_variant(key).map_err(|e| e.to_string()) {
+            Ok(_) => match session.run(&given) {
+                Ok(_) => reached = Reached::Ran,
+                Err(e) => printable("the run error", &e.to_string()),
+            },
+            Err(e) => printable("the switch error", &e),
         }
     }
     reached
