@@ -165,7 +165,8 @@ pub fn check(
             ConvAlgo::Im2col => "nothing",
         };
         return Err(format!(
-            "conv algorithm `{}` cannot compute this layer (kernel {}x{}, stride {}x{}, padding {}x{}, dilation {}x{},              {} input channels in {} groups): it needs {needs}",
+            "conv algorithm `{}` cannot compute this layer (kernel {}x{}, stride {}x{}, padding {}x{}, dilation {}x{}, \
+             {} input channels in {} groups): it needs {needs}",
             algo.name(),
             s.kh,
             s.kw,
