@@ -28,6 +28,26 @@ pub(crate) struct Bound {
     pub(super) footprint: Footprint,
 }
 
+/// Matches `inputs` to the plan's by name: `given[i]` is the position in `inputs` of the
+/// plan's input `i`, if given. A name given twice, or one the plan lacks, is an error.
+pub(super) fn match_inputs(m: &Manifest, inputs: &[Input<'_>], given: &mut Vec<Option<usize>>) -> Result<(), RunError> {
+    given.clear();
+    given.resize(m.inputs.len(), None);
+    for (pos, inp) in inputs.iter().enumerate() {
+        match m.inputs.iter().position(|s| s.name == inp.name) {
+            Some(i) if given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
+            Some(i) => given[i] = Some(pos),
+            None => {
+                return Err(RunError::UnknownInput {
+                    name: inp.name.into(),
+                    known: m.inputs.iter().map(|s| s.name.clone()).collect(),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Binds the symbols from the given inputs' shapes into `symbols` (in `m.symbols` order)
 /// and checks every given input; `given` holds, per plan input, the position in `inputs`
 /// of the input of that name. Allocates nothing unless it fails.
@@ -300,6 +320,14 @@ pub(super) fn show_bindings(m: &Manifest, symbols: &[usize]) -> String {
     if b.is_empty() { "the plan's shapes".into() } else { b.join(", ") }
 }
 
+/// Refuses a footprint over `limit` bytes at this binding of the symbols.
+pub(super) fn within(f: &Footprint, limit: usize, m: &Manifest, symbols: &[usize]) -> Result<(), RunError> {
+    if f.total <= limit {
+        return Ok(());
+    }
+    Err(RunError::OverBudget { needed: f.total, limit, at: show_bindings(m, symbols), largest: f.largest.clone() })
+}
+
 /// Refuses a layout whose footprint exceeds `limit` bytes, then allocates its buffers.
 ///
 /// The checks read the base's tensors. Every variant's replacement has exactly its base
@@ -307,15 +335,7 @@ pub(super) fn show_bindings(m: &Manifest, symbols: &[usize]) -> String {
 /// and a switch needs no new check.
 pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize) -> Result<Bound, RunError> {
     let layout = layout(plan, symbols, threads)?;
-    let f = &layout.footprint;
-    if f.total > limit {
-        return Err(RunError::OverBudget {
-            needed: f.total,
-            limit,
-            at: show_bindings(&plan.manifest, symbols),
-            largest: f.largest.clone(),
-        });
-    }
+    within(&layout.footprint, limit, &plan.manifest, symbols)?;
     Ok(Bound {
         symbols: symbols.to_vec(),
         shapes: layout.shapes,

@@ -94,34 +94,15 @@ pub enum RunError {
 
 /// Checks that a run of `plan` on `inputs` fits `options.max_memory`, as the first run
 /// of a session with these options would, without allocating: the inputs are matched and
-/// their shapes bind the symbols, then the footprint is computed. For callers that run
-/// the plan through their own session (calibration).
+/// their shapes bind the symbols, then the footprint is computed.
 pub fn check_fits(plan: &Plan, inputs: &[Input<'_>], options: &SessionOptions) -> Result<Footprint, RunError> {
     let m = &plan.manifest;
-    let mut given = vec![None; m.inputs.len()];
-    for (pos, inp) in inputs.iter().enumerate() {
-        match m.inputs.iter().position(|s| s.name == inp.name) {
-            Some(i) if given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
-            Some(i) => given[i] = Some(pos),
-            None => {
-                return Err(RunError::UnknownInput {
-                    name: inp.name.into(),
-                    known: m.inputs.iter().map(|s| s.name.clone()).collect(),
-                });
-            }
-        }
-    }
+    let mut given = Vec::new();
+    bind::match_inputs(m, inputs, &mut given)?;
     let mut symbols = vec![0; m.symbols.len()];
     bind::bind_symbols(m, &given, inputs, &mut symbols)?;
     let footprint = bind::layout(plan, &symbols, options.threads.max(1))?.footprint;
-    if footprint.total > options.max_memory {
-        return Err(RunError::OverBudget {
-            needed: footprint.total,
-            limit: options.max_memory,
-            at: bind::show_bindings(m, &symbols),
-            largest: footprint.largest,
-        });
-    }
+    bind::within(&footprint, options.max_memory, m, &symbols)?;
     Ok(footprint)
 }
 
@@ -464,21 +445,7 @@ impl Session {
     /// (re)binds the buffers when the symbol values changed.
     fn prepare(&mut self, plan: &Plan, inputs: &[Input<'_>]) -> Result<(), RunError> {
         let m = &plan.manifest;
-        // Match inputs to the plan's.
-        self.given.clear();
-        self.given.resize(m.inputs.len(), None);
-        for (pos, inp) in inputs.iter().enumerate() {
-            match m.inputs.iter().position(|s| s.name == inp.name) {
-                Some(i) if self.given[i].is_some() => return Err(RunError::DuplicateInput { name: inp.name.into() }),
-                Some(i) => self.given[i] = Some(pos),
-                None => {
-                    return Err(RunError::UnknownInput {
-                        name: inp.name.into(),
-                        known: m.inputs.iter().map(|s| s.name.clone()).collect(),
-                    });
-                }
-            }
-        }
+        bind::match_inputs(m, inputs, &mut self.given)?;
         bind::bind_symbols(m, &self.given, inputs, &mut self.symbols)?;
         for (spec, g) in m.inputs.iter().zip(&self.given) {
             if let Some(pos) = *g
