@@ -47,10 +47,6 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
         // One batch in memory at a time: read, run, drop.
         let batch = read_batch(&plan, path, args.max_memory, &bar)?;
         let inputs: Vec<Input<'_>> = batch.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
-        readi_runtime::exec::check_fits(&plan, &inputs, &options).map_err(|e| {
-            bar.abandon();
-            format!("{}: {e}", path.display())
-        })?;
         cal.add_batch(&inputs).map_err(|e| {
             bar.abandon();
             format!("{}: {e}", path.display())
