@@ -8,13 +8,11 @@
 
 mod common;
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use readi_compiler::backend::{self, CompileOptions};
 use readi_runtime::plan::{Manifest, Plan};
-use safetensors::tensor::{Dtype, TensorView};
 
 use common::readi;
 
@@ -64,24 +62,13 @@ fn all_ops() -> (Manifest, Vec<Vec<f32>>) {
 /// `Plan::new` makes: what a hand-edited file looks like.
 fn plan_bytes(m: &Manifest, tensors: &[Vec<f32>]) -> Vec<u8> {
     let json = serde_json::to_string(m).expect("manifest as JSON");
-    let bytes: Vec<Vec<u8>> = tensors.iter().map(|t| t.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
-    let mut crc = crc32fast::Hasher::new();
-    crc.update(json.as_bytes());
-    for b in &bytes {
-        crc.update(b);
-    }
-    let views: Vec<(String, TensorView<'_>)> = m
+    let stored: Vec<(String, Vec<usize>, Vec<u8>)> = m
         .tensors
         .iter()
-        .zip(&bytes)
-        .map(|(spec, b)| (spec.name.clone(), TensorView::new(Dtype::F32, spec.shape.clone(), b).expect("a view")))
+        .zip(tensors)
+        .map(|(spec, t)| (spec.name.clone(), spec.shape.clone(), t.iter().flat_map(|v| v.to_le_bytes()).collect()))
         .collect();
-    let metadata = HashMap::from([
-        ("readi.format_version".to_string(), m.format_version.to_string()),
-        ("readi.manifest".to_string(), json),
-        ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
-    ]);
-    safetensors::serialize(views, Some(metadata)).expect("serialise")
+    common::plan_file_bytes(&m.format_version.to_string(), json, &stored)
 }
 
 /// Writes all_ops's plan with its manifest edited by `edit` to `dir/name`.

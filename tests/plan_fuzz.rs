@@ -456,32 +456,16 @@ fn plan_file(manifest: &Value, tensors: &HashMap<String, Vec<f32>>) -> Vec<u8> {
                 .collect()
         })
         .unwrap_or_default();
-    let mut stored: HashMap<String, (Vec<usize>, Vec<u8>)> = HashMap::new();
-    let mut crc = crc32fast::Hasher::new();
-    crc.update(json.as_bytes());
-    for (name, shape) in entries {
-        let Some(numel) = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).filter(|&n| n <= 1 << 22) else {
-            continue;
-        };
-        let source = tensors.get(&name).filter(|d| !d.is_empty()).map_or(&[0.5f32][..], Vec::as_slice);
-        let bytes: Vec<u8> = source.iter().cycle().take(numel).flat_map(|v| v.to_le_bytes()).collect();
-        crc.update(&bytes);
-        stored.entry(name).or_insert((shape, bytes));
-    }
-    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = stored
-        .iter()
-        .filter_map(|(name, (shape, bytes))| {
-            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), bytes)
-                .ok()
-                .map(|v| (name.clone(), v))
+    let stored: Vec<(String, Vec<usize>, Vec<u8>)> = entries
+        .into_iter()
+        .filter_map(|(name, shape)| {
+            let numel = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).filter(|&n| n <= 1 << 22)?;
+            let source = tensors.get(&name).filter(|d| !d.is_empty()).map_or(&[0.5f32][..], Vec::as_slice);
+            let bytes: Vec<u8> = source.iter().cycle().take(numel).flat_map(|v| v.to_le_bytes()).collect();
+            Some((name, shape, bytes))
         })
         .collect();
-    let metadata = HashMap::from([
-        ("readi.format_version".to_string(), readi_plan::format::FORMAT_VERSION.to_string()),
-        ("readi.manifest".to_string(), json),
-        ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
-    ]);
-    safetensors::serialize(views, Some(metadata)).expect("serialise the plan file")
+    common::plan_file_bytes(&readi_plan::format::FORMAT_VERSION.to_string(), json, &stored)
 }
 
 /// How far a case got.

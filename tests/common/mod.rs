@@ -45,3 +45,31 @@ pub fn compile_text(
 pub fn rel_path(path: &Path) -> String {
     path.strip_prefix(root()).unwrap_or(path).to_string_lossy().replace('\\', "/")
 }
+
+/// The bytes of a plan file laid out as `Plan::write` lays it out (format version,
+/// manifest, CRC-32 of the manifest text and of the tensors' bytes in manifest order),
+/// without the checks `Plan::new` makes: what a hand-edited, re-checksummed file looks
+/// like. `tensors` are `(name, shape, f32 bytes)` in manifest order; a name given twice is
+/// stored once (its first bytes) but counted in the checksum each time, as the manifest
+/// lists it.
+pub fn plan_file_bytes(format_version: &str, json: String, tensors: &[(String, Vec<usize>, Vec<u8>)]) -> Vec<u8> {
+    use std::collections::{HashMap, HashSet};
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(json.as_bytes());
+    let mut seen = HashSet::new();
+    let mut views = Vec::new();
+    for (name, shape, bytes) in tensors {
+        crc.update(bytes);
+        if seen.insert(name.as_str())
+            && let Ok(view) = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), bytes)
+        {
+            views.push((name.clone(), view));
+        }
+    }
+    let metadata = HashMap::from([
+        ("readi.format_version".to_string(), format_version.to_string()),
+        ("readi.manifest".to_string(), json),
+        ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
+    ]);
+    safetensors::serialize(views, Some(metadata)).expect("serialise the plan file")
+}
