@@ -484,6 +484,24 @@ fn variant_keys_are_read_by_meaning_by_every_command() {
     let o = readi(&["adapt-bn", &plan_s, "--variant", "fog=0.02", "--samples", &p(&sample_path), "-o", &p(&stats)]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("declares no variant `fog=0.02`"), "{}", stderr(&o));
+    // The calibrator binds each batch under --max-memory: a limit the sample file fits but
+    // the run's buffers do not is refused before they are allocated, naming the sample.
+    let limit = (std::fs::metadata(&sample_path).expect("sample").len() + 64).to_string();
+    let o = readi(&[
+        "adapt-bn",
+        &plan_s,
+        "--variant",
+        "fog=0.01",
+        "--samples",
+        &p(&sample_path),
+        "-o",
+        &p(&stats),
+        "--max-memory",
+        &limit,
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(err.contains("sample.safetensors: the plan needs") && err.contains("over the limit of"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
