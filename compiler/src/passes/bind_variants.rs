@@ -45,7 +45,8 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
     let first = table.variant_count();
     for (key, source, bv) in bound {
         warnings.extend(bv.warnings);
-        table.variants.push(VariantInfo { key, fallback: bv.fallback, origin: source.origin.clone() });
+        let provided = bv.values.iter().map(|(n, _)| n.clone()).collect();
+        table.variants.push(VariantInfo { key, fallback: bv.fallback, provided, origin: source.origin.clone() });
         let v = table.variant_count();
         let given: HashMap<&str, &[f32]> = bv.values.iter().map(|(n, d)| (n.as_str(), *d)).collect();
         for (name, t) in table.iter_mut() {

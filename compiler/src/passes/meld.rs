@@ -50,7 +50,8 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
             }
         }
         let origin = format!("meld of {}", shown.join(" and "));
-        table.variants.push(VariantInfo { key: melded, fallback: Vec::new(), origin });
+        let provided = parts.iter().flat_map(|&v| table.variants[v - 1].provided.iter().cloned()).collect();
+        table.variants.push(VariantInfo { key: melded, fallback: Vec::new(), provided, origin });
         let v = table.variant_count();
         for (name, t) in table.iter_mut() {
             t.variants.resize(v, None);

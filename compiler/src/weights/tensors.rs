@@ -76,6 +76,9 @@ pub struct VariantInfo {
     pub key: VariantKey,
     /// Owned parameters its files did not give; they keep the base value.
     pub fallback: Vec<String>,
+    /// The parameters its files gave (for a melded variant, what any of its parts gave):
+    /// the tensors it tuned, which decide how a meld treats them.
+    pub provided: BTreeSet<String>,
     /// Where its tensors came from, for messages.
     pub origin: String,
 }
@@ -276,6 +279,7 @@ mod tests {
             .map(|i| VariantInfo {
                 key: VariantKey::level("fog", i as f64 + 1.0),
                 fallback: Vec::new(),
+                provided: BTreeSet::new(),
                 origin: String::new(),
             })
             .collect();
