@@ -4,13 +4,17 @@
 //!
 //!     cargo bench --bench variants            (add `-- --quick` for fewer runs)
 //!
-//! * switch latency: `VariantSwitch::set` by key, median over many switches;
+//! * switch latency: `VariantSwitch::set` by key, median over many switches, and the tail
+//!   (p99) of single switches;
 //! * the first run after a switch against a steady run of the same variant;
 //! * choosing the variant from a frame (`Plan::select`) against a run;
 //! * adapted-plan latency against the base plan (no adaptation), LoRA merged and as a
 //!   branch, and without the adapter rules (tuning and merged LoRA fold into the base
 //!   schedule; adapters add layers);
 //! * plan size against the base plus the sum of the variants' deltas;
+//! * a melded variant's latency against its parts';
+//! * the issue's ResNet-18 case: LoRA r = 4 on the 3x3 convs of layer3 and layer4, tuned
+//!   BatchNorm and fc: bytes per variant and latency against the base, merged and as a branch;
 //! * reloading a full model copy from disk (read + checksum), for comparison.
 
 use std::sync::Arc;
@@ -46,6 +50,38 @@ fn plan(m: &Module, variants: usize, lora: LoraMode) -> Arc<Plan> {
 /// The spec without its `adapter` rules: tuning and LoRA only, which fold away.
 fn without_adapters(src: &str) -> String {
     src.lines().filter(|l| !l.trim_start().starts_with("adapter ")).collect::<Vec<_>>().join("\n")
+}
+
+/// ResNet-18 with the adaptation the issue measured: LoRA on the 3x3 convs of the last two
+/// stages, BatchNorm and fc tuned, no adapters.
+fn lora_resnet18() -> String {
+    let src = include_str!("../models/resnet18.readi");
+    let start = src.find("adapt {").expect("resnet18.readi has an adapt section");
+    let end = start + src[start..].find("\n}").expect("the section ends") + 2;
+    let rules = "adapt {\n  tune batchnorm\n  tune fc\n  lora rank=4 alpha=8 on layer3.*.{conv1,conv2}, layer4.*.{conv1,conv2}\n}";
+    format!("{}{rules}{}", &src[..start], &src[end..])
+}
+
+/// The plan's tensor bytes: the base's, and what the variants store beyond it.
+fn plan_size(name: &str, p: &Plan) {
+    let mib = |b: usize| b as f64 / (1024.0 * 1024.0);
+    let mf = &p.manifest;
+    let with: std::collections::HashSet<usize> =
+        mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
+    let base_bytes: usize =
+        (0..mf.tensors.len()).filter(|t| !with.contains(t)).map(|t| mf.tensors[t].numel() * 4).sum();
+    let deltas: usize =
+        mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| mf.tensors[r.with].numel() * 4)).sum();
+    let n = mf.variants.len().max(1);
+    println!(
+        "plan size ({name}): {:.2} MiB = base {:.2} MiB + {:.2} MiB stored for {} variants (sum of deltas {:.2} MiB; one variant {:.1}% of the base)",
+        mib(p.tensor_bytes()),
+        mib(base_bytes),
+        mib(p.tensor_bytes() - base_bytes),
+        mf.variants.len(),
+        mib(deltas),
+        100.0 * deltas as f64 / n as f64 / base_bytes as f64
+    );
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -143,6 +179,21 @@ fn main() {
         lat.push(t.elapsed().as_secs_f64() * 1e9 / 500.0);
     }
     println!("switch latency (set by key, median of batches of 500): {:.0} ns", median(lat));
+    // One switch at a time, for the tail: each timed alone (the timer's own cost included).
+    let mut one: Vec<f64> = (0..if quick { 2_000 } else { 20_000 })
+        .map(|i| {
+            let t = Instant::now();
+            switch.set(&keys[i % keys.len()]).expect("known key");
+            t.elapsed().as_secs_f64() * 1e9
+        })
+        .collect();
+    one.sort_by(f64::total_cmp);
+    println!(
+        "switch latency, single switches: p50 {:.0} ns, p99 {:.0} ns, max {:.0} ns",
+        one[one.len() / 2],
+        one[one.len() * 99 / 100],
+        one[one.len() - 1]
+    );
 
     // The first run after a switch against a steady run.
     let mut r = runner;
@@ -190,22 +241,31 @@ fn main() {
     adaptation_cost(include_str!("../models/bevfusion_tiny.readi"), &base, &merged, &branch, 12, (rounds, per_round));
 
     for (name, p) in [("merged", &merged), ("branch", &branch)] {
-        let mf = &p.manifest;
-        let with: std::collections::HashSet<usize> =
-            mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
-        let base_bytes: usize =
-            (0..mf.tensors.len()).filter(|t| !with.contains(t)).map(|t| mf.tensors[t].numel() * 4).sum();
-        let deltas: usize =
-            mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| mf.tensors[r.with].numel() * 4)).sum();
-        println!(
-            "plan size ({name}): {:.2} MiB = base {:.2} MiB + {:.2} MiB stored for 12 variants (sum of deltas {:.2} MiB; one variant {:.1}% of the base)",
-            mib(p.tensor_bytes()),
-            mib(base_bytes),
-            mib(p.tensor_bytes() - base_bytes),
-            mib(deltas),
-            100.0 * deltas as f64 / 12.0 / base_bytes as f64
-        );
+        plan_size(name, p);
     }
+
+    // A melded variant against its parts: the meld stores its own values, never extra steps.
+    let meld = "fog=0.06+gamma=0.5";
+    let melded = {
+        let weights = backend::seeded_weights(&m.graph, 1);
+        let keys = ["fog=0.06".to_string(), "gamma=0.5".to_string()];
+        let sources = backend::seeded_variants(&m, &keys, 10);
+        let opts = CompileOptions { melds: vec![meld.to_string()], ..Default::default() };
+        Arc::new(backend::compile_variants(&m, &weights, "seeded", &sources, &opts).expect("melds").0)
+    };
+    let mut runners: Vec<(&str, Runner)> =
+        ["fog=0.06", "gamma=0.5", meld].iter().map(|k| (*k, Runner::new(melded.clone()))).collect();
+    for (k, r) in &mut runners {
+        r.session.set_variant(k).expect("key");
+    }
+    let t = interleaved(&mut runners, rounds, per_round);
+    println!(
+        "melded variant {meld}: {:.2} ms against its parts {:.2} ms and {:.2} ms (ratio to the slower part {:.3})",
+        t[2],
+        t[0],
+        t[1],
+        t[2] / t[0].max(t[1])
+    );
 
     println!("\n== resnet18 224x224, 4 variants, 2 threads ==");
     let m = module(include_str!("../models/resnet18.readi"), &[]);
@@ -213,6 +273,21 @@ fn main() {
     let merged = plan(&m, 4, LoraMode::Merge);
     let branch = plan(&m, 4, LoraMode::Branch);
     adaptation_cost(include_str!("../models/resnet18.readi"), &base, &merged, &branch, 4, (rounds, per_round));
+
+    // The issue's measurement: PEFT-style LoRA (r = 4, alpha = 8) on every 3x3 conv of layer3
+    // and layer4, tuned BatchNorm and fc, two variants.
+    println!("\n== resnet18 224x224, LoRA r=4 on layer3/layer4 3x3 convs + tuned BN and fc, 2 variants ==");
+    let src = lora_resnet18();
+    let m = module(&src, &[]);
+    let base = plan(&m, 0, LoraMode::Merge);
+    for (name, lora) in [("merged", LoraMode::Merge), ("branch", LoraMode::Branch)] {
+        let p = plan(&m, 2, lora);
+        plan_size(name, &p);
+        let mut runners = vec![("base", Runner::new(base.clone())), ("variant", Runner::new(p.clone()))];
+        runners[1].1.session.set_variant(p.variant_key(1)).expect("key");
+        let t = interleaved(&mut runners, rounds, per_round);
+        println!("  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
+    }
 
     // Reloading a whole model copy: what a system without variants does on a switch.
     let path = std::env::temp_dir().join(format!("readi-bench-{}.plan", std::process::id()));
