@@ -298,7 +298,10 @@ mod tests {
 
     /// A table of `tensors` (name, base, one value per variant: `None` where it reads
     /// the base) and variants that each provide the named tensors.
-    fn table(tensors: &[(&str, Vec<f32>, Vec<Option<Vec<f32>>>)], provided: &[&[&str]]) -> TensorTable {
+    /// A tensor of a test table: name, base value, per variant its value or `None`.
+    type Row<'a> = (&'a str, Vec<f32>, Vec<Option<Vec<f32>>>);
+
+    fn table(tensors: &[Row<'_>], provided: &[&[&str]]) -> TensorTable {
         let mut t = TensorTable::default();
         for (name, base, values) in tensors {
             let mut x = Tensor::param(name, vec![base.len()], Data::from(base.as_slice()), provided.len());
@@ -411,7 +414,7 @@ mod tests {
         // the update is scaled by part 1's lambda, 0.4 (not 0.4^2 as interpolating A and
         // B separately would give).
         let (t, l) = lora_table(true);
-        let m = meld(&t, &[l.clone()], &[1, 2], &[0.4, 0.6]).expect("melds");
+        let m = meld(&t, std::slice::from_ref(&l), &[1, 2], &[0.4, 0.6]).expect("melds");
         // dW_1 = 2 * [3; 4] [1 2] = [6 12; 8 16].
         let want = [6.0 * 0.4, 12.0 * 0.4, 8.0 * 0.4, 16.0 * 0.4];
         let got = get(&m, "l.weight").expect("merged weight");
