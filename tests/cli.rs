@@ -129,6 +129,7 @@ fn passes_lists_the_pipeline_in_order() {
         "bind_weights",
         "bind_variants",
         "meld",
+        "prune",
         "drop_inactive",
         "commute_adapters",
         "merge_lora",
