@@ -534,3 +534,40 @@ fn ir_reaches_every_back_end_pass() {
     let o = readi(&["graph", "models/resnet18.readi", "--stop-after", "lower"]);
     assert!(!o.status.success() && stderr(&o).contains("not a graph"), "{}", stderr(&o));
 }
+
+/// `readi compile` of a spec with a `prune` rule prints what it zeroed and how far the
+/// outputs move; `--verbose` adds the table of layers.
+#[test]
+fn compile_reports_pruning() {
+    let dir = std::env::temp_dir().join(format!("readi-cli-prune-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let text = std::fs::read_to_string("models/resnet18.readi").expect("read the spec");
+    let spec = dir.join("r18p.readi");
+    std::fs::write(&spec, text.replacen("adapt {", "adapt {\n  prune below=1e-3", 1)).expect("write spec");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let overrides = [("num_classes", "10"), ("img", "32")];
+    let (_, weights) = seeded_weights_file(&p(&spec), &overrides, "prune");
+    let plan = dir.join("p.plan");
+    let args = ["compile", &p(&spec), "--weights", &p(&weights), "-o", &p(&plan), "--set", "num_classes=10"];
+    let o = readi(&[&args[..], &["--set", "img=32", "--verbose"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let line = out.lines().find(|l| l.starts_with("pruned ")).unwrap_or_else(|| panic!("no summary: {out}"));
+    assert!(line.contains("shared weights") && line.contains("below 1e-3 in 20 layers"), "{line}");
+    assert!(line.contains("outputs differ by at most"), "{line}");
+    assert!(out.contains("layer4.1.conv2") && out.contains("output `logits`: max abs difference"), "{out}");
+    // Without the rule, no summary.
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "-o",
+        &p(&plan),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=32",
+    ]);
+    assert!(o.status.success() && !stdout(&o).contains("pruned"), "{}", stdout(&o));
+}
