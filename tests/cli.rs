@@ -412,6 +412,12 @@ fn variant_keys_are_read_by_meaning_by_every_command() {
     args.extend(["--meld".into(), "fog=0.01+gamma=0.25".into(), "-o".into(), p(&plan)]);
     let o = readi(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(o.status.success(), "{}", stderr(&o));
+    // Both parts give every owned tensor: every layer is interpolated.
+    assert!(
+        stdout(&o).contains("variant `fog=0.01+gamma=0.25`: meld of fog=0.01 and gamma=0.25 (0 layers taken whole"),
+        "{}",
+        stdout(&o)
+    );
 
     let (image, points) = (dir.join("image.npy"), dir.join("points.npy"));
     let shape = vec![2, 3, 8, 8];

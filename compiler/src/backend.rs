@@ -69,6 +69,30 @@ impl PruneSummary {
     }
 }
 
+/// One line per melded variant: how many of its layers were taken whole from one part
+/// and how many interpolated (the `meld` pass's record). Empty without melds.
+pub fn meld_summary(
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+) -> Result<Vec<String>, Diagnostics> {
+    if opts.melds.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut m = module.clone();
+    let inputs = BackendInputs { base, base_name, variants: sources, opts };
+    passes::run_backend(&mut m, &inputs, Some(passes::Pass::Meld))?;
+    let table = m.tensors.as_ref().ok_or_else(|| ice(module, "no tensor table after `meld`".into()))?;
+    Ok(table
+        .variants
+        .iter()
+        .filter(|v| v.key.is_meld())
+        .map(|v| format!("variant `{}`: {}", v.key, v.origin))
+        .collect())
+}
+
 /// The seed of the inputs [`prune_summary`] runs both plans on.
 pub const PRUNE_INPUT_SEED: u64 = 7;
 

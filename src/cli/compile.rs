@@ -107,6 +107,9 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         m.slots,
         start.elapsed().as_secs_f64() * 1e3
     );
+    for line in backend::meld_summary(&module, &set, &wname, &sources, &opts).map_err(|d| report(s, d))? {
+        println!("{line}");
+    }
     let plan = std::sync::Arc::new(plan);
     let summary = backend::prune_summary(&module, &set, &wname, &sources, &opts, plan).map_err(|d| report(s, d))?;
     if let Some(p) = summary {
