@@ -122,3 +122,40 @@ fn the_meld_takes_exclusive_layers_whole_and_serves_a_melded_lora_as_a_weight() 
     let origin = &table.variants[all3 - 1].origin;
     assert!(origin.contains("1 layer taken whole from one part, 3 layers interpolated"), "{origin}");
 }
+
+/// The meld's layers on ResNet-18: an adapter's down and up convs are one layer, a LoRA's
+/// A and B belong to the layer they adapt, a BatchNorm's four tensors are one layer.
+#[test]
+fn layers_group_injected_tensors_with_what_they_adapt() {
+    let (sources, out) = common::compile("models/resnet18.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let base = backend::seeded_weights(&m.graph, 1);
+    let opts = CompileOptions::default();
+    let inputs = BackendInputs { base: &base, base_name: "seeded", variants: &[], opts: &opts };
+    let mut bound = m.clone();
+    passes::run_backend(&mut bound, &inputs, Some(Pass::BindWeights)).expect("binds");
+    let table = bound.tensors.as_ref().expect("table");
+    let layers = passes::meld::layers(&bound, table);
+    let find = |name: &str| layers.iter().find(|l| l.name == name).unwrap_or_else(|| panic!("no layer `{name}`"));
+    let adapter = find("layer1.0.bn2.adapter");
+    let mut t = adapter.tensors.clone();
+    t.sort();
+    assert_eq!(
+        t,
+        [
+            "layer1.0.bn2.adapter.down.bias",
+            "layer1.0.bn2.adapter.down.weight",
+            "layer1.0.bn2.adapter.up.bias",
+            "layer1.0.bn2.adapter.up.weight"
+        ]
+    );
+    let lora = find("layer4.0.downsample.0");
+    let l = lora.lora.as_ref().expect("a LoRA layer");
+    assert_eq!((l.weight.as_str(), l.rank, l.scale), ("layer4.0.downsample.0.weight", 4, 2.0));
+    assert_eq!(lora.tensors.len(), 2, "{:?}", lora.tensors);
+    assert_eq!(find("bn1").tensors.len(), 4);
+    // Every owned tensor is in exactly one layer.
+    let n: usize = layers.iter().map(|l| l.tensors.len()).sum();
+    assert_eq!(n, table.owned.len());
+}
