@@ -99,7 +99,7 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::CheckVariants, "check_variants", "check axes, selectors, missing-modality and meld rules"),
     (Pass::BindWeights, "bind_weights", "bind the base weights (safetensors, PyTorch names) to the parameter slots"),
     (Pass::BindVariants, "bind_variants", "bind each variant's tensors, checked against the adaptation rules"),
-    (Pass::Meld, "meld", "build melded variants from their parts' parameters"),
+    (Pass::Meld, "meld", "build melded variants: layers one part tunes taken whole, shared ones interpolated"),
     (Pass::Prune, "prune", "zero the shared conv and linear weights' values below a `prune` rule's threshold"),
     (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
     (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
