@@ -129,6 +129,7 @@ fn passes_lists_the_pipeline_in_order() {
         "bind_weights",
         "bind_variants",
         "meld",
+        "prune",
         "drop_inactive",
         "commute_adapters",
         "merge_lora",
@@ -411,6 +412,12 @@ fn variant_keys_are_read_by_meaning_by_every_command() {
     args.extend(["--meld".into(), "fog=0.01+gamma=0.25".into(), "-o".into(), p(&plan)]);
     let o = readi(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(o.status.success(), "{}", stderr(&o));
+    // Both parts give every owned tensor: every layer is interpolated.
+    assert!(
+        stdout(&o).contains("variant `fog=0.01+gamma=0.25`: meld of fog=0.01 and gamma=0.25 (0 layers taken whole"),
+        "{}",
+        stdout(&o)
+    );
 
     let (image, points) = (dir.join("image.npy"), dir.join("points.npy"));
     let shape = vec![2, 3, 8, 8];
@@ -532,4 +539,41 @@ fn ir_reaches_every_back_end_pass() {
     // A schedule is not a graph.
     let o = readi(&["graph", "models/resnet18.readi", "--stop-after", "lower"]);
     assert!(!o.status.success() && stderr(&o).contains("not a graph"), "{}", stderr(&o));
+}
+
+/// `readi compile` of a spec with a `prune` rule prints what it zeroed and how far the
+/// outputs move; `--verbose` adds the table of layers.
+#[test]
+fn compile_reports_pruning() {
+    let dir = std::env::temp_dir().join(format!("readi-cli-prune-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let text = std::fs::read_to_string("models/resnet18.readi").expect("read the spec");
+    let spec = dir.join("r18p.readi");
+    std::fs::write(&spec, text.replacen("adapt {", "adapt {\n  prune below=1e-3", 1)).expect("write spec");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let overrides = [("num_classes", "10"), ("img", "32")];
+    let (_, weights) = seeded_weights_file(&p(&spec), &overrides, "prune");
+    let plan = dir.join("p.plan");
+    let args = ["compile", &p(&spec), "--weights", &p(&weights), "-o", &p(&plan), "--set", "num_classes=10"];
+    let o = readi(&[&args[..], &["--set", "img=32", "--verbose"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let line = out.lines().find(|l| l.starts_with("pruned ")).unwrap_or_else(|| panic!("no summary: {out}"));
+    assert!(line.contains("shared weights") && line.contains("below 1e-3 in 20 layers"), "{line}");
+    assert!(line.contains("outputs differ by at most"), "{line}");
+    assert!(out.contains("layer4.1.conv2") && out.contains("output `logits`: max abs difference"), "{out}");
+    // Without the rule, no summary.
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "-o",
+        &p(&plan),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=32",
+    ]);
+    assert!(o.status.success() && !stdout(&o).contains("pruned"), "{}", stdout(&o));
 }

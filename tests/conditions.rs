@@ -152,10 +152,17 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
     passes::run_backend(&mut melded, &inputs, Some(Pass::Meld)).expect("melds");
     let table = melded.tensors.expect("a tensor table");
     assert_eq!(table.variants[2].key.to_string(), MELD);
-    // The spec's rule: camera (gamma) 0.8, lidar (fog) 0.2.
+    // The spec's rule: camera (gamma) 0.8, lidar (fog) 0.2. Both parts give every owned
+    // tensor, so every layer is interpolated; a LoRA layer on its updates, served in the
+    // layer's weight (its A and B stay the base's zeros, checked by hand below).
     let mut checked = 0;
     for name in table.owned.keys() {
         let v = table.value(name, 3).expect("bound");
+        if name.contains(".lora_") {
+            assert!(v.iter().all(|x| *x == 0.0), "{name}: a melded LoRA is served in the weight");
+            checked += 1;
+            continue;
+        }
         let (c, l) = (&sources[0].weights.tensors[name].1, &sources[1].weights.tensors[name].1);
         for i in 0..v.len() {
             let want = 0.8 * c[i] as f64 + 0.2 * l[i] as f64;
@@ -164,6 +171,22 @@ fn a_melded_variant_interpolates_its_parts_parameters() {
         checked += 1;
     }
     assert_eq!(checked, variants::owned_params(&m).len());
+    // W + sum_i l_i * scale * B_i A_i, scale = alpha / rank = 2, rank 4.
+    let layer = "camera.transformer.blocks.0.q";
+    let w = table.value(&format!("{layer}.weight"), 0).expect("base weight");
+    let got = table.value(&format!("{layer}.weight"), 3).expect("melded weight");
+    let part = |i: usize, ab: &str| &sources[i].weights.tensors[&format!("{layer}.lora_{ab}.weight")].1;
+    let cols = part(0, "A").len() / 4;
+    for o in 0..w.len() / cols {
+        for c in 0..cols {
+            let dw = |i: usize| -> f64 {
+                (0..4).map(|r| part(i, "B")[o * 4 + r] as f64 * part(i, "A")[r * cols + c] as f64).sum()
+            };
+            let want = w[o * cols + c] as f64 + 2.0 * (0.8 * dw(0) + 0.2 * dw(1));
+            let x = got[o * cols + c] as f64;
+            assert!((x - want).abs() <= 1e-5 * want.abs().max(1.0), "{layer}.weight[{o}, {c}]: {x} vs {want}");
+        }
+    }
     // Two camera axes at once: no meld rule weighs them apart.
     let both_camera: Vec<String> = ["gamma=0.25", "blur=30"].iter().map(|k| k.to_string()).collect();
     let cam = backend::seeded_variants(&m, &both_camera, 50);

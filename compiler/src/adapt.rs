@@ -60,8 +60,20 @@ pub struct ResolvedRule {
 #[derive(Clone, Debug, PartialEq)]
 pub enum RuleKind {
     Tune,
-    Lora { rank: i64, alpha: f64, rslora: bool },
-    Adapter { squeeze: i64, act: Activation },
+    Lora {
+        rank: i64,
+        alpha: f64,
+        rslora: bool,
+    },
+    Adapter {
+        squeeze: i64,
+        act: Activation,
+    },
+    /// `prune below=T`: the targets' shared weights lose the values of magnitude below
+    /// `T` (the `prune` pass); the rule owns nothing.
+    Prune {
+        below: f64,
+    },
 }
 
 impl RuleKind {

@@ -51,6 +51,124 @@ pub fn compile_variants(
     Ok((plan, warnings))
 }
 
+/// What the spec's `prune` rules did to a plan: the shared weights they select, with how
+/// many values each lost, and how far the pruned plan's outputs move.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PruneSummary {
+    pub layers: Vec<passes::prune::PrunedLayer>,
+    /// Per output, the largest absolute difference between the pruned plan and the same
+    /// plan compiled without pruning, over the base and every variant, on seeded inputs
+    /// (batch 1, uniform in [-1, 1), [`PRUNE_INPUT_SEED`]).
+    pub output_difference: Vec<(String, f32)>,
+}
+
+impl PruneSummary {
+    /// Values zeroed and elements of the selected shared weights.
+    pub fn totals(&self) -> (u64, u64) {
+        (self.layers.iter().map(|l| l.zeroed).sum(), self.layers.iter().map(|l| l.total).sum())
+    }
+}
+
+/// One line per melded variant: how many of its layers were taken whole from one part
+/// and how many interpolated (the `meld` pass's record). Empty without melds.
+pub fn meld_summary(
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+) -> Result<Vec<String>, Diagnostics> {
+    if opts.melds.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut m = module.clone();
+    let inputs = BackendInputs { base, base_name, variants: sources, opts };
+    passes::run_backend(&mut m, &inputs, Some(passes::Pass::Meld))?;
+    let table = m.tensors.as_ref().ok_or_else(|| ice(module, "no tensor table after `meld`".into()))?;
+    Ok(table
+        .variants
+        .iter()
+        .filter(|v| v.key.is_meld())
+        .map(|v| format!("variant `{}`: {}", v.key, v.origin))
+        .collect())
+}
+
+/// The seed of the inputs [`prune_summary`] runs both plans on.
+pub const PRUNE_INPUT_SEED: u64 = 7;
+
+/// The effect of the module's `prune` rules on `pruned`, the plan
+/// [`compile_variants`] built from these arguments: the counts `prune` found, and the
+/// output difference against the module compiled again with the rules' thresholds at 0.
+/// `None` when the spec has no `prune` rule.
+pub fn prune_summary(
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+    pruned: std::sync::Arc<Plan>,
+) -> Result<Option<PruneSummary>, Diagnostics> {
+    let is_prune = |r: &crate::adapt::ResolvedRule| matches!(r.kind, crate::adapt::RuleKind::Prune { .. });
+    if !module.adapt.as_ref().is_some_and(|a| a.rules.iter().any(is_prune)) {
+        return Ok(None);
+    }
+    let mut melded = module.clone();
+    let inputs = BackendInputs { base, base_name, variants: sources, opts };
+    passes::run_backend(&mut melded, &inputs, Some(passes::Pass::Meld))?;
+    let table = melded.tensors.as_ref().ok_or_else(|| ice(module, "no tensor table after `meld`".into()))?;
+    let layers = passes::prune::report(&melded, table);
+    // The same module with every threshold at 0 (|x| < 0 never holds): rule indices, which
+    // the injections refer to, stay as they are.
+    let mut plain = module.clone();
+    for r in plain.adapt.iter_mut().flat_map(|a| a.rules.iter_mut()).filter(|r| is_prune(r)) {
+        r.kind = crate::adapt::RuleKind::Prune { below: 0.0 };
+    }
+    let (unpruned, _) = compile_variants(&plain, base, base_name, sources, opts)?;
+    let output_difference = output_difference(pruned, std::sync::Arc::new(unpruned), PRUNE_INPUT_SEED)
+        .map_err(|e| ice(module, format!("running the plans to compare them: {e}")))?;
+    Ok(Some(PruneSummary { layers, output_difference }))
+}
+
+/// Per output, the largest absolute difference between two plans of one model over the
+/// base and every variant of `a`, on seeded inputs at batch 1.
+pub fn output_difference(
+    a: std::sync::Arc<Plan>,
+    b: std::sync::Arc<Plan>,
+    seed: u64,
+) -> Result<Vec<(String, f32)>, String> {
+    use readi_runtime::exec::{Input, Session};
+    let mut rng = SplitMix(seed);
+    let inputs: Vec<(String, Vec<usize>, Vec<f32>)> = a
+        .manifest
+        .input_shapes(1)
+        .into_iter()
+        .map(|(name, shape)| {
+            let data = (0..shape.iter().product()).map(|_| rng.uniform()).collect();
+            (name.to_string(), shape, data)
+        })
+        .collect();
+    let feed: Vec<Input<'_>> = inputs.iter().map(|(name, shape, data)| Input { name, data, shape }).collect();
+    let keys: Vec<String> =
+        std::iter::once("base".to_string()).chain(a.manifest.variants.iter().map(|v| v.key.to_string())).collect();
+    let mut sa = Session::new(a, 2).map_err(|e| e.to_string())?;
+    let mut sb = Session::new(b, 2).map_err(|e| e.to_string())?;
+    let mut out: Vec<(String, f32)> = Vec::new();
+    for key in &keys {
+        sa.set_variant(key).map_err(|e| e.to_string())?;
+        sb.set_variant(key).map_err(|e| e.to_string())?;
+        let ya = sa.run(&feed).map_err(|e| e.to_string())?;
+        let yb = sb.run(&feed).map_err(|e| e.to_string())?;
+        for ((name, x), (_, y)) in ya.iter().zip(&yb) {
+            let d = x.data.iter().zip(&y.data).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            match out.iter_mut().find(|(n, _)| n == name) {
+                Some((_, m)) => *m = m.max(d),
+                None => out.push((name.clone(), d)),
+            }
+        }
+    }
+    Ok(out)
+}
+
 /// Deterministic weights for every parameter of the base model: see [`seeded_tensor`].
 pub fn seeded_weights(graph: &Graph, seed: u64) -> WeightSet {
     let mut set = WeightSet::default();

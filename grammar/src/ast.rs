@@ -327,7 +327,7 @@ pub struct AdaptRule {
     pub span: Span,
 }
 
-/// The three kinds of adaptation rule.
+/// The kinds of adaptation rule.
 #[derive(Clone, Debug, PartialEq)]
 pub enum AdaptKind {
     /// `tune <selector>`.
@@ -336,6 +336,8 @@ pub enum AdaptKind {
     Lora { options: Vec<RuleOption>, selector: Selector },
     /// `adapter <options> in <scopes> before <target>`.
     Adapter { options: Vec<RuleOption>, scopes: Vec<Pattern>, before: Pattern },
+    /// `prune <options> [in <selector>]`; no selector: every shared layer.
+    Prune { options: Vec<RuleOption>, selector: Option<Selector> },
 }
 
 impl AdaptKind {
@@ -344,6 +346,7 @@ impl AdaptKind {
             AdaptKind::Tune { .. } => "tune",
             AdaptKind::Lora { .. } => "lora",
             AdaptKind::Adapter { .. } => "adapter",
+            AdaptKind::Prune { .. } => "prune",
         }
     }
 }

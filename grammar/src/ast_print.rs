@@ -362,6 +362,8 @@ pub fn adapt_rule(r: &AdaptRule) -> String {
         AdaptKind::Adapter { options: o, scopes, before } => {
             format!("adapter{} in {} before {}", options(o), pattern_list(scopes), before.text)
         }
+        AdaptKind::Prune { options: o, selector: None } => format!("prune{}", options(o)),
+        AdaptKind::Prune { options: o, selector: Some(sel) } => format!("prune{} in {}", options(o), selector(sel)),
     }
 }
 

@@ -152,6 +152,9 @@ pub enum Command {
         /// Warn about tensors the model does not use instead of failing.
         #[arg(long)]
         allow_unused: bool,
+        /// Also print a table of what the `prune` rules zeroed, layer by layer.
+        #[arg(long, short)]
+        verbose: bool,
         #[command(flatten)]
         model: ModelArgs,
     },

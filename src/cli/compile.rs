@@ -23,6 +23,8 @@ pub struct CompileArgs {
     pub strict: bool,
     pub melds: Vec<String>,
     pub allow_unused: bool,
+    /// Print the per-layer pruning table.
+    pub verbose: bool,
     pub model: ModelArgs,
 }
 
@@ -105,5 +107,53 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         m.slots,
         start.elapsed().as_secs_f64() * 1e3
     );
+    for line in backend::meld_summary(&module, &set, &wname, &sources, &opts).map_err(|d| report(s, d))? {
+        println!("{line}");
+    }
+    let plan = std::sync::Arc::new(plan);
+    let summary = backend::prune_summary(&module, &set, &wname, &sources, &opts, plan).map_err(|d| report(s, d))?;
+    if let Some(p) = summary {
+        print!("{}", prune_text(&p, args.verbose));
+    }
     Ok(())
+}
+
+/// What the `prune` rules did: one line, and with `verbose` a table of the layers.
+pub fn prune_text(p: &backend::PruneSummary, verbose: bool) -> String {
+    use std::fmt::Write;
+    let (zeroed, total) = p.totals();
+    let pct = |z: u64, t: u64| if t == 0 { 0.0 } else { 100.0 * z as f64 / t as f64 };
+    let mut thresholds: Vec<f64> = p.layers.iter().map(|l| l.below).collect();
+    thresholds.sort_by(f64::total_cmp);
+    thresholds.dedup();
+    let below: Vec<String> = thresholds.iter().map(|t| format!("{t:e}")).collect();
+    let worst = p.output_difference.iter().map(|(_, d)| *d).fold(0.0f32, f32::max);
+    let mut out = format!(
+        "pruned {} of {} shared weights ({:.1}%) below {} in {} layers; outputs differ by at most {worst:.2e} on \
+         seeded inputs\n",
+        print::thousands(zeroed),
+        print::thousands(total),
+        pct(zeroed, total),
+        below.join(", "),
+        p.layers.len()
+    );
+    if verbose {
+        let width = p.layers.iter().map(|l| l.layer.len()).max().unwrap_or(5).max(5);
+        let _ = writeln!(out, "  {:width$}  {:>12}  {:>12}  {:>6}  below", "layer", "zeroed", "of", "%");
+        for l in &p.layers {
+            let _ = writeln!(
+                out,
+                "  {:width$}  {:>12}  {:>12}  {:>5.1}%  {:e}",
+                l.layer,
+                print::thousands(l.zeroed),
+                print::thousands(l.total),
+                pct(l.zeroed, l.total),
+                l.below
+            );
+        }
+        for (name, d) in &p.output_difference {
+            let _ = writeln!(out, "  output `{name}`: max abs difference {d:.3e} vs the unpruned plan");
+        }
+    }
+    out
 }

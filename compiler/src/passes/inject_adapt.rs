@@ -40,7 +40,7 @@ pub fn run(graph: &mut Graph, plan: &mut AdaptPlan) -> Result<(), String> {
     for (rule, r) in plan.rules.iter().enumerate() {
         for t in &r.targets {
             match r.kind {
-                RuleKind::Tune => {}
+                RuleKind::Tune | RuleKind::Prune { .. } => {}
                 RuleKind::Lora { rank, .. } => {
                     let scale = r.kind.lora_scale().unwrap_or(1.0);
                     injections.push(lora(graph, t.node, rank, scale, rule, r.span)?);

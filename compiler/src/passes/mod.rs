@@ -11,6 +11,7 @@
 //! | `bind_weights`     | the base weights into the tensor table                         | the front end ran        |
 //! | `bind_variants`    | each variant's tensors into the table                          | base weights bound       |
 //! | `meld`             | melded variants from their parts                               | variants bound           |
+//! | `prune`            | zeroes small values of the shared weights (`prune` rules)     | melds built              |
 //! | `drop_inactive`    | removes LoRA branches and adapters no variant uses             | variants bound           |
 //! | `commute_adapters` | moves adapters (and LoRA branches) behind their BatchNorm      | inactive ones dropped    |
 //! | `merge_lora`       | merges LoRA into the layer's weight, per variant               | `--lora merge`           |
@@ -47,6 +48,7 @@ pub mod meld;
 pub mod merge_lora;
 pub mod pack_weights;
 pub mod plan_buffers;
+pub mod prune;
 pub mod resolve_adapt;
 
 use std::collections::HashSet;
@@ -75,6 +77,7 @@ pub enum Pass {
     BindWeights,
     BindVariants,
     Meld,
+    Prune,
     DropInactive,
     CommuteAdapters,
     MergeLora,
@@ -96,7 +99,8 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::CheckVariants, "check_variants", "check axes, selectors, missing-modality and meld rules"),
     (Pass::BindWeights, "bind_weights", "bind the base weights (safetensors, PyTorch names) to the parameter slots"),
     (Pass::BindVariants, "bind_variants", "bind each variant's tensors, checked against the adaptation rules"),
-    (Pass::Meld, "meld", "build melded variants from their parts' parameters"),
+    (Pass::Meld, "meld", "build melded variants: layers one part tunes taken whole, shared ones interpolated"),
+    (Pass::Prune, "prune", "zero the shared conv and linear weights' values below a `prune` rule's threshold"),
     (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
     (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
     (Pass::MergeLora, "merge_lora", "merge LoRA into the adapted layer's weight, per variant (--lora merge)"),
@@ -515,6 +519,7 @@ fn backend_pass(pass: Pass) -> Option<BackendPass> {
         Pass::BindWeights => bind_weights::run,
         Pass::BindVariants => bind_variants::run,
         Pass::Meld => meld::run,
+        Pass::Prune => prune::run,
         Pass::DropInactive => drop_inactive::run,
         Pass::CommuteAdapters => commute_adapters::run,
         Pass::MergeLora => merge_lora::run,

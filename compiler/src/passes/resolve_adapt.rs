@@ -51,6 +51,7 @@ pub fn run(graph: &Graph, section: &AdaptSection, ast: &SourceFile, diags: &mut 
             AdaptKind::Tune { selector } => cx.tune(selector, diags),
             AdaptKind::Lora { options, selector } => cx.lora(options, selector, diags),
             AdaptKind::Adapter { options, scopes, before } => cx.adapter(options, scopes, before, diags),
+            AdaptKind::Prune { options, selector } => cx.prune(options, selector.as_ref(), diags),
         };
         if let Some((kind, targets)) = resolved {
             rules.push(ResolvedRule { text, span: rule.span, kind, targets });
@@ -438,6 +439,48 @@ impl Cx<'_> {
     }
 }
 
+impl Cx<'_> {
+    /// `prune below=T [in SEL]`: the conv2d and linear layers it selects (every one
+    /// without a selector). Which of their weights are shared is known once the variants
+    /// are bound; the `prune` pass skips the others.
+    fn prune(
+        &self,
+        options: &[RuleOption],
+        selector: Option<&Selector>,
+        diags: &mut Diagnostics,
+    ) -> Option<(RuleKind, Vec<Target>)> {
+        let opts = Options::parse(options, &["below"], diags)?;
+        let below = opts.float("below", DEFAULT_PRUNE_BELOW, diags)?;
+        let g = self.graph;
+        let prunable = |n: NodeId| matches!(g.node(n).op, Op::Conv2d(_) | Op::Linear(_));
+        let nodes: Vec<NodeId> = match selector {
+            None => g.node_ids().filter(|&n| prunable(n)).collect(),
+            Some(sel) => {
+                let selected = self.select(sel, diags)?;
+                let nodes: Vec<NodeId> = selected
+                    .into_iter()
+                    .filter(|s| prunable(s.node) && s.slots.as_ref().is_none_or(|v| v.contains(&"weight")))
+                    .map(|s| s.node)
+                    .collect();
+                if nodes.is_empty() {
+                    diags.push(
+                        Diagnostic::error(Code::BadSelector, "`prune` selects no conv2d or linear weight")
+                            .with_primary(sel.span, "pruning applies to conv2d and linear weights"),
+                    );
+                    return None;
+                }
+                nodes
+            }
+        };
+        let targets = nodes.into_iter().map(|node| Target { node, slots: vec![], tuned: 0, added: 0 }).collect();
+        Some((RuleKind::Prune { below }, targets))
+    }
+}
+
+/// The paper's pruning threshold (t-READi: "we reset all parameters whose absolute value
+/// is less than 1e-3").
+pub const DEFAULT_PRUNE_BELOW: f64 = 1e-3;
+
 fn show(t: Option<&crate::ir::TensorType>) -> String {
     t.map(|t| t.to_string()).unwrap_or_else(|| "nothing".into())
 }
@@ -589,6 +632,8 @@ fn check_conflicts(graph: &Graph, rules: &[ResolvedRule], diags: &mut Diagnostic
                     }
                     lora.entry(t.node).or_insert(i);
                 }
+                // Pruning claims nothing: it only changes shared base weights.
+                RuleKind::Prune { .. } => {}
                 RuleKind::Adapter { .. } => {
                     if let Some(&j) = adapter.get(&t.node) {
                         conflict(j, i, format!("two adapters before `{path}`"), diags);

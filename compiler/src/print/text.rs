@@ -110,6 +110,14 @@ pub fn to_text(module: &Module) -> String {
             thousands(count(false)),
             thousands(count(true))
         );
+        if let Some((layers, total, zero)) = crate::passes::prune::zeros(module, t) {
+            let _ = writeln!(
+                out,
+                "  prune: {} of {} values zero in the {layers} shared weights the rules select",
+                thousands(zero),
+                thousands(total)
+            );
+        }
     } else if let Some(plan) = &module.adapt {
         let _ = writeln!(out, "adapt");
         for (i, r) in plan.rules.iter().enumerate() {
@@ -117,6 +125,7 @@ pub fn to_text(module: &Module) -> String {
                 RuleKind::Tune => "tunes",
                 RuleKind::Lora { .. } => "adds LoRA to",
                 RuleKind::Adapter { .. } => "adds adapters before",
+                RuleKind::Prune { .. } => "prunes the shared weights of",
             };
             let tuned: u64 = r.targets.iter().map(|t| t.tuned).sum();
             let added: u64 = r.targets.iter().map(|t| t.added).sum();

@@ -44,7 +44,7 @@ impl<'s> Builder<'s> {
         let mut before = None;
         for q in p.into_inner() {
             match q.as_rule() {
-                Rule::rule_option => options.push(self.parse_rule_option(q)?),
+                Rule::rule_option | Rule::prune_option => options.push(self.parse_rule_option(q)?),
                 Rule::selector => selector = Some(self.parse_selector(q)),
                 Rule::scope_list => scopes = self.parse_scope_list(q),
                 Rule::pattern => before = Some(self.parse_pattern(q)),
@@ -54,6 +54,7 @@ impl<'s> Builder<'s> {
         let kind = match rule {
             Rule::tune_rule => AdaptKind::Tune { selector: selector? },
             Rule::lora_rule => AdaptKind::Lora { options, selector: selector? },
+            Rule::prune_rule => AdaptKind::Prune { options, selector },
             _ => AdaptKind::Adapter { options, scopes, before: before? },
         };
         Some(AdaptRule { kind, span })
@@ -295,6 +296,23 @@ mod tests {
         let VariantDecl::Axis { levels, clear, .. } = &v.decls[0] else { panic!() };
         assert_eq!(levels.len(), 2);
         assert_eq!(clear.as_ref().map(|c| c.value), Some(0.0));
+    }
+
+    #[test]
+    fn a_prune_rule_ends_where_the_next_rule_begins() {
+        let f = parse_ok(
+            "model m { }\nadapt {\n  prune below=1e-3\n  tune batchnorm\n  prune below=0.01 in conv2d in layer1\n}\n",
+        );
+        let a = f.adapt_sections().next().expect("adapt");
+        assert_eq!(a.rules.len(), 3);
+        let AdaptKind::Prune { options, selector: None } = &a.rules[0].kind else { panic!("{:?}", a.rules[0]) };
+        assert_eq!(options[0].name.name, "below");
+        assert!(matches!(&options[0].value, Some(OptionValue::Number(n)) if n.value == 1e-3));
+        assert!(matches!(&a.rules[1].kind, AdaptKind::Tune { .. }));
+        let AdaptKind::Prune { selector: Some(s), .. } = &a.rules[2].kind else { panic!("{:?}", a.rules[2]) };
+        assert!(matches!(&s.items[0], SelItem::KindsIn { .. }));
+        assert_eq!(crate::ast_print::adapt_rule(&a.rules[2]), "prune below=0.01 in conv2d in layer1");
+        assert_eq!(crate::ast_print::adapt_rule(&a.rules[0]), "prune below=1e-3");
     }
 
     #[test]
