@@ -18,8 +18,13 @@ impl<'s> Builder<'s> {
     pub(super) fn parse_adapt_def(&mut self, pair: Pair<'_, Rule>) -> AdaptSection {
         let span = self.span(&pair);
         let mut rules = Vec::new();
-        if let Some(body) = pair.into_inner().next() {
-            for p in body.into_inner() {
+        let mut scopes = Vec::new();
+        for part in pair.into_inner() {
+            if part.as_rule() == Rule::adapt_scopes {
+                scopes = part.into_inner().filter_map(|s| self.parse_adapt_scope(s)).collect();
+                continue;
+            }
+            for p in part.into_inner() {
                 match p.as_rule() {
                     Rule::adapt_rule => {
                         if let Some(r) = self.parse_adapt_rule(p) {
@@ -31,7 +36,15 @@ impl<'s> Builder<'s> {
                 }
             }
         }
-        AdaptSection { rules, span }
+        AdaptSection { scopes, rules, span }
+    }
+
+    fn parse_adapt_scope(&mut self, pair: Pair<'_, Rule>) -> Option<AdaptScope> {
+        let span = self.span(&pair);
+        let mut it = pair.into_inner();
+        let name = self.ident(it.next()?);
+        let value = it.next().map(|v| self.ident(v));
+        Some(AdaptScope { name, value, span })
     }
 
     fn parse_adapt_rule(&mut self, pair: Pair<'_, Rule>) -> Option<AdaptRule> {
