@@ -251,7 +251,7 @@ fn bad_variant_files_are_clear_errors() {
 
     // One owned tensor given: the rest keep the base value, reported; an error when strict.
     let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![10]), false));
-    assert!(!err && msg.contains("warning") && msg.contains("keep the base value"), "{msg}");
+    assert!(!err && msg.contains("warning") && msg.contains("keeps the base value"), "{msg}");
     let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![10]), true));
     assert!(err && msg.contains("keep the base value"), "{msg}");
 
@@ -331,7 +331,7 @@ fn unused_adapters_leave_the_schedule() {
     let base_w = base_weights(&m);
     let (with_lora, warnings) =
         backend::compile_variants(&m, &base_w, "base", &[only_lora], &opts).unwrap_or_else(|d| panic!("{d:?}"));
-    assert!(sources.render_all(&warnings, false).contains("keep the base value"));
+    assert!(sources.render_all(&warnings, false).contains("keeps the base value"));
     let base = compile(&sources, &m, &[], LoraMode::Merge);
     assert_eq!(with_lora.manifest.steps.len(), base.manifest.steps.len());
     let with_adapters = compile(&sources, &m, &[variant_source("resnet18", &m, "blur=5", 7)], LoraMode::Merge);
