@@ -191,8 +191,7 @@ fn provided_and_fallback_are_within_the_scope() {
     let mut module = m.clone();
     let vs = vec![file("gamma=0.5", "a", &[("head.bias", vec![4]), ("cam.bn.bias", vec![8])])];
     let opts = CompileOptions::default();
-    let inputs =
-        readi_compiler::passes::BackendInputs { base: &base(&m), base_name: "b", variants: &vs, opts: &opts };
+    let inputs = readi_compiler::passes::BackendInputs { base: &base(&m), base_name: "b", variants: &vs, opts: &opts };
     readi_compiler::passes::run_backend(&mut module, &inputs, Some(readi_compiler::passes::Pass::BindVariants))
         .expect("binds");
     let table = module.tensors.as_ref().expect("table");

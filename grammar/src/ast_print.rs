@@ -60,7 +60,11 @@ impl Printer {
             }
             Item::Adapt(a) => {
                 let scopes: Vec<String> = a.scopes.iter().map(AdaptScope::text).collect();
-                self.open(&if scopes.is_empty() { "adapt".to_string() } else { format!("adapt {}", scopes.join(", ")) });
+                self.open(&if scopes.is_empty() {
+                    "adapt".to_string()
+                } else {
+                    format!("adapt {}", scopes.join(", "))
+                });
                 for r in &a.rules {
                     let text = adapt_rule(r);
                     self.line(&text);

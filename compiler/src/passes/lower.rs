@@ -118,7 +118,11 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     let added: HashSet<&str> = table.owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.as_str()).collect();
     // Each variant's budget is what it owns: its scope's parameters (a meld: its parts').
     let count = |key: &readi_plan::VariantKey, want: bool| -> u64 {
-        table.owned_by(key).filter(|(_, o)| o.added == want).map(|(_, o)| o.shape.iter().product::<usize>() as u64).sum()
+        table
+            .owned_by(key)
+            .filter(|(_, o)| o.added == want)
+            .map(|(_, o)| o.shape.iter().product::<usize>() as u64)
+            .sum()
     };
     for (i, info) in table.variants.iter().enumerate() {
         let mut replaces = Vec::new();

@@ -33,9 +33,9 @@ use readi_grammar::ast::{
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
 
 pub use crate::adapt::{AdaptPlan, Injection, ResolvedRule, RuleKind, Scope, Target};
-use readi_plan::key::MISSING_AXIS;
 use crate::ir::{Activation, Graph, NodeId, Op, ScopeKind};
 use crate::select::Matcher;
+use readi_plan::key::MISSING_AXIS;
 
 /// Whether `word` names an op kind a selector may use (a builtin op, not an alias).
 fn is_op_kind(word: &str) -> bool {
@@ -154,8 +154,7 @@ impl ScopeNames {
                     continue;
                 }
             };
-            let covers_some =
-                !axes.is_empty() || missing.iter().any(|m| self.missing_variants.contains(m));
+            let covers_some = !axes.is_empty() || missing.iter().any(|m| self.missing_variants.contains(m));
             if !covers_some && self.has_variants {
                 diags.push(
                     Diagnostic::warning(Code::BadVariant, format!("scope `{text}` covers no declared variant"))
@@ -185,7 +184,10 @@ impl ScopeNames {
         if let Some(s) = suggest(text, known.iter().map(String::as_str)) {
             d = d.with_note(format!("did you mean `{s}`?"));
         }
-        d.with_note(format!("a scope is a modality, an axis or a missing modality; this spec has: {}", known.join(", ")))
+        d.with_note(format!(
+            "a scope is a modality, an axis or a missing modality; this spec has: {}",
+            known.join(", ")
+        ))
     }
 }
 

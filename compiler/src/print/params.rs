@@ -121,8 +121,7 @@ pub fn scope_lines(module: &Module) -> Vec<String> {
         .map(|scope| {
             let same = |s: &Scope| s.label() == scope.label();
             let (tuned, added) = (plan.tuned_elements_where(g, same), plan.added_elements_where(same));
-            let covered: Vec<&str> =
-                units.iter().filter(|(_, k)| scope.covers(k)).map(|(u, _)| u.as_str()).collect();
+            let covered: Vec<&str> = units.iter().filter(|(_, k)| scope.covers(k)).map(|(u, _)| u.as_str()).collect();
             let who = match covered.as_slice() {
                 [] => "no declared variant".to_string(),
                 [one] if !one.ends_with('*') => format!("variant {one}"),

@@ -70,12 +70,8 @@ pub fn owned_params(module: &Module) -> BTreeMap<String, Owned> {
         if slot.dtype == DType::F32 {
             let shape = slot.shape.iter().map(|&d| d as usize).collect();
             let added = slot.kind == SlotKind::Added;
-            let o: &mut Owned = owned.entry(g.node(node).param_name(slot)).or_insert(Owned {
-                shape,
-                added,
-                node,
-                scopes: Vec::new(),
-            });
+            let o: &mut Owned =
+                owned.entry(g.node(node).param_name(slot)).or_insert(Owned { shape, added, node, scopes: Vec::new() });
             if !o.scopes.contains(scope) {
                 o.scopes.push(scope.clone());
             }

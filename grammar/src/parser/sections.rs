@@ -311,6 +311,40 @@ mod tests {
     }
 
     #[test]
+    fn scoped_adapt_sections_parse_and_print() {
+        let f = parse_ok(
+            "model m { }\nadapt { tune head }\nadapt camera { tune batchnorm in camera }\n\
+             adapt lidar, missing=lidar { lora rank=4 on lidar.** }\n",
+        );
+        let scopes: Vec<Vec<String>> =
+            f.adapt_sections().map(|a| a.scopes.iter().map(AdaptScope::text).collect()).collect();
+        assert_eq!(scopes, vec![vec![], vec!["camera".to_string()], vec!["lidar".into(), "missing=lidar".into()]]);
+        let printed = crate::ast_print::to_source(&f);
+        assert!(
+            printed.contains("adapt camera {\n") && printed.contains("adapt lidar, missing=lidar {\n"),
+            "{printed}"
+        );
+        assert!(printed.contains("adapt {\n  tune head\n}"), "{printed}");
+        // The printed file parses to the same tree, spans aside.
+        let again = parse_ok(&printed);
+        let texts = |f: &SourceFile| -> Vec<String> {
+            f.adapt_sections().flat_map(|a| a.scopes.iter().map(AdaptScope::text)).collect()
+        };
+        assert_eq!(texts(&again), texts(&f));
+    }
+
+    #[test]
+    fn a_bad_scope_is_a_syntax_error_at_it() {
+        let d = crate::parser::tests::first_error("model m { }\nadapt camera, { tune head }\n");
+        assert!(d.message.contains("expected a name, found `{`"), "{}", d.message);
+        assert_eq!(d.primary_span().map(|s| s.start), Some(26));
+        let d = crate::parser::tests::first_error("model m { }\nadapt 3 { tune head }\n");
+        assert!(d.message.contains("found `3`"), "{}", d.message);
+        let d = crate::parser::tests::first_error("model m { }\nadapt missing=3 { tune head }\n");
+        assert!(d.message.contains("expected a name, found `3`"), "{}", d.message);
+    }
+
+    #[test]
     fn pattern_split_respects_alternatives() {
         assert_eq!(split_pattern("blocks.*.attn.{q.x,k}"), vec!["blocks", "*", "attn", "{q.x,k}"]);
     }
