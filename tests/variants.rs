@@ -177,12 +177,13 @@ fn bundled_models_compile_with_variants() {
             m.graph.param_table().iter().filter(|(_, _, s)| s.kind == SlotKind::Added).map(|(_, _, s)| s.numel()).sum();
         assert_eq!(added_slots, adapt.added_elements(), "{model}: injected slots vs the rules' accounting");
         for v in &mf.variants {
-            assert_eq!(v.added_elements, added_slots, "{model}");
-            assert_eq!(
-                v.tuned_elements,
-                adapt.tuned_elements(&m.graph),
-                "{model}: the table agrees with `readi params`"
-            );
+            // Each variant's budget is its own scope's (all of it when nothing is scoped).
+            let (tuned, added) = adapt.budget(&m.graph, &v.key);
+            if !adapt.is_scoped() {
+                assert_eq!((tuned, added), (adapt.tuned_elements(&m.graph), added_slots), "{model}");
+            }
+            assert_eq!(v.added_elements, added, "{model}");
+            assert_eq!(v.tuned_elements, tuned, "{model}: the table agrees with `readi params`");
             assert!(v.tuned_elements > 0 && !v.replaces.is_empty(), "{model}");
             // A replacement has its base's shape and is not a base tensor.
             for r in &v.replaces {
