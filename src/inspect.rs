@@ -108,10 +108,27 @@ pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
             print::bytes(plan.tensor_bytes() as u64 - base_bytes)
         )?;
         let width = m.variants.iter().map(|v| v.key.to_string().len()).max().unwrap_or(0).max(7);
+        // With scoped `adapt` sections, which scopes each variant owns (`-`: only the
+        // unscoped rules).
+        let scoped = m.variants.iter().any(|v| !v.scopes.is_empty());
+        let scope_of = |v: &readi_runtime::plan::VariantTable| {
+            if !scoped {
+                String::new()
+            } else if v.scopes.is_empty() {
+                "  -".to_string()
+            } else {
+                format!("  {}", v.scopes.iter().map(|s| escaped(s)).collect::<Vec<_>>().join(" + "))
+            }
+        };
+        let sw = m.variants.iter().map(|v| scope_of(v).len()).max().unwrap_or(0).max(if scoped { 7 } else { 0 });
         writeln!(
             out,
-            "  {:<width$}  {:>20}  {:>20}  {:>30}",
-            "variant", "exist budget (tuned)", "add budget (new)", "stored: tuned + added = % base"
+            "  {:<width$}{:<sw$}  {:>20}  {:>20}  {:>30}",
+            "variant",
+            if scoped { "  scope" } else { "" },
+            "exist budget (tuned)",
+            "add budget (new)",
+            "stored: tuned + added = % base"
         )?;
         for v in &m.variants {
             let (mut tuned, mut added) = (0u64, 0u64);
@@ -122,8 +139,9 @@ pub fn budget(plan: &Plan, base_params: u64, verbose: bool) -> String {
                 if v.fallback.is_empty() { String::new() } else { format!("  ({} at base value)", v.fallback.len()) };
             writeln!(
                 out,
-                "  {:<width$}  {:>10} {:>8.2}%  {:>10} {:>8.2}%  {:>9} + {:>9} = {:>5.2}%{fallback}",
+                "  {:<width$}{:<sw$}  {:>10} {:>8.2}%  {:>10} {:>8.2}%  {:>9} + {:>9} = {:>5.2}%{fallback}",
                 v.key,
+                scope_of(v),
                 print::thousands(v.tuned_elements),
                 pct(v.tuned_elements, base_params),
                 print::thousands(v.added_elements),

@@ -177,12 +177,13 @@ fn bundled_models_compile_with_variants() {
             m.graph.param_table().iter().filter(|(_, _, s)| s.kind == SlotKind::Added).map(|(_, _, s)| s.numel()).sum();
         assert_eq!(added_slots, adapt.added_elements(), "{model}: injected slots vs the rules' accounting");
         for v in &mf.variants {
-            assert_eq!(v.added_elements, added_slots, "{model}");
-            assert_eq!(
-                v.tuned_elements,
-                adapt.tuned_elements(&m.graph),
-                "{model}: the table agrees with `readi params`"
-            );
+            // Each variant's budget is its own scope's (all of it when nothing is scoped).
+            let (tuned, added) = adapt.budget(&m.graph, &v.key);
+            if !adapt.is_scoped() {
+                assert_eq!((tuned, added), (adapt.tuned_elements(&m.graph), added_slots), "{model}");
+            }
+            assert_eq!(v.added_elements, added, "{model}");
+            assert_eq!(v.tuned_elements, tuned, "{model}: the table agrees with `readi params`");
             assert!(v.tuned_elements > 0 && !v.replaces.is_empty(), "{model}");
             // A replacement has its base's shape and is not a base tensor.
             for r in &v.replaces {
@@ -251,7 +252,7 @@ fn bad_variant_files_are_clear_errors() {
 
     // One owned tensor given: the rest keep the base value, reported; an error when strict.
     let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![10]), false));
-    assert!(!err && msg.contains("warning") && msg.contains("keep the base value"), "{msg}");
+    assert!(!err && msg.contains("warning") && msg.contains("keeps the base value"), "{msg}");
     let (err, msg) = text(variant_errors(one("gamma=0.25", "fc.bias", vec![10]), true));
     assert!(err && msg.contains("keep the base value"), "{msg}");
 
@@ -331,7 +332,7 @@ fn unused_adapters_leave_the_schedule() {
     let base_w = base_weights(&m);
     let (with_lora, warnings) =
         backend::compile_variants(&m, &base_w, "base", &[only_lora], &opts).unwrap_or_else(|d| panic!("{d:?}"));
-    assert!(sources.render_all(&warnings, false).contains("keep the base value"));
+    assert!(sources.render_all(&warnings, false).contains("keeps the base value"));
     let base = compile(&sources, &m, &[], LoraMode::Merge);
     assert_eq!(with_lora.manifest.steps.len(), base.manifest.steps.len());
     let with_adapters = compile(&sources, &m, &[variant_source("resnet18", &m, "blur=5", 7)], LoraMode::Merge);

@@ -7,6 +7,8 @@ use std::collections::HashMap;
 
 use readi_grammar::ast::DType;
 use readi_grammar::diag::Span;
+use readi_plan::VariantKey;
+use readi_plan::key::KeyPart;
 
 use crate::ir::{Activation, Graph, NodeId};
 
@@ -37,6 +39,13 @@ impl Injection {
         }
     }
 
+    /// The index of the rule it was injected for, in [`AdaptPlan::rules`].
+    pub fn rule(&self) -> usize {
+        match *self {
+            Injection::Lora { rule, .. } | Injection::Adapter { rule, .. } => rule,
+        }
+    }
+
     /// Every node the injection added.
     pub fn nodes(&self) -> [NodeId; 4] {
         match *self {
@@ -54,6 +63,53 @@ pub struct ResolvedRule {
     pub span: Span,
     pub kind: RuleKind,
     pub targets: Vec<Target>,
+    /// The variants that own what the rule makes per-variant (its section's scope).
+    pub scope: Scope,
+}
+
+/// The variants a rule's parameters belong to: every variant (an unscoped `adapt { }`
+/// section), or those a scoped section names (`adapt camera, missing=lidar { }`).
+///
+/// Resolved against the spec when the rules are: a modality stands for every axis on it,
+/// `missing` for every modality, so whether a key is covered needs nothing but the key.
+/// A melded key is covered when one of its parts is (a meld owns the union of what its
+/// parts own); the base key is never covered.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Scope {
+    /// The scopes as written (`camera`, `missing=lidar`); empty for every variant.
+    pub names: Vec<String>,
+    /// The axes whose variants it covers.
+    pub axes: Vec<String>,
+    /// The modalities whose missing-modality variant it covers.
+    pub missing: Vec<String>,
+}
+
+impl Scope {
+    /// Every variant (an unscoped section).
+    pub fn all() -> Scope {
+        Scope::default()
+    }
+
+    /// Whether this is an unscoped section's scope.
+    pub fn is_all(&self) -> bool {
+        self.names.is_empty()
+    }
+
+    /// Whether the variant `key` owns what this scope's rules make per-variant.
+    pub fn covers(&self, key: &VariantKey) -> bool {
+        if self.is_all() {
+            return !key.is_base();
+        }
+        key.parts().iter().any(|p| match p {
+            KeyPart::Level { axis, .. } => self.axes.contains(axis),
+            KeyPart::Missing { modality } => self.missing.contains(modality),
+        })
+    }
+
+    /// The scope for messages: `camera, missing=lidar`, or `every variant`.
+    pub fn label(&self) -> String {
+        if self.is_all() { "every variant".to_string() } else { self.names.join(", ") }
+    }
 }
 
 /// What a rule does to each target.
@@ -111,10 +167,33 @@ impl AdaptPlan {
             .retain(|inj| !removed.contains(&inj.anchor()) && inj.nodes().iter().all(|n| !removed.contains(n)));
     }
 
-    /// Existing parameter elements tuned per variant (each f32 slot counted once).
+    /// Existing parameter elements tuned per variant (each f32 slot counted once), over
+    /// every scope: what the variants own together.
     pub fn tuned_elements(&self, graph: &Graph) -> u64 {
+        self.tuned_elements_where(graph, |_| true)
+    }
+
+    /// New parameter elements added, over every scope.
+    pub fn added_elements(&self) -> u64 {
+        self.added_elements_where(|_| true)
+    }
+
+    /// What variant `key` owns: existing elements tuned and elements added by the rules
+    /// whose scope covers it (the base owns nothing).
+    pub fn budget(&self, graph: &Graph, key: &VariantKey) -> (u64, u64) {
+        let covers = |s: &Scope| s.covers(key);
+        (self.tuned_elements_where(graph, covers), self.added_elements_where(covers))
+    }
+
+    /// Whether some rule is in a scoped section.
+    pub fn is_scoped(&self) -> bool {
+        self.rules.iter().any(|r| !r.scope.is_all())
+    }
+
+    /// Existing elements tuned by the rules whose scope `keep` accepts, each slot once.
+    pub fn tuned_elements_where(&self, graph: &Graph, keep: impl Fn(&Scope) -> bool) -> u64 {
         let mut seen: HashMap<(NodeId, &str), u64> = HashMap::new();
-        for r in &self.rules {
+        for r in self.rules.iter().filter(|r| keep(&r.scope)) {
             for t in &r.targets {
                 let node = graph.node(t.node);
                 for s in &t.slots {
@@ -128,8 +207,8 @@ impl AdaptPlan {
         seen.values().sum()
     }
 
-    /// New parameter elements added per variant.
-    pub fn added_elements(&self) -> u64 {
-        self.rules.iter().flat_map(|r| &r.targets).map(|t| t.added).sum()
+    /// New elements added by the rules whose scope `keep` accepts.
+    pub fn added_elements_where(&self, keep: impl Fn(&Scope) -> bool) -> u64 {
+        self.rules.iter().filter(|r| keep(&r.scope)).flat_map(|r| &r.targets).map(|t| t.added).sum()
     }
 }

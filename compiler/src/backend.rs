@@ -184,7 +184,7 @@ pub fn seeded_weights(graph: &Graph, seed: u64) -> WeightSet {
 }
 
 /// Deterministic parameters for variants of a module: for the `i`-th key, every parameter
-/// the variants own gets [`seeded_tensor`] with seed `seed + i` (LoRA `B` and adapter `up`
+/// that key owns (within its scope) gets [`seeded_tensor`] with seed `seed + i` (LoRA `B` and adapter `up`
 /// included, so no variant equals the base). For demos, tests and benchmarks.
 pub fn seeded_variants(module: &Module, keys: &[String], seed: u64) -> Vec<VariantSource> {
     let owned = variants::owned_params(module);
@@ -192,7 +192,9 @@ pub fn seeded_variants(module: &Module, keys: &[String], seed: u64) -> Vec<Varia
         .enumerate()
         .map(|(i, key)| {
             let mut weights = WeightSet::default();
-            for (name, o) in &owned {
+            // What the key owns (a key that does not parse gets everything; binding reports it).
+            let k = readi_plan::VariantKey::parse(key).ok();
+            for (name, o) in owned.iter().filter(|(_, o)| k.as_ref().is_none_or(|k| o.is_owned_by(k))) {
                 let data = seeded_tensor(seed + i as u64, name, &o.shape);
                 weights.tensors.insert(name.clone(), (o.shape.clone(), data));
             }

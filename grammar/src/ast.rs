@@ -27,7 +27,7 @@ impl SourceFile {
             _ => None,
         })
     }
-    /// The `adapt` sections of the file (a valid file has at most one).
+    /// The `adapt` sections of the file, unscoped and scoped (`adapt camera { ... }`).
     pub fn adapt_sections(&self) -> impl Iterator<Item = &AdaptSection> {
         self.items.iter().filter_map(|i| match i {
             Item::Adapt(a) => Some(a),
@@ -313,11 +313,32 @@ impl BinaryOp {
 // Adaptation section
 // -------------------------------------------------------------------------------------
 
-/// `adapt { rules }`.
+/// `adapt { rules }`, or `adapt camera, missing=lidar { rules }`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct AdaptSection {
+    /// The variants the rules belong to; empty: every variant.
+    pub scopes: Vec<AdaptScope>,
     pub rules: Vec<AdaptRule>,
     pub span: Span,
+}
+
+/// One scope of a section: `camera` (a modality), `fog` (an axis), `missing`, or
+/// `missing=lidar` (`name=value`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdaptScope {
+    pub name: Ident,
+    pub value: Option<Ident>,
+    pub span: Span,
+}
+
+impl AdaptScope {
+    /// The scope as written: `camera`, `missing=lidar`.
+    pub fn text(&self) -> String {
+        match &self.value {
+            Some(v) => format!("{}={}", self.name.name, v.name),
+            None => self.name.name.clone(),
+        }
+    }
 }
 
 /// One adaptation rule with its span.

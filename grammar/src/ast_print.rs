@@ -59,7 +59,12 @@ impl Printer {
                 self.body(&m.body);
             }
             Item::Adapt(a) => {
-                self.open("adapt");
+                let scopes: Vec<String> = a.scopes.iter().map(AdaptScope::text).collect();
+                self.open(&if scopes.is_empty() {
+                    "adapt".to_string()
+                } else {
+                    format!("adapt {}", scopes.join(", "))
+                });
                 for r in &a.rules {
                     let text = adapt_rule(r);
                     self.line(&text);

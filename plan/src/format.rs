@@ -206,6 +206,10 @@ pub struct VariantTable {
     /// Owned parameters the variant's files did not provide; they keep the base value.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub fallback: Vec<String>,
+    /// The scoped `adapt` sections whose parameters it owns (`camera`, `missing=lidar`);
+    /// empty when it owns only the unscoped rules' (and in plans compiled before scopes).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub scopes: Vec<String>,
 }
 
 /// A base tensor a variant replaces, and with which.

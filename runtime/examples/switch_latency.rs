@@ -68,6 +68,7 @@ fn plan() -> Plan {
             tuned_elements: 0,
             added_elements: 0,
             fallback: Vec::new(),
+            scopes: Vec::new(),
         });
     }
     let n = |d: usize| vec![Dim::symbol("N"), Dim::from(d)];

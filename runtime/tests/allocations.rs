@@ -59,6 +59,7 @@ fn plan() -> Plan {
             tuned_elements: 0,
             added_elements: 0,
             fallback: Vec::new(),
+            scopes: Vec::new(),
         });
     }
     let values = vec![

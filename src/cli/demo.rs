@@ -110,14 +110,21 @@ fn describe_model(m: &Module, name: &str, check_ms: f64) {
     println!("  {} nodes, {} parameters", g.node_count(), print::thousands(g.parameter_count()));
     if let Some(plan) = &m.adapt {
         let p = g.parameter_count().max(1) as f64;
-        let (tuned, added) = (plan.tuned_elements(g), plan.added_elements());
-        println!(
-            "  per variant: exist budget {:.2}% ({} elements), add budget {:.2}% ({} elements)",
-            100.0 * tuned as f64 / p,
-            print::thousands(tuned),
-            100.0 * added as f64 / p,
-            print::thousands(added)
-        );
+        // Each variant owns its scopes' rules and the shared ones (`adapt camera { ... }`).
+        let groups = if plan.is_scoped() {
+            print::params::variant_groups(m).into_iter().map(|(u, t, a)| (format!(" {u}"), t, a)).collect()
+        } else {
+            vec![(String::new(), plan.tuned_elements(g), plan.added_elements())]
+        };
+        for (units, tuned, added) in groups {
+            println!(
+                "  per variant{units}: exist budget {:.2}% ({} elements), add budget {:.2}% ({} elements)",
+                100.0 * tuned as f64 / p,
+                print::thousands(tuned),
+                100.0 * added as f64 / p,
+                print::thousands(added)
+            );
+        }
     }
     if let Some(v) = &m.variants {
         let keys: Vec<String> = v.keys().iter().map(|k| k.to_string()).collect();

@@ -240,10 +240,8 @@ impl<'a> Elab<'a> {
                 *m
             }
         };
-        for (kind, spans) in [
-            ("adapt", file.adapt_sections().map(|a| a.span).collect::<Vec<_>>()),
-            ("variants", file.variant_sections().map(|v| v.span).collect::<Vec<_>>()),
-        ] {
+        // Several `adapt` sections are allowed (scoped ones: `adapt camera { ... }`).
+        for (kind, spans) in [("variants", file.variant_sections().map(|v| v.span).collect::<Vec<_>>())] {
             for extra in spans.iter().skip(1) {
                 self.diags.push(
                     Diagnostic::error(Code::DuplicateName, format!("a file holds one `{kind}` section"))

@@ -116,8 +116,13 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     let read = readi_plan::validate::read_tensors(&manifest);
     let mut store = Store::new(std::mem::take(&mut manifest.tensors), data);
     let added: HashSet<&str> = table.owned.iter().filter(|(_, o)| o.added).map(|(n, _)| n.as_str()).collect();
-    let count = |want: bool| -> u64 {
-        table.owned.values().filter(|o| o.added == want).map(|o| o.shape.iter().product::<usize>() as u64).sum()
+    // Each variant's budget is what it owns: its scope's parameters (a meld: its parts').
+    let count = |key: &readi_plan::VariantKey, want: bool| -> u64 {
+        table
+            .owned_by(key)
+            .filter(|(_, o)| o.added == want)
+            .map(|(_, o)| o.shape.iter().product::<usize>() as u64)
+            .sum()
     };
     for (i, info) in table.variants.iter().enumerate() {
         let mut replaces = Vec::new();
@@ -134,13 +139,26 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         manifest.variants.push(VariantTable {
             key: info.key.clone(),
             replaces,
-            tuned_elements: count(false),
-            added_elements: count(true),
+            tuned_elements: count(&info.key, false),
+            added_elements: count(&info.key, true),
+            scopes: scope_names(module, &info.key),
             fallback: info.fallback.clone(),
         });
     }
     manifest.tensors = store.specs;
     Ok(Output::Lowered(Box::new(Lowered { manifest, data: store.data })))
+}
+
+/// The scoped `adapt` sections whose rules the variant `key` owns (`camera`,
+/// `missing=lidar`), in rule order; empty when it owns only unscoped rules.
+fn scope_names(module: &Module, key: &readi_plan::VariantKey) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for r in module.adapt.iter().flat_map(|p| &p.rules) {
+        if !r.scope.is_all() && r.scope.covers(key) && !out.contains(&r.scope.label()) {
+            out.push(r.scope.label());
+        }
+    }
+    out
 }
 
 fn ice(message: String) -> Diagnostics {

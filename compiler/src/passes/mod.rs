@@ -404,8 +404,9 @@ pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
                 }
             }
             Pass::ResolveAdapt => {
-                if let Some(section) = out.ast.adapt_sections().next() {
-                    module.adapt = Some(resolve_adapt::run(&module.graph, section, &out.ast, &mut diags));
+                let sections: Vec<_> = out.ast.adapt_sections().collect();
+                if !sections.is_empty() {
+                    module.adapt = Some(resolve_adapt::run(&module.graph, &sections, &out.ast, &mut diags));
                 }
             }
             Pass::InjectAdapt => {

@@ -1,8 +1,9 @@
 //! `resolve_adapt`: binds the rules of the `adapt` section to the layers they select.
 //!
 //! Changes: nothing in the graph; produces an [`AdaptPlan`] side table: for each rule,
-//! the layers it applies to, which parameters it makes per-variant (`tune`), and how many
-//! parameters it adds (`lora`, `adapter`). Injecting the LoRA branches and adapters into
+//! the layers it applies to, which parameters it makes per-variant (`tune`), how many
+//! parameters it adds (`lora`, `adapter`), and which variants own them: every variant for
+//! an unscoped section, those its scope names for `adapt camera { ... }` ([`Scope`]). Injecting the LoRA branches and adapters into
 //! the graph is a later pass; this one fixes *what* each variant owns.
 //!
 //! Checks, each an error naming the rule:
@@ -10,8 +11,12 @@
 //!   (`lora` needs linear or conv2d layers; an adapter needs a 4-D input with known
 //!   channels and spatial sizes);
 //! * unknown op kinds, unknown or bad options (`rank=0`, `act=tanhh`);
+//! * a section scope that is no modality of an input, no axis, `missing` nor
+//!   `missing=<modality>` (a warning when it covers no declared variant);
 //! * two rules that claim one parameter in conflicting ways (LoRA on a weight another
 //!   rule tunes; two LoRA branches or two adapters at one layer), showing both rules.
+//!   Scopes do not make conflicting rules compatible (there is one graph for all the
+//!   variants); two `tune` rules in different scopes on one parameter are fine.
 //!
 //! Parameter accounting (what a variant stores beyond the base):
 //! * `tune`: every selected slot (weights, biases, BatchNorm running statistics);
@@ -22,12 +27,15 @@
 
 use std::collections::{HashMap, HashSet};
 
-use readi_grammar::ast::{AdaptKind, AdaptSection, OptionValue, Pattern, RuleOption, SelItem, Selector, SourceFile};
+use readi_grammar::ast::{
+    AdaptKind, AdaptSection, OptionValue, Pattern, RuleOption, SelItem, Selector, SourceFile, VariantDecl,
+};
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, Span, suggest};
 
-pub use crate::adapt::{AdaptPlan, Injection, ResolvedRule, RuleKind, Target};
+pub use crate::adapt::{AdaptPlan, Injection, ResolvedRule, RuleKind, Scope, Target};
 use crate::ir::{Activation, Graph, NodeId, Op, ScopeKind};
 use crate::select::Matcher;
+use readi_plan::key::MISSING_AXIS;
 
 /// Whether `word` names an op kind a selector may use (a builtin op, not an alias).
 fn is_op_kind(word: &str) -> bool {
@@ -41,24 +49,158 @@ pub const DEFAULT_ALPHA: f64 = 8.0;
 /// Default adapter squeeze ratio (the paper's `r`).
 pub const DEFAULT_SQUEEZE: i64 = 2;
 
-pub fn run(graph: &Graph, section: &AdaptSection, ast: &SourceFile, diags: &mut Diagnostics) -> AdaptPlan {
+/// Resolves the rules of every `adapt` section of the file, in source order.
+pub fn run(graph: &Graph, sections: &[&AdaptSection], ast: &SourceFile, diags: &mut Diagnostics) -> AdaptPlan {
     let blocks: Vec<&str> = ast.blocks().map(|b| b.name.name.as_str()).collect();
     let cx = Cx { graph, blocks };
+    let names = ScopeNames::of(graph, ast);
     let mut rules = Vec::new();
-    for rule in &section.rules {
-        let text = readi_grammar::ast_print::adapt_rule(rule);
-        let resolved = match &rule.kind {
-            AdaptKind::Tune { selector } => cx.tune(selector, diags),
-            AdaptKind::Lora { options, selector } => cx.lora(options, selector, diags),
-            AdaptKind::Adapter { options, scopes, before } => cx.adapter(options, scopes, before, diags),
-            AdaptKind::Prune { options, selector } => cx.prune(options, selector.as_ref(), diags),
-        };
-        if let Some((kind, targets)) = resolved {
-            rules.push(ResolvedRule { text, span: rule.span, kind, targets });
+    for section in sections {
+        let scope = names.resolve(section, diags);
+        for rule in &section.rules {
+            let text = readi_grammar::ast_print::adapt_rule(rule);
+            let resolved = match &rule.kind {
+                AdaptKind::Tune { selector } => cx.tune(selector, diags),
+                AdaptKind::Lora { options, selector } => cx.lora(options, selector, diags),
+                AdaptKind::Adapter { options, scopes, before } => cx.adapter(options, scopes, before, diags),
+                AdaptKind::Prune { options, selector } => cx.prune(options, selector.as_ref(), diags),
+            };
+            if matches!(rule.kind, AdaptKind::Prune { .. })
+                && let Some(scope) = scope.as_ref().filter(|s| !s.is_all())
+            {
+                // Pruning changes the shared weights, which every variant reads.
+                diags.push(
+                    Diagnostic::error(Code::BadSelector, "`prune` cannot be scoped to conditions")
+                        .with_primary(rule.span, format!("in a section scoped to {}", scope.names.join(", ")))
+                        .with_note("pruning changes the shared weights every variant reads; put it in `adapt { ... }`"),
+                );
+                continue;
+            }
+            if let (Some((kind, targets)), Some(scope)) = (resolved, scope.as_ref()) {
+                rules.push(ResolvedRule { text, span: rule.span, kind, targets, scope: scope.clone() });
+            }
         }
     }
     check_conflicts(graph, &rules, diags);
     AdaptPlan { rules, injections: Vec::new() }
+}
+
+/// What a section's scope may name: the modalities of the inputs, the axes of the
+/// variants section (with their modality), and the modalities with a missing-modality
+/// variant (`missing m: variant`).
+struct ScopeNames {
+    modalities: Vec<String>,
+    axes: Vec<(String, String)>,
+    missing_variants: Vec<String>,
+    has_variants: bool,
+}
+
+impl ScopeNames {
+    fn of(graph: &Graph, ast: &SourceFile) -> ScopeNames {
+        let mut modalities: Vec<String> = Vec::new();
+        for n in graph.input_nodes() {
+            if let Op::Input(a) = &graph.node(n).op
+                && let Some(m) = &a.modality
+                && !modalities.contains(m)
+            {
+                modalities.push(m.clone());
+            }
+        }
+        let (mut axes, mut missing_variants) = (Vec::new(), Vec::new());
+        let mut has_variants = false;
+        for v in ast.variant_sections() {
+            has_variants = true;
+            for d in &v.decls {
+                match d {
+                    VariantDecl::Axis { name, modality, .. } => axes.push((name.name.clone(), modality.name.clone())),
+                    VariantDecl::Missing { modality, policy, .. } if policy.name == "variant" => {
+                        missing_variants.push(modality.name.clone())
+                    }
+                    _ => {}
+                }
+            }
+        }
+        ScopeNames { modalities, axes, missing_variants, has_variants }
+    }
+
+    /// Every name a scope may be, for messages.
+    fn known(&self) -> Vec<String> {
+        let mut out: Vec<String> = self.modalities.clone();
+        out.extend(self.axes.iter().map(|a| a.0.clone()).filter(|a| !self.modalities.contains(a)));
+        out.push(MISSING_AXIS.to_string());
+        out.extend(self.modalities.iter().map(|m| format!("{MISSING_AXIS}={m}")));
+        out
+    }
+
+    /// The section's scope, or `None` (reported) when it names something the spec does not
+    /// have. A scope that covers no declared variant is a warning.
+    fn resolve(&self, section: &AdaptSection, diags: &mut Diagnostics) -> Option<Scope> {
+        let mut scope = Scope::all();
+        let mut ok = true;
+        for sc in &section.scopes {
+            let text = sc.text();
+            let (axes, missing): (Vec<String>, Vec<String>) = match &sc.value {
+                None if sc.name.name == MISSING_AXIS => (vec![], self.modalities.clone()),
+                None => {
+                    let name = sc.name.name.as_str();
+                    let axes: Vec<String> =
+                        self.axes.iter().filter(|(a, m)| a == name || m == name).map(|a| a.0.clone()).collect();
+                    if axes.is_empty() && !self.modalities.iter().any(|m| m == name) {
+                        diags.push(self.unknown(&sc.name.name, sc.span, "no modality or axis of this name"));
+                        ok = false;
+                        continue;
+                    }
+                    (axes, vec![])
+                }
+                Some(v) if sc.name.name == MISSING_AXIS => {
+                    if !self.modalities.contains(&v.name) {
+                        diags.push(self.unknown(&text, v.span, "no input has this modality"));
+                        ok = false;
+                        continue;
+                    }
+                    (vec![], vec![v.name.clone()])
+                }
+                Some(_) => {
+                    diags.push(self.unknown(&text, sc.span, "only `missing=<modality>` takes a value"));
+                    ok = false;
+                    continue;
+                }
+            };
+            let covers_some = !axes.is_empty() || missing.iter().any(|m| self.missing_variants.contains(m));
+            if !covers_some && self.has_variants {
+                diags.push(
+                    Diagnostic::warning(Code::BadVariant, format!("scope `{text}` covers no declared variant"))
+                        .with_primary(sc.span, "no variant has this scope")
+                        .with_note("the rules of this section are injected, but no variant owns their parameters"),
+                );
+            }
+            scope.names.push(text);
+            for a in axes {
+                if !scope.axes.contains(&a) {
+                    scope.axes.push(a);
+                }
+            }
+            for m in missing {
+                if !scope.missing.contains(&m) {
+                    scope.missing.push(m);
+                }
+            }
+        }
+        ok.then_some(scope)
+    }
+
+    fn unknown(&self, text: &str, span: Span, label: &str) -> Diagnostic {
+        let known = self.known();
+        let mut d = Diagnostic::error(Code::UnknownName, format!("unknown adaptation scope `{text}`"))
+            .with_primary(span, label.to_string());
+        if let Some(s) = suggest(text, known.iter().map(String::as_str)) {
+            d = d.with_note(format!("did you mean `{s}`?"));
+        }
+        d.with_note(format!(
+            "a scope is a modality, an axis or a missing modality; this spec has: {}",
+            known.join(", ")
+        ))
+    }
 }
 
 struct Cx<'g> {

@@ -104,12 +104,30 @@ pub fn to_text(module: &Module) -> String {
         let count = |added: bool| {
             t.owned.values().filter(|o| o.added == added).map(|o| o.shape.iter().product::<usize>() as u64).sum::<u64>()
         };
-        let _ = writeln!(
-            out,
-            "  per variant: {} existing elements tuned, {} added",
-            thousands(count(false)),
-            thousands(count(true))
-        );
+        let scoped = t.owned.values().any(|o| o.scopes.iter().any(|s| !s.is_all()));
+        if !scoped {
+            let _ = writeln!(
+                out,
+                "  per variant: {} existing elements tuned, {} added",
+                thousands(count(false)),
+                thousands(count(true))
+            );
+        } else {
+            // Each variant owns its scopes' parameters.
+            for v in &t.variants {
+                let (mut tuned, mut added) = (0u64, 0u64);
+                for (_, o) in t.owned_by(&v.key) {
+                    *(if o.added { &mut added } else { &mut tuned }) += o.shape.iter().product::<usize>() as u64;
+                }
+                let _ = writeln!(
+                    out,
+                    "  variant {}: {} existing elements tuned, {} added",
+                    v.key,
+                    thousands(tuned),
+                    thousands(added)
+                );
+            }
+        }
         if let Some((layers, total, zero)) = crate::passes::prune::zeros(module, t) {
             let _ = writeln!(
                 out,
@@ -133,7 +151,8 @@ pub fn to_text(module: &Module) -> String {
             if let Some(scale) = r.kind.lora_scale() {
                 let _ = write!(detail, ", scale {scale}");
             }
-            let _ = writeln!(out, "  #{} {}", i + 1, r.text);
+            let scope = if r.scope.is_all() { String::new() } else { format!("  (scope {})", r.scope.label()) };
+            let _ = writeln!(out, "  #{} {}{scope}", i + 1, r.text);
             let _ = writeln!(
                 out,
                 "     {what} {} layer{}: {} elements tuned, {} added{detail}",
@@ -153,12 +172,26 @@ pub fn to_text(module: &Module) -> String {
                 .collect();
             wrap(&mut out, "       ", &names, 100);
         }
-        let _ = writeln!(
-            out,
-            "  per variant: {} existing elements tuned, {} added",
-            thousands(plan.tuned_elements(g)),
-            thousands(plan.added_elements())
-        );
+        if !plan.is_scoped() {
+            let _ = writeln!(
+                out,
+                "  per variant: {} existing elements tuned, {} added",
+                thousands(plan.tuned_elements(g)),
+                thousands(plan.added_elements())
+            );
+        } else {
+            for line in super::params::scope_lines(module) {
+                let _ = writeln!(out, "  {line}");
+            }
+            for (units, tuned, added) in super::params::variant_groups(module) {
+                let _ = writeln!(
+                    out,
+                    "  per variant {units}: {} existing elements tuned, {} added",
+                    thousands(tuned),
+                    thousands(added)
+                );
+            }
+        }
     }
     if let Some(v) = &module.variants {
         let _ = writeln!(out, "variants");

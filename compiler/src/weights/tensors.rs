@@ -98,7 +98,8 @@ pub struct TensorTable {
     tensors: BTreeMap<String, Tensor>,
     /// The plan's variants, in plan order (variant `i + 1` is `variants[i]`).
     pub variants: Vec<VariantInfo>,
-    /// Every parameter a variant owns, by name.
+    /// Every parameter some variant owns, by name; which variants own it is its
+    /// [`Owned::scopes`] ([`TensorTable::owns`]).
     pub owned: BTreeMap<String, Owned>,
     /// The spec's parameters (the graph's slots when the weights were bound).
     pub params: Vec<SpecParam>,
@@ -128,6 +129,22 @@ impl TensorTable {
 
     pub fn is_empty(&self) -> bool {
         self.tensors.is_empty()
+    }
+
+    /// Whether the variant `key` owns the parameter `name` (its rule's scope covers the
+    /// key; a meld owns what any of its parts owns; the base owns nothing).
+    pub fn owns(&self, key: &VariantKey, name: &str) -> bool {
+        self.owned.get(name).is_some_and(|o| o.is_owned_by(key))
+    }
+
+    /// Every parameter the variant `key` owns, by name.
+    pub fn owned_by<'a>(&'a self, key: &'a VariantKey) -> impl Iterator<Item = (&'a String, &'a Owned)> + 'a {
+        super::variants::owned_by(&self.owned, key)
+    }
+
+    /// Whether variant `v` of the table (1 is the first; 0 the base) owns `name`.
+    pub fn variant_owns(&self, v: usize, name: &str) -> bool {
+        v.checked_sub(1).and_then(|i| self.variants.get(i)).is_some_and(|info| self.owns(&info.key, name))
     }
 
     /// Number of variants (not counting the base).

@@ -3,8 +3,10 @@
 //!
 //! A variant owns exactly what the rules make per-variant: the slots `tune` rules select
 //! (BatchNorm affine and running statistics, head weights, ...) and every slot
-//! `inject_adapt` added (LoRA matrices, adapter convs). `bind_variants` checks each
-//! source against this and binds it into the tensor table.
+//! `inject_adapt` added (LoRA matrices, adapter convs), each within the scope of its
+//! rule's section ([`Owned::is_owned_by`]: `adapt camera { ... }` is owned by the camera
+//! variants only). `bind_variants` checks each source against this and binds it into the
+//! tensor table.
 
 use std::collections::BTreeMap;
 
@@ -12,7 +14,7 @@ use readi_grammar::ast::DType;
 use readi_plan::VariantKey;
 
 use super::WeightSet;
-use crate::adapt::RuleKind;
+use crate::adapt::{RuleKind, Scope};
 use crate::ir::{NodeId, ParamSlot, SlotKind};
 use crate::module::Module;
 
@@ -31,6 +33,32 @@ pub struct Owned {
     /// Added by a rule (zero in the base) rather than an existing, tuned parameter.
     pub added: bool,
     pub node: NodeId,
+    /// The scopes of the rules that make it per-variant (one per rule; two `tune` rules
+    /// of different sections may claim one parameter). A variant owns it when one of them
+    /// covers its key.
+    pub scopes: Vec<Scope>,
+}
+
+impl Owned {
+    /// Whether the variant `key` owns this parameter (a meld: whether one of its parts does).
+    pub fn is_owned_by(&self, key: &VariantKey) -> bool {
+        self.scopes.iter().any(|s| s.covers(key))
+    }
+
+    /// The scopes that own it, for messages: `camera`, `every variant`.
+    pub fn scope_label(&self) -> String {
+        let mut names: Vec<String> = self.scopes.iter().map(Scope::label).collect();
+        names.dedup();
+        names.join("; ")
+    }
+}
+
+/// What the variant `key` owns, of `owned` (every parameter some variant owns).
+pub fn owned_by<'a>(
+    owned: &'a BTreeMap<String, Owned>,
+    key: &'a VariantKey,
+) -> impl Iterator<Item = (&'a String, &'a Owned)> + 'a {
+    owned.iter().filter(move |(_, o)| o.is_owned_by(key))
 }
 
 /// Every parameter a variant owns, by full name.
@@ -38,24 +66,29 @@ pub fn owned_params(module: &Module) -> BTreeMap<String, Owned> {
     let g = &module.graph;
     let mut owned = BTreeMap::new();
     let Some(plan) = &module.adapt else { return owned };
-    let mut add = |node: NodeId, slot: &ParamSlot| {
+    let mut add = |node: NodeId, slot: &ParamSlot, scope: &Scope| {
         if slot.dtype == DType::F32 {
             let shape = slot.shape.iter().map(|&d| d as usize).collect();
             let added = slot.kind == SlotKind::Added;
-            owned.insert(g.node(node).param_name(slot), Owned { shape, added, node });
+            let o: &mut Owned =
+                owned.entry(g.node(node).param_name(slot)).or_insert(Owned { shape, added, node, scopes: Vec::new() });
+            if !o.scopes.contains(scope) {
+                o.scopes.push(scope.clone());
+            }
         }
     };
     for r in plan.rules.iter().filter(|r| r.kind == RuleKind::Tune) {
         for t in &r.targets {
             for slot in g.node(t.node).params.iter().filter(|s| t.slots.contains(&s.name)) {
-                add(t.node, slot);
+                add(t.node, slot, &r.scope);
             }
         }
     }
     for inj in &plan.injections {
+        let Some(rule) = plan.rules.get(inj.rule()) else { continue };
         for n in inj.nodes() {
             for slot in &g.node(n).params {
-                add(n, slot);
+                add(n, slot, &rule.scope);
             }
         }
     }

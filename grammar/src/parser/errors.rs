@@ -201,6 +201,7 @@ fn rule_words(rule: Rule) -> Option<&'static str> {
             "a rule (`tune`, `lora` or `adapter`)"
         }
         Rule::rule_option => "an option such as `rank=4`",
+        Rule::adapt_scopes | Rule::adapt_scope => "a scope such as `camera` or `missing=lidar`",
         Rule::selector | Rule::sel_item | Rule::op_kinds => "a selector such as `batchnorm` or `head.*`",
         Rule::scope_list | Rule::pattern => "a block name or path pattern",
         Rule::variant_decl | Rule::axis_decl | Rule::missing_decl | Rule::select_decl | Rule::meld_decl => {

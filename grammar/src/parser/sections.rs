@@ -18,8 +18,13 @@ impl<'s> Builder<'s> {
     pub(super) fn parse_adapt_def(&mut self, pair: Pair<'_, Rule>) -> AdaptSection {
         let span = self.span(&pair);
         let mut rules = Vec::new();
-        if let Some(body) = pair.into_inner().next() {
-            for p in body.into_inner() {
+        let mut scopes = Vec::new();
+        for part in pair.into_inner() {
+            if part.as_rule() == Rule::adapt_scopes {
+                scopes = part.into_inner().filter_map(|s| self.parse_adapt_scope(s)).collect();
+                continue;
+            }
+            for p in part.into_inner() {
                 match p.as_rule() {
                     Rule::adapt_rule => {
                         if let Some(r) = self.parse_adapt_rule(p) {
@@ -31,7 +36,15 @@ impl<'s> Builder<'s> {
                 }
             }
         }
-        AdaptSection { rules, span }
+        AdaptSection { scopes, rules, span }
+    }
+
+    fn parse_adapt_scope(&mut self, pair: Pair<'_, Rule>) -> Option<AdaptScope> {
+        let span = self.span(&pair);
+        let mut it = pair.into_inner();
+        let name = self.ident(it.next()?);
+        let value = it.next().map(|v| self.ident(v));
+        Some(AdaptScope { name, value, span })
     }
 
     fn parse_adapt_rule(&mut self, pair: Pair<'_, Rule>) -> Option<AdaptRule> {
@@ -313,6 +326,40 @@ mod tests {
         assert!(matches!(&s.items[0], SelItem::KindsIn { .. }));
         assert_eq!(crate::ast_print::adapt_rule(&a.rules[2]), "prune below=0.01 in conv2d in layer1");
         assert_eq!(crate::ast_print::adapt_rule(&a.rules[0]), "prune below=1e-3");
+    }
+
+    #[test]
+    fn scoped_adapt_sections_parse_and_print() {
+        let f = parse_ok(
+            "model m { }\nadapt { tune head }\nadapt camera { tune batchnorm in camera }\n\
+             adapt lidar, missing=lidar { lora rank=4 on lidar.** }\n",
+        );
+        let scopes: Vec<Vec<String>> =
+            f.adapt_sections().map(|a| a.scopes.iter().map(AdaptScope::text).collect()).collect();
+        assert_eq!(scopes, vec![vec![], vec!["camera".to_string()], vec!["lidar".into(), "missing=lidar".into()]]);
+        let printed = crate::ast_print::to_source(&f);
+        assert!(
+            printed.contains("adapt camera {\n") && printed.contains("adapt lidar, missing=lidar {\n"),
+            "{printed}"
+        );
+        assert!(printed.contains("adapt {\n  tune head\n}"), "{printed}");
+        // The printed file parses to the same tree, spans aside.
+        let again = parse_ok(&printed);
+        let texts = |f: &SourceFile| -> Vec<String> {
+            f.adapt_sections().flat_map(|a| a.scopes.iter().map(AdaptScope::text)).collect()
+        };
+        assert_eq!(texts(&again), texts(&f));
+    }
+
+    #[test]
+    fn a_bad_scope_is_a_syntax_error_at_it() {
+        let d = crate::parser::tests::first_error("model m { }\nadapt camera, { tune head }\n");
+        assert!(d.message.contains("expected a name, found `{`"), "{}", d.message);
+        assert_eq!(d.primary_span().map(|s| s.start), Some(26));
+        let d = crate::parser::tests::first_error("model m { }\nadapt 3 { tune head }\n");
+        assert!(d.message.contains("found `3`"), "{}", d.message);
+        let d = crate::parser::tests::first_error("model m { }\nadapt missing=3 { tune head }\n");
+        assert!(d.message.contains("expected a name, found `3`"), "{}", d.message);
     }
 
     #[test]

@@ -54,6 +54,7 @@ pub fn table(key: &str, replaces: &[(usize, usize)]) -> VariantTable {
         tuned_elements: 0,
         added_elements: 0,
         fallback: Vec::new(),
+        scopes: Vec::new(),
     }
 }
 
