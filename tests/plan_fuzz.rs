@@ -394,7 +394,7 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, .. } => {
                 let x = &inputs[0].shape;
                 if x.len() == 4 {
                     let s = conv.shape(1, known(&x[2]), known(&x[3]));
@@ -403,7 +403,7 @@ fn repair(manifest: &mut Value) {
                 let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 sizes.extend(epilogue.scale.into_iter().chain(epilogue.shift).map(|t| (t, c)));
             }
-            Kernel::Linear { linear, weight, epilogue } => {
+            Kernel::Linear { linear, weight, epilogue, .. } => {
                 let (i, o) = (
                     usize::try_from(linear.in_features).unwrap_or(0),
                     usize::try_from(linear.out_features).unwrap_or(0),
