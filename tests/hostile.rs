@@ -312,6 +312,69 @@ fn a_conv_algorithm_that_does_not_fit_its_layer_is_refused() {
 }
 
 #[test]
+fn a_crafted_lora_branch_is_refused() {
+    use readi_runtime::plan::{Kernel, LoraSpec, MAX_LORA_RANK};
+    let dir = temp_dir("lora");
+    // all_ops's first step is a grouped conv: no fused branch, whatever its tensors. Its
+    // fc (a linear layer) gets branches with tensor indices out of range, rank 0, a rank
+    // over the bound and tensors of the wrong size.
+    type Edit = fn(&mut readi_runtime::plan::Manifest);
+    let cases: [(Edit, &str); 5] = [
+        (
+            |m| {
+                if let Kernel::Conv2d { lora, weight, .. } = &mut m.steps[0].kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 1 });
+                }
+            },
+            "needs one group",
+        ),
+        (
+            |m| {
+                let n = m.tensors.len();
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: n, b: 0, rank: 2 });
+                }
+            },
+            "reads tensor",
+        ),
+        (
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 0 });
+                }
+            },
+            "LoRA rank 0",
+        ),
+        (
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: MAX_LORA_RANK + 1 });
+                }
+            },
+            "it must be 1 to",
+        ),
+        (
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 3 });
+                }
+            },
+            "LoRA A `",
+        ),
+    ];
+    for (i, (edit, want)) in cases.into_iter().enumerate() {
+        let path = hostile_plan(&dir, &format!("lora{i}.plan"), edit);
+        let err = refused(&readi(&["run", &s(&path)]));
+        assert!(err.contains(want), "case {i}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn an_input_declared_unlike_its_value_is_refused() {
     let dir = temp_dir("declared");
     let path = hostile_plan(&dir, "declared.plan", |m| {
