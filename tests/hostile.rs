@@ -414,13 +414,12 @@ fn a_linear_with_zero_input_features_is_refused() {
     use readi_plan::ops::Linear;
     use readi_runtime::plan::Kernel;
     let dir = temp_dir("linear0");
-    let kernel =
-        Kernel::Linear {
-            linear: Linear { in_features: 0, out_features: 4 },
-            weight: 0,
-            epilogue: Default::default(),
-            lora: None,
-        };
+    let kernel = Kernel::Linear {
+        linear: Linear { in_features: 0, out_features: 4 },
+        weight: 0,
+        epilogue: Default::default(),
+        lora: None,
+    };
     let plan = one_step(&[None, Some(0)], kernel, &[None, Some(4)], &[("w", vec![0, 4])]);
     let err = run_refused(&dir, "linear0.plan", plan, &[1, 0]);
     assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");

@@ -408,7 +408,10 @@ variants {
                 let (ya, yb) = (a.run(&input).expect("run"), b.run(&input).expect("run"));
                 let scale = ya[0].1.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
                 let err = max_abs_error(&ya[0].1.data, &yb[0].1.data);
-                assert!(err <= 1e-5 * scale.max(1.0), "{key}, batch {batch}, {threads} threads: {err:e} (scale {scale})");
+                assert!(
+                    err <= 1e-5 * scale.max(1.0),
+                    "{key}, batch {batch}, {threads} threads: {err:e} (scale {scale})"
+                );
             }
         }
     }

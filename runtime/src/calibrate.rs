@@ -165,13 +165,9 @@ impl BnCalibrator {
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, relu: false, bn: None };
             let kernel = match &step.kernel {
                 // A fused LoRA branch is part of what the BatchNorm reads.
-                Kernel::Conv2d { conv, algo, weight, lora, .. } => Kernel::Conv2d {
-                    conv: conv.clone(),
-                    algo: *algo,
-                    weight: *weight,
-                    epilogue: identity,
-                    lora: *lora,
-                },
+                Kernel::Conv2d { conv, algo, weight, lora, .. } => {
+                    Kernel::Conv2d { conv: conv.clone(), algo: *algo, weight: *weight, epilogue: identity, lora: *lora }
+                }
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {
                     Kernel::ChannelAffine { affine: affine.clone(), epilogue: identity }

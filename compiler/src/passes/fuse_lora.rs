@@ -85,14 +85,14 @@ pub(crate) fn fusable(g: &Graph, inj: &Injection) -> Option<i64> {
     // Each node read once, by the next; the layer's and lora_A's input the same.
     let feeds = |from, to| g.uses(from) == 1 && g.users(from) == [to];
     let chain = feeds(base, add) && feeds(a, b) && feeds(b, scale) && feeds(scale, add);
-    let wired = g.inputs(a).first().is_some() && g.inputs(a).first() == g.inputs(base).first()
+    let wired = !g.inputs(a).is_empty()
+        && g.inputs(a).first() == g.inputs(base).first()
         && g.inputs(b) == [out(a)]
         && g.inputs(scale) == [out(b)]
         && g.inputs(add) == [out(base), out(scale)];
-    let scaling = matches!(
-        g.node(scale).op,
-        Op::Pure(Pure::Scalar(Scalar { op: BinaryOp::Mul, scalar_first: false, .. }))
-    ) && matches!(g.node(add).op, Op::Pure(Pure::Binary(BinaryOp::Add)));
+    let scaling =
+        matches!(g.node(scale).op, Op::Pure(Pure::Scalar(Scalar { op: BinaryOp::Mul, scalar_first: false, .. })))
+            && matches!(g.node(add).op, Op::Pure(Pure::Binary(BinaryOp::Add)));
     if !(chain && wired && scaling) {
         return None;
     }
@@ -100,7 +100,8 @@ pub(crate) fn fusable(g: &Graph, inj: &Injection) -> Option<i64> {
         (Op::Conv2d(c), Op::Conv2d(ca)) => {
             let bare = c.epilogue.is_empty() && c.algo.is_none() && !c.packed && c.lora.is_none();
             let same_window = ca.conv.window == c.conv.window && ca.conv.in_channels == c.conv.in_channels;
-            (bare && c.conv.groups == 1 && ca.conv.groups == 1 && same_window && !ca.bias).then_some(ca.conv.out_channels)
+            (bare && c.conv.groups == 1 && ca.conv.groups == 1 && same_window && !ca.bias)
+                .then_some(ca.conv.out_channels)
         }
         (Op::Linear(l), Op::Linear(la)) => {
             let bare = l.epilogue.is_empty() && !l.packed && l.lora.is_none();

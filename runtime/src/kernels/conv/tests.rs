@@ -301,10 +301,10 @@ fn reference_lora(s: &Conv2dShape, x: &[f32], w: &[f32], a: &[f32], b: &[f32], r
     for n in 0..s.n {
         for co in 0..s.cout {
             for p in 0..plane {
-                let branch: f64 =
-                    (0..rank).map(|r| f64::from(b[co * rank + r]) * t[(n * rank + r) * plane + p]).sum();
+                let branch: f64 = (0..rank).map(|r| f64::from(b[co * rank + r]) * t[(n * rank + r) * plane + p]).sum();
                 let acc = base[(n * s.cout + co) * plane + p] + branch;
-                let mut y = acc * ep.scale.map_or(1.0, |v| f64::from(v[co])) + ep.shift.map_or(0.0, |v| f64::from(v[co]));
+                let mut y =
+                    acc * ep.scale.map_or(1.0, |v| f64::from(v[co])) + ep.shift.map_or(0.0, |v| f64::from(v[co]));
                 if ep.relu {
                     y = y.max(0.0);
                 }
@@ -389,10 +389,9 @@ fn lora_channel_split() {
 #[test]
 fn lora_check_refuses_bad_branches() {
     let s = shape(1, 8, (6, 6), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1);
-    let ok = |algo: ConvAlgo, rank: usize| {
-        Some((rank, packed_weight_len(&lora_a_shape(&s, rank), algo), 8 * rank))
-    };
-    let run = |algo: ConvAlgo, lora| super::check(&s, algo, packed_weight_len(&s, algo), 8 * 36, 8 * 36, [None, None], lora);
+    let ok = |algo: ConvAlgo, rank: usize| Some((rank, packed_weight_len(&lora_a_shape(&s, rank), algo), 8 * rank));
+    let run =
+        |algo: ConvAlgo, lora| super::check(&s, algo, packed_weight_len(&s, algo), 8 * 36, 8 * 36, [None, None], lora);
     assert_eq!(run(ConvAlgo::Im2col, ok(ConvAlgo::Im2col, 4)), Ok(()));
     assert_eq!(run(ConvAlgo::Winograd4, ok(ConvAlgo::Winograd4, 4)), Ok(()));
     // A packed for another algorithm, a short B, rank 0, a rank over the bound.

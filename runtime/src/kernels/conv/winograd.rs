@@ -275,7 +275,8 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                         MatMut { data: &mut gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
                     sgemm(a, rhs, g_xi, false, 1);
                     let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
-                    let g_xi = MatRef { data: &gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                    let g_xi =
+                        MatRef { data: &gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
                     let dst =
                         MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
                     sgemm(b, g_xi, dst, true, 1);
