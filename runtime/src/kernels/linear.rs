@@ -10,6 +10,10 @@ use super::gemm::{MatMut, MatRef, sgemm};
 /// blocks are as large as L2 allows.)
 const BLOCK_FLOATS: usize = 256 * 1024;
 
+/// Floats of a fused LoRA branch's `x Aᵀ` per chunk of rows, on the stack: at least one
+/// row at the largest rank ([`super::conv::MAX_LORA_RANK`]).
+const LORA_ROWS_FLOATS: usize = super::conv::MAX_LORA_RANK;
+
 /// How a linear layer's weight is laid out.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WeightLayout {
@@ -75,7 +79,7 @@ pub fn linear_lora(
     threads: usize,
 ) {
     if let Some(l) = lora {
-        assert!(l.rank > 0, "linear: LoRA rank 0");
+        assert!(l.rank > 0 && l.rank <= LORA_ROWS_FLOATS, "linear: LoRA rank {}", l.rank);
         assert_eq!(l.a.len(), l.rank * in_features, "linear: LoRA A length");
         assert_eq!(l.b.len(), out_features * l.rank, "linear: LoRA B length");
     }
@@ -119,13 +123,20 @@ pub fn linear_lora(
             gemm_threads,
         );
         if let Some(l) = lora {
-            // t = x Aᵀ (r × rank), then out += t Bᵀ.
-            let mut t = vec![0.0f32; r * l.rank];
+            // t = x Aᵀ, then out += t Bᵀ, over as many rows at a time as `t` fits on the
+            // stack (kernels allocate nothing).
+            let mut buf = [0.0f32; LORA_ROWS_FLOATS];
+            let step = (LORA_ROWS_FLOATS / l.rank).max(1);
             let at = MatRef::row_major(l.a, l.rank, in_features).t();
-            sgemm(MatRef::row_major(x_rows, r, in_features), at, MatMut::row_major(&mut t, r, l.rank), false, 1);
             let bt = MatRef::row_major(l.b, out_features, l.rank).t();
-            let dst = MatMut::row_major(rows_out, r, out_features);
-            sgemm(MatRef::row_major(&t, r, l.rank), bt, dst, true, gemm_threads);
+            for r0 in (0..r).step_by(step) {
+                let rr = step.min(r - r0);
+                let t = &mut buf[..rr * l.rank];
+                let xr = MatRef::row_major(&x_rows[r0 * in_features..][..rr * in_features], rr, in_features);
+                sgemm(xr, at, MatMut::row_major(t, rr, l.rank), false, 1);
+                let dst = MatMut::row_major(&mut rows_out[r0 * out_features..][..rr * out_features], rr, out_features);
+                sgemm(MatRef::row_major(t, rr, l.rank), bt, dst, true, 1);
+            }
         }
         epilogue_rows(rows_out, out_features, ep);
     };
