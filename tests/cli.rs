@@ -133,6 +133,7 @@ fn passes_lists_the_pipeline_in_order() {
         "drop_inactive",
         "commute_adapters",
         "merge_lora",
+        "fuse_lora",
         "fold_batchnorm",
         "fuse_epilogues",
         "choose_conv_algo",

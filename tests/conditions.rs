@@ -6,7 +6,7 @@ mod common;
 use std::sync::Arc;
 
 use readi_compiler::Module;
-use readi_compiler::backend::{self, CompileOptions, VariantSource, variants};
+use readi_compiler::backend::{self, CompileOptions, VariantSource};
 use readi_compiler::passes::{self, BackendInputs, Pass};
 use readi_runtime::conditions;
 use readi_runtime::exec::{Input, RunError, Session, Tensor};

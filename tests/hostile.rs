@@ -312,6 +312,69 @@ fn a_conv_algorithm_that_does_not_fit_its_layer_is_refused() {
 }
 
 #[test]
+fn a_crafted_lora_branch_is_refused() {
+    use readi_runtime::plan::{Kernel, LoraSpec, MAX_LORA_RANK};
+    let dir = temp_dir("lora");
+    // all_ops's first step is a grouped conv: no fused branch, whatever its tensors. Its
+    // fc (a linear layer) gets branches with tensor indices out of range, rank 0, a rank
+    // over the bound and tensors of the wrong size.
+    type Edit = fn(&mut readi_runtime::plan::Manifest);
+    let cases: [(Edit, &str); 5] = [
+        (
+            |m| {
+                if let Kernel::Conv2d { lora, weight, .. } = &mut m.steps[0].kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 1 });
+                }
+            },
+            "needs one group",
+        ),
+        (
+            |m| {
+                let n = m.tensors.len();
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: n, b: 0, rank: 2 });
+                }
+            },
+            "reads tensor",
+        ),
+        (
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 0 });
+                }
+            },
+            "LoRA rank 0",
+        ),
+        (
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: MAX_LORA_RANK + 1 });
+                }
+            },
+            "it must be 1 to",
+        ),
+        (
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 3 });
+                }
+            },
+            "LoRA A `",
+        ),
+    ];
+    for (i, (edit, want)) in cases.into_iter().enumerate() {
+        let path = hostile_plan(&dir, &format!("lora{i}.plan"), edit);
+        let err = refused(&readi(&["run", &s(&path)]));
+        assert!(err.contains(want), "case {i}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn an_input_declared_unlike_its_value_is_refused() {
     let dir = temp_dir("declared");
     let path = hostile_plan(&dir, "declared.plan", |m| {
@@ -338,7 +401,7 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
     use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
     let window = Window2 { kernel: [5, 5], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
     let conv = Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 };
-    let kernel = Kernel::Conv2d { conv, algo: ConvAlgo::Im2col, weight: 0, epilogue: Default::default() };
+    let kernel = Kernel::Conv2d { conv, algo: ConvAlgo::Im2col, weight: 0, epilogue: Default::default(), lora: None };
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
     let err = run_refused(&dir, "small.plan", plan, &[1, 1, 3, 3]);
@@ -351,8 +414,12 @@ fn a_linear_with_zero_input_features_is_refused() {
     use readi_plan::ops::Linear;
     use readi_runtime::plan::Kernel;
     let dir = temp_dir("linear0");
-    let kernel =
-        Kernel::Linear { linear: Linear { in_features: 0, out_features: 4 }, weight: 0, epilogue: Default::default() };
+    let kernel = Kernel::Linear {
+        linear: Linear { in_features: 0, out_features: 4 },
+        weight: 0,
+        epilogue: Default::default(),
+        lora: None,
+    };
     let plan = one_step(&[None, Some(0)], kernel, &[None, Some(4)], &[("w", vec![0, 4])]);
     let err = run_refused(&dir, "linear0.plan", plan, &[1, 0]);
     assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");

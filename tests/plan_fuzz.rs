@@ -60,6 +60,7 @@ const SPECS: &[(&str, LoraMode, usize)] = &[
     ("tests/cases/ok/adapt_and_variants.readi", LoraMode::Branch, 2),
     ("tests/cases/ok/all_ops.readi", LoraMode::Merge, 0),
     ("conv_algorithms", LoraMode::Merge, 0),
+    ("conv_algorithms_lora", LoraMode::Branch, 1),
 ];
 
 /// A spec with a conv of every algorithm the compiler chooses (Winograd F(4x4) and
@@ -79,6 +80,21 @@ model convs {
 }
 ";
 
+/// [`CONV_ALGORITHMS`] with a LoRA branch fused into the conv of each algorithm but the
+/// depthwise one and into the linear head.
+const LORA_RULES: &str = "\
+adapt {
+  lora rank=2 alpha=4 on w4
+  lora rank=2 alpha=4 on w2
+  lora rank=2 alpha=4 on pw
+  lora rank=2 alpha=4 on s2
+  lora rank=2 alpha=4 on head
+}
+variants {
+  axis fog on camera: 0.03 clear 0
+}
+";
+
 fn seeds() -> &'static [Seed] {
     static SEEDS: OnceLock<Vec<Seed>> = OnceLock::new();
     SEEDS.get_or_init(|| SPECS.iter().map(|&(rel, lora, n)| compile_seed(rel, lora, n)).collect())
@@ -87,6 +103,8 @@ fn seeds() -> &'static [Seed] {
 fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
     let (sources, out) = if rel == "conv_algorithms" {
         common::compile_text(rel, CONV_ALGORITHMS, &[], None)
+    } else if rel == "conv_algorithms_lora" {
+        common::compile_text(rel, &format!("{CONV_ALGORITHMS}{LORA_RULES}"), &[], None)
     } else {
         common::compile(rel, &[], None)
     };
@@ -106,6 +124,9 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
     let opts = CompileOptions { lora, ..CompileOptions::default() };
     let (plan, _) = backend::compile_variants(&module, &weights, "seeded", &sources_v, &opts)
         .unwrap_or_else(|d| panic!("{rel}: {}", sources.render_all(&d, false)));
+    if rel == "conv_algorithms_lora" {
+        assert_eq!(plan.manifest.steps.iter().filter(|s| s.kernel.lora().is_some()).count(), 5, "fused branches");
+    }
     let tensors =
         plan.manifest.tensors.iter().enumerate().map(|(i, t)| (t.name.clone(), plan.tensor(i).to_vec())).collect();
     Seed { name: rel, manifest: serde_json::to_value(&plan.manifest).expect("a manifest is JSON"), tensors }
@@ -394,21 +415,28 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, lora } => {
                 let x = &inputs[0].shape;
+                let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 if x.len() == 4 {
                     let s = conv.shape(1, known(&x[2]), known(&x[3]));
                     sizes.push((*weight, algo.packed_len(&s)));
+                    if let Some(l) = lora {
+                        let a = readi_plan::ops::Conv2dShape { cout: l.rank, ..s };
+                        sizes.extend([(l.a, algo.packed_len(&a)), (l.b, c.saturating_mul(l.rank))]);
+                    }
                 }
-                let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 sizes.extend(epilogue.scale.into_iter().chain(epilogue.shift).map(|t| (t, c)));
             }
-            Kernel::Linear { linear, weight, epilogue } => {
+            Kernel::Linear { linear, weight, epilogue, lora } => {
                 let (i, o) = (
                     usize::try_from(linear.in_features).unwrap_or(0),
                     usize::try_from(linear.out_features).unwrap_or(0),
                 );
                 sizes.push((*weight, i.saturating_mul(o)));
+                if let Some(l) = lora {
+                    sizes.extend([(l.a, i.saturating_mul(l.rank)), (l.b, o.saturating_mul(l.rank))]);
+                }
                 sizes.extend(epilogue.scale.into_iter().chain(epilogue.shift).map(|t| (t, o)));
             }
             _ => {}

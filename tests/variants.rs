@@ -292,8 +292,9 @@ fn base_weights_must_not_hold_variant_parameters() {
     assert!(msg.contains("belongs to the variants"), "{msg}");
 }
 
-/// LoRA merged or as a branch: the same outputs, different costs. The merged plan has the
-/// base's schedule; the branch plan has more steps and smaller variants.
+/// LoRA merged or as a branch: the same outputs, different costs. Both plans have the
+/// base's schedule (the branch runs inside its layer's kernel: `fuse_lora`); the branch
+/// plan's variants are smaller.
 #[test]
 fn merged_and_branch_lora_agree() {
     let fx = fixture("vit_encoder");
@@ -304,7 +305,13 @@ fn merged_and_branch_lora_agree() {
     let branch = Arc::new(compile(&sources, &m, &variants, LoraMode::Branch));
     let base = Arc::new(compile(&sources, &m, &[], LoraMode::Merge));
     assert_eq!(merged.manifest.steps.len(), base.manifest.steps.len());
-    assert!(branch.manifest.steps.len() > base.manifest.steps.len());
+    assert_eq!(branch.manifest.steps.len(), base.manifest.steps.len());
+    // Every LoRA layer (q, k, v and proj of each block) carries its branch.
+    let fused = branch.manifest.steps.iter().filter(|s| s.kernel.lora().is_some()).count();
+    let layers = owned_params(&m).into_iter().filter(|(n, _)| n.ends_with(".lora_A.weight")).count();
+    assert!(layers > 0);
+    assert_eq!(fused, layers);
+    assert!(merged.manifest.steps.iter().all(|s| s.kernel.lora().is_none()));
     let lora_bytes = |p: &Plan| -> usize {
         p.manifest.variants[0].replaces.iter().filter(|r| r.added).map(|r| p.manifest.tensors[r.with].numel()).sum()
     };
@@ -337,4 +344,76 @@ fn unused_adapters_leave_the_schedule() {
     assert_eq!(with_lora.manifest.steps.len(), base.manifest.steps.len());
     let with_adapters = compile(&sources, &m, &[variant_source("resnet18", &m, "blur=5", 7)], LoraMode::Merge);
     assert!(with_adapters.manifest.steps.len() > base.manifest.steps.len());
+}
+
+/// A LoRA branch fused into a conv of every algorithm (Winograd F(4x4) and F(2x2), the
+/// 1x1 GEMM, im2col at stride 2 and dilation 2) and a linear layer, each followed by a
+/// tuned BatchNorm (or a ReLU): the branch plan's outputs are the merged plan's, whose
+/// weights `W + scale B A` the compiler computed in f64; at batch 1 and 3, on 1 and 2
+/// threads.
+#[test]
+fn fused_branches_match_merged_lora_on_every_algorithm() {
+    let spec = "model m {
+  input x: f32[N, 32, 14, 14] @camera
+  w4 = conv2d(x, 32, kernel=3, padding=1, bias=false)
+  n4 = batchnorm(w4)
+  small = maxpool(relu(n4), kernel=2)
+  w2 = conv2d(small, 40, kernel=3, padding=1, bias=false)
+  n2 = batchnorm(w2)
+  pw = conv2d(relu(n2), 24, kernel=1)
+  s2 = conv2d(pw, 16, kernel=3, stride=2, padding=2, dilation=2)
+  fc = linear(flatten(relu(s2), start=1), 10)
+  output y = fc
+}
+adapt {
+  tune batchnorm
+  lora rank=4 alpha=8 on w4
+  lora rank=4 alpha=8 on w2
+  lora rank=4 alpha=8 on pw
+  lora rank=4 alpha=8 on s2
+  lora rank=4 alpha=8 on fc
+}
+variants {
+  axis fog on camera: 0.03, 0.06 clear 0
+}
+";
+    let (sources, out) = common::compile_text("fused.readi", spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let keys = vec!["fog=0.03".to_string(), "fog=0.06".to_string()];
+    let variants = backend::seeded_variants(&m, &keys, SEED + 1);
+    let merged = Arc::new(compile(&sources, &m, &variants, LoraMode::Merge));
+    let branch = Arc::new(compile(&sources, &m, &variants, LoraMode::Branch));
+    assert_eq!(branch.manifest.steps.len(), merged.manifest.steps.len());
+    let algos: Vec<String> = branch
+        .manifest
+        .steps
+        .iter()
+        .filter(|s| s.kernel.lora().is_some())
+        .map(|s| match &s.kernel {
+            readi_runtime::plan::Kernel::Conv2d { algo, .. } => algo.name().to_string(),
+            k => k.name().to_string(),
+        })
+        .collect();
+    assert_eq!(algos, ["winograd4", "winograd2", "gemm1x1", "im2col", "linear"]);
+    for batch in [1usize, 3] {
+        let shape = vec![batch, 32, 14, 14];
+        let x = seeded_tensor(5, "x", &shape);
+        let input = [Input { name: "x", data: &x, shape: &shape }];
+        for threads in [1, 2] {
+            let mut a = Session::new(merged.clone(), threads).expect("session");
+            let mut b = Session::new(branch.clone(), threads).expect("session");
+            for key in ["base", "fog=0.03", "fog=0.06"] {
+                a.set_variant(key).expect("key");
+                b.set_variant(key).expect("key");
+                let (ya, yb) = (a.run(&input).expect("run"), b.run(&input).expect("run"));
+                let scale = ya[0].1.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                let err = max_abs_error(&ya[0].1.data, &yb[0].1.data);
+                assert!(
+                    err <= 1e-5 * scale.max(1.0),
+                    "{key}, batch {batch}, {threads} threads: {err:e} (scale {scale})"
+                );
+            }
+        }
+    }
 }

@@ -245,6 +245,29 @@ pub struct EpilogueSpec {
     pub bn: Option<BnInfo>,
 }
 
+/// Most rank a [`LoraSpec`] may have (PEFT's ranks are 4 to 64).
+pub const MAX_LORA_RANK: usize = 4096;
+
+/// A LoRA branch `B (A x)` fused into a conv or linear kernel: its accumulator gets the
+/// branch before the epilogue (so a folded BatchNorm scales both alike).
+///
+/// * conv: `a` is `A` (`[rank, cin, kh, kw]`, a conv of the layer's geometry to `rank`
+///   channels) packed for the conv's algorithm at `rank` output channels; `b` is `B`,
+///   `[cout, rank]`;
+/// * linear: `a` is `[rank, in]`, `b` is `[out, rank]`.
+///
+/// `b` has the LoRA scale (`alpha / rank`) multiplied in. Only these two tensors vary
+/// between the variants of a LoRA layer; the conv's weight is the base model's. Conv
+/// branches need one group and an algorithm other than the depthwise loop.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LoraSpec {
+    /// Stored tensor of `A`, packed.
+    pub a: usize,
+    /// Stored tensor of the scaled `B`.
+    pub b: usize,
+    pub rank: usize,
+}
+
 /// The BatchNorm a conv or channel-affine epilogue was folded from, so that its running
 /// statistics can be re-estimated (AdaBN) from a plan that holds only the folded affine.
 ///
@@ -284,6 +307,10 @@ pub enum Kernel {
         algo: ConvAlgo,
         weight: usize,
         epilogue: EpilogueSpec,
+        /// A LoRA branch computed in the same kernel, added before the epilogue. Absent
+        /// in plans without one (and in those written before it existed).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        lora: Option<LoraSpec>,
     },
     /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
     /// stored transposed, `[in, out]`.
@@ -291,6 +318,9 @@ pub enum Kernel {
         linear: Linear,
         weight: usize,
         epilogue: EpilogueSpec,
+        /// As for [`Kernel::Conv2d`].
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        lora: Option<LoraSpec>,
     },
     /// Per-channel affine over axis 1 (an unfused BatchNorm, folded to scale and shift).
     ChannelAffine {
@@ -329,6 +359,14 @@ impl Kernel {
         }
     }
 
+    /// The kernel's fused LoRA branch, if it has one.
+    pub fn lora(&self) -> Option<&LoraSpec> {
+        match self {
+            Kernel::Conv2d { lora, .. } | Kernel::Linear { lora, .. } => lora.as_ref(),
+            _ => None,
+        }
+    }
+
     /// The kernel's per-channel epilogue, if it has one.
     pub fn epilogue(&self) -> Option<&EpilogueSpec> {
         match self {
@@ -344,8 +382,9 @@ impl Kernel {
     pub fn tensors(&self) -> Vec<usize> {
         let ep = |e: &EpilogueSpec| e.scale.into_iter().chain(e.shift).collect::<Vec<_>>();
         match self {
-            Kernel::Conv2d { weight, epilogue, .. } | Kernel::Linear { weight, epilogue, .. } => {
+            Kernel::Conv2d { weight, epilogue, lora, .. } | Kernel::Linear { weight, epilogue, lora, .. } => {
                 let mut v = vec![*weight];
+                v.extend(lora.iter().flat_map(|l| [l.a, l.b]));
                 v.extend(ep(epilogue));
                 v
             }

@@ -13,7 +13,8 @@
 //!    values already written, and does not read the buffer it writes;
 //! 4. each step's output shape is what its operator's shape rule ([`crate::ops`]) computes
 //!    from its inputs' shapes (symbolically, so it holds for every batch size), and the
-//!    stored tensors it reads have the sizes its kernel needs;
+//!    stored tensors it reads have the sizes its kernel needs (a fused LoRA branch: a rank
+//!    of 1 to `MAX_LORA_RANK`, one group, `A` packed for the algorithm, `B` of `out · rank`);
 //! 5. folded BatchNorm records ([`BnInfo`]) sit on conv or channel-affine steps with a
 //!    scale and a shift, with unique names, a finite eps and tensors of the scale's shape;
 //! 6. variant tables: keys unique and not `base`, replacements of tensors some step reads,
@@ -34,9 +35,9 @@ use std::collections::HashSet;
 
 use crate::conditions::{KeySource, MeldBy, MissingPolicy};
 use crate::dim::Dim;
-use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, Manifest, Step, Storage, escaped};
+use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, LoraSpec, MAX_LORA_RANK, Manifest, Step, Storage, escaped};
 use crate::key::KeyPart;
-use crate::ops::{self, TensorType};
+use crate::ops::{self, Conv2dShape, ConvAlgo, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
 /// tensors): 256 MiB. A real plan needs a few thousand; the bound keeps a small crafted
@@ -201,7 +202,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
         Ok(())
     };
     match kernel {
-        Kernel::Conv2d { conv, algo, weight, epilogue } => {
+        Kernel::Conv2d { conv, algo, weight, epilogue, lora } => {
             // The shape rule has checked the spatial sizes are known; the batch does not matter.
             let x = &m.values[step.inputs[0]].shape;
             let known = |d: &Dim| d.as_known().and_then(|v| usize::try_from(v).ok()).unwrap_or(0);
@@ -218,9 +219,21 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                     algo.packed_len(&s)
                 ));
             }
+            if let Some(l) = lora {
+                if conv.groups != 1 || *algo == ConvAlgo::Depthwise {
+                    return Err(format!(
+                        "a fused LoRA branch on a conv with {} groups, algorithm `{}`: it needs one group and not \
+                         the depthwise loop",
+                        conv.groups,
+                        algo.name()
+                    ));
+                }
+                let a = Conv2dShape { cout: l.rank, ..s };
+                lora_sizes(m, l, algo.packed_len(&a), conv.out_channels, algo.name())?;
+            }
             per_channel(epilogue, conv.out_channels)
         }
-        Kernel::Linear { linear, weight, epilogue } => {
+        Kernel::Linear { linear, weight, epilogue, lora } => {
             let want = (linear.in_features as u64).saturating_mul(linear.out_features as u64);
             if numel(*weight) as u64 != want {
                 return Err(format!(
@@ -228,6 +241,10 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                     escaped(&m.tensors[*weight].name),
                     numel(*weight)
                 ));
+            }
+            if let Some(l) = lora {
+                let a = (linear.in_features.max(0) as usize).saturating_mul(l.rank);
+                lora_sizes(m, l, a, linear.out_features, "linear")?;
             }
             per_channel(epilogue, linear.out_features)
         }
@@ -249,6 +266,25 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
         }
         Kernel::Pure(_) => Ok(()),
     }
+}
+
+/// A fused LoRA branch: a rank of 1 to [`MAX_LORA_RANK`], `A` of `a_len` values (packed
+/// for `how`), `B` of `out · rank`. The tensor indices were checked with the step's.
+fn lora_sizes(m: &Manifest, l: &LoraSpec, a_len: usize, out: i64, how: &str) -> Result<(), String> {
+    if l.rank == 0 || l.rank > MAX_LORA_RANK {
+        return Err(format!("LoRA rank {}: it must be 1 to {MAX_LORA_RANK}", l.rank));
+    }
+    let (na, nb) = (m.tensors[l.a].numel(), m.tensors[l.b].numel());
+    let b_len = (out.max(0) as usize).saturating_mul(l.rank);
+    if na != a_len || nb != b_len {
+        return Err(format!(
+            "LoRA A `{}` has {na} values (`{how}` at rank {} needs {a_len}), B `{}` {nb} (needs {b_len})",
+            escaped(&m.tensors[l.a].name),
+            l.rank,
+            escaped(&m.tensors[l.b].name)
+        ));
+    }
+    Ok(())
 }
 
 /// 5.

@@ -91,6 +91,7 @@ fn plan() -> Plan {
                     linear: Linear { in_features: FIN as i64, out_features: FOUT as i64 },
                     weight: base[0],
                     epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true, bn: None },
+                    lora: None,
                 },
                 inputs: vec![0],
                 output: 1,

@@ -164,8 +164,9 @@ impl BnCalibrator {
             // The BatchNorm's input: the conv plus its own bias, or the affine's input.
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, relu: false, bn: None };
             let kernel = match &step.kernel {
-                Kernel::Conv2d { conv, algo, weight, .. } => {
-                    Kernel::Conv2d { conv: conv.clone(), algo: *algo, weight: *weight, epilogue: identity }
+                // A fused LoRA branch is part of what the BatchNorm reads.
+                Kernel::Conv2d { conv, algo, weight, lora, .. } => {
+                    Kernel::Conv2d { conv: conv.clone(), algo: *algo, weight: *weight, epilogue: identity, lora: *lora }
                 }
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {

@@ -17,16 +17,21 @@ pub struct ConvOp {
     pub algo: Option<ConvAlgo>,
     /// Back end: the weight slot holds the weight packed for `algo` (`pack_weights`).
     pub packed: bool,
+    /// Back end: a LoRA branch of this rank computed in the layer's kernel (`fuse_lora`),
+    /// slots `lora_A` (packed with the weight) and `lora_B` (pre-scaled).
+    pub lora: Option<i64>,
 }
 
 impl ConvOp {
     /// A conv as the language writes it.
     pub fn new(conv: Conv2d, bias: bool) -> ConvOp {
-        ConvOp { conv, bias, epilogue: Epilogue::default(), algo: None, packed: false }
+        ConvOp { conv, bias, epilogue: Epilogue::default(), algo: None, packed: false, lora: None }
     }
 
     /// `weight [out, in/groups, kh, kw]` (packed: `[len]` of the algorithm's layout),
-    /// with a bias `bias [out]`, then the epilogue's slots.
+    /// with a bias `bias [out]`, a fused LoRA branch's `lora_A [rank, in, kh, kw]`
+    /// (packed: `[len]` of the algorithm's layout at `rank` outputs) and
+    /// `lora_B [out, rank]`, then the epilogue's slots.
     pub fn param_slots(&self) -> Vec<ParamSlot> {
         let weight = match self.algo.filter(|_| self.packed) {
             Some(algo) => vec![algo.packed_len(&self.conv.shape(1, 0, 0)) as i64],
@@ -35,6 +40,15 @@ impl ConvOp {
         let mut v = vec![ParamSlot::param("weight", weight)];
         if self.bias {
             v.push(ParamSlot::param("bias", vec![self.conv.out_channels]));
+        }
+        if let Some(rank) = self.lora {
+            let a = Conv2d { out_channels: rank, ..self.conv.clone() };
+            let a_shape = match self.algo.filter(|_| self.packed) {
+                Some(algo) => vec![algo.packed_len(&a.shape(1, 0, 0)) as i64],
+                None => a.weight_shape().to_vec(),
+            };
+            v.push(ParamSlot::param("lora_A", a_shape));
+            v.push(ParamSlot::param("lora_B", vec![self.conv.out_channels, rank]));
         }
         v.extend(self.epilogue.slots(self.conv.out_channels));
         v
@@ -53,6 +67,9 @@ impl Operator for ConvOp {
         v.push(("bias", self.bias.to_string()));
         if let Some(algo) = self.algo {
             v.push(("algo", algo.name().to_string()));
+        }
+        if let Some(rank) = self.lora {
+            v.push(("lora", format!("rank {rank}")));
         }
         if let Some(e) = self.epilogue.attr() {
             v.push(("epilogue", e));

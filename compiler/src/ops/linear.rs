@@ -16,16 +16,19 @@ pub struct LinearOp {
     /// Back end: the weight slot holds the weight transposed, `[in, out]`, the layout the
     /// GEMM reads fastest (`pack_weights`).
     pub packed: bool,
+    /// Back end: a LoRA branch of this rank computed in the layer's kernel (`fuse_lora`),
+    /// slots `lora_A [rank, in]` and `lora_B [out, rank]` (pre-scaled).
+    pub lora: Option<i64>,
 }
 
 impl LinearOp {
     /// A linear layer as the language writes it.
     pub fn new(linear: Linear, bias: bool) -> LinearOp {
-        LinearOp { linear, bias, epilogue: Epilogue::default(), packed: false }
+        LinearOp { linear, bias, epilogue: Epilogue::default(), packed: false, lora: None }
     }
 
-    /// `weight [out, in]` (packed: `[in, out]`), with a bias `bias [out]`, then the
-    /// epilogue's slots.
+    /// `weight [out, in]` (packed: `[in, out]`), with a bias `bias [out]`, a fused LoRA
+    /// branch's `lora_A [rank, in]` and `lora_B [out, rank]`, then the epilogue's slots.
     pub fn param_slots(&self) -> Vec<ParamSlot> {
         let l = &self.linear;
         let weight =
@@ -33,6 +36,10 @@ impl LinearOp {
         let mut v = vec![ParamSlot::param("weight", weight)];
         if self.bias {
             v.push(ParamSlot::param("bias", vec![l.out_features]));
+        }
+        if let Some(rank) = self.lora {
+            v.push(ParamSlot::param("lora_A", vec![rank, l.in_features]));
+            v.push(ParamSlot::param("lora_B", vec![l.out_features, rank]));
         }
         v.extend(self.epilogue.slots(l.out_features));
         v
@@ -49,6 +56,9 @@ impl Operator for LinearOp {
     fn attrs(&self) -> Vec<(&'static str, String)> {
         let mut v = self.linear.attrs();
         v.push(("bias", self.bias.to_string()));
+        if let Some(rank) = self.lora {
+            v.push(("lora", format!("rank {rank}")));
+        }
         if let Some(e) = self.epilogue.attr() {
             v.push(("epilogue", e));
         }

@@ -11,7 +11,8 @@
 //!   adapter's precision;
 //! * rule `lora_behind_batchnorm`: `bn(y + scale B(A(x)))` becomes
 //!   `bn(y) + scale (s B)(A(x))` when the sum feeds only the BatchNorm: `lora_B` takes
-//!   `s B`. Only with `--lora branch` (merged LoRA leaves no branch).
+//!   `s B`. Only with `--lora branch` (merged LoRA leaves no branch), and only for a
+//!   branch `fuse_lora` does not compute inside its layer (a grouped conv's, say).
 //!
 //! The moved weights keep their names; each variant's are computed from its own
 //! BatchNorm and adapter values. Does nothing when no injection sits before a BatchNorm
@@ -61,7 +62,11 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
                 p.set_inputs.extend([(target, 0, x), (down, 0, bn_out), (add, 0, bn_out)]);
                 patches.push(p);
             }
-            Injection::Lora { base, b, add, .. } if inputs.opts.lora == LoraMode::Branch => {
+            // A branch `fuse_lora` computes in its layer's kernel stays before the BatchNorm,
+            // which then folds into the layer, over the sum.
+            Injection::Lora { base, b, add, .. }
+                if inputs.opts.lora == LoraMode::Branch && super::fuse_lora::fusable(g, inj).is_none() =>
+            {
                 let Some(bn) = sole_batchnorm_user(g, add) else { continue };
                 let wb = ir::join_path(&g.node(b).path, "weight");
                 let params = bn_params(g, bn);

@@ -25,8 +25,8 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::diag::Diagnostics;
 use readi_plan::format::{
-    BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, ParamSpec, Replacement, Step,
-    Storage, TensorSpec, ValueSpec, VariantTable,
+    BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, LoraSpec, Manifest, OutputSpec, ParamSpec, Replacement,
+    Step, Storage, TensorSpec, ValueSpec, VariantTable,
 };
 
 use super::bind_variants::{not_bound, same_bits};
@@ -235,6 +235,13 @@ impl<'m> Lowering<'m> {
         Ok(EpilogueSpec { scale, shift, relu: e.relu, bn })
     }
 
+    /// A fused LoRA branch of `rank`: the tensors of its slots.
+    fn lora(&mut self, node: &Node, rank: Option<i64>) -> Result<Option<LoraSpec>, Diagnostics> {
+        let Some(rank) = rank else { return Ok(None) };
+        let rank = usize::try_from(rank).map_err(|_| ice(format!("`{}` has LoRA rank {rank}", node.path)))?;
+        Ok(Some(LoraSpec { a: self.tensor(node, "lora_A")?, b: self.tensor(node, "lora_B")?, rank }))
+    }
+
     fn lower_node(&mut self, id: NodeId) -> Result<(), Diagnostics> {
         let g = self.graph;
         let node = g.node(id);
@@ -253,14 +260,17 @@ impl<'m> Lowering<'m> {
                     return Err(ice(format!("conv `{}` still has a bias", node.path)));
                 }
                 let weight = self.tensor(node, "weight")?;
-                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue: self.epilogue(node, &c.epilogue)? }
+                let lora = self.lora(node, c.lora)?;
+                let epilogue = self.epilogue(node, &c.epilogue)?;
+                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora }
             }
             Op::Linear(l) => {
                 if !l.packed || l.bias {
                     return Err(ice(format!("linear `{}` is not packed or still has a bias", node.path)));
                 }
                 let weight = self.tensor(node, "weight")?;
-                Kernel::Linear { linear: l.linear.clone(), weight, epilogue: self.epilogue(node, &l.epilogue)? }
+                let lora = self.lora(node, l.lora)?;
+                Kernel::Linear { linear: l.linear.clone(), weight, epilogue: self.epilogue(node, &l.epilogue)?, lora }
             }
             Op::ChannelAffine(a) => {
                 Kernel::ChannelAffine { affine: a.affine.clone(), epilogue: self.epilogue(node, &a.epilogue)? }

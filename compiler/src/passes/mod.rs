@@ -15,6 +15,7 @@
 //! | `drop_inactive`    | removes LoRA branches and adapters no variant uses             | variants bound           |
 //! | `commute_adapters` | moves adapters (and LoRA branches) behind their BatchNorm      | inactive ones dropped    |
 //! | `merge_lora`       | merges LoRA into the layer's weight, per variant               | `--lora merge`           |
+//! | `fuse_lora`        | a LoRA branch into its conv's or linear's kernel               | LoRA left as branches    |
 //! | `fold_batchnorm`   | BatchNorm into the conv before it, or a channel affine         | adaptations placed       |
 //! | `fuse_epilogues`   | biases into epilogue shifts, ReLUs into their producer         | BatchNorms folded        |
 //! | `choose_conv_algo` | an algorithm per conv                                          | epilogues fused          |
@@ -42,6 +43,7 @@ pub mod dead_code;
 pub mod drop_inactive;
 pub mod fold_batchnorm;
 pub mod fuse_epilogues;
+pub mod fuse_lora;
 pub mod inject_adapt;
 pub mod lower;
 pub mod meld;
@@ -81,6 +83,7 @@ pub enum Pass {
     DropInactive,
     CommuteAdapters,
     MergeLora,
+    FuseLora,
     FoldBatchnorm,
     FuseEpilogues,
     ChooseConvAlgo,
@@ -104,6 +107,7 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
     (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
     (Pass::MergeLora, "merge_lora", "merge LoRA into the adapted layer's weight, per variant (--lora merge)"),
+    (Pass::FuseLora, "fuse_lora", "compute each LoRA branch in its conv's or linear's kernel (--lora branch)"),
     (Pass::FoldBatchnorm, "fold_batchnorm", "fold BatchNorm into the conv before it, or make it a channel affine"),
     (
         Pass::FuseEpilogues,
@@ -524,6 +528,7 @@ fn backend_pass(pass: Pass) -> Option<BackendPass> {
         Pass::DropInactive => drop_inactive::run,
         Pass::CommuteAdapters => commute_adapters::run,
         Pass::MergeLora => merge_lora::run,
+        Pass::FuseLora => fuse_lora::run,
         Pass::FoldBatchnorm => fold_batchnorm::run,
         Pass::FuseEpilogues => fuse_epilogues::run,
         Pass::ChooseConvAlgo => choose_conv_algo::run,

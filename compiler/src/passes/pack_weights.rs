@@ -3,7 +3,8 @@
 //!
 //! * rule `pack_conv`: a conv's weight packed for its algorithm
 //!   (`readi_runtime::kernels::conv::pack_weight`: Winograd-transformed, or as PyTorch's
-//!   for the GEMM paths), as `<path>.weight@<algo>`;
+//!   for the GEMM paths), as `<path>.weight@<algo>`, and a fused LoRA branch's `A` for
+//!   the same algorithm (a conv to `rank` channels), as `<path>.lora_A.weight@<algo>`;
 //! * rule `transpose_linear`: a linear's weight transposed to `[in, out]`, the layout the
 //!   GEMM reads fastest, as `<path>.weight@t`.
 //!
@@ -43,9 +44,25 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
                     .map_err(internal)?;
                 let name = format!("{}.weight@{}", node.path, algo.name());
                 let new = Op::Conv2d(ConvOp { packed: true, ..c.clone() });
+                let mut bind = vec![("weight", name.clone())];
                 let mut p = Patch::new("pack_conv");
-                p.rewrite.push((id, new.clone(), rebind(&new, &node.params, &[("weight", name.clone())])));
                 p.tensors.push((name, packed));
+                if let (Some(rank), Some(slot)) = (c.lora, node.params.iter().find(|s| s.name == "lora_A")) {
+                    let a = node.param_name(slot);
+                    let sa = conv::lora_a_shape(&s, rank.max(0) as usize);
+                    let len = algo.packed_len(&sa);
+                    let packed = table
+                        .derive_one(&[&a], "packed as", vec![len], |v| {
+                            let mut out = vec![0.0; len];
+                            conv::pack_weight(&sa, algo, v[0], &mut out);
+                            out
+                        })
+                        .map_err(internal)?;
+                    let name = format!("{a}@{}", algo.name());
+                    bind.push(("lora_A", name.clone()));
+                    p.tensors.push((name, packed));
+                }
+                p.rewrite.push((id, new.clone(), rebind(&new, &node.params, &bind)));
                 patches.push(p);
             }
             Op::Linear(l) if !l.packed => {

@@ -9,7 +9,7 @@ use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::{elementwise, layout as layout_k, linear, norm, pool, reduce, resize, softmax};
 use readi_plan::ops::Pure;
 
-use crate::plan::{EpilogueSpec, Kernel, Manifest, Plan, Step, Storage, show_shape};
+use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, show_shape};
 
 use super::{Input, RunError, bad};
 
@@ -236,8 +236,9 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         check_step(plan, step, &shapes).map_err(|e| bad(&at, e))?;
         let conv = conv_params(step, &shapes, &at)?;
         if let Some((s, algo)) = &conv {
-            let need =
-                conv::checked_scratch_len(s, *algo, threads).ok_or_else(|| overflow(format!("the scratch of {at}")))?;
+            let rank = step.kernel.lora().map_or(0, |l| l.rank);
+            let need = conv::checked_scratch_len(s, *algo, rank, threads)
+                .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
             if need > scratch_len {
                 (scratch_len, scratch_by) = (need, Some(k));
             }
@@ -368,6 +369,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let base = plan.base_tensors();
     let len = |t: usize| base.get(t).len();
     let ep = |e: &EpilogueSpec| [e.scale.map(len), e.shift.map(len)];
+    let lora = |l: &Option<LoraSpec>| l.map(|l| (l.rank, len(l.a), len(l.b)));
     let arity = match &step.kernel {
         Kernel::Pure(Pure::MatMul(_) | Pure::Binary(_)) => Some(2),
         Kernel::Pure(Pure::Concat(_)) => None,
@@ -381,17 +383,17 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let out = shapes[step.output].as_slice();
     let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
     match &step.kernel {
-        Kernel::Conv2d { conv: c, algo, weight, epilogue } => {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l } => {
             let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
             if cin != u(c.in_channels)? {
                 return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
             }
             let s = conv::layer_shape(c, n, h, w);
             let (xl, ol) = (numel(x).ok_or("conv2d input too large")?, numel(out).ok_or("conv2d output too large")?);
-            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue))
+            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), lora(l))
         }
-        Kernel::Linear { linear: l, weight, epilogue } => {
-            linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue))
+        Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
+            linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))
         }
         Kernel::ChannelAffine { affine, epilogue } => {
             norm::check_channel_affine(x, u(affine.channels)?, ep(epilogue), out)

@@ -95,18 +95,22 @@ pub(crate) fn run_step(
     // Every kernel takes at least one input (checked at bind time).
     let (x, xs) = input(0);
     match &step.kernel {
-        Kernel::Conv2d { weight, epilogue: ep, .. } => {
+        Kernel::Conv2d { weight, epilogue: ep, lora, .. } => {
             if let Some((s, algo)) = conv_params {
-                conv::conv2d(s, *algo, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
+                let lora = lora.map(|l| conv::Lora { a: w.get(l.a), b: w.get(l.b), rank: l.rank });
+                let (wt, e) = (w.get(*weight), epilogue(w, ep));
+                conv::conv2d_lora(s, *algo, wt, lora.as_ref(), &e, x, out, scratch, threads);
             }
         }
         // Rows from the leading axes, not by dividing the length: a last axis may be 0.
-        Kernel::Linear { linear: l, weight, epilogue: ep } => {
+        Kernel::Linear { linear: l, weight, epilogue: ep, lora } => {
             let fin = xs.last().copied().unwrap_or(1);
             let rows = xs[..xs.len().saturating_sub(1)].iter().product();
             let layout = linear::WeightLayout::InOut;
             let fout = l.out_features as usize;
-            linear::linear(x, rows, fin, w.get(*weight), layout, fout, &epilogue(w, ep), out, threads);
+            let lora = lora.map(|r| linear::LinearLora { a: w.get(r.a), b: w.get(r.b), rank: r.rank });
+            let (wt, e) = (w.get(*weight), epilogue(w, ep));
+            linear::linear_lora(x, rows, fin, wt, layout, lora.as_ref(), fout, &e, out, threads);
         }
         Kernel::ChannelAffine { epilogue: ep, .. } => {
             let (n, c) = (xs[0], xs[1]);

@@ -10,6 +10,10 @@ use super::gemm::{MatMut, MatRef, sgemm};
 /// blocks are as large as L2 allows.)
 const BLOCK_FLOATS: usize = 256 * 1024;
 
+/// Floats of a fused LoRA branch's `x Aᵀ` per chunk of rows, on the stack: at least one
+/// row at the largest rank ([`super::conv::MAX_LORA_RANK`]).
+const LORA_ROWS_FLOATS: usize = super::conv::MAX_LORA_RANK;
+
 /// How a linear layer's weight is laid out.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WeightLayout {
@@ -42,6 +46,43 @@ pub fn linear(
     out: &mut [f32],
     threads: usize,
 ) {
+    linear_lora(x, rows, in_features, weight, layout, None, out_features, ep, out, threads)
+}
+
+/// A LoRA branch fused into a linear layer ([`linear_lora`]): `A` `[rank, in]` and `B`
+/// `[out, rank]` as PyTorch stores them, `B` with the LoRA scale multiplied in.
+#[derive(Clone, Copy, Debug)]
+pub struct LinearLora<'a> {
+    pub a: &'a [f32],
+    pub b: &'a [f32],
+    pub rank: usize,
+}
+
+/// [`linear`] with a fused LoRA branch: `out = epilogue(x Wᵀ + (x Aᵀ) Bᵀ)`, the branch
+/// computed per block of rows while the block's input is in cache, added before the
+/// epilogue.
+///
+/// # Panics
+/// As [`linear`], and if `A` or `B` does not have `rank · in_features` or
+/// `out_features · rank` values.
+#[allow(clippy::too_many_arguments)]
+pub fn linear_lora(
+    x: &[f32],
+    rows: usize,
+    in_features: usize,
+    weight: &[f32],
+    layout: WeightLayout,
+    lora: Option<&LinearLora>,
+    out_features: usize,
+    ep: &Epilogue,
+    out: &mut [f32],
+    threads: usize,
+) {
+    if let Some(l) = lora {
+        assert!(l.rank > 0 && l.rank <= LORA_ROWS_FLOATS, "linear: LoRA rank {}", l.rank);
+        assert_eq!(l.a.len(), l.rank * in_features, "linear: LoRA A length");
+        assert_eq!(l.b.len(), out_features * l.rank, "linear: LoRA B length");
+    }
     debug_assert_eq!(
         check(
             &[rows, in_features],
@@ -49,7 +90,8 @@ pub fn linear(
             out_features,
             weight.len(),
             &[rows, out_features],
-            [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)]
+            [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)],
+            lora.map(|l| (l.rank, l.a.len(), l.b.len()))
         ),
         Ok(()),
         "linear preconditions"
@@ -80,6 +122,22 @@ pub fn linear(
             false,
             gemm_threads,
         );
+        if let Some(l) = lora {
+            // t = x Aᵀ, then out += t Bᵀ, over as many rows at a time as `t` fits on the
+            // stack (kernels allocate nothing).
+            let mut buf = [0.0f32; LORA_ROWS_FLOATS];
+            let step = (LORA_ROWS_FLOATS / l.rank).max(1);
+            let at = MatRef::row_major(l.a, l.rank, in_features).t();
+            let bt = MatRef::row_major(l.b, out_features, l.rank).t();
+            for r0 in (0..r).step_by(step) {
+                let rr = step.min(r - r0);
+                let t = &mut buf[..rr * l.rank];
+                let xr = MatRef::row_major(&x_rows[r0 * in_features..][..rr * in_features], rr, in_features);
+                sgemm(xr, at, MatMut::row_major(t, rr, l.rank), false, 1);
+                let dst = MatMut::row_major(&mut rows_out[r0 * out_features..][..rr * out_features], rr, out_features);
+                sgemm(MatRef::row_major(t, rr, l.rank), bt, dst, true, 1);
+            }
+        }
         epilogue_rows(rows_out, out_features, ep);
     };
     if in_features == 0 {
@@ -218,8 +276,9 @@ pub fn matmul(
 /// `x_shape` (rows: every axis but the last): at least one axis, the last of
 /// `in_features` values (0 is allowed: the output is the epilogue of zero), a weight of
 /// `in_features × out_features`, an output of `rows × out_features` and epilogue
-/// vectors of `out_features`. Checked at bind time; [`linear`] asserts it in debug
-/// builds.
+/// vectors of `out_features`; a LoRA branch `(rank, A's length, B's length)` of a rank
+/// of 1 to [`super::conv::MAX_LORA_RANK`], `A` of `rank × in_features` and `B` of
+/// `out_features × rank`. Checked at bind time; [`linear`] asserts it in debug builds.
 pub fn check(
     x_shape: &[usize],
     in_features: usize,
@@ -227,6 +286,7 @@ pub fn check(
     weight_len: usize,
     out_shape: &[usize],
     epilogue: [Option<usize>; 2],
+    lora: Option<(usize, usize, usize)>,
 ) -> Result<(), String> {
     let Some((&last, rows)) = x_shape.split_last() else { return Err("linear of a scalar".into()) };
     if last != in_features {
@@ -241,6 +301,17 @@ pub fn check(
     }
     if let Some(n) = epilogue.into_iter().flatten().find(|&n| n != out_features) {
         return Err(format!("linear epilogue vector has {n} values for {out_features} outputs"));
+    }
+    if let Some((rank, a_len, b_len)) = lora {
+        let max = super::conv::MAX_LORA_RANK;
+        if rank == 0 || rank > max {
+            return Err(format!("LoRA rank {rank}: it must be 1 to {max}"));
+        }
+        if Some(a_len) != rank.checked_mul(in_features) || Some(b_len) != rank.checked_mul(out_features) {
+            return Err(format!(
+                "LoRA A has {a_len} values (needs {rank} x {in_features}), B {b_len} (needs {out_features} x {rank})"
+            ));
+        }
     }
     Ok(())
 }
@@ -325,6 +396,45 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn linear_lora_matches_a_separate_branch() {
+        // Row counts under and over the thread split (16 per thread) and over one block.
+        for (rows, fin, fout, rank) in [(1, 7, 5, 1), (37, 19, 23, 4), (200, 64, 48, 8), (5000, 9, 70, 3)] {
+            let x = data(rows * fin, 21);
+            let w = data(fout * fin, 22);
+            let a = data(rank * fin, 23);
+            let b = data(fout * rank, 24);
+            let scale: Vec<f32> = data(fout, 25).iter().map(|v| v + 1.5).collect();
+            let shift = data(fout, 26);
+            let wt: Vec<f32> = (0..fin * fout).map(|i| w[(i % fout) * fin + i / fout]).collect();
+            let at: Vec<f32> = (0..fin * rank).map(|i| a[(i % rank) * fin + i / rank]).collect();
+            let bt: Vec<f32> = (0..rank * fout).map(|i| b[(i % fout) * rank + i / fout]).collect();
+            // The base layer and the branch, separately, in f64.
+            let base = naive(&x, &wt, rows, fin, fout);
+            let t: Vec<f32> = naive(&x, &at, rows, fin, rank).into_iter().map(|v| v as f32).collect();
+            let t64 = naive(&t, &bt, rows, rank, fout);
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+            let want: Vec<f32> = (0..rows * fout)
+                .map(|i| {
+                    let j = i % fout;
+                    ((base[i] + t64[i]) * f64::from(scale[j]) + f64::from(shift[j])).max(0.0) as f32
+                })
+                .collect();
+            let lora = LinearLora { a: &a, b: &b, rank };
+            let fields = Some((rank, a.len(), b.len()));
+            assert_eq!(check(&[rows, fin], fin, fout, wt.len(), &[rows, fout], [Some(fout); 2], fields), Ok(()));
+            for threads in [1, 2] {
+                let mut out = vec![f32::NAN; rows * fout];
+                linear_lora(&x, rows, fin, &wt, WeightLayout::InOut, Some(&lora), fout, &ep, &mut out, threads);
+                assert_close(&out, &want, 1e-4);
+            }
+        }
+        let bad = |l| check(&[2, 3], 3, 4, 12, &[2, 4], [None, None], Some(l)).expect_err("bad LoRA");
+        assert!(bad((0, 0, 0)).contains("rank 0"));
+        assert!(bad((2, 6, 7)).contains("B 7"));
+        assert!(bad((2, 5, 8)).contains("A has 5"));
     }
 
     #[test]

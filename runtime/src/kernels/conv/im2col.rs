@@ -1,9 +1,10 @@
 //! The GEMM paths, [`ConvAlgo::Gemm1x1`] and [`ConvAlgo::Im2col`]: per tile of output
 //! pixels (of one image and group), the input as it is or unfolded by [`im2col`], one GEMM
-//! into scratch, and the epilogue into the part's output planes.
+//! into scratch, and the epilogue into the part's output planes. A LoRA branch reads the
+//! same tile: `t = A col` (rank rows) and `acc += B t`, before the epilogue.
 
 use super::split::Part;
-use super::{Conv2dShape, ConvAlgo, finish};
+use super::{Conv2dShape, ConvAlgo, Lora, finish};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, sgemm};
 
@@ -17,11 +18,13 @@ pub(super) fn gemm_tile(s: &Conv2dShape, algo: ConvAlgo) -> usize {
 }
 
 /// Gemm1x1 / Im2col over one part: per image, per tile of pixels, per group: (unfold,)
-/// GEMM into scratch, epilogue into the output.
+/// GEMM into scratch (and a LoRA branch's two small ones), epilogue into the output.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn gemm_part(
     s: &Conv2dShape,
     algo: ConvAlgo,
     w: &[f32],
+    lora: Option<&Lora>,
     ep: &Epilogue,
     x: &[f32],
     part: &mut Part,
@@ -30,7 +33,9 @@ pub(super) fn gemm_part(
     let (cin_g, cout_g, k) = (s.cin_g(), s.cout_g(), s.k());
     let plane_in = s.h * s.w;
     let tile = gemm_tile(s, algo);
-    let (acc, col) = scratch.split_at_mut(tile * cout_g);
+    let rank = lora.map_or(0, |l| l.rank);
+    let (acc, rest) = scratch.split_at_mut(tile * cout_g);
+    let (t, col) = rest.split_at_mut(tile * rank);
     let last = (part.r1 - 1) / s.oh;
     for n in part.n0..=last {
         let (lo, hi) = part.rows_of(n, s.oh);
@@ -53,6 +58,14 @@ pub(super) fn gemm_part(
                 };
                 let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
                 sgemm(lhs, rhs, MatMut::row_major(&mut acc[..mrows * tp], mrows, tp), false, 1);
+                if let Some(l) = lora {
+                    // One group (checked): the tile is the whole input's.
+                    let t = &mut t[..rank * tp];
+                    sgemm(MatRef::row_major(l.a, rank, k), rhs, MatMut::row_major(t, rank, tp), false, 1);
+                    let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
+                    let acc = MatMut::row_major(&mut acc[..mrows * tp], mrows, tp);
+                    sgemm(b, MatRef::row_major(t, rank, tp), acc, true, 1);
+                }
                 finish_tile(part, n, chans, p0 - p_lo, acc, tp, ep);
             }
             p0 += tp;

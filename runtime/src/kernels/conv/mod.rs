@@ -27,6 +27,16 @@
 //! through pulp (see the [module doc](super)): the input transform uses 16, 8 or 4
 //! lanes as the tiles per row allow, the output transform 16.
 //!
+//! A layer may carry a LoRA branch ([`Lora`]: `y = conv(x, W) + B (A x)`, with `A` a conv
+//! to `rank` channels of the layer's geometry and `B` a 1x1 conv back, pre-scaled), fused
+//! into the same pass over the input: the GEMM paths multiply the same column tile (or
+//! input) by `A` too and add `B t` to the accumulator; Winograd multiplies the same
+//! transformed tiles by the transformed `A` and adds `B G` to the products before the
+//! output transform (the transform is linear, so this is the transform of `W + B A`).
+//! Either way the LoRA term is in the accumulator before the epilogue scales it, so a
+//! folded BatchNorm scales it as it scales the conv. Groups and depthwise layers have no
+//! fused branch ([`check`] refuses one): their LoRA runs as separate steps.
+//!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
 //! paths (Gemm1x1, Im2col), `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
@@ -104,9 +114,30 @@ pub fn pack_weight(s: &Conv2dShape, algo: ConvAlgo, weight: &[f32], out: &mut [f
     }
 }
 
+/// A LoRA branch fused into a conv ([`conv2d_lora`]): `A` packed for the layer's
+/// algorithm as a conv to `rank` channels ([`pack_weight`] on [`lora_a_shape`]), `B`
+/// `[cout, rank]` row-major with the LoRA scale already multiplied in.
+#[derive(Clone, Copy, Debug)]
+pub struct Lora<'a> {
+    pub a: &'a [f32],
+    pub b: &'a [f32],
+    pub rank: usize,
+}
+
+/// The shape of a layer's LoRA `A`: the layer with `rank` output channels.
+pub fn lora_a_shape(s: &Conv2dShape, rank: usize) -> Conv2dShape {
+    Conv2dShape { cout: rank, ..*s }
+}
+
 /// Scratch floats [`conv2d`] needs for this layer at this thread count.
 pub fn scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
-    parts(s, algo, threads) * part_scratch(s, algo)
+    lora_scratch_len(s, algo, 0, threads)
+}
+
+/// Scratch floats [`conv2d_lora`] needs for this layer with a LoRA branch of `rank`
+/// (0: none) at this thread count.
+pub fn lora_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, threads: usize) -> usize {
+    parts(s, algo, threads) * part_scratch(s, algo, rank)
 }
 
 /// Most elements of a conv's input, output or weight [`check`] accepts: far beyond any
@@ -114,17 +145,23 @@ pub fn scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
 /// scratch) cannot overflow.
 const MAX_ELEMENTS: usize = 1 << 48;
 
-/// [`scratch_len`] for a layer that passed [`check`], or `None` if it overflows.
-pub fn checked_scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> Option<usize> {
-    parts(s, algo, threads).checked_mul(part_scratch(s, algo))
+/// [`lora_scratch_len`] for a layer that passed [`check`], or `None` if it overflows.
+pub fn checked_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, threads: usize) -> Option<usize> {
+    parts(s, algo, threads).checked_mul(part_scratch(s, algo, rank))
 }
+
+/// Most LoRA rank [`check`] accepts, the plan format's.
+pub const MAX_LORA_RANK: usize = readi_plan::format::MAX_LORA_RANK;
 
 /// The preconditions of [`conv2d`] on a layer: the geometry is consistent (groups
 /// divide the channels, the window fits the padded input and the output size is
 /// PyTorch's), `algo` can compute it (Gemm1x1: 1x1, stride 1, no padding; Winograd: 3x3,
 /// stride 1, no dilation; depthwise: one input channel per group), and the lengths of
 /// the packed weight, the input, the output and the epilogue's vectors fit the shape.
-/// The executor checks this at bind time; [`conv2d`] asserts it in debug builds.
+/// A LoRA branch, `(rank, A's length, B's length)`, needs one group, not the depthwise
+/// algorithm, a rank of 1 to [`MAX_LORA_RANK`], `A` packed for `algo` at rank `rank` and
+/// `B` of `cout · rank`. The executor checks this at bind time; [`conv2d`] asserts it in
+/// debug builds.
 pub fn check(
     s: &Conv2dShape,
     algo: ConvAlgo,
@@ -132,6 +169,7 @@ pub fn check(
     x_len: usize,
     out_len: usize,
     epilogue: [Option<usize>; 2],
+    lora: Option<(usize, usize, usize)>,
 ) -> Result<(), String> {
     if s.groups == 0 || !s.cin.is_multiple_of(s.groups) || !s.cout.is_multiple_of(s.groups) {
         return Err(format!("groups={} must divide {} input and {} output channels", s.groups, s.cin, s.cout));
@@ -202,6 +240,26 @@ pub fn check(
     if let Some(n) = epilogue.into_iter().flatten().find(|&n| n != s.cout) {
         return Err(format!("an epilogue vector has {n} values for {} output channels", s.cout));
     }
+    if let Some((rank, a_len, b_len)) = lora {
+        if s.groups != 1 || algo == ConvAlgo::Depthwise {
+            return Err(format!(
+                "a fused LoRA branch needs one group and not the depthwise algorithm (groups={}, `{}`)",
+                s.groups,
+                algo.name()
+            ));
+        }
+        if rank == 0 || rank > MAX_LORA_RANK {
+            return Err(format!("LoRA rank {rank}: it must be 1 to {MAX_LORA_RANK}"));
+        }
+        let want_a = packed_weight_len(&lora_a_shape(s, rank), algo);
+        if a_len != want_a || Some(b_len) != s.cout.checked_mul(rank) {
+            return Err(format!(
+                "LoRA A has {a_len} values (`{}` at rank {rank} needs {want_a}), B {b_len} (needs {} x {rank})",
+                algo.name(),
+                s.cout
+            ));
+        }
+    }
     Ok(())
 }
 
@@ -223,6 +281,32 @@ pub fn conv2d(
     scratch: &mut [f32],
     threads: usize,
 ) {
+    conv2d_lora(s, algo, packed_weight, None, ep, x, out, scratch, threads)
+}
+
+/// [`conv2d`] with a fused LoRA branch: `out = epilogue(conv(x, weight) + B (A x))`;
+/// `scratch` holds at least [`lora_scratch_len`] floats.
+///
+/// # Panics
+/// As [`conv2d`], and if the branch fails [`check`].
+#[allow(clippy::too_many_arguments)]
+pub fn conv2d_lora(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    packed_weight: &[f32],
+    lora: Option<&Lora>,
+    ep: &Epilogue,
+    x: &[f32],
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    let rank = lora.map_or(0, |l| l.rank);
+    if let Some(l) = lora {
+        assert!(s.groups == 1 && algo != ConvAlgo::Depthwise && l.rank > 0, "conv: LoRA on {s:?} with {algo:?}");
+        assert_eq!(l.a.len(), packed_weight_len(&lora_a_shape(s, l.rank), algo), "conv: LoRA A length");
+        assert_eq!(l.b.len(), s.cout * l.rank, "conv: LoRA B length");
+    }
     debug_assert_eq!(
         check(
             s,
@@ -230,7 +314,8 @@ pub fn conv2d(
             packed_weight.len(),
             x.len(),
             out.len(),
-            [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)]
+            [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)],
+            lora.map(|l| (l.rank, l.a.len(), l.b.len()))
         ),
         Ok(()),
         "conv2d preconditions"
@@ -243,7 +328,7 @@ pub fn conv2d(
     for v in [ep.scale, ep.shift].into_iter().flatten() {
         assert_eq!(v.len(), s.cout, "conv: epilogue length");
     }
-    let need = scratch_len(s, algo, threads);
+    let need = lora_scratch_len(s, algo, rank, threads);
     assert!(scratch.len() >= need, "conv: scratch has {} floats, needs {need}", scratch.len());
     if out.is_empty() {
         return;
@@ -251,13 +336,13 @@ pub fn conv2d(
     if algo == ConvAlgo::Depthwise {
         return depthwise(s, packed_weight, ep, x, out, threads);
     }
-    let per = part_scratch(s, algo);
+    let per = part_scratch(s, algo, rank);
     let mut jobs: Vec<(Part, &mut [f32])> =
         split(out, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
     let run = |(part, scratch): &mut (Part, &mut [f32])| match algo {
-        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => gemm_part(s, algo, packed_weight, ep, x, part, scratch),
-        ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, ep, x, part, scratch),
-        ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, ep, x, part, scratch),
+        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => gemm_part(s, algo, packed_weight, lora, ep, x, part, scratch),
+        ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, lora, ep, x, part, scratch),
+        ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, lora, ep, x, part, scratch),
         ConvAlgo::Depthwise => unreachable!("handled above"),
     };
     if jobs.len() == 1 {
@@ -301,12 +386,14 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
     }
 }
 
-fn part_scratch(s: &Conv2dShape, algo: ConvAlgo) -> usize {
+/// One part's scratch; `rank` rows more of the tile (of the transformed block) for a
+/// LoRA branch's `A x`.
+fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
     match algo {
-        ConvAlgo::Gemm1x1 => gemm_tile(s, algo) * s.cout_g(),
-        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k()),
-        ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(),
-        ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(),
+        ConvAlgo::Gemm1x1 => gemm_tile(s, algo) * (s.cout_g() + rank),
+        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k() + rank),
+        ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(rank),
+        ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(rank),
         ConvAlgo::Depthwise => 0,
     }
 }

@@ -262,3 +262,147 @@ fn unsupported_algo_panics() {
     let mut packed = vec![0.0; packed_weight_len(&s, ConvAlgo::Winograd4)];
     pack_weight(&s, ConvAlgo::Winograd4, &vec![0.0; 4 * 4 * 9], &mut packed);
 }
+
+/// The conv plus a separate LoRA branch, naively in f64: `acc = conv(x, W) +
+/// conv1x1(conv(x, A), B)`, then the epilogue (the branch is added before its scale).
+fn reference_lora(s: &Conv2dShape, x: &[f32], w: &[f32], a: &[f32], b: &[f32], rank: usize, ep: &Epilogue) -> Vec<f32> {
+    let raw = |s: &Conv2dShape, w: &[f32]| -> Vec<f64> {
+        let mut out = vec![0.0f64; s.n * s.cout * s.oh * s.ow];
+        for n in 0..s.n {
+            for co in 0..s.cout {
+                for oy in 0..s.oh {
+                    for ox in 0..s.ow {
+                        let mut acc = 0.0f64;
+                        for ci in 0..s.cin {
+                            for ky in 0..s.kh {
+                                for kx in 0..s.kw {
+                                    let iy = (oy * s.stride_h + ky * s.dil_h) as isize - s.pad_h as isize;
+                                    let ix = (ox * s.stride_w + kx * s.dil_w) as isize - s.pad_w as isize;
+                                    if iy < 0 || ix < 0 || iy >= s.h as isize || ix >= s.w as isize {
+                                        continue;
+                                    }
+                                    let xv = x[((n * s.cin + ci) * s.h + iy as usize) * s.w + ix as usize];
+                                    let wv = w[((co * s.cin + ci) * s.kh + ky) * s.kw + kx];
+                                    acc += f64::from(xv) * f64::from(wv);
+                                }
+                            }
+                        }
+                        out[((n * s.cout + co) * s.oh + oy) * s.ow + ox] = acc;
+                    }
+                }
+            }
+        }
+        out
+    };
+    let base = raw(s, w);
+    let t = raw(&lora_a_shape(s, rank), a);
+    let plane = s.oh * s.ow;
+    let mut out = vec![0.0f32; base.len()];
+    for n in 0..s.n {
+        for co in 0..s.cout {
+            for p in 0..plane {
+                let branch: f64 = (0..rank).map(|r| f64::from(b[co * rank + r]) * t[(n * rank + r) * plane + p]).sum();
+                let acc = base[(n * s.cout + co) * plane + p] + branch;
+                let mut y =
+                    acc * ep.scale.map_or(1.0, |v| f64::from(v[co])) + ep.shift.map_or(0.0, |v| f64::from(v[co]));
+                if ep.relu {
+                    y = y.max(0.0);
+                }
+                out[(n * s.cout + co) * plane + p] = y as f32;
+            }
+        }
+    }
+    out
+}
+
+/// Every algorithm that supports `s` (but depthwise) with a fused LoRA branch of `rank`,
+/// each thread count and epilogue kind, against [`reference_lora`]. Returns how many.
+fn check_lora(s: &Conv2dShape, rank: usize) -> usize {
+    let x = data(s.n * s.cin * s.h * s.w, 11);
+    let fan_in = s.cin * s.kh * s.kw;
+    let at_scale = |v: Vec<f32>| -> Vec<f32> { v.iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect() };
+    let w = at_scale(data(fan_in * s.cout, 12));
+    let a = at_scale(data(fan_in * rank, 13));
+    // A trained B is small but not negligible: here as large as W's entries.
+    let b: Vec<f32> = data(s.cout * rank, 14).iter().map(|v| 0.7 * v).collect();
+    let scale: Vec<f32> = data(s.cout, 15).iter().map(|v| 0.5 + v).collect();
+    let shift = data(s.cout, 16);
+    let eps = [
+        Epilogue::default(),
+        Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true },
+        Epilogue { scale: Some(&scale), shift: None, relu: false },
+    ];
+    let algos: Vec<ConvAlgo> =
+        ConvAlgo::ALL.into_iter().filter(|a| a.supports(s) && *a != ConvAlgo::Depthwise).collect();
+    for &algo in &algos {
+        let mut packed = vec![0.0; packed_weight_len(s, algo)];
+        pack_weight(s, algo, &w, &mut packed);
+        let sa = lora_a_shape(s, rank);
+        let mut packed_a = vec![0.0; packed_weight_len(&sa, algo)];
+        pack_weight(&sa, algo, &a, &mut packed_a);
+        let lora = Lora { a: &packed_a, b: &b, rank };
+        let fields = Some((rank, packed_a.len(), b.len()));
+        let x_len = x.len();
+        for ep in &eps {
+            let want = reference_lora(s, &x, &w, &a, &b, rank, ep);
+            let vectors = [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)];
+            assert_eq!(super::check(s, algo, packed.len(), x_len, want.len(), vectors, fields), Ok(()));
+            for threads in [1, 2] {
+                let mut out = vec![f32::NAN; want.len()];
+                let mut scratch = vec![f32::NAN; lora_scratch_len(s, algo, rank, threads)];
+                conv2d_lora(s, algo, &packed, Some(&lora), ep, &x, &mut out, &mut scratch, threads);
+                assert_close(&out, &want, 1e-4);
+            }
+        }
+    }
+    algos.len()
+}
+
+#[test]
+fn lora_every_algorithm() {
+    // 3x3 stride 1 (im2col and both Winograds), odd sizes, batch > 1.
+    assert_eq!(check_lora(&shape(2, 17, (13, 10), 19, (3, 3), (1, 1), (1, 1), (1, 1), 1), 4), 3);
+    // Several Winograd blocks and im2col tiles, rank 1 and 8.
+    assert_eq!(check_lora(&shape(1, 64, (30, 29), 40, (3, 3), (1, 1), (1, 1), (1, 1), 1), 8), 3);
+    assert_eq!(check_lora(&shape(1, 16, (9, 7), 16, (3, 3), (1, 1), (0, 0), (1, 1), 1), 1), 3);
+    // 1x1 (GEMM and im2col), stride 2 1x1 (im2col).
+    assert_eq!(check_lora(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1), 4), 2);
+    assert_eq!(check_lora(&shape(1, 16, (14, 13), 24, (1, 1), (2, 2), (0, 0), (1, 1), 1), 3), 1);
+    // Stride, padding, dilation, non-square kernels: im2col.
+    assert_eq!(check_lora(&shape(3, 6, (9, 9), 5, (3, 3), (2, 1), (0, 2), (1, 1), 1), 2), 1);
+    assert_eq!(check_lora(&shape(2, 3, (12, 15), 4, (3, 2), (2, 1), (1, 0), (2, 3), 1), 4), 1);
+}
+
+#[test]
+fn lora_channel_split() {
+    // Two threads split the output channels; each part computes the branch itself.
+    for s in [
+        shape(2, 20, (6, 5), 100, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        shape(1, 24, (7, 7), 96, (1, 1), (1, 1), (0, 0), (1, 1), 1),
+        shape(1, 16, (8, 8), 128, (3, 3), (2, 2), (1, 1), (1, 1), 1),
+    ] {
+        assert_eq!(split_shape(&s, ConvAlgo::Im2col, 2), (1, 2));
+        check_lora(&s, 4);
+    }
+}
+
+#[test]
+fn lora_check_refuses_bad_branches() {
+    let s = shape(1, 8, (6, 6), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1);
+    let ok = |algo: ConvAlgo, rank: usize| Some((rank, packed_weight_len(&lora_a_shape(&s, rank), algo), 8 * rank));
+    let run =
+        |algo: ConvAlgo, lora| super::check(&s, algo, packed_weight_len(&s, algo), 8 * 36, 8 * 36, [None, None], lora);
+    assert_eq!(run(ConvAlgo::Im2col, ok(ConvAlgo::Im2col, 4)), Ok(()));
+    assert_eq!(run(ConvAlgo::Winograd4, ok(ConvAlgo::Winograd4, 4)), Ok(()));
+    // A packed for another algorithm, a short B, rank 0, a rank over the bound.
+    let e = run(ConvAlgo::Winograd4, ok(ConvAlgo::Im2col, 4)).expect_err("A packed for im2col");
+    assert!(e.contains("LoRA A has 288 values"), "{e}");
+    assert!(run(ConvAlgo::Im2col, Some((4, 288, 31))).expect_err("short B").contains("B 31"));
+    assert!(run(ConvAlgo::Im2col, Some((0, 0, 0))).expect_err("rank 0").contains("rank 0"));
+    let big = MAX_LORA_RANK + 1;
+    assert!(run(ConvAlgo::Im2col, Some((big, 72 * big, 8 * big))).expect_err("rank").contains("must be 1 to"));
+    // Groups and depthwise have no fused branch.
+    let g = shape(1, 8, (6, 6), 8, (3, 3), (1, 1), (1, 1), (1, 1), 8);
+    let e = super::check(&g, ConvAlgo::Depthwise, 72, 288, 288, [None, None], Some((1, 72, 8))).expect_err("depthwise");
+    assert!(e.contains("one group"), "{e}");
+}

@@ -3,7 +3,9 @@
 //! [`ConvAlgo::Winograd4`](super::ConvAlgo::Winograd4): the weight transform
 //! ([`pack_winograd`], once, at packing), and per block of tile rows the input transform,
 //! one GEMM per transformed position and the output transform with the epilogue
-//! ([`winograd_part`]).
+//! ([`winograd_part`]). A LoRA branch's `A`, transformed like the weight, multiplies the
+//! same transformed tiles (`G = Ã V`, rank rows per position) and `B G` is added to the
+//! products before the output transform.
 //!
 //! The transforms are plain Rust on fixed-size lane arrays ([`Lanes`]), run inside pulp
 //! `WithSimd` bodies ([`InputTransform`], [`OutputTransform`]) so that they are compiled
@@ -12,7 +14,7 @@
 use std::marker::PhantomData;
 
 use super::split::Part;
-use super::{Conv2dShape, finish};
+use super::{Conv2dShape, Lora, finish};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, sgemm};
 
@@ -209,16 +211,19 @@ impl Wino {
         input.max(output)
     }
 
-    pub(super) fn scratch(&self) -> usize {
-        (self.cin_g + self.cout_g) * self.alpha * self.alpha * self.stride() + self.work()
+    /// With `rank` rows of a LoRA branch's `G = Ã V` (0: none).
+    pub(super) fn scratch(&self, rank: usize) -> usize {
+        (self.cin_g + self.cout_g + rank) * self.alpha * self.alpha * self.stride() + self.work()
     }
 }
 
 /// Winograd over one part: its tile rows in blocks; per block and group: input transform
-/// into `V[ci][ξ][t]`, one GEMM per ξ into `Mt[co][ξ][t]`, output transform + epilogue.
+/// into `V[ci][ξ][t]`, one GEMM per ξ into `Mt[co][ξ][t]` (plus `B (Ã V)` for a LoRA
+/// branch), output transform + epilogue.
 pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
     s: &Conv2dShape,
     u: &[f32],
+    lora: Option<&Lora>,
     ep: &Epilogue,
     x: &[f32],
     part: &mut Part,
@@ -229,7 +234,9 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
     let ty_n = s.oh.div_ceil(M);
     let (aa, ts) = (A * A, wz.stride());
     let (v, rest) = scratch.split_at_mut(cin_g * aa * ts);
-    let (mt, work) = rest.split_at_mut(cout_g * aa * ts);
+    let (mt, rest) = rest.split_at_mut(cout_g * aa * ts);
+    let rank = lora.map_or(0, |l| l.rank);
+    let (gl, work) = rest.split_at_mut(rank * aa * ts);
     // Global tile rows (image · ty_n + ty) of this part; its boundaries are whole tile rows.
     let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
     let (u0, u1) = (tile_row(part.r0), tile_row(part.r1));
@@ -261,6 +268,19 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 let dst =
                     MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
                 sgemm(lhs, rhs, dst, false, 1);
+                if let Some(l) = lora {
+                    // One group (checked): Ã is `[ξ][rank][cin]`.
+                    let a = MatRef::row_major(&l.a[xi * rank * cin_g..][..rank * cin_g], rank, cin_g);
+                    let g_xi =
+                        MatMut { data: &mut gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                    sgemm(a, rhs, g_xi, false, 1);
+                    let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
+                    let g_xi =
+                        MatRef { data: &gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                    let dst =
+                        MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                    sgemm(b, g_xi, dst, true, 1);
+                }
             }
             let (wz, mt, work) = (&wz, &*mt, &mut *work);
             pulp::Arch::new().dispatch(OutputTransform::<T, A, M> {
