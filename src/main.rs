@@ -56,9 +56,35 @@ fn run(cli: Cli) -> ExitCode {
         }
         Command::Params { file, buffers, model } => cli::params::run(&mut s, &file, buffers, &model),
         Command::Passes => cli::ir::passes(),
-        Command::Compile { spec, weights, deploy, variants, lora, strict, melds, output, allow_unused, model } => {
-            let args =
-                cli::compile::CompileArgs { spec, weights, deploy, variants, lora, strict, melds, allow_unused, model };
+        Command::Compile {
+            spec,
+            weights,
+            deploy,
+            variants,
+            lora,
+            memory_budget,
+            explain,
+            seeded_variants,
+            strict,
+            melds,
+            output,
+            allow_unused,
+            model,
+        } => {
+            let args = cli::compile::CompileArgs {
+                spec,
+                weights,
+                deploy,
+                variants,
+                lora,
+                memory_budget,
+                explain,
+                seeded_variants,
+                strict,
+                melds,
+                allow_unused,
+                model,
+            };
             cli::compile::run(&mut s, args, &output)
         }
         Command::Run { plan, inputs, outputs, threads, max_memory, variant, auto, meta, drop_views } => {

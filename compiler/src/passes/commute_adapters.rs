@@ -11,7 +11,8 @@
 //!   adapter's precision;
 //! * rule `lora_behind_batchnorm`: `bn(y + scale B(A(x)))` becomes
 //!   `bn(y) + scale (s B)(A(x))` when the sum feeds only the BatchNorm: `lora_B` takes
-//!   `s B`. Only with `--lora branch` (merged LoRA leaves no branch).
+//!   `s B`. Only for a layer whose LoRA stays a branch (`--lora branch`, or
+//!   `choose_strategy`'s choice; merged LoRA leaves no branch).
 //!
 //! The moved weights keep their names; each variant's are computed from its own
 //! BatchNorm and adapter values. Does nothing when no injection sits before a BatchNorm
@@ -26,6 +27,7 @@ use crate::adapt::Injection;
 use crate::ir::{self, Graph, NodeId, Op, ValueRef};
 use crate::module::Module;
 use crate::passes::LoraMode;
+use crate::passes::choose_strategy::lora_mode;
 use crate::weights::tensors::TensorTable;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
@@ -61,7 +63,9 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
                 p.set_inputs.extend([(target, 0, x), (down, 0, bn_out), (add, 0, bn_out)]);
                 patches.push(p);
             }
-            Injection::Lora { base, b, add, .. } if inputs.opts.lora == LoraMode::Branch => {
+            Injection::Lora { base, b, add, .. }
+                if lora_mode(module, inputs, &g.node(base).path) == LoraMode::Branch =>
+            {
                 let Some(bn) = sole_batchnorm_user(g, add) else { continue };
                 let wb = ir::join_path(&g.node(b).path, "weight");
                 let params = bn_params(g, bn);

@@ -12,6 +12,7 @@
 //! | `bind_variants`    | each variant's tensors into the table                          | base weights bound       |
 //! | `meld`             | melded variants from their parts                               | variants bound           |
 //! | `drop_inactive`    | removes LoRA branches and adapters no variant uses             | variants bound           |
+//! | `choose_strategy`  | per LoRA layer merge or branch, per variant-owned conv its algorithm (side table) | inactive ones dropped |
 //! | `commute_adapters` | moves adapters (and LoRA branches) behind their BatchNorm      | inactive ones dropped    |
 //! | `merge_lora`       | merges LoRA into the layer's weight, per variant               | `--lora merge`           |
 //! | `fold_batchnorm`   | BatchNorm into the conv before it, or a channel affine         | adaptations placed       |
@@ -36,6 +37,7 @@ pub mod bind_variants;
 pub mod bind_weights;
 pub mod check_variants;
 pub mod choose_conv_algo;
+pub mod choose_strategy;
 pub mod commute_adapters;
 pub mod dead_code;
 pub mod drop_inactive;
@@ -76,6 +78,7 @@ pub enum Pass {
     BindVariants,
     Meld,
     DropInactive,
+    ChooseStrategy,
     CommuteAdapters,
     MergeLora,
     FoldBatchnorm,
@@ -98,6 +101,7 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::BindVariants, "bind_variants", "bind each variant's tensors, checked against the adaptation rules"),
     (Pass::Meld, "meld", "build melded variants from their parts' parameters"),
     (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
+    (Pass::ChooseStrategy, "choose_strategy", "per LoRA layer merge or branch, per variant-owned conv its algorithm"),
     (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
     (Pass::MergeLora, "merge_lora", "merge LoRA into the adapted layer's weight, per variant (--lora merge)"),
     (Pass::FoldBatchnorm, "fold_batchnorm", "fold BatchNorm into the conv before it, or make it a channel affine"),
@@ -461,6 +465,8 @@ pub enum LoraMode {
     Merge,
     /// Kept as a side branch `scale * B(A(x))`: each variant stores only `A` and `B`.
     Branch,
+    /// Chosen per layer by `choose_strategy` (merge unless a memory budget needs branches).
+    Auto,
 }
 
 impl LoraMode {
@@ -468,6 +474,7 @@ impl LoraMode {
         match self {
             LoraMode::Merge => "merge",
             LoraMode::Branch => "branch",
+            LoraMode::Auto => "auto",
         }
     }
 }
@@ -483,6 +490,13 @@ pub struct CompileOptions {
     pub strict: bool,
     /// Melded variants to build from the given ones, `fog=0.06+gamma=0.5`.
     pub melds: Vec<String>,
+    /// Most bytes a variant may store, percent of the base plan's (`--memory-budget`):
+    /// `choose_strategy` branches LoRA layers and picks compact algorithms to fit.
+    pub memory_budget: Option<f64>,
+    /// Time the chosen kernels for `--explain` even when no choice needs it.
+    pub explain: bool,
+    /// How `choose_strategy` learns kernel latencies (tests give fixed ones).
+    pub timing: choose_strategy::Timing,
 }
 
 /// What the back end compiles a module with.
@@ -504,6 +518,8 @@ pub enum Output {
     Tensors(Box<crate::weights::tensors::TensorTable>),
     /// The lowered plan, stored as the module's.
     Lowered(Box<Lowered>),
+    /// The per-layer strategy, stored as the module's.
+    Strategy(Box<choose_strategy::Strategy>),
 }
 
 /// A back-end pass: reads the module, returns what it computed and any warnings, or the
@@ -516,6 +532,7 @@ fn backend_pass(pass: Pass) -> Option<BackendPass> {
         Pass::BindVariants => bind_variants::run,
         Pass::Meld => meld::run,
         Pass::DropInactive => drop_inactive::run,
+        Pass::ChooseStrategy => choose_strategy::run,
         Pass::CommuteAdapters => commute_adapters::run,
         Pass::MergeLora => merge_lora::run,
         Pass::FoldBatchnorm => fold_batchnorm::run,
@@ -554,6 +571,7 @@ pub fn run_backend(
             match output {
                 Output::Tensors(t) => module.tensors = Some(*t),
                 Output::Lowered(l) => module.lowered = Some(*l),
+                Output::Strategy(st) => module.strategy = Some(*st),
                 Output::Patches(p) if p.is_empty() => break,
                 Output::Patches(p) => {
                     check_derived(module, &p, name)?;
