@@ -130,6 +130,7 @@ fn passes_lists_the_pipeline_in_order() {
         "bind_variants",
         "meld",
         "drop_inactive",
+        "choose_strategy",
         "commute_adapters",
         "merge_lora",
         "fold_batchnorm",
