@@ -228,3 +228,22 @@ fn explain_table() {
     let (_, _, s) = compile(&m, &o);
     insta::assert_snapshot!(choose_strategy::explain(&s.expect("strategy")));
 }
+
+#[test]
+fn fusion_model_bytes_are_the_plans() {
+    // BEVFusion-tiny: LoRA on attention projections (linear), adapters, tuned LayerNorms and
+    // Winograd-packed head convs.
+    let (sources, out) = common::compile("models/bevfusion_tiny.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let weights = backend::seeded_weights(&m.graph, 3);
+    let keys: Vec<String> = ["fog=0.03", "gamma=0.25"].iter().map(|k| k.to_string()).collect();
+    let variants = backend::seeded_variants(&m, &keys, 4);
+    let base = backend::compile(&m, &weights, "<seeded>", &CompileOptions::default()).expect("base").0;
+    for o in [opts(LoraMode::Merge, None), opts(LoraMode::Branch, None), opts(LoraMode::Auto, Some(3.0))] {
+        let (plan, _, s) = backend::compile_explained(&m, &weights, "<seeded>", &variants, &o).expect("compiles");
+        let s = s.expect("strategy");
+        assert_eq!(s.base_bytes, base.tensor_bytes() as u64);
+        assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest), "{:?}", o.lora);
+    }
+}

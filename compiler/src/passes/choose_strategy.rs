@@ -87,7 +87,8 @@ pub struct LayerChoice {
     pub bytes: Vec<u64>,
     /// The predicted latency of the layer (conv and branch), when timed.
     pub predicted_ms: Option<f64>,
-    /// The latency added over the fastest option, when timed.
+    /// The latency added over the base model's layer (its default algorithm, no branch),
+    /// when timed.
     pub added_ms: Option<f64>,
     /// The chosen kernels timed again after the choice (`--explain`).
     pub measured_ms: Option<f64>,
@@ -342,6 +343,8 @@ pub fn choose(
         .collect();
     let branch_nodes: std::collections::HashSet<NodeId> =
         injections.iter().filter(|i| matches!(i, Injection::Lora { .. })).flat_map(|i| i.nodes()).collect();
+    // The base plan (no variants) has no injections at all: `drop_inactive` drops them.
+    let injected: std::collections::HashSet<NodeId> = injections.iter().flat_map(|i| i.nodes()).collect();
 
     let mut order: Vec<NodeId> = g.topo_order().unwrap_or_else(|| g.node_ids().collect());
     order.retain(|n| g.contains(*n));
@@ -351,8 +354,9 @@ pub fn choose(
     for &id in &order {
         let node = g.node(id);
         let in_branch = branch_nodes.contains(&id);
-        // The base plan's bytes: every kernel's stored tensors, LoRA branches aside.
-        if !in_branch {
+        // The base plan's bytes: every kernel's stored tensors, LoRA branches and adapters
+        // aside.
+        if !injected.contains(&id) {
             base_bytes += base_node_bytes(g, table, id);
         }
         if in_branch {
@@ -513,9 +517,10 @@ pub fn choose(
         let o = &it.opts[at[i]];
         let (predicted, added, measured) = if timed {
             let p = latency(i, at[i], &items, timer);
-            let fastest = latency(i, it.start, &items, timer);
+            // Over the base model's layer: its kernel at the default algorithm, no branch.
+            let base = kernel(g, it.node).map_or(0.0, |(s, a)| timer.ms(&s, a));
             let m = explain.then(|| option_ms_fresh(g, it, o, timer));
-            (Some(p), Some(p - fastest), m)
+            (Some(p), Some(p - base), m)
         } else {
             (None, None, None)
         };
@@ -620,7 +625,7 @@ fn fixed_node_bytes(g: &Graph, table: &TensorTable, id: NodeId, v: usize, has_ch
 }
 
 /// The `--explain` table: one row per layer with a choice (its largest variant's bytes;
-/// the latency the option predicts, what it adds over the layer's fastest option, and the
+/// the latency the option predicts, what it adds over the base model's layer, and the
 /// chosen kernels timed again), then the totals.
 pub fn explain(s: &Strategy) -> String {
     use crate::print::bytes;
