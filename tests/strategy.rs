@@ -247,3 +247,19 @@ fn fusion_model_bytes_are_the_plans() {
         assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest), "{:?}", o.lora);
     }
 }
+
+#[test]
+fn a_budget_that_is_not_a_percentage_is_refused_by_name() {
+    let o = common::readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        "none.safetensors",
+        "-o",
+        "none.plan",
+        "--memory-budget=-3",
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--memory-budget") && err.contains("not a percentage"), "{err}");
+}

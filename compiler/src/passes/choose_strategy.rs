@@ -148,9 +148,9 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
                 Code::Limit,
                 format!(
                     "the memory budget of {:.2}% per variant cannot be met: the smallest achievable is {least:.2}% of \
-                     the base's {} bytes",
+                     the base's {}",
                     s.budget_pct.unwrap_or(0.0),
-                    s.base_bytes
+                    crate::print::bytes(s.base_bytes)
                 ),
             )
             .with_primary(module.graph.scopes[0].span, "in this model")
