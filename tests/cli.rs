@@ -131,6 +131,7 @@ fn passes_lists_the_pipeline_in_order() {
         "meld",
         "prune",
         "drop_inactive",
+        "choose_strategy",
         "commute_adapters",
         "merge_lora",
         "fuse_lora",

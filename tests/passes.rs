@@ -138,8 +138,8 @@ fn every_rewriting_pass_has_cases_both_ways() {
     let root = common::root().join("tests/cases/passes");
     let always = ["bind_weights", "lower", "plan_buffers"];
     for &(pass, name, _) in PIPELINE.iter().filter(|p| p.0 > Pass::Elaborate) {
-        if matches!(pass, Pass::ResolveAdapt | Pass::CheckVariants) {
-            continue; // side tables with their own language cases
+        if matches!(pass, Pass::ResolveAdapt | Pass::CheckVariants | Pass::ChooseStrategy) {
+            continue; // side tables with their own language cases (choose_strategy: tests/strategy.rs)
         }
         let dir = root.join(name);
         let mut kinds = (false, false);

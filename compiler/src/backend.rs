@@ -42,13 +42,25 @@ pub fn compile_variants(
     sources: &[VariantSource],
     opts: &CompileOptions,
 ) -> Result<(Plan, Diagnostics), Diagnostics> {
+    compile_explained(module, base, base_name, sources, opts).map(|(p, w, _)| (p, w))
+}
+
+/// [`compile_variants`], also returning the per-layer strategy `choose_strategy` decided
+/// (`None` when no layer had a choice), for `readi compile --explain`.
+pub fn compile_explained(
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+) -> Result<(Plan, Diagnostics, Option<passes::choose_strategy::Strategy>), Diagnostics> {
     let mut m = module.clone();
     let inputs = BackendInputs { base, base_name, variants: sources, opts };
     let warnings = passes::run_backend(&mut m, &inputs, None)?.warnings;
     let lowered = m.lowered.take().ok_or_else(|| ice(module, "the back end produced no plan".into()))?;
     let plan =
         Plan::new(lowered.manifest, lowered.data).map_err(|e| ice(module, format!("the plan is invalid: {e}")))?;
-    Ok((plan, warnings))
+    Ok((plan, warnings, m.strategy.take()))
 }
 
 /// What the spec's `prune` rules did to a plan: the shared weights they select, with how

@@ -8,6 +8,7 @@
 //! | `adapt`    | `resolve_adapt`  | the adaptation rules bound to layers, and `inject_adapt`'s injections |
 //! | `variants` | `check_variants` | the checked `variants` section (axes, selectors, meld rule) |
 //! | `tensors`  | `bind_weights`   | every tensor's base value and the variants' values        |
+//! | `strategy` | `choose_strategy`| per LoRA layer merge or branch, per variant-owned conv its algorithm |
 //! | `lowered`  | `lower`          | the schedule and its stored tensors: the plan in the making |
 
 use readi_plan::format::Manifest;
@@ -30,12 +31,14 @@ pub struct Module {
     pub tensors: Option<TensorTable>,
     /// Set by `lower`; `plan_buffers` assigns its buffers.
     pub lowered: Option<Lowered>,
+    /// Set by `choose_strategy` when a layer has a choice.
+    pub strategy: Option<crate::passes::choose_strategy::Strategy>,
 }
 
 impl Module {
     /// A module of a graph, with no side tables yet.
     pub fn new(graph: Graph) -> Module {
-        Module { graph, adapt: None, variants: None, tensors: None, lowered: None }
+        Module { graph, adapt: None, variants: None, tensors: None, lowered: None, strategy: None }
     }
 }
 

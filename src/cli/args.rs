@@ -134,10 +134,23 @@ pub enum Command {
         /// in two of them is an error), as in deploy.yaml.
         #[arg(long = "variant", value_name = "KEY=PATH", value_parser = parse_variant_arg)]
         variants: Vec<(String, String)>,
-        /// How LoRA runs: merged into the adapted weights per variant (no run-time cost) or
-        /// as a side branch (smaller variants).
+        /// How LoRA runs: merged into the adapted weights per variant (no run-time cost), as
+        /// a side branch (smaller variants), or chosen per layer (`auto`, under
+        /// --memory-budget).
         #[arg(long, value_enum)]
         lora: Option<LoraArg>,
+        /// Most bytes a variant may store, percent of the base plan's (e.g. `3`): LoRA layers
+        /// become branches and variant-owned convs compact algorithms, least latency first.
+        /// Implies `--lora auto` unless --lora is given.
+        #[arg(long, value_name = "PCT", value_parser = parse_budget)]
+        memory_budget: Option<f64>,
+        /// Print the per-layer strategy: merge or branch, algorithm, bytes per variant,
+        /// predicted and measured latency, and the totals.
+        #[arg(long)]
+        explain: bool,
+        /// A variant with seeded parameters (repeatable), as for `readi ir`.
+        #[arg(long = "seeded-variant", value_name = "KEY")]
+        seeded_variants: Vec<String>,
         /// An owned parameter a variant does not give is an error (else a warning; it keeps
         /// the base value).
         #[arg(long)]
@@ -382,6 +395,15 @@ pub struct BackendArgs {
 pub enum LoraArg {
     Merge,
     Branch,
+    Auto,
+}
+
+/// A memory budget in percent: a finite number, at least 0.
+fn parse_budget(s: &str) -> Result<f64, String> {
+    match s.trim_end_matches('%').parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("`{s}` is not a percentage (a number, at least 0, e.g. `3`)")),
+    }
 }
 
 fn parse_pass(s: &str) -> Result<Pass, String> {

@@ -20,6 +20,9 @@ pub struct CompileArgs {
     pub deploy: Option<PathBuf>,
     pub variants: Vec<(String, String)>,
     pub lora: Option<LoraArg>,
+    pub memory_budget: Option<f64>,
+    pub explain: bool,
+    pub seeded_variants: Vec<String>,
     pub strict: bool,
     pub melds: Vec<String>,
     pub allow_unused: bool,
@@ -47,8 +50,9 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
                 None => None,
                 Some("merge") => Some(LoraMode::Merge),
                 Some("branch") => Some(LoraMode::Branch),
+                Some("auto") => Some(LoraMode::Auto),
                 Some(other) => {
-                    return Err(fail(format!("{}: `lora` is `{other}`; use merge or branch", path.display())));
+                    return Err(fail(format!("{}: `lora` is `{other}`; use merge, branch or auto", path.display())));
                 }
             };
             (d.spec, d.weights, d.variants, lora)
@@ -65,7 +69,12 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         lora = Some(match l {
             LoraArg::Merge => LoraMode::Merge,
             LoraArg::Branch => LoraMode::Branch,
+            LoraArg::Auto => LoraMode::Auto,
         });
+    }
+    // A budget lets the strategy choose per layer unless a mode was given.
+    if args.memory_budget.is_some() && lora.is_none() {
+        lora = Some(LoraMode::Auto);
     }
     let (out, _) = s.compile(&spec, &model, None)?;
     let Some(module) = out.module.filter(|_| !out.diagnostics.has_errors()) else {
@@ -83,14 +92,29 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
     for files in &deploy::regroup_by_value(variant_files, &module) {
         sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
     }
-    let opts =
-        CompileOptions { allow_unused: args.allow_unused, lora: lora.unwrap_or_default(), strict: args.strict, melds };
-    let (plan, warnings) = backend::compile_variants(&module, &set, &wname, &sources, &opts).map_err(|d| {
-        s.report(&d);
-        eprintln!("error: {}", summary_line(&wname, &d));
-        ExitCode::FAILURE
-    })?;
+    sources.extend(backend::seeded_variants(&module, &args.seeded_variants, 2));
+    let opts = CompileOptions {
+        allow_unused: args.allow_unused,
+        lora: lora.unwrap_or_default(),
+        strict: args.strict,
+        melds,
+        memory_budget: args.memory_budget,
+        explain: args.explain,
+        ..CompileOptions::default()
+    };
+    let (plan, warnings, strategy) =
+        backend::compile_explained(&module, &set, &wname, &sources, &opts).map_err(|d| {
+            s.report(&d);
+            eprintln!("error: {}", summary_line(&wname, &d));
+            ExitCode::FAILURE
+        })?;
     s.report(&warnings);
+    if args.explain {
+        match &strategy {
+            Some(st) => print!("{}", readi_compiler::passes::choose_strategy::explain(st)),
+            None => println!("no layer has a strategy to choose (no LoRA layer or variant-owned conv, or no variants)"),
+        }
+    }
     plan.write(output).map_err(|e| fail(e.to_string()))?;
     let m = &plan.manifest;
     let variants = match m.variants.len() {

@@ -109,6 +109,7 @@ fn compiled(
     sources.extend(backend::seeded_variants(&module, &backend.seeded_variants, backend.seed + 1));
     let lora = match backend.lora {
         Some(LoraArg::Branch) => LoraMode::Branch,
+        Some(LoraArg::Auto) => LoraMode::Auto,
         _ => LoraMode::Merge,
     };
     let opts = CompileOptions { lora, melds: backend.melds.clone(), ..CompileOptions::default() };

@@ -4,7 +4,8 @@
 //! 3x3 stride-1 layers with enough channels, a plain GEMM for 1x1 stride-1 layers, the
 //! direct loop for depthwise layers, im2col otherwise.
 //!
-//! Does nothing when every conv has an algorithm. Assumes the epilogues are fused (the
+//! A variant-owned conv takes the algorithm `choose_strategy` chose for it (a compact one
+//! under a memory budget). Does nothing when every conv has an algorithm. Assumes the epilogues are fused (the
 //! choice does not depend on them, but packing follows).
 
 use readi_grammar::diag::Diagnostics;
@@ -25,7 +26,9 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             continue;
         }
         let (h, w) = spatial(g, id);
-        let algo = conv::choose(&c.conv.shape(1, h, w));
+        let shape = c.conv.shape(1, h, w);
+        let chosen = module.strategy.as_ref().and_then(|s| s.algo_of(&node.path)).filter(|a| a.supports(&shape));
+        let algo = chosen.unwrap_or_else(|| conv::choose(&shape));
         let new = Op::Conv2d(ConvOp { algo: Some(algo), ..c.clone() });
         let slots = rebind(&new, &node.params, &[]);
         let mut p = Patch::new("choose_conv_algo");

@@ -11,8 +11,9 @@
 //!   adapter's precision;
 //! * rule `lora_behind_batchnorm`: `bn(y + scale B(A(x)))` becomes
 //!   `bn(y) + scale (s B)(A(x))` when the sum feeds only the BatchNorm: `lora_B` takes
-//!   `s B`. Only with `--lora branch` (merged LoRA leaves no branch), and only for a
-//!   branch `fuse_lora` does not compute inside its layer (a grouped conv's, say).
+//!   `s B`. Only for a layer whose LoRA stays a branch (`--lora branch`, or
+//!   `choose_strategy`'s choice; merged LoRA leaves no branch), and only for a branch
+//!   `fuse_lora` does not compute inside its layer (a rewired input, say).
 //!
 //! The moved weights keep their names; each variant's are computed from its own
 //! BatchNorm and adapter values. Does nothing when no injection sits before a BatchNorm
@@ -27,6 +28,7 @@ use crate::adapt::Injection;
 use crate::ir::{self, Graph, NodeId, Op, ValueRef};
 use crate::module::Module;
 use crate::passes::LoraMode;
+use crate::passes::choose_strategy::lora_mode;
 use crate::weights::tensors::TensorTable;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
@@ -65,7 +67,8 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
             // A branch `fuse_lora` computes in its layer's kernel stays before the BatchNorm,
             // which then folds into the layer, over the sum.
             Injection::Lora { base, b, add, .. }
-                if inputs.opts.lora == LoraMode::Branch && super::fuse_lora::fusable(g, inj).is_none() =>
+                if lora_mode(module, inputs, &g.node(base).path) == LoraMode::Branch
+                    && super::fuse_lora::fusable(g, inj).is_none() =>
             {
                 let Some(bn) = sole_batchnorm_user(g, add) else { continue };
                 let wb = ir::join_path(&g.node(b).path, "weight");

@@ -4,8 +4,9 @@
 //! an adapted plan runs the base model's schedule; each variant stores the merged weight
 //! of every layer its LoRA changes.
 //!
-//! Does nothing with `--lora branch` or without LoRA. Assumes `commute_adapters` ran (it
-//! moves branches only in branch mode).
+//! Merges only the layers `choose_strategy` marked merge (every layer with `--lora merge`,
+//! none with `--lora branch`). Does nothing without LoRA. Assumes `commute_adapters` ran
+//! (it moves only branches that stay).
 
 use readi_grammar::diag::Diagnostics;
 
@@ -15,17 +16,18 @@ use crate::adapt::Injection;
 use crate::ir::{self, ValueRef};
 use crate::module::Module;
 use crate::passes::LoraMode;
+use crate::passes::choose_strategy::lora_mode;
 
 pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;
     let g = &module.graph;
     let Some(plan) = &module.adapt else { return Ok(Output::Patches(Vec::new())) };
-    if inputs.opts.lora != LoraMode::Merge {
-        return Ok(Output::Patches(Vec::new()));
-    }
     let mut patches = Vec::new();
     for inj in &plan.injections {
         let Injection::Lora { base, a, b, add, factor, .. } = *inj else { continue };
+        if lora_mode(module, inputs, &g.node(base).path) != LoraMode::Merge {
+            continue;
+        }
         let name = |n| ir::join_path(&g.node(n).path, "weight");
         let (w, wa, wb) = (name(base), name(a), name(b));
         let rank = g.node(a).params.first().and_then(|s| s.shape.first()).copied().unwrap_or(1).max(1) as usize;

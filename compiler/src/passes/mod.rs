@@ -13,6 +13,7 @@
 //! | `meld`             | melded variants from their parts                               | variants bound           |
 //! | `prune`            | zeroes small values of the shared weights (`prune` rules)     | melds built              |
 //! | `drop_inactive`    | removes LoRA branches and adapters no variant uses             | variants bound           |
+//! | `choose_strategy`  | per LoRA layer merge or branch, per variant-owned conv its algorithm (side table) | inactive ones dropped |
 //! | `commute_adapters` | moves adapters (and LoRA branches) behind their BatchNorm      | inactive ones dropped    |
 //! | `merge_lora`       | merges LoRA into the layer's weight, per variant               | `--lora merge`           |
 //! | `fuse_lora`        | a LoRA branch into its conv's or linear's kernel               | LoRA left as branches    |
@@ -38,6 +39,7 @@ pub mod bind_variants;
 pub mod bind_weights;
 pub mod check_variants;
 pub mod choose_conv_algo;
+pub mod choose_strategy;
 pub mod commute_adapters;
 pub mod dead_code;
 pub mod drop_inactive;
@@ -81,6 +83,7 @@ pub enum Pass {
     Meld,
     Prune,
     DropInactive,
+    ChooseStrategy,
     CommuteAdapters,
     MergeLora,
     FuseLora,
@@ -105,6 +108,7 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::Meld, "meld", "build melded variants: layers one part tunes taken whole, shared ones interpolated"),
     (Pass::Prune, "prune", "zero the shared conv and linear weights' values below a `prune` rule's threshold"),
     (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
+    (Pass::ChooseStrategy, "choose_strategy", "per LoRA layer merge or branch, per variant-owned conv its algorithm"),
     (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
     (Pass::MergeLora, "merge_lora", "merge LoRA into the adapted layer's weight, per variant (--lora merge)"),
     (Pass::FuseLora, "fuse_lora", "compute each LoRA branch in its conv's or linear's kernel (--lora branch)"),
@@ -470,6 +474,8 @@ pub enum LoraMode {
     Merge,
     /// Kept as a side branch `scale * B(A(x))`: each variant stores only `A` and `B`.
     Branch,
+    /// Chosen per layer by `choose_strategy` (merge unless a memory budget needs branches).
+    Auto,
 }
 
 impl LoraMode {
@@ -477,6 +483,7 @@ impl LoraMode {
         match self {
             LoraMode::Merge => "merge",
             LoraMode::Branch => "branch",
+            LoraMode::Auto => "auto",
         }
     }
 }
@@ -492,6 +499,13 @@ pub struct CompileOptions {
     pub strict: bool,
     /// Melded variants to build from the given ones, `fog=0.06+gamma=0.5`.
     pub melds: Vec<String>,
+    /// Most bytes a variant may store, percent of the base plan's (`--memory-budget`):
+    /// `choose_strategy` branches LoRA layers and picks compact algorithms to fit.
+    pub memory_budget: Option<f64>,
+    /// Time the chosen kernels for `--explain` even when no choice needs it.
+    pub explain: bool,
+    /// How `choose_strategy` learns kernel latencies (tests give fixed ones).
+    pub timing: choose_strategy::Timing,
 }
 
 /// What the back end compiles a module with.
@@ -513,6 +527,8 @@ pub enum Output {
     Tensors(Box<crate::weights::tensors::TensorTable>),
     /// The lowered plan, stored as the module's.
     Lowered(Box<Lowered>),
+    /// The per-layer strategy, stored as the module's.
+    Strategy(Box<choose_strategy::Strategy>),
 }
 
 /// A back-end pass: reads the module, returns what it computed and any warnings, or the
@@ -526,6 +542,7 @@ fn backend_pass(pass: Pass) -> Option<BackendPass> {
         Pass::Meld => meld::run,
         Pass::Prune => prune::run,
         Pass::DropInactive => drop_inactive::run,
+        Pass::ChooseStrategy => choose_strategy::run,
         Pass::CommuteAdapters => commute_adapters::run,
         Pass::MergeLora => merge_lora::run,
         Pass::FuseLora => fuse_lora::run,
@@ -565,6 +582,7 @@ pub fn run_backend(
             match output {
                 Output::Tensors(t) => module.tensors = Some(*t),
                 Output::Lowered(l) => module.lowered = Some(*l),
+                Output::Strategy(st) => module.strategy = Some(*st),
                 Output::Patches(p) if p.is_empty() => break,
                 Output::Patches(p) => {
                     check_derived(module, &p, name)?;

@@ -1,0 +1,739 @@
+//! `choose_strategy`: decides, per LoRA layer, whether each variant stores the merged
+//! weight (**merge**: no run-time cost) or only `A` and `B` (**branch**: the branch's two
+//! small kernels run), and per variant-owned conv (a conv whose weight differs per variant
+//! once merged: a tuned conv, a merged LoRA layer) the algorithm, whose packed weight
+//! each variant stores (Winograd F(4x4) 4x the raw weight, F(2x2) 16/9 of it, im2col 1x).
+//! A side table ([`Strategy`], `Module::strategy`) that `commute_adapters`, `merge_lora`
+//! and `choose_conv_algo` read; it changes nothing in the graph, so no choice changes a
+//! number the plan computes.
+//!
+//! The cost model: bytes per variant are exact, from the shapes and the packed lengths of
+//! every tensor the variant will replace (the per-variant epilogue vectors, heads and
+//! adapters included, which no choice changes); a tensor counts for a variant when one of
+//! its sources has a value of its own there. Latency is the runtime's own kernels timed on
+//! the layer's shapes at batch 1 ([`Timing`]), a few repetitions, median, cached per
+//! (algorithm, shape) within the compile, and only when a choice depends on it (a budget
+//! the fastest assignment exceeds, or `--explain`). A branch on a conv costs what it adds
+//! to the layer's kernel, which computes it (`fuse_lora`; [`branch_ms`]), and stores `A`
+//! packed for the layer's algorithm.
+//!
+//! The choice: start from the fastest assignment (merge, each conv's default algorithm);
+//! while the largest variant exceeds the budget (`--memory-budget PCT`, percent of the
+//! base plan's bytes), move the layer with the most bytes saved per millisecond added to
+//! its next cheaper option (the fastest option that stores fewer bytes). If even every
+//! layer's smallest option exceeds the budget, a warning gives the smallest achievable
+//! percentage. `--lora merge|branch` forces every LoRA layer (the algorithms are still
+//! chosen under a budget).
+//!
+//! Does nothing (records no table) when no adaptation plan has a LoRA layer or a
+//! variant-owned conv, or there are no variants. Assumes `drop_inactive` ran (a dropped
+//! branch is no choice).
+
+use std::collections::{BTreeMap, HashMap};
+use std::fmt::Write as _;
+use std::time::Instant;
+
+use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
+use readi_runtime::kernels::{Epilogue, conv};
+
+use super::bind_variants::{not_bound, same_bits};
+use super::choose_conv_algo::spatial;
+use super::{BackendInputs, LoraMode, Output};
+use crate::adapt::Injection;
+use crate::ir::{Graph, NodeId, Op};
+use crate::module::Module;
+use crate::weights::tensors::TensorTable;
+pub use readi_plan::ops::{Conv2dShape, ConvAlgo};
+
+/// How the pass learns a kernel's latency: the runtime's kernel timed at compile time, or
+/// a fixed function of the shape (tests; deterministic).
+#[derive(Clone, Copy, Debug, Default)]
+pub enum Timing {
+    /// Time `readi_runtime::kernels::conv::conv2d` on the shape: 5 runs after one warm-up,
+    /// the median, on one thread.
+    #[default]
+    Measure,
+    /// Milliseconds as this function says.
+    Fixed(fn(&Conv2dShape, ConvAlgo) -> f64),
+}
+
+/// The decisions, and what they cost, per layer and in total.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Strategy {
+    /// Every layer with a choice, in graph order.
+    pub layers: Vec<LayerChoice>,
+    /// The base plan's bytes (the base model's weights as the plan stores them).
+    pub base_bytes: u64,
+    /// Per variant, the bytes of the tensors no choice changes (epilogues, heads, adapters).
+    pub fixed_bytes: Vec<u64>,
+    /// The variants' keys, in table order.
+    pub keys: Vec<String>,
+    /// `--memory-budget`, percent of `base_bytes`.
+    pub budget_pct: Option<f64>,
+    /// The smallest achievable percentage, when the budget cannot be met.
+    pub unmet: Option<f64>,
+    /// The base model's conv time (every conv at its algorithm), when timed.
+    pub base_ms: Option<f64>,
+}
+
+/// One layer's decision.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerChoice {
+    pub path: String,
+    /// For a LoRA layer: merge or branch.
+    pub lora: Option<LoraMode>,
+    /// For a conv: its algorithm (for a variant-owned conv, the one its variants store).
+    pub algo: Option<ConvAlgo>,
+    /// The bytes each variant stores for the layer under the decision.
+    pub bytes: Vec<u64>,
+    /// The predicted latency of the layer (conv and branch), when timed.
+    pub predicted_ms: Option<f64>,
+    /// The latency added over the base model's layer (its default algorithm, no branch),
+    /// when timed.
+    pub added_ms: Option<f64>,
+    /// The chosen kernels timed again after the choice (`--explain`).
+    pub measured_ms: Option<f64>,
+}
+
+impl Strategy {
+    /// The decision for a LoRA layer (by the adapted layer's path).
+    pub fn lora_of(&self, path: &str) -> Option<LoraMode> {
+        self.layers.iter().find(|l| l.path == path).and_then(|l| l.lora)
+    }
+    /// The algorithm chosen for a conv (by path).
+    pub fn algo_of(&self, path: &str) -> Option<ConvAlgo> {
+        self.layers.iter().find(|l| l.path == path).and_then(|l| l.algo)
+    }
+    /// Per variant, the bytes it stores: the fixed part and every layer's.
+    pub fn variant_bytes(&self) -> Vec<u64> {
+        (0..self.fixed_bytes.len())
+            .map(|v| self.fixed_bytes[v] + self.layers.iter().map(|l| l.bytes[v]).sum::<u64>())
+            .collect()
+    }
+    /// The largest variant's bytes as a percentage of the base's.
+    pub fn max_pct(&self) -> f64 {
+        pct(self.variant_bytes().into_iter().max().unwrap_or(0), self.base_bytes)
+    }
+}
+
+fn pct(bytes: u64, base: u64) -> f64 {
+    if base == 0 { 0.0 } else { bytes as f64 * 100.0 / base as f64 }
+}
+
+/// The LoRA mode of the layer at `path`: the strategy's decision, else the global flag
+/// (`auto` without a decision: merge).
+pub fn lora_mode(module: &Module, inputs: &BackendInputs<'_>, path: &str) -> LoraMode {
+    match module.strategy.as_ref().and_then(|s| s.lora_of(path)) {
+        Some(m) => m,
+        None if inputs.opts.lora == LoraMode::Branch => LoraMode::Branch,
+        None => LoraMode::Merge,
+    }
+}
+
+pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnostics) -> Result<Output, Diagnostics> {
+    if module.strategy.is_some() {
+        return Ok(Output::Patches(Vec::new()));
+    }
+    let table = module.tensors.as_ref().ok_or_else(not_bound)?;
+    let opts = inputs.opts;
+    let forced = match opts.lora {
+        LoraMode::Auto => None,
+        m => Some(m),
+    };
+    let mut timer = Timer { timing: opts.timing, cache: HashMap::new(), lora_cache: HashMap::new() };
+    let s = choose(module, table, forced, opts.memory_budget, opts.explain, &mut timer);
+    let Some(s) = s else { return Ok(Output::Patches(Vec::new())) };
+    if let Some(least) = s.unmet {
+        warnings.push(
+            Diagnostic::warning(
+                Code::Limit,
+                format!(
+                    "the memory budget of {:.2}% per variant cannot be met: the smallest achievable is {least:.2}% of \
+                     the base's {}",
+                    s.budget_pct.unwrap_or(0.0),
+                    crate::print::bytes(s.base_bytes)
+                ),
+            )
+            .with_primary(module.graph.scopes[0].span, "in this model")
+            .with_note(
+                "every LoRA layer branched and every variant-owned conv at im2col; the rest is BatchNorms and heads",
+            ),
+        );
+    }
+    Ok(Output::Strategy(Box::new(s)))
+}
+
+/// Caches kernel timings per (algorithm, shape) within one compile.
+pub struct Timer {
+    pub timing: Timing,
+    pub cache: HashMap<(ConvAlgo, [usize; 16]), f64>,
+    /// The fused kernel with a LoRA branch, by algorithm, shape and rank.
+    pub lora_cache: HashMap<(ConvAlgo, [usize; 16], usize), f64>,
+}
+
+/// A shape as a cache key.
+fn key(s: &Conv2dShape) -> [usize; 16] {
+    [
+        s.n, s.cin, s.h, s.w, s.cout, s.kh, s.kw, s.stride_h, s.stride_w, s.pad_h, s.pad_w, s.dil_h, s.dil_w, s.groups,
+        s.oh, s.ow,
+    ]
+}
+
+impl Timer {
+    /// The kernel's latency on the shape, in ms (cached).
+    pub fn ms(&mut self, s: &Conv2dShape, algo: ConvAlgo) -> f64 {
+        if let Some(&t) = self.cache.get(&(algo, key(s))) {
+            return t;
+        }
+        let t = self.fresh(s, algo);
+        self.cache.insert((algo, key(s)), t);
+        t
+    }
+
+    /// A new timing, not the cache's.
+    pub fn fresh(&self, s: &Conv2dShape, algo: ConvAlgo) -> f64 {
+        match self.timing {
+            Timing::Fixed(f) => f(s, algo),
+            Timing::Measure => time_conv(s, algo, 0),
+        }
+    }
+
+    /// What a LoRA branch of `rank` adds to the conv kernel on `s` when `fuse_lora`
+    /// computes it inside the kernel, in ms: the fused kernel's time less the plain
+    /// kernel's (never below 0).
+    pub fn fused_branch_ms(&mut self, s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
+        let plain = self.ms(s, algo);
+        let fused = match self.lora_cache.get(&(algo, key(s), rank)) {
+            Some(&t) => t,
+            None => {
+                let t = time_conv(s, algo, rank);
+                self.lora_cache.insert((algo, key(s), rank), t);
+                t
+            }
+        };
+        (fused - plain).max(0.0)
+    }
+}
+
+/// The runtime's conv kernel on `s` at batch 1, one thread, with a fused LoRA branch of
+/// `rank` (0: none): the median of 5 runs after a warm-up, in ms.
+fn time_conv(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
+    let w: Vec<f32> = (0..s.cout * s.k()).map(|i| ((i % 7) as f32 - 3.0) * 0.01).collect();
+    let mut packed = vec![0.0f32; conv::packed_weight_len(s, algo)];
+    conv::pack_weight(s, algo, &w, &mut packed);
+    let a_shape = conv::lora_a_shape(s, rank.max(1));
+    let a: Vec<f32> = (0..rank * s.k()).map(|i| ((i % 3) as f32 - 1.0) * 0.01).collect();
+    let mut a_packed = vec![0.0f32; if rank > 0 { conv::packed_weight_len(&a_shape, algo) } else { 0 }];
+    if rank > 0 {
+        conv::pack_weight(&a_shape, algo, &a, &mut a_packed);
+    }
+    let b: Vec<f32> = (0..s.cout * rank).map(|i| ((i % 5) as f32 - 2.0) * 0.01).collect();
+    let lora = (rank > 0).then(|| conv::Lora { a: &a_packed, b: &b, rank });
+    let x: Vec<f32> = (0..s.n * s.cin * s.h * s.w).map(|i| ((i % 5) as f32 - 2.0) * 0.1).collect();
+    let mut out = vec![0.0f32; s.n * s.cout * s.oh * s.ow];
+    let mut scratch = vec![0.0f32; conv::lora_scratch_len(s, algo, rank, 1)];
+    let shift = vec![0.0f32; s.cout];
+    let ep = Epilogue { scale: None, shift: Some(&shift), relu: true };
+    let once = |out: &mut [f32], scratch: &mut [f32]| {
+        conv::conv2d_lora(s, algo, &packed, lora.as_ref(), &ep, &x, out, scratch, 1)
+    };
+    once(&mut out, &mut scratch);
+    let mut times: Vec<f64> = (0..5)
+        .map(|_| {
+            let t = Instant::now();
+            once(&mut out, &mut scratch);
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[2]
+}
+
+/// A conv's shape at batch 1, its default algorithm.
+fn conv_shape(g: &Graph, id: NodeId) -> Option<(Conv2dShape, ConvAlgo)> {
+    let Op::Conv2d(c) = &g.node(id).op else { return None };
+    let (h, w) = spatial(g, id);
+    let s = c.conv.shape(1, h, w);
+    Some((s, c.algo.unwrap_or_else(|| conv::choose(&s))))
+}
+
+/// The shape a linear layer runs at, as the 1x1 conv over its rows that computes the same
+/// GEMM (rows = the input's elements at batch 1 over its features).
+fn linear_shape(g: &Graph, id: NodeId, fin: usize, fout: usize) -> Conv2dShape {
+    let rows = g
+        .inputs(id)
+        .first()
+        .and_then(|v| g.value_type(*v))
+        .map(|t| (0..t.rank()).skip(1).filter_map(|a| t.known_dim(a)).product::<i64>().max(1) as usize)
+        .map_or(1, |n| (n / fin.max(1)).max(1));
+    Conv2dShape::square(1, fin, 1, fout, 1, 1, 0, 1).with_rows(rows)
+}
+
+trait WithRows {
+    fn with_rows(self, rows: usize) -> Self;
+}
+impl WithRows for Conv2dShape {
+    fn with_rows(mut self, rows: usize) -> Self {
+        (self.h, self.oh) = (rows, rows);
+        self
+    }
+}
+
+/// The kernels a node runs as, for timing: its shape and algorithm.
+fn kernel(g: &Graph, id: NodeId) -> Option<(Conv2dShape, ConvAlgo)> {
+    match &g.node(id).op {
+        Op::Conv2d(_) => conv_shape(g, id),
+        Op::Linear(l) => {
+            let (fin, fout) = (l.linear.in_features.max(0) as usize, l.linear.out_features.max(0) as usize);
+            Some((linear_shape(g, id, fin, fout), ConvAlgo::Gemm1x1))
+        }
+        _ => None,
+    }
+}
+
+/// A LoRA branch's cost, in ms: on a conv, what it adds to the layer's kernel at
+/// `algo`, which computes it (`fuse_lora`, [`Timer::fused_branch_ms`]); on a linear, its
+/// `A` and `B` GEMMs. The one place the branch is priced.
+pub fn branch_ms(g: &Graph, layer: NodeId, algo: Option<ConvAlgo>, a: NodeId, b: NodeId, timer: &mut Timer) -> f64 {
+    // Fixed costs (tests) price the branch as its two layers at their own algorithms: the
+    // multiply-adds the fused kernel adds.
+    if let (Timing::Measure, Some((s, default)), Some((sa, _))) = (timer.timing, conv_shape(g, layer), conv_shape(g, a))
+    {
+        return timer.fused_branch_ms(&s, algo.unwrap_or(default), sa.cout);
+    }
+    [a, b].into_iter().filter_map(|n| kernel(g, n)).map(|(s, algo)| timer.ms(&s, algo)).sum()
+}
+
+/// One option of a layer.
+#[derive(Clone, Debug)]
+struct Opt {
+    lora: Option<LoraMode>,
+    algo: Option<ConvAlgo>,
+    bytes: Vec<u64>,
+}
+
+impl Opt {
+    fn total(&self) -> u64 {
+        self.bytes.iter().sum()
+    }
+    fn max(&self) -> u64 {
+        self.bytes.iter().copied().max().unwrap_or(0)
+    }
+}
+
+/// A layer with a choice.
+struct Item {
+    path: String,
+    node: NodeId,
+    /// The LoRA branch's `A` and `B`.
+    branch: Option<(NodeId, NodeId)>,
+    opts: Vec<Opt>,
+    /// The index of the fastest option (merge, the default algorithm).
+    start: usize,
+}
+
+/// Whether tensor `name` has a value of its own (other bits than the base's) in variant `v`
+/// (1-based).
+fn own(table: &TensorTable, name: &str, v: usize) -> bool {
+    table
+        .get(name)
+        .is_some_and(|t| t.variants.get(v - 1).is_some_and(|d| d.as_ref().is_some_and(|d| !same_bits(d, &t.base))))
+}
+
+/// Whether a tensor is zero everywhere under variant `v` (0: the base).
+fn zero(table: &TensorTable, name: &str, v: usize) -> bool {
+    table.value(name, v).is_none_or(|d| d.iter().all(|x| *x == 0.0))
+}
+
+fn param(g: &Graph, id: NodeId, slot: &str) -> Option<String> {
+    let node = g.node(id);
+    node.params.iter().find(|s| s.name == slot).map(|s| node.param_name(s))
+}
+
+fn numel(table: &TensorTable, name: &str) -> u64 {
+    table.get(name).map_or(0, |t| t.numel() as u64)
+}
+
+/// The decisions for a module, or `None` when nothing has a choice.
+pub fn choose(
+    module: &Module,
+    table: &TensorTable,
+    forced: Option<LoraMode>,
+    budget_pct: Option<f64>,
+    explain: bool,
+    timer: &mut Timer,
+) -> Option<Strategy> {
+    let g = &module.graph;
+    let nv = table.variant_count();
+    if nv == 0 {
+        return None;
+    }
+    let variants = 1..=nv;
+    let injections: &[Injection] = module.adapt.as_ref().map_or(&[], |p| &p.injections);
+    // LoRA layers, by their adapted layer.
+    let lora: HashMap<NodeId, (NodeId, NodeId)> = injections
+        .iter()
+        .filter_map(|i| match *i {
+            Injection::Lora { base, a, b, .. } => Some((base, (a, b))),
+            Injection::Adapter { .. } => None,
+        })
+        .collect();
+    let branch_nodes: std::collections::HashSet<NodeId> =
+        injections.iter().filter(|i| matches!(i, Injection::Lora { .. })).flat_map(|i| i.nodes()).collect();
+    // The base plan (no variants) has no injections at all: `drop_inactive` drops them.
+    let injected: std::collections::HashSet<NodeId> = injections.iter().flat_map(|i| i.nodes()).collect();
+
+    let mut order: Vec<NodeId> = g.topo_order().unwrap_or_else(|| g.node_ids().collect());
+    order.retain(|n| g.contains(*n));
+    let mut items: Vec<Item> = Vec::new();
+    let mut fixed = vec![0u64; nv];
+    let mut base_bytes = 0u64;
+    for &id in &order {
+        let node = g.node(id);
+        let in_branch = branch_nodes.contains(&id);
+        // The base plan's bytes: every kernel's stored tensors, LoRA branches and adapters
+        // aside.
+        if !injected.contains(&id) {
+            base_bytes += base_node_bytes(g, table, id);
+        }
+        if in_branch {
+            continue;
+        }
+        let weight = param(g, id, "weight");
+        let branch = lora.get(&id).copied();
+        let owned_w = |v: usize| weight.as_deref().is_some_and(|w| own(table, w, v));
+        let conv = conv_shape(g, id);
+        let packed_options: Vec<ConvAlgo> = match conv {
+            Some((s, default)) => {
+                let mut a = vec![default];
+                for c in [ConvAlgo::Winograd4, ConvAlgo::Winograd2, ConvAlgo::Im2col] {
+                    if c.supports(&s) && !a.contains(&c) && c.packed_len(&s) < default.packed_len(&s) {
+                        a.push(c);
+                    }
+                }
+                a
+            }
+            None => Vec::new(),
+        };
+        let owned_anywhere = variants.clone().any(owned_w);
+        let has_choice = branch.is_some() || (owned_anywhere && packed_options.len() > 1);
+        // The tensors of the node no choice changes.
+        for v in variants.clone() {
+            fixed[v - 1] += fixed_node_bytes(g, table, id, v, has_choice);
+        }
+        if !has_choice {
+            continue;
+        }
+        let w_elems = |algo: Option<ConvAlgo>| match (conv, algo) {
+            (Some((s, _)), Some(a)) => a.packed_len(&s) as u64,
+            _ => weight.as_deref().map_or(0, |w| numel(table, w)),
+        };
+        let mut opts = Vec::new();
+        let strategies: Vec<Option<LoraMode>> = match (branch, forced) {
+            (None, _) => vec![None],
+            (Some(_), Some(m)) => vec![Some(m)],
+            (Some(_), None) => vec![Some(LoraMode::Merge), Some(LoraMode::Branch)],
+        };
+        for lm in strategies {
+            let algos: Vec<Option<ConvAlgo>> =
+                if packed_options.is_empty() { vec![None] } else { packed_options.iter().map(|&a| Some(a)).collect() };
+            for algo in algos {
+                let bytes: Vec<u64> = variants
+                    .clone()
+                    .map(|v| {
+                        let mut b = 0u64;
+                        let merged_delta = branch.is_some_and(|(a, bb)| {
+                            let (wa, wb) = (param(g, a, "weight"), param(g, bb, "weight"));
+                            lm == Some(LoraMode::Merge)
+                                && wa.is_some_and(|n| !zero(table, &n, v))
+                                && wb.is_some_and(|n| !zero(table, &n, v))
+                        });
+                        if owned_w(v) || merged_delta {
+                            b += w_elems(algo);
+                        }
+                        if let (Some((a, bb)), Some(LoraMode::Branch)) = (branch, lm) {
+                            for n in [a, bb] {
+                                if let Some(w) = param(g, n, "weight")
+                                    && own(table, &w, v)
+                                {
+                                    // `fuse_lora` stores a conv's `A` packed for the layer's
+                                    // algorithm (Winograd-transformed), `B` as it is.
+                                    b += match (conv, conv_shape(g, n)) {
+                                        (Some((_, default)), Some((sa, _))) if n == a => {
+                                            algo.unwrap_or(default).packed_len(&sa) as u64
+                                        }
+                                        _ => numel(table, &w),
+                                    };
+                                }
+                            }
+                        }
+                        b * 4
+                    })
+                    .collect();
+                // The algorithm matters only where the weight is the variants' own.
+                let owned = owned_anywhere || lm == Some(LoraMode::Merge);
+                if !owned && algo != packed_options.first().copied() {
+                    continue;
+                }
+                opts.push(Opt { lora: lm, algo, bytes });
+            }
+        }
+        items.push(Item { path: node.path.clone(), node: id, branch, opts, start: 0 });
+    }
+    if items.is_empty() {
+        return None;
+    }
+
+    let budget = budget_pct.map(|p| (p / 100.0 * base_bytes as f64).floor() as u64);
+    let mut at: Vec<usize> = items.iter().map(|i| i.start).collect();
+    let total = |at: &[usize], items: &[Item]| -> u64 {
+        (0..nv)
+            .map(|v| fixed[v] + items.iter().zip(at).map(|(it, &k)| it.opts[k].bytes[v]).sum::<u64>())
+            .max()
+            .unwrap_or(0)
+    };
+    let mut timed = explain;
+    let latency =
+        |i: usize, k: usize, items: &[Item], timer: &mut Timer| option_ms(g, &items[i], &items[i].opts[k], timer);
+    let mut unmet = None;
+    if let Some(budget) = budget
+        && total(&at, &items) > budget
+    {
+        timed = true;
+        loop {
+            if total(&at, &items) <= budget {
+                break;
+            }
+            // Each layer's next cheaper option: the fastest that stores fewer bytes.
+            let mut best: Option<(f64, usize, usize)> = None;
+            for i in 0..items.len() {
+                let cur = &items[i].opts[at[i]];
+                let (cur_total, cur_ms) = (cur.total(), latency(i, at[i], &items, timer));
+                let mut next: Option<(f64, u64, usize)> = None;
+                for k in 0..items[i].opts.len() {
+                    let o = &items[i].opts[k];
+                    if o.total() >= cur_total {
+                        continue;
+                    }
+                    let ms = latency(i, k, &items, timer);
+                    if next.is_none_or(|(nms, nb, _)| ms < nms || (ms == nms && o.total() > nb)) {
+                        next = Some((ms, o.total(), k));
+                    }
+                }
+                let Some((ms, bytes, k)) = next else { continue };
+                let saved = (cur_total - bytes) as f64;
+                let ratio = saved / (ms - cur_ms).max(1e-9);
+                if best.is_none_or(|(r, _, _)| ratio > r) {
+                    best = Some((ratio, i, k));
+                }
+            }
+            let Some((_, i, k)) = best else { break };
+            at[i] = k;
+        }
+        // The greedy moves may overshoot (one large layer saves more than was missing):
+        // give back latency while the budget holds, the largest gain first.
+        loop {
+            let mut best: Option<(f64, usize, usize)> = None;
+            for i in 0..items.len() {
+                let cur_ms = latency(i, at[i], &items, timer);
+                for k in 0..items[i].opts.len() {
+                    let ms = latency(i, k, &items, timer);
+                    let mut trial = at.clone();
+                    trial[i] = k;
+                    if ms < cur_ms && total(&trial, &items) <= budget && best.is_none_or(|(g, _, _)| cur_ms - ms > g) {
+                        best = Some((cur_ms - ms, i, k));
+                    }
+                }
+            }
+            let Some((_, i, k)) = best else { break };
+            at[i] = k;
+        }
+        if total(&at, &items) > budget {
+            let least: Vec<usize> = items
+                .iter()
+                .map(|it| (0..it.opts.len()).min_by_key(|&k| (it.opts[k].max(), it.opts[k].total(), k)).unwrap_or(0))
+                .collect();
+            unmet = Some(pct(total(&least, &items), base_bytes));
+        }
+    }
+    let mut layers = Vec::new();
+    for (i, it) in items.iter().enumerate() {
+        let o = &it.opts[at[i]];
+        let (predicted, added, measured) = if timed {
+            let p = latency(i, at[i], &items, timer);
+            // Over the base model's layer: its kernel at the default algorithm, no branch.
+            let base = kernel(g, it.node).map_or(0.0, |(s, a)| timer.ms(&s, a));
+            let m = explain.then(|| option_ms_fresh(g, it, o, timer));
+            (Some(p), Some(p - base), m)
+        } else {
+            (None, None, None)
+        };
+        let algo = o.algo.or_else(|| conv_shape(g, it.node).map(|c| c.1));
+        layers.push(LayerChoice {
+            path: it.path.clone(),
+            lora: o.lora,
+            algo,
+            bytes: o.bytes.clone(),
+            predicted_ms: predicted,
+            added_ms: added,
+            measured_ms: measured.flatten(),
+        });
+    }
+    let base_ms = timed.then(|| {
+        order
+            .iter()
+            .filter(|n| !branch_nodes.contains(n))
+            .filter_map(|&n| conv_shape(g, n))
+            .map(|(s, a)| timer.ms(&s, a))
+            .sum()
+    });
+    Some(Strategy {
+        layers,
+        base_bytes,
+        fixed_bytes: fixed,
+        keys: table.variants.iter().map(|v| v.key.to_string()).collect(),
+        budget_pct,
+        unmet,
+        base_ms,
+    })
+}
+
+/// An option's latency: the layer's kernel at the option's algorithm, and its branch.
+fn option_ms(g: &Graph, it: &Item, o: &Opt, timer: &mut Timer) -> f64 {
+    let own = match (kernel(g, it.node), o.algo) {
+        (Some((s, _)), Some(a)) => timer.ms(&s, a),
+        (Some((s, a)), None) => timer.ms(&s, a),
+        _ => 0.0,
+    };
+    let branch = match (it.branch, o.lora) {
+        (Some((a, b)), Some(LoraMode::Branch)) => branch_ms(g, it.node, o.algo, a, b, timer),
+        _ => 0.0,
+    };
+    own + branch
+}
+
+/// [`option_ms`] timed again, not from the cache: `None` when the option runs nothing.
+fn option_ms_fresh(g: &Graph, it: &Item, o: &Opt, timer: &mut Timer) -> Option<f64> {
+    let mut fresh = Timer { timing: timer.timing, cache: HashMap::new(), lora_cache: HashMap::new() };
+    Some(option_ms(g, it, o, &mut fresh))
+}
+
+/// The bytes a node stores in the base plan: a conv's weight packed for its default
+/// algorithm, a folded BatchNorm's scale and shift (and its record's `weight` and `bias`,
+/// which `readi adapt-bn` reads), a linear's weight and bias, any other node's parameters.
+fn base_node_bytes(g: &Graph, table: &TensorTable, id: NodeId) -> u64 {
+    let node = g.node(id);
+    let elems: u64 = match &node.op {
+        Op::Conv2d(c) => {
+            let w = conv_shape(g, id).map_or(0, |(s, a)| a.packed_len(&s) as u64);
+            w + if c.bias { c.conv.out_channels.max(0) as u64 } else { 0 }
+        }
+        Op::BatchNorm(b) => 4 * b.channels.max(0) as u64,
+        _ => node.params.iter().map(|s| numel(table, &node.param_name(s))).sum(),
+    };
+    elems * 4
+}
+
+/// The bytes variant `v` stores for a node's tensors that no choice changes: everything
+/// but the weight of a layer with a choice. A BatchNorm's folded scale varies with its
+/// `weight` and `running_var`, its shift with any of its four; a conv's or linear's bias is
+/// its epilogue's shift; a conv's weight is packed for its default algorithm.
+fn fixed_node_bytes(g: &Graph, table: &TensorTable, id: NodeId, v: usize, has_choice: bool) -> u64 {
+    let node = g.node(id);
+    let p = |s: &str| param(g, id, s).is_some_and(|n| own(table, &n, v));
+    let elems: u64 = match &node.op {
+        Op::BatchNorm(b) => {
+            let c = b.channels.max(0) as u64;
+            let scale = p("weight") || p("running_var");
+            let shift = scale || p("bias") || p("running_mean");
+            c * (scale as u64 + shift as u64)
+        }
+        Op::Conv2d(c) => {
+            let w = if !has_choice && p("weight") {
+                conv_shape(g, id).map_or(0, |(s, a)| a.packed_len(&s) as u64)
+            } else {
+                0
+            };
+            w + if c.bias && p("bias") { c.conv.out_channels.max(0) as u64 } else { 0 }
+        }
+        _ => node
+            .params
+            .iter()
+            .filter(|s| !(has_choice && s.name == "weight"))
+            .map(|s| node.param_name(s))
+            .filter(|n| own(table, n, v))
+            .map(|n| numel(table, &n))
+            .sum(),
+    };
+    elems * 4
+}
+
+/// The `--explain` table: one row per layer with a choice (its largest variant's bytes;
+/// the latency the option predicts, what it adds over the base model's layer, and the
+/// chosen kernels timed again), then the totals.
+pub fn explain(s: &Strategy) -> String {
+    use crate::print::bytes;
+    let mut out = String::new();
+    let ms = |t: Option<f64>| t.map_or("-".to_string(), |t| format!("{t:.3} ms"));
+    let plus = |t: Option<f64>| t.map_or("-".to_string(), |t| format!("+{:.3} ms", t.max(0.0)));
+    let width = s.layers.iter().map(|l| l.path.len()).max().unwrap_or(5).max(5);
+    let _ = writeln!(
+        out,
+        "{:<width$}  {:<8}  {:<9}  {:>13}  {:>10}  {:>10}  {:>10}",
+        "layer", "strategy", "algorithm", "bytes/variant", "predicted", "added", "measured"
+    );
+    for l in &s.layers {
+        let b = l.bytes.iter().copied().max().unwrap_or(0);
+        let _ = writeln!(
+            out,
+            "{:<width$}  {:<8}  {:<9}  {:>13}  {:>10}  {:>10}  {:>10}",
+            l.path,
+            l.lora.map_or("-", LoraMode::name),
+            l.algo.map_or("-", ConvAlgo::name),
+            bytes(b),
+            ms(l.predicted_ms),
+            plus(l.added_ms),
+            ms(l.measured_ms)
+        );
+    }
+    let totals = s.variant_bytes();
+    let max = totals.iter().copied().max().unwrap_or(0);
+    let budget = s.budget_pct.map_or("no budget".to_string(), |b| format!("budget {b:.2}%"));
+    let fixed = s.fixed_bytes.iter().copied().max().unwrap_or(0);
+    let _ = writeln!(
+        out,
+        "bytes per variant: {} = {:.2}% of the base's {} ({budget}); {} of it no choice changes (BatchNorms, heads, \
+         adapters)",
+        bytes(max),
+        s.max_pct(),
+        bytes(s.base_bytes),
+        bytes(fixed)
+    );
+    if s.keys.len() > 1 {
+        let each: Vec<String> =
+            s.keys.iter().zip(&totals).map(|(k, b)| format!("{k} {:.2}%", pct(*b, s.base_bytes))).collect();
+        let _ = writeln!(out, "  per variant: {}", each.join(", "));
+    }
+    if let Some(least) = s.unmet {
+        let _ = writeln!(out, "the budget cannot be met: the smallest achievable is {least:.2}%");
+    }
+    match s.base_ms {
+        Some(base) => {
+            let added: f64 = s.layers.iter().filter_map(|l| l.added_ms).sum();
+            let _ = writeln!(
+                out,
+                "predicted latency overhead: +{added:.3} ms over the base's conv time of {base:.3} ms = {:.2}%",
+                if base > 0.0 { added * 100.0 / base } else { 0.0 }
+            );
+        }
+        None => {
+            let _ = writeln!(out, "latency not timed (no choice depended on it)");
+        }
+    }
+    out
+}
+
+/// The strategy's layers by path, for lookups by name.
+pub fn by_path(s: &Strategy) -> BTreeMap<&str, &LayerChoice> {
+    s.layers.iter().map(|l| (l.path.as_str(), l)).collect()
+}

@@ -1,0 +1,268 @@
+//! The per-layer strategy (`choose_strategy`): the chooser with fixed kernel costs
+//! (hand-derived choices), plans whose layers mix merge and branch computing what the
+//! all-merge and all-branch plans compute, and the bytes it reports against the plan's
+//! own variant tables.
+//!
+//! The spec is torchvision's ResNet-18 with PEFT LoRA r=4 alpha=8 on every 3x3 conv of
+//! layer3 and layer4, every BatchNorm and the classifier tuned.
+
+mod common;
+
+use std::collections::HashSet;
+use std::sync::Arc;
+
+use readi_compiler::Module;
+use readi_compiler::backend::{self, CompileOptions, LoraMode};
+use readi_compiler::passes::choose_strategy::{self, Conv2dShape, ConvAlgo, Strategy, Timing};
+use readi_plan::format::Manifest;
+use readi_runtime::exec::{Input, Session};
+use readi_runtime::plan::Plan;
+
+const ADAPT: &str = "adapt {
+  tune batchnorm
+  tune fc
+  lora rank=4 alpha=8 on layer3.{0,1}.{conv1,conv2}, layer4.{0,1}.{conv1,conv2}
+}";
+
+/// ResNet-18 with [`ADAPT`] for its `adapt` section, at `img` pixels and 10 classes.
+fn module(img: &str) -> Module {
+    let text = std::fs::read_to_string(common::root().join("models/resnet18.readi")).expect("spec");
+    let start = text.find("adapt {").expect("adapt section");
+    let end = start + text[start..].find("\n}").expect("end of adapt") + 2;
+    let text = format!("{}{ADAPT}{}", &text[..start], &text[end..]);
+    let (sources, out) =
+        common::compile_text("resnet18_lora.readi", &text, &[("num_classes", "10"), ("img", img)], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    out.module.expect("module")
+}
+
+const KEYS: [&str; 2] = ["gamma=0.25", "blur=5"];
+
+/// Milliseconds proportional to multiply-adds: Winograd F(4x4) does 4x fewer, F(2x2)
+/// 2.25x fewer; 1e-6 ms each.
+fn macs(s: &Conv2dShape, algo: ConvAlgo) -> f64 {
+    let m = (s.cout * s.k() * s.oh * s.ow) as f64;
+    let speed = match algo {
+        ConvAlgo::Winograd4 => 4.0,
+        ConvAlgo::Winograd2 => 2.25,
+        _ => 1.0,
+    };
+    m / speed * 1e-6
+}
+
+fn opts(lora: LoraMode, budget: Option<f64>) -> CompileOptions {
+    CompileOptions { lora, memory_budget: budget, timing: Timing::Fixed(macs), ..CompileOptions::default() }
+}
+
+fn compile(m: &Module, o: &CompileOptions) -> (Plan, Vec<String>, Option<Strategy>) {
+    let weights = backend::seeded_weights(&m.graph, 11);
+    let keys: Vec<String> = KEYS.iter().map(|k| k.to_string()).collect();
+    let variants = backend::seeded_variants(m, &keys, 12);
+    let (plan, warnings, s) = backend::compile_explained(m, &weights, "<seeded>", &variants, o).expect("compiles");
+    (plan, warnings.0.iter().map(|d| d.message.clone()).collect(), s)
+}
+
+/// Per variant, the bytes of the tensors its table replaces (each once), from the plan.
+fn plan_variant_bytes(m: &Manifest) -> Vec<u64> {
+    m.variants
+        .iter()
+        .map(|v| {
+            let own: HashSet<usize> = v.replaces.iter().map(|r| r.with).collect();
+            own.iter().map(|&t| m.tensors[t].numel() as u64 * 4).sum()
+        })
+        .collect()
+}
+
+fn mode_of(s: &Strategy, path: &str) -> LoraMode {
+    s.lora_of(path).unwrap_or_else(|| panic!("no decision for {path}"))
+}
+
+const LAYER3: [&str; 4] = ["layer3.0.conv1", "layer3.0.conv2", "layer3.1.conv1", "layer3.1.conv2"];
+const LAYER4_WINOGRAD: [&str; 3] = ["layer4.0.conv2", "layer4.1.conv1", "layer4.1.conv2"];
+
+#[test]
+fn loose_budget_merges_everything_at_the_default_algorithms() {
+    let m = module("224");
+    let (plan, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
+    let s = s.expect("a strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    assert_eq!(s.layers.len(), 8);
+    for l in &s.layers {
+        assert_eq!(l.lora, Some(LoraMode::Merge), "{}", l.path);
+    }
+    // Hand-derived: layer3's stride-1 convs at 14x14 are Winograd F(4x4), 36 * 256 * 256
+    // floats; layer4's at 7x7 F(2x2), 16 * 512 * 512; the stride-2 ones im2col, raw.
+    let by = choose_strategy::by_path(&s);
+    assert_eq!(by["layer3.0.conv2"].algo, Some(ConvAlgo::Winograd4));
+    assert_eq!(by["layer3.0.conv2"].bytes, vec![36 * 256 * 256 * 4; 2]);
+    assert_eq!(by["layer4.1.conv1"].algo, Some(ConvAlgo::Winograd2));
+    assert_eq!(by["layer4.1.conv1"].bytes, vec![16 * 512 * 512 * 4; 2]);
+    assert_eq!(by["layer4.0.conv1"].algo, Some(ConvAlgo::Im2col));
+    assert_eq!(by["layer4.0.conv1"].bytes, vec![512 * 256 * 9 * 4; 2]);
+    // The same as the default compile (merge, no budget), byte for byte.
+    let (default, _, _) = compile(&m, &opts(LoraMode::Merge, None));
+    assert_eq!(plan_variant_bytes(&plan.manifest), plan_variant_bytes(&default.manifest));
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+}
+
+#[test]
+fn tight_budget_branches_the_largest_layers_first() {
+    let m = module("224");
+    let (_, _, merged) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
+    let merged = merged.expect("a strategy");
+    // Branching layer4.0.conv2 saves its F(2x2) weight, 16 * 512 * 512 floats, for A (packed
+    // for F(2x2) too, as the fused kernel reads it) and B, 16 * 4 * 512 + 512 * 4 floats:
+    // 16.6 MB for 1.00 ms added (A and B's multiply-adds at
+    // 1e-6 ms each), 16.7 MB/ms, the same for layer4.1's two. Next: layer4.0.conv1, 4.67 MB
+    // for 0.55 ms (8.5 MB/ms); layer3's F(4x4) convs, 9.40 MB for 2.01 ms (4.7 MB/ms);
+    // layer3.0.conv1, 1.16 MB for 1.10 ms (1.1 MB/ms); im2col instead of Winograd saves
+    // less for far more. A budget that the three layer4 F(2x2) convs branched just meet:
+    let saved = 3 * (16 * 512 * 512 - (16 * 4 * 512 + 512 * 4)) * 4;
+    let need = merged.variant_bytes().into_iter().max().expect("variants") - saved;
+    let pct = need as f64 * 100.0 / merged.base_bytes as f64 + 1e-9;
+    let (plan, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some(pct)));
+    let s = s.expect("a strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    for p in LAYER4_WINOGRAD {
+        assert_eq!(mode_of(&s, p), LoraMode::Branch, "{p}");
+    }
+    assert_eq!(mode_of(&s, "layer4.0.conv1"), LoraMode::Merge);
+    for p in LAYER3 {
+        assert_eq!(mode_of(&s, p), LoraMode::Merge, "{p}");
+    }
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+    // A little less: layer4.0.conv1 goes next.
+    let (_, _, s) = compile(&m, &opts(LoraMode::Auto, Some(pct - 0.01)));
+    let s = s.expect("a strategy");
+    assert_eq!(mode_of(&s, "layer4.0.conv1"), LoraMode::Branch);
+    assert_eq!(mode_of(&s, "layer3.0.conv2"), LoraMode::Merge);
+    // The explained predicted latency: every branched layer adds its A and B.
+    let a_b = |cin: usize, cout: usize, hw: usize, stride: usize| {
+        let o = hw / stride;
+        (4 * cin * 9 * o * o + cout * 4 * o * o) as f64 * 1e-6
+    };
+    let added: f64 = s.layers.iter().filter_map(|l| l.added_ms).sum();
+    let want = 3.0 * a_b(512, 512, 7, 1) + a_b(256, 512, 14, 2);
+    assert!((added - want).abs() < 1e-9, "{added} vs {want}");
+}
+
+#[test]
+fn impossible_budget_warns_with_the_smallest_achievable() {
+    let m = module("224");
+    let (plan, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some(0.1)));
+    let s = s.expect("a strategy");
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(warnings[0].contains("cannot be met"), "{}", warnings[0]);
+    let least = s.unmet.expect("unmet");
+    assert!(warnings[0].contains(&format!("{least:.2}%")), "{}", warnings[0]);
+    // Every layer branched; what is left is the BatchNorms' scale and shift, the
+    // classifier and A and B.
+    for l in &s.layers {
+        assert_eq!(l.lora, Some(LoraMode::Branch), "{}", l.path);
+    }
+    let bytes = plan_variant_bytes(&plan.manifest);
+    let max = *bytes.iter().max().expect("variants");
+    assert_eq!(s.variant_bytes(), bytes);
+    assert!((least - max as f64 * 100.0 / s.base_bytes as f64).abs() < 1e-9);
+    // By hand: ResNet-18's BatchNorms have 4800 channels (scale and shift each), the
+    // classifier 512 * 10 + 10, the eight A and B, A packed for its layer's algorithm:
+    // layer3.0.conv1 (stride 2, im2col) 4*128*9 + 256*4, three more in layer3 (F(4x4), 36
+    // floats per 3x3) 4*256*36 + 256*4, layer4.0.conv1 (im2col) 4*256*9 + 512*4, three
+    // (F(2x2), 16 floats) 4*512*16 + 512*4.
+    let ab =
+        (4 * 128 * 9 + 256 * 4) + 3 * (4 * 256 * 36 + 256 * 4) + (4 * 256 * 9 + 512 * 4) + 3 * (4 * 512 * 16 + 512 * 4);
+    assert_eq!(max, ((2 * 4800 + 512 * 10 + 10) + ab) as u64 * 4);
+}
+
+/// Runs every variant of a plan on one seeded image.
+fn outputs(plan: Plan, img: usize) -> Vec<Vec<f32>> {
+    let plan = Arc::new(plan);
+    let keys: Vec<String> = plan.variant_keys().map(|k| k.to_string()).collect();
+    let mut session = Session::new(plan, 1).expect("session");
+    let shape = [1, 3, img, img];
+    let data = backend::seeded_tensor(5, "image", &shape);
+    keys.iter()
+        .map(|k| {
+            session.set_variant(k).expect("key");
+            let out = session.run(&[Input { name: "image", data: &data, shape: &shape }]).expect("runs");
+            out[0].1.data.clone()
+        })
+        .collect()
+}
+
+#[test]
+fn mixed_strategies_compute_what_all_merge_and_all_branch_compute() {
+    // At 96 pixels layer3's stride-1 convs are F(2x2) (6x6), layer4's im2col.
+    let m = module("96");
+    let (merged, _, sm) = compile(&m, &opts(LoraMode::Merge, None));
+    let (branched, _, sb) = compile(&m, &opts(LoraMode::Branch, None));
+    let (sm, sb) = (sm.expect("strategy"), sb.expect("strategy"));
+    let base = {
+        let weights = backend::seeded_weights(&m.graph, 11);
+        backend::compile(&m, &weights, "<seeded>", &CompileOptions::default()).expect("base").0
+    };
+    // The base plan's bytes, as the strategy counts them.
+    assert_eq!(sm.base_bytes, base.tensor_bytes() as u64);
+    let (lo, hi) = (sb.max_pct(), sm.max_pct());
+    let (mixed, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some((lo + hi) / 2.0)));
+    let s = s.expect("strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    let modes: HashSet<&str> = s.layers.iter().filter_map(|l| l.lora.map(LoraMode::name)).collect();
+    assert_eq!(modes.len(), 2, "a mix of merge and branch: {:?}", s.layers);
+    assert!(s.max_pct() <= (lo + hi) / 2.0);
+    for (st, plan) in [(&sm, &merged), (&sb, &branched), (&s, &mixed)] {
+        assert_eq!(st.variant_bytes(), plan_variant_bytes(&plan.manifest));
+    }
+    let want = outputs(merged, 96);
+    for plan in [branched, mixed] {
+        for (a, b) in want.iter().zip(outputs(plan, 96)) {
+            let err = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+            let scale = a.iter().map(|x| x.abs()).fold(0.0, f32::max).max(1.0);
+            assert!(err <= 1e-4 * scale, "max error {err}");
+        }
+    }
+}
+
+#[test]
+fn explain_table() {
+    let m = module("224");
+    let mut o = opts(LoraMode::Auto, Some(20.0));
+    o.explain = true;
+    let (_, _, s) = compile(&m, &o);
+    insta::assert_snapshot!(choose_strategy::explain(&s.expect("strategy")));
+}
+
+#[test]
+fn fusion_model_bytes_are_the_plans() {
+    // BEVFusion-tiny: LoRA on attention projections (linear), adapters, tuned LayerNorms and
+    // Winograd-packed head convs.
+    let (sources, out) = common::compile("models/bevfusion_tiny.readi", &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let weights = backend::seeded_weights(&m.graph, 3);
+    let keys: Vec<String> = ["fog=0.03", "gamma=0.25"].iter().map(|k| k.to_string()).collect();
+    let variants = backend::seeded_variants(&m, &keys, 4);
+    let base = backend::compile(&m, &weights, "<seeded>", &CompileOptions::default()).expect("base").0;
+    for o in [opts(LoraMode::Merge, None), opts(LoraMode::Branch, None), opts(LoraMode::Auto, Some(3.0))] {
+        let (plan, _, s) = backend::compile_explained(&m, &weights, "<seeded>", &variants, &o).expect("compiles");
+        let s = s.expect("strategy");
+        assert_eq!(s.base_bytes, base.tensor_bytes() as u64);
+        assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest), "{:?}", o.lora);
+    }
+}
+
+#[test]
+fn a_budget_that_is_not_a_percentage_is_refused_by_name() {
+    let o = common::readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        "none.safetensors",
+        "-o",
+        "none.plan",
+        "--memory-budget=-3",
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--memory-budget") && err.contains("not a percentage"), "{err}");
+}
