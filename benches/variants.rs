@@ -40,11 +40,32 @@ fn module(src: &str, overrides: &[(&str, &str)]) -> Module {
 fn plan(m: &Module, variants: usize, lora: LoraMode) -> Arc<Plan> {
     let weights = backend::seeded_weights(&m.graph, 1);
     let keys = m.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
-    let keys: Vec<String> = keys.into_iter().take(variants).map(|k| k.to_string()).collect();
+    let keys: Vec<String> =
+        round_robin(keys.into_iter().map(|k| k.to_string()).collect()).into_iter().take(variants).collect();
     assert_eq!(keys.len(), variants, "the spec declares enough variants");
     let sources = backend::seeded_variants(m, &keys, 10);
     let opts = CompileOptions { lora, ..Default::default() };
     Arc::new(backend::compile_variants(m, &weights, "seeded", &sources, &opts).expect("compiles").0)
+}
+
+/// The keys taken one axis at a time (`fog=0.01`, `snow=0.5`, `gamma=0.25`, ...), so that
+/// the first few cover every axis and both modalities' scoped rules.
+fn round_robin(keys: Vec<String>) -> Vec<String> {
+    let mut axes: Vec<(String, std::collections::VecDeque<String>)> = Vec::new();
+    for k in keys {
+        let axis = k.split('=').next().unwrap_or("").to_string();
+        match axes.iter_mut().find(|(a, _)| *a == axis) {
+            Some((_, q)) => q.push_back(k),
+            None => axes.push((axis, std::collections::VecDeque::from([k]))),
+        }
+    }
+    let mut out = Vec::new();
+    while axes.iter().any(|(_, q)| !q.is_empty()) {
+        for (_, q) in &mut axes {
+            out.extend(q.pop_front());
+        }
+    }
+    out
 }
 
 /// The spec without its `adapter` rules: tuning and LoRA only, which fold away.
