@@ -484,6 +484,14 @@ fn cli_adapt_bn_writes_only_the_variants_batchnorms() {
     let source = std::fs::read_to_string(common::root().join(SCOPED)).expect("read spec");
     let (spec, weights, plan) = scoped_plan(&dir, &source);
     let samples = scoped_samples(&dir);
+    let o = readi(&["inspect", &plan, "--verbose"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let listing = text(&o.stdout);
+    let line = |name: &str| listing.lines().find(|l| l.trim_start().starts_with(name)).unwrap_or_default().to_string();
+    assert!(line("cam.bn.running_var ").ends_with("; owned by camera"), "{listing}");
+    assert!(line("lid.bn.running_var ").ends_with("; owned by lidar, missing=lidar"), "{listing}");
+    assert!(line("head.weight ").ends_with("; owned by every variant"), "{listing}");
+    assert!(!line("cam.conv.weight ").contains("owned by"), "{listing}");
 
     // The old plan first: every BatchNorm, and a note saying why.
     let loaded = Plan::load(Path::new(&plan)).expect("load");
