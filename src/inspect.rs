@@ -77,11 +77,20 @@ pub fn header(plan: &Plan, path: &Path) -> String {
     })
 }
 
-/// Every parameter the spec declares: name, shape and how the plan stores it.
+/// Every parameter the spec declares: name, shape, how the plan stores it and, when
+/// variants own it, which (`owned by every variant`, `owned by camera, missing=lidar`).
 pub fn params(m: &Manifest) -> String {
     render(|out| {
         for p in &m.params {
-            writeln!(out, "  {:<40} {:?} {}", escaped(&p.name), p.shape, escaped(&p.stored_as))?;
+            let owners = match &p.owned_by {
+                None => String::new(),
+                Some(s) if s.is_empty() => "; owned by every variant".to_string(),
+                Some(s) => {
+                    let names: Vec<String> = s.iter().map(|n| escaped(n).into_owned()).collect();
+                    format!("; owned by {}", names.join(", "))
+                }
+            };
+            writeln!(out, "  {:<40} {:?} {}{owners}", escaped(&p.name), p.shape, escaped(&p.stored_as))?;
         }
         Ok(())
     })

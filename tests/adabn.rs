@@ -409,3 +409,222 @@ fn write_npy(path: &Path, shape: &[usize], data: &[f32]) {
     let a = ndarray::ArrayD::from_shape_vec(ndarray::IxDyn(shape), data.to_vec()).expect("shape");
     a.write_npy(std::fs::File::create(path).expect("create")).expect("write npy");
 }
+
+// ---- Scoped ownership: adapt-bn writes what the variant owns ----
+
+const SCOPED: &str = "tests/cases/ok/adapt_scoped.readi";
+
+/// A module of `source` (tests/cases/ok/adapt_scoped.readi or an edit of it).
+fn scoped_module(source: &str) -> Module {
+    let (sources, out) = common::compile_text(SCOPED, source, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    out.module.expect("module")
+}
+
+/// `source` written to `dir`, its seeded weights, and its base plan compiled by `readi
+/// compile`: (spec, weights, plan).
+fn scoped_plan(dir: &Path, source: &str) -> (String, String, String) {
+    let spec = dir.join("scoped.readi");
+    std::fs::write(&spec, source).expect("write spec");
+    let weights = dir.join("scoped.safetensors");
+    let bytes = backend::seeded_weights(&scoped_module(source).graph, SEED).to_safetensors().expect("serialises");
+    std::fs::write(&weights, bytes).expect("write weights");
+    let plan = dir.join("base.plan");
+    let o = readi(&["compile", &p(&spec), "--weights", &p(&weights), "-o", &p(&plan)]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    (p(&spec), p(&weights), p(&plan))
+}
+
+/// Two sample batches of adapt_scoped's inputs (`image` [2, 3, 8, 8], `points` [2, 4, 8, 8]).
+fn scoped_samples(dir: &Path) -> Vec<String> {
+    let mut state = 0x2545_f491_u32;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 17;
+        state ^= state << 5;
+        (state as f32 / u32::MAX as f32) * 2.0 - 0.5
+    };
+    (0..2)
+        .map(|i| {
+            let mut set = WeightSet::default();
+            set.tensors.insert("image".into(), (vec![2, 3, 8, 8], (0..2 * 3 * 64).map(|_| next()).collect()));
+            set.tensors.insert("points".into(), (vec![2, 4, 8, 8], (0..2 * 4 * 64).map(|_| next()).collect()));
+            let path = dir.join(format!("sample{i}.safetensors"));
+            std::fs::write(&path, set.to_safetensors().expect("serialises")).expect("write sample");
+            p(&path)
+        })
+        .collect()
+}
+
+/// `readi adapt-bn PLAN --variant KEY`: its output, and the file's tensors by name.
+fn adapt_bn(plan: &str, key: &str, samples: &[String], out: &Path) -> (std::process::Output, WeightSet) {
+    let out_s = p(out);
+    let mut args = vec!["adapt-bn", plan, "--variant", key, "-o", &out_s, "--samples"];
+    args.extend(samples.iter().map(String::as_str));
+    let o = readi(&args);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let set = WeightSet::from_safetensors("stats", &std::fs::read(out).expect("stats written")).expect("valid");
+    (o, set)
+}
+
+fn names(set: &WeightSet) -> Vec<&str> {
+    let mut n: Vec<&str> = set.tensors.keys().map(String::as_str).collect();
+    n.sort();
+    n
+}
+
+/// On adapt_scoped (camera variants own `cam.bn`, lidar and lost-lidar variants `lid.bn`):
+/// each variant's file holds its own BatchNorms' statistics only, equal to those an
+/// unscoped run computes, and compiles with `--variant`; a meld not declared as a variant
+/// gets its parts' BatchNorms; a plan without the ownership record writes every
+/// BatchNorm's, as before.
+#[test]
+fn cli_adapt_bn_writes_only_the_variants_batchnorms() {
+    let dir = temp_dir("scoped");
+    let source = std::fs::read_to_string(common::root().join(SCOPED)).expect("read spec");
+    let (spec, weights, plan) = scoped_plan(&dir, &source);
+    let samples = scoped_samples(&dir);
+    let o = readi(&["inspect", &plan, "--verbose"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let listing = text(&o.stdout);
+    let line = |name: &str| listing.lines().find(|l| l.trim_start().starts_with(name)).unwrap_or_default().to_string();
+    assert!(line("cam.bn.running_var ").ends_with("; owned by camera"), "{listing}");
+    assert!(line("lid.bn.running_var ").ends_with("; owned by lidar, missing=lidar"), "{listing}");
+    assert!(line("head.weight ").ends_with("; owned by every variant"), "{listing}");
+    assert!(!line("cam.conv.weight ").contains("owned by"), "{listing}");
+
+    // The old plan first: every BatchNorm, and a note saying why.
+    let loaded = Plan::load(Path::new(&plan)).expect("load");
+    let mut manifest = loaded.manifest.clone();
+    assert!(manifest.records_ownership());
+    for param in &mut manifest.params {
+        param.owned_by = None;
+    }
+    let tensors = (0..manifest.tensors.len()).map(|i| loaded.tensor(i).to_vec()).collect();
+    let old = dir.join("old.plan");
+    Plan::new(manifest, tensors).expect("valid").write(&old).expect("write");
+    let (o, all) = adapt_bn(&p(&old), "gamma=0.5", &samples, &dir.join("all.safetensors"));
+    assert!(text(&o.stderr).contains("does not record which variants own its parameters"), "{}", text(&o.stderr));
+    assert!(text(&o.stdout).contains("2 BatchNorm layers of m re-estimated"), "{}", text(&o.stdout));
+    let stats = ["running_mean", "running_var"];
+    let both: Vec<String> = ["cam.bn", "lid.bn"].iter().flat_map(|b| stats.map(|s| format!("{b}.{s}"))).collect();
+    assert_eq!(names(&all), both);
+    // What the scoped plan refuses: the lidar branch's statistics are not the camera variant's.
+    let variant = format!("gamma=0.5={}", p(&dir.join("all.safetensors")));
+    let o = readi(&["compile", &spec, "--weights", &weights, "-o", &p(&dir.join("v.plan")), "--variant", &variant]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stdout));
+    assert!(text(&o.stderr).contains("`lid.bn.running_mean` is outside the scope of variant"), "{}", text(&o.stderr));
+
+    let cases: [(&str, &[&str]); 4] = [
+        ("gamma=0.5", &["cam.bn"]),
+        ("fog=0.03", &["lid.bn"]),
+        ("missing=lidar", &["lid.bn"]),
+        // Not a variant of the plan (none is compiled): decided from the recorded scopes.
+        ("fog=0.06+gamma=2", &["cam.bn", "lid.bn"]),
+    ];
+    for (key, bns) in cases {
+        let out = dir.join(format!("{key}.safetensors"));
+        let (o, got) = adapt_bn(&plan, key, &samples, &out);
+        let want: Vec<String> = bns.iter().flat_map(|b| stats.map(|s| format!("{b}.{s}"))).collect();
+        assert_eq!(names(&got), want, "{key}");
+        for (name, (shape, values)) in &got.tensors {
+            assert_eq!((shape, values), (&all.tensors[name].0, &all.tensors[name].1), "{key}: {name}");
+        }
+        let stdout = text(&o.stdout);
+        let skipped = 2 - bns.len();
+        let line = if skipped == 0 {
+            "2 BatchNorm layers of m re-estimated".to_string()
+        } else {
+            "1 BatchNorm layer of m re-estimated".to_string()
+        };
+        assert!(stdout.contains(&line), "{key}: {stdout}");
+        assert_eq!(stdout.contains(&format!("; 1 skipped, not owned by `{key}`")), skipped == 1, "{key}: {stdout}");
+        if key.contains('+') {
+            continue;
+        }
+        let variant = format!("{key}={}", p(&out));
+        let o = readi(&["compile", &spec, "--weights", &weights, "-o", &p(&dir.join("v.plan")), "--variant", &variant]);
+        assert!(o.status.success(), "{key}: {}", text(&o.stderr));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A variant whose scopes tune no BatchNorm gets an error naming it and its scopes, and
+/// nothing is written; so does a spec whose rules tune no BatchNorm at all.
+#[test]
+fn cli_adapt_bn_refuses_a_variant_owning_no_batchnorm() {
+    let dir = temp_dir("scoped-none");
+    let source = std::fs::read_to_string(common::root().join(SCOPED)).expect("read spec");
+    let no_lid_bn = source.replace("  tune lid.bn\n", "");
+    assert_ne!(no_lid_bn, source);
+    let (_, _, plan) = scoped_plan(&dir, &no_lid_bn);
+    let samples = scoped_samples(&dir);
+    let out = dir.join("stats.safetensors");
+    let refuse = |plan: &str, key: &str| {
+        let o = readi(&["adapt-bn", plan, "--variant", key, "-o", &p(&out), "--samples", &samples[0]]);
+        assert_eq!(o.status.code(), Some(1), "{key}: {}", text(&o.stdout));
+        assert!(!out.exists(), "{key}: nothing is written");
+        text(&o.stderr)
+    };
+    let e = refuse(&plan, "fog=0.03");
+    assert!(
+        e.contains(
+            "variant `fog=0.03` owns no BatchNorm statistics (its scopes: `lidar`, `fog`): add `tune batchnorm` to an \
+             adapt section that covers it"
+        ),
+        "{e}"
+    );
+    // The camera variants still own theirs.
+    let (_, got) = adapt_bn(&plan, "gamma=0.5", &samples, &out);
+    assert_eq!(names(&got), ["cam.bn.running_mean", "cam.bn.running_var"]);
+    std::fs::remove_file(&out).expect("remove");
+
+    // Unscoped, without `tune batchnorm`: no variant owns a BatchNorm.
+    let dir2 = dir.join("unscoped");
+    std::fs::create_dir_all(&dir2).expect("dir");
+    let start = source.find("adapt {").expect("the unscoped section");
+    let end = source.find("variants {").expect("the variants section");
+    let unscoped = format!("{}adapt {{\n  tune head\n}}\n{}", &source[..start], &source[end..]);
+    let (_, _, plan) = scoped_plan(&dir2, &unscoped);
+    let e = refuse(&plan, "gamma=0.5");
+    assert!(e.contains("variant `gamma=0.5` owns no BatchNorm statistics (it is in the scope of no scoped"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// What the plan records of each parameter's owners decides every key as the compiler's
+/// tensor table does: each declared key, each meld of two, the base.
+#[test]
+fn recorded_ownership_agrees_with_the_compiler() {
+    let source = std::fs::read_to_string(common::root().join(SCOPED)).expect("read spec");
+    let m = scoped_module(&source);
+    let weights = backend::seeded_weights(&m.graph, SEED);
+    let plan = backend::compile(&m, &weights, "seeded", &CompileOptions::default()).expect("compiles").0;
+    let owned = readi_compiler::weights::variants::owned_params(&m);
+    let manifest = &plan.manifest;
+    let c = manifest.conditions.as_ref().expect("conditions");
+    let declared = c.keys();
+    let mut keys = declared.clone();
+    for a in &declared {
+        for b in &declared {
+            if a.to_string() < b.to_string() && a.parts()[0].axis() != b.parts()[0].axis() {
+                keys.push(readi_plan::VariantKey::parse(&format!("{a}+{b}")).expect("a meld"));
+            }
+        }
+    }
+    keys.push(readi_plan::VariantKey::base());
+    assert!(keys.len() > 8, "{keys:?}");
+    let mut owners = 0;
+    for param in &manifest.params {
+        for key in &keys {
+            let want = owned.get(&param.name).is_some_and(|o| o.is_owned_by(key));
+            assert_eq!(param.is_owned_by(key, Some(c)), want, "{} under {key}", param.name);
+            owners += usize::from(want);
+        }
+    }
+    assert!(owners > 20, "{owners}");
+    // The camera branch: `camera` only; the head: every variant.
+    let find = |n: &str| manifest.params.iter().find(|p| p.name == n).expect(n);
+    assert_eq!(find("cam.bn.running_var").owned_by, Some(vec!["camera".to_string()]));
+    assert_eq!(find("head.weight").owned_by, Some(vec![]));
+    assert_eq!(find("cam.conv.weight").owned_by, None);
+}

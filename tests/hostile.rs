@@ -530,6 +530,39 @@ fn conditions_are_checked_at_load() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A parameter's recorded owners (`owned_by`) are checked at load: a scope the plan's
+/// conditions and inputs do not have is refused with the parameter's name, printed escaped.
+#[test]
+fn unknown_owning_scopes_are_refused_at_load() {
+    let dir = temp_dir("owned-by");
+    let (m, tensors) = with_conditions();
+    let owned = m.params.iter().position(|p| p.owned_by.is_some()).expect("the variants own a parameter");
+    let name = m.params[owned].name.clone();
+    let cases: [(&str, String); 4] = [
+        ("radar", format!("parameter `{name}`: owned by unknown scope `radar` (the plan's scopes: ")),
+        ("missing=radar", "owned by unknown scope `missing=radar`".into()),
+        ("fog=0.03", "owned by unknown scope `fog=0.03`".into()),
+        ("\u{1b}[2J", "owned by unknown scope `\\u{1b}[2J`".into()),
+    ];
+    for (scope, want) in cases {
+        let mut edited = m.clone();
+        edited.params[owned].owned_by = Some(vec!["camera".into(), scope.into()]);
+        let path = dir.join("owned.plan");
+        std::fs::write(&path, plan_bytes(&edited, &tensors)).expect("write plan");
+        let err = refused(&readi(&["inspect", &s(&path)]));
+        assert!(err.contains("invalid plan manifest: ") && err.contains(&want), "want `{want}`: {err}");
+        assert!(!err.contains('\u{1b}'), "{err:?}");
+    }
+    // The scopes a spec may name load: axes, modalities, `missing`, `missing=M`.
+    let mut edited = m.clone();
+    edited.params[owned].owned_by = Some(["fog", "camera", "missing", "missing=lidar"].map(String::from).to_vec());
+    let path = dir.join("owned.plan");
+    std::fs::write(&path, plan_bytes(&edited, &tensors)).expect("write plan");
+    let o = readi(&["inspect", &s(&path)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn metadata_no_selector_reads_is_refused() {
     let dir = temp_dir("meta");

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::conditions::Conditions;
 use crate::dim::Dim;
-use crate::key::VariantKey;
+use crate::key::{KeyPart, VariantKey};
 use crate::ops::{ChannelAffine, Conv2d, ConvAlgo, LayerNorm, Linear, Operator, Pure};
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
@@ -186,6 +186,56 @@ pub struct ParamSpec {
     /// model, owned by the variants.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub added: bool,
+    /// The variants that own it (AdaBN writes only what a variant owns): `None` when no
+    /// variant owns it, and in plans compiled before ownership was recorded (a plan
+    /// records it when some parameter has `Some`, [`Manifest::records_ownership`]);
+    /// `Some([])` for every variant (an unscoped `adapt` section); otherwise the scope
+    /// names of the sections that own it, as written (`camera`, `fog`, `missing`,
+    /// `missing=lidar`), read against the plan's conditions by [`ParamSpec::is_owned_by`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub owned_by: Option<Vec<String>>,
+}
+
+impl ParamSpec {
+    /// Whether the variant `key` owns this parameter, declared in the plan or not (a meld:
+    /// whether one of its parts does; the base owns nothing). A scope name covers the
+    /// level variants of the axis of that name and of the axes on the modality of that
+    /// name; `missing=M` covers the variant missing `M`, `missing` every missing variant.
+    pub fn is_owned_by(&self, key: &VariantKey, conditions: Option<&Conditions>) -> bool {
+        let Some(scopes) = &self.owned_by else { return false };
+        if key.is_base() {
+            return false;
+        }
+        if scopes.is_empty() {
+            return true;
+        }
+        scopes.iter().any(|s| scope_covers(s, key, conditions))
+    }
+}
+
+/// Whether the scope name `scope` (as [`ParamSpec::owned_by`] records it) covers the
+/// variant `key`: one of its parts is a level of the axis `scope` or of an axis on the
+/// modality `scope`, or `scope` is `missing=M` and the part is missing `M`, or `scope` is
+/// `missing` and the part is missing some modality.
+pub fn scope_covers(scope: &str, key: &VariantKey, conditions: Option<&Conditions>) -> bool {
+    let axes = conditions.map(|c| c.axes.as_slice()).unwrap_or_default();
+    key.parts().iter().any(|part| match (part, scope.split_once('=')) {
+        (KeyPart::Missing { .. }, None) => scope == crate::key::MISSING_AXIS,
+        (KeyPart::Missing { modality }, Some((axis, m))) => axis == crate::key::MISSING_AXIS && m == modality,
+        (KeyPart::Level { axis, .. }, None) => {
+            axis == scope || axes.iter().any(|a| &a.name == axis && a.modality == scope)
+        }
+        (KeyPart::Level { .. }, Some(_)) => false,
+    })
+}
+
+impl Manifest {
+    /// Whether the plan records which variants own each parameter ([`ParamSpec::owned_by`]):
+    /// some parameter is owned. Plans compiled before it was recorded, and plans whose
+    /// variants own nothing, do not.
+    pub fn records_ownership(&self) -> bool {
+        self.params.iter().any(|p| p.owned_by.is_some())
+    }
 }
 
 /// One variant: the stored tensors it reads instead of the base's, and its budget.

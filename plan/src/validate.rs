@@ -26,7 +26,10 @@
 //!    value), with finite thresholds and arm levels among the axis's; missing-modality
 //!    policies for modalities of optional inputs, once each; a meld rule whose lambdas
 //!    are finite, positive and name modalities or axes the conditions declare; and every
-//!    variant key made of declared axis levels and missing modalities.
+//!    variant key made of declared axis levels and missing modalities;
+//! 8. parameter ownership ([`crate::format::ParamSpec::owned_by`]): each scope name is
+//!    `missing`, `missing=M` for a modality `M` of an input, or the name of an axis or of
+//!    a modality (of an axis or an input), so every key can be decided.
 //!
 //! Nothing here depends on the kernels' code: a conv's packed weight length is
 //! [`crate::ops::ConvAlgo::packed_len`], defined with the algorithms.
@@ -36,7 +39,7 @@ use std::collections::HashSet;
 use crate::conditions::{KeySource, MeldBy, MissingPolicy};
 use crate::dim::Dim;
 use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, LoraSpec, MAX_LORA_RANK, Manifest, Step, Storage, escaped};
-use crate::key::KeyPart;
+use crate::key::{KeyPart, MISSING_AXIS};
 use crate::ops::{self, Conv2dShape, ConvAlgo, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
@@ -50,7 +53,8 @@ pub fn manifest(m: &Manifest) -> Result<(), String> {
     schedule(m)?;
     batchnorms(m)?;
     variants(m)?;
-    conditions(m)
+    conditions(m)?;
+    ownership(m)
 }
 
 fn bad_dim(d: &Dim, symbols: &[String]) -> bool {
@@ -515,6 +519,37 @@ fn conditions(m: &Manifest) -> Result<(), String> {
             };
             if !declared {
                 return Err(format!("variant `{}`: its part `{p}` is not declared by the plan's conditions", v.key));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// 8.
+fn ownership(m: &Manifest) -> Result<(), String> {
+    let axes = m.conditions.as_ref().map(|c| c.axes.as_slice()).unwrap_or_default();
+    let modalities: Vec<&str> =
+        m.inputs.iter().filter_map(|i| i.modality.as_deref()).chain(axes.iter().map(|a| a.modality.as_str())).collect();
+    let names: Vec<&str> = axes.iter().map(|a| a.name.as_str()).chain(modalities.iter().copied()).collect();
+    for p in &m.params {
+        for s in p.owned_by.iter().flatten() {
+            let known = match s.split_once('=') {
+                None => s == MISSING_AXIS || names.contains(&s.as_str()),
+                Some((axis, modality)) => axis == MISSING_AXIS && modalities.contains(&modality),
+            };
+            if !known {
+                let mut listed: Vec<String> = Vec::new();
+                for n in names.iter().map(|n| escaped(n).into_owned()).chain([MISSING_AXIS.to_string()]) {
+                    if !listed.contains(&n) {
+                        listed.push(n);
+                    }
+                }
+                return Err(format!(
+                    "parameter `{}`: owned by unknown scope `{}` (the plan's scopes: {})",
+                    escaped(&p.name),
+                    escaped(s),
+                    listed.join(", ")
+                ));
             }
         }
     }

@@ -1,9 +1,10 @@
 //! `readi adapt-bn`: AdaBN. Runs a plan's base model over unlabelled samples of a
-//! condition and writes every BatchNorm's re-estimated running statistics, a variant
+//! condition and writes the re-estimated running statistics of the BatchNorms the
+//! variant owns (every BatchNorm's for a plan that does not record ownership), a variant
 //! parameter file for `readi compile --variant KEY=FILE` (see
 //! `readi_runtime::calibrate` for what is computed).
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -12,6 +13,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use readi_grammar::diag::suggest;
 use readi_plan::VariantKey;
+use readi_plan::format::{escaped, scope_covers};
 use readi_runtime::calibrate::{BnCalibrator, BnStats};
 use readi_runtime::exec::{Input, SessionOptions};
 use readi_runtime::plan::{BASE_VARIANT, Plan};
@@ -35,6 +37,7 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     let start = Instant::now();
     let plan = Arc::new(Plan::load(args.plan).map_err(|e| e.to_string())?);
     let key = check_key(&plan, args.variant)?;
+    let owned = owned_statistics(&plan, &key)?;
     let shown = args.plan.display();
     let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
     let mut cal = BnCalibrator::with_options(plan.clone(), options).map_err(|e| format!("{shown}: {e}"))?;
@@ -55,11 +58,13 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     }
     bar.finish_and_clear();
     let stats = cal.statistics().map_err(|e| e.to_string())?;
-    write_stats(args.output, &stats, &key, &cal, &plan.manifest.model)?;
+    let written = write_stats(args.output, &stats, &key, &cal, &plan.manifest.model, owned.as_ref())?;
     let count = |n: usize, one: &str, many: &str| format!("{n} {}", if n == 1 { one } else { many });
+    let skipped = stats.len() - written;
+    let not_owned = if skipped == 0 { String::new() } else { format!("; {skipped} skipped, not owned by `{key}`") };
     println!(
-        "adapt-bn: {} of {} re-estimated over {} ({}) in {:.2} s on {}",
-        count(stats.len(), "BatchNorm layer", "BatchNorm layers"),
+        "adapt-bn: {} of {} re-estimated over {} ({}) in {:.2} s on {}{not_owned}",
+        count(written, "BatchNorm layer", "BatchNorm layers"),
         plan.manifest.model,
         count(cal.batches(), "batch", "batches"),
         count(cal.samples(), "sample", "samples"),
@@ -108,6 +113,43 @@ fn check_key(plan: &Plan, text: &str) -> Result<VariantKey, String> {
         return Ok(key);
     }
     Err(format!("model `{}` declares no variant `{text}`; {}(its variants: {})", m.model, hint(), shown.join(", ")))
+}
+
+/// The BatchNorm statistics (`<bn>.running_mean`, `<bn>.running_var`) the variant `key`
+/// owns, or `None` (every BatchNorm's, said in a note) when the plan does not record
+/// ownership. An error when it owns none: compiling the file would refuse every tensor.
+fn owned_statistics(plan: &Plan, key: &VariantKey) -> Result<Option<HashSet<String>>, String> {
+    let m = &plan.manifest;
+    if !m.records_ownership() {
+        eprintln!(
+            "note: the plan does not record which variants own its parameters (compiled before it was, or its \
+             variants own nothing); writing every BatchNorm's statistics"
+        );
+        return Ok(None);
+    }
+    let c = m.conditions.as_ref();
+    let is_stat = |n: &str| n.ends_with(".running_mean") || n.ends_with(".running_var");
+    let owned: HashSet<String> =
+        m.params.iter().filter(|p| is_stat(&p.name) && p.is_owned_by(key, c)).map(|p| p.name.clone()).collect();
+    if owned.is_empty() {
+        let mut scopes: Vec<&str> = Vec::new();
+        for s in m.params.iter().flat_map(|p| p.owned_by.iter().flatten()) {
+            if scope_covers(s, key, c) && !scopes.contains(&s.as_str()) {
+                scopes.push(s);
+            }
+        }
+        let its = if scopes.is_empty() {
+            "it is in the scope of no scoped `adapt` section".to_string()
+        } else {
+            let shown: Vec<String> = scopes.iter().map(|s| format!("`{}`", escaped(s))).collect();
+            format!("its scopes: {}", shown.join(", "))
+        };
+        return Err(format!(
+            "variant `{key}` owns no BatchNorm statistics ({its}): add `tune batchnorm` to an adapt section that \
+             covers it"
+        ));
+    }
+    Ok(Some(owned))
 }
 
 /// A batch: per input, name, shape and data.
@@ -164,19 +206,29 @@ fn read_batch(plan: &Plan, path: &Path, limit: usize, bar: &ProgressBar) -> Resu
     Ok(batch)
 }
 
-/// Writes `<bn>.running_mean` and `<bn>.running_var` of every BatchNorm (f32), with what
-/// made them in the metadata.
-fn write_stats(out: &Path, stats: &[BnStats], key: &VariantKey, cal: &BnCalibrator, model: &str) -> Result<(), String> {
+/// Writes `<bn>.running_mean` and `<bn>.running_var` (f32) of every BatchNorm, or of those
+/// in `owned`, with what made them in the metadata; returns how many BatchNorms it wrote.
+fn write_stats(
+    out: &Path,
+    stats: &[BnStats],
+    key: &VariantKey,
+    cal: &BnCalibrator,
+    model: &str,
+    owned: Option<&HashSet<String>>,
+) -> Result<usize, String> {
     let bytes = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
-    let data: Vec<(String, Vec<u8>, usize)> = stats
-        .iter()
-        .flat_map(|s| {
-            [
-                (format!("{}.running_mean", s.name), bytes(&s.running_mean), s.running_mean.len()),
-                (format!("{}.running_var", s.name), bytes(&s.running_var), s.running_var.len()),
-            ]
-        })
-        .collect();
+    let keep = |name: &String| owned.is_none_or(|o| o.contains(name));
+    let mut written = 0;
+    let mut data: Vec<(String, Vec<u8>, usize)> = Vec::new();
+    for s in stats {
+        let pair = [
+            (format!("{}.running_mean", s.name), bytes(&s.running_mean), s.running_mean.len()),
+            (format!("{}.running_var", s.name), bytes(&s.running_var), s.running_var.len()),
+        ];
+        let before = data.len();
+        data.extend(pair.into_iter().filter(|(name, ..)| keep(name)));
+        written += usize::from(data.len() > before);
+    }
     let mut views = Vec::with_capacity(data.len());
     for (name, b, n) in &data {
         let view = TensorView::new(Dtype::F32, vec![*n], b).map_err(|e| format!("{name}: {e}"))?;
@@ -189,7 +241,8 @@ fn write_stats(out: &Path, stats: &[BnStats], key: &VariantKey, cal: &BnCalibrat
         ("readi.adapt_bn.samples".to_string(), cal.samples().to_string()),
     ]);
     let file = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
-    std::fs::write(out, file).map_err(|e| format!("cannot write {}: {e}", out.display()))
+    std::fs::write(out, file).map_err(|e| format!("cannot write {}: {e}", out.display()))?;
+    Ok(written)
 }
 
 /// `readi adapt-bn` as dispatched: [`adapt`], its error printed.

@@ -92,6 +92,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             trainable: p.trainable,
             stored_as: stored_as(&p.name, &names, &records, table),
             added: p.added,
+            owned_by: table.owned.get(&p.name).map(|o| o.recorded_scopes()),
         })
         .collect();
     let slots = values.iter().filter(|v| matches!(v.storage, Storage::Slot(_))).count();

@@ -45,6 +45,23 @@ impl Owned {
         self.scopes.iter().any(|s| s.covers(key))
     }
 
+    /// What the plan records of its owners ([`readi_plan::format::ParamSpec::owned_by`]):
+    /// empty for every variant (some unscoped rule owns it), otherwise every scope name
+    /// of its rules' sections, once each. Equivalent to [`Owned::is_owned_by`]: a scope
+    /// covers a key when one of its names does.
+    pub fn recorded_scopes(&self) -> Vec<String> {
+        if self.scopes.iter().any(Scope::is_all) {
+            return Vec::new();
+        }
+        let mut names: Vec<String> = Vec::new();
+        for n in self.scopes.iter().flat_map(|s| &s.names) {
+            if !names.contains(n) {
+                names.push(n.clone());
+            }
+        }
+        names
+    }
+
     /// The scopes that own it, for messages: `camera`, `every variant`.
     pub fn scope_label(&self) -> String {
         let mut names: Vec<String> = self.scopes.iter().map(Scope::label).collect();
