@@ -582,4 +582,5 @@ fn compile_reports_pruning() {
         "img=32",
     ]);
     assert!(o.status.success() && !stdout(&o).contains("pruned"), "{}", stdout(&o));
+    let _ = std::fs::remove_dir_all(&dir);
 }
