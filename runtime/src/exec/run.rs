@@ -108,7 +108,7 @@ pub(crate) fn run_step(
             let rows = xs[..xs.len().saturating_sub(1)].iter().product();
             let layout = linear::WeightLayout::InOut;
             let fout = l.out_features as usize;
-            let lora = lora.map(|r| linear::LinearLora { a: w.get(r.a), b: w.get(r.b), rank: r.rank });
+            let lora = lora.map(|r| linear::Lora { a: w.get(r.a), b: w.get(r.b), rank: r.rank });
             let (wt, e) = (w.get(*weight), epilogue(w, ep));
             linear::linear_lora(x, rows, fin, wt, layout, lora.as_ref(), fout, &e, out, threads);
         }

@@ -49,14 +49,9 @@ pub fn linear(
     linear_lora(x, rows, in_features, weight, layout, None, out_features, ep, out, threads)
 }
 
-/// A LoRA branch fused into a linear layer ([`linear_lora`]): `A` `[rank, in]` and `B`
-/// `[out, rank]` as PyTorch stores them, `B` with the LoRA scale multiplied in.
-#[derive(Clone, Copy, Debug)]
-pub struct LinearLora<'a> {
-    pub a: &'a [f32],
-    pub b: &'a [f32],
-    pub rank: usize,
-}
+/// A linear layer's fused LoRA branch ([`linear_lora`]) is a [`Lora`] with `A`
+/// `[rank, in]` as PyTorch stores it.
+pub use super::Lora;
 
 /// [`linear`] with a fused LoRA branch: `out = epilogue(x Wᵀ + (x Aᵀ) Bᵀ)`, the branch
 /// computed per block of rows while the block's input is in cache, added before the
@@ -72,7 +67,7 @@ pub fn linear_lora(
     in_features: usize,
     weight: &[f32],
     layout: WeightLayout,
-    lora: Option<&LinearLora>,
+    lora: Option<&Lora>,
     out_features: usize,
     ep: &Epilogue,
     out: &mut [f32],
@@ -422,7 +417,7 @@ mod tests {
                     ((base[i] + t64[i]) * f64::from(scale[j]) + f64::from(shift[j])).max(0.0) as f32
                 })
                 .collect();
-            let lora = LinearLora { a: &a, b: &b, rank };
+            let lora = Lora { a: &a, b: &b, rank };
             let fields = Some((rank, a.len(), b.len()));
             assert_eq!(check(&[rows, fin], fin, fout, wt.len(), &[rows, fout], [Some(fout); 2], fields), Ok(()));
             for threads in [1, 2] {

@@ -71,6 +71,16 @@ macro_rules! simd_fn {
     (@ret $ret:ty) => { $ret };
 }
 
+/// A LoRA branch fused into the kernel of the layer it adapts (conv, linear): `A` in the
+/// layout that kernel reads, `B` `[out, rank]` row-major with the LoRA scale already
+/// multiplied in. The kernel adds `B (A x)` to its accumulator before the epilogue.
+#[derive(Clone, Copy, Debug)]
+pub struct Lora<'a> {
+    pub a: &'a [f32],
+    pub b: &'a [f32],
+    pub rank: usize,
+}
+
 pub mod conv;
 pub mod elementwise;
 pub mod gemm;

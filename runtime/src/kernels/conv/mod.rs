@@ -114,15 +114,9 @@ pub fn pack_weight(s: &Conv2dShape, algo: ConvAlgo, weight: &[f32], out: &mut [f
     }
 }
 
-/// A LoRA branch fused into a conv ([`conv2d_lora`]): `A` packed for the layer's
-/// algorithm as a conv to `rank` channels ([`pack_weight`] on [`lora_a_shape`]), `B`
-/// `[cout, rank]` row-major with the LoRA scale already multiplied in.
-#[derive(Clone, Copy, Debug)]
-pub struct Lora<'a> {
-    pub a: &'a [f32],
-    pub b: &'a [f32],
-    pub rank: usize,
-}
+/// A conv's fused LoRA branch ([`conv2d_lora`]) is a [`Lora`] whose `A` is packed for the
+/// layer's algorithm as a conv to `rank` channels ([`pack_weight`] on [`lora_a_shape`]).
+pub use super::Lora;
 
 /// The shape of a layer's LoRA `A`: the layer with `rank` output channels.
 pub fn lora_a_shape(s: &Conv2dShape, rank: usize) -> Conv2dShape {
