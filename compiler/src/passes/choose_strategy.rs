@@ -266,17 +266,7 @@ fn linear_shape(g: &Graph, id: NodeId, fin: usize, fout: usize) -> Conv2dShape {
         .and_then(|v| g.value_type(*v))
         .map(|t| (0..t.rank()).skip(1).filter_map(|a| t.known_dim(a)).product::<i64>().max(1) as usize)
         .map_or(1, |n| (n / fin.max(1)).max(1));
-    Conv2dShape::square(1, fin, 1, fout, 1, 1, 0, 1).with_rows(rows)
-}
-
-trait WithRows {
-    fn with_rows(self, rows: usize) -> Self;
-}
-impl WithRows for Conv2dShape {
-    fn with_rows(mut self, rows: usize) -> Self {
-        (self.h, self.oh) = (rows, rows);
-        self
-    }
+    Conv2dShape { h: rows, oh: rows, ..Conv2dShape::square(1, fin, 1, fout, 1, 1, 0, 1) }
 }
 
 /// The kernels a node runs as, for timing: its shape and algorithm.
@@ -576,7 +566,7 @@ pub fn choose(
             bytes: o.bytes.clone(),
             predicted_ms: predicted,
             added_ms: added,
-            measured_ms: measured.flatten(),
+            measured_ms: measured,
         });
     }
     let base_ms = timed.then(|| {
@@ -612,10 +602,10 @@ fn option_ms(g: &Graph, it: &Item, o: &Opt, timer: &mut Timer) -> f64 {
     own + branch
 }
 
-/// [`option_ms`] timed again, not from the cache: `None` when the option runs nothing.
-fn option_ms_fresh(g: &Graph, it: &Item, o: &Opt, timer: &mut Timer) -> Option<f64> {
+/// [`option_ms`] timed again, not from the cache.
+fn option_ms_fresh(g: &Graph, it: &Item, o: &Opt, timer: &Timer) -> f64 {
     let mut fresh = Timer { timing: timer.timing, cache: HashMap::new(), lora_cache: HashMap::new() };
-    Some(option_ms(g, it, o, &mut fresh))
+    option_ms(g, it, o, &mut fresh)
 }
 
 /// The bytes a node stores in the base plan: a conv's weight packed for its default

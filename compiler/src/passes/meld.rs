@@ -280,13 +280,15 @@ fn add_effective(
             b.len()
         ));
     }
-    let any = b.iter().any(|x| *x != 0.0) && a.iter().any(|x| *x != 0.0);
-    for o in 0..rows {
-        for c in 0..cols {
-            let delta: f64 =
-                if any { (0..rank).map(|r| b[o * rank + r] as f64 * a[r * cols + c] as f64).sum() } else { 0.0 };
-            acc[o * cols + c] += l * (w[o * cols + c] as f64 + scale * delta);
+    // A part that gave no LoRA contributes its weight alone.
+    if b.iter().all(|x| *x == 0.0) || a.iter().all(|x| *x == 0.0) {
+        for (acc, &w) in acc.iter_mut().zip(w) {
+            *acc += l * w as f64;
         }
+        return Ok(());
+    }
+    for ((acc, &w), d) in acc.iter_mut().zip(w).zip(super::merge_lora::lora_delta(a, b, rank)) {
+        *acc += l * (w as f64 + scale * d);
     }
     Ok(())
 }

@@ -45,14 +45,20 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
 
 /// `W + factor * B A` from `[W, A, B]`, accumulated in f64.
 fn merge(v: &[&[f32]], rank: usize, factor: f64) -> Vec<f32> {
-    let (w, wa, wb) = (v[0], v[1], v[2]);
-    let cols = wa.len() / rank;
-    let rows = wb.len() / rank;
-    let mut out = w.to_vec();
+    let w = v[0];
+    let delta = lora_delta(v[1], v[2], rank);
+    w.iter().zip(delta).map(|(&w, d)| (w as f64 + factor * d) as f32).collect()
+}
+
+/// `B A` in f64, row-major `[rows, cols]`, from `A` `[rank, cols]` and `B` `[rows, rank]`
+/// flattened: a LoRA update before its scale (the meld weighs each part's).
+pub(super) fn lora_delta(a: &[f32], b: &[f32], rank: usize) -> Vec<f64> {
+    let cols = a.len() / rank;
+    let rows = b.len() / rank;
+    let mut out = vec![0.0f64; rows * cols];
     for o in 0..rows {
         for c in 0..cols {
-            let delta: f64 = (0..rank).map(|r| wb[o * rank + r] as f64 * wa[r * cols + c] as f64).sum();
-            out[o * cols + c] = (w[o * cols + c] as f64 + factor * delta) as f32;
+            out[o * cols + c] = (0..rank).map(|r| b[o * rank + r] as f64 * a[r * cols + c] as f64).sum();
         }
     }
     out
