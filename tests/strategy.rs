@@ -169,7 +169,8 @@ fn impossible_budget_warns_with_the_smallest_achievable() {
     // input channel, whatever the layer's algorithm; the runtime packs a Winograd one):
     // layer3.0.conv1 4*128*9 + 256*4, three more in layer3 4*256*9 + 256*4,
     // layer4.0.conv1 4*256*9 + 512*4, three more in layer4 4*512*9 + 512*4.
-    let ab = (4 * 128 * 9 + 256 * 4) + 3 * (4 * 256 * 9 + 256 * 4) + (4 * 256 * 9 + 512 * 4) + 3 * (4 * 512 * 9 + 512 * 4);
+    let ab =
+        (4 * 128 * 9 + 256 * 4) + 3 * (4 * 256 * 9 + 256 * 4) + (4 * 256 * 9 + 512 * 4) + 3 * (4 * 512 * 9 + 512 * 4);
     assert_eq!(max, ((2 * 4800 + 512 * 10 + 10) + ab) as u64 * 4);
 }
 

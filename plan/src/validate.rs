@@ -250,7 +250,10 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             }
             if let Some(l) = lora {
                 if l.a_raw {
-                    return Err("a linear's LoRA A cannot be stored raw (`a_raw` is for convs)".into());
+                    return Err(format!(
+                        "a linear's LoRA A `{}` cannot be stored raw (`a_raw` is for convs)",
+                        escaped(&m.tensors[l.a].name)
+                    ));
                 }
                 let a = (linear.in_features.max(0) as usize).saturating_mul(l.rank);
                 lora_sizes(m, l, a, linear.out_features, "linear")?;
