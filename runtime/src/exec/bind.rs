@@ -434,19 +434,19 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             let s = conv::layer_shape(c, n, h, w);
             let (xl, ol) = (numel(x).ok_or("conv2d input too large")?, numel(out).ok_or("conv2d output too large")?);
             let mut branch = lora(l);
-            if let (Some(spec), Some((rank, a_len, _))) = (l, branch.as_mut()) {
-                if spec.a_raw {
-                    // A raw `A` is PyTorch's layout, the im2col packing; the kernel gets
-                    // it packed for `algo` (`Bound::pack_lora`).
-                    let raw = conv::ConvAlgo::Im2col.packed_len(&conv::lora_a_shape(&s, *rank));
-                    if *a_len != raw {
-                        return Err(format!(
-                            "LoRA A `{}` has {a_len} values, raw at rank {rank} it needs {raw}",
-                            plan.manifest.tensors[spec.a].name
-                        ));
-                    }
-                    *a_len = conv::packed_weight_len(&conv::lora_a_shape(&s, *rank), *algo);
+            if let (Some(spec), Some((rank, a_len, _))) = (l, branch.as_mut())
+                && spec.a_raw
+            {
+                // A raw `A` is PyTorch's layout, the im2col packing; the kernel gets it
+                // packed for `algo` (`Bound::pack_lora`).
+                let raw = conv::ConvAlgo::Im2col.packed_len(&conv::lora_a_shape(&s, *rank));
+                if *a_len != raw {
+                    return Err(format!(
+                        "LoRA A `{}` has {a_len} values, raw at rank {rank} it needs {raw}",
+                        plan.manifest.tensors[spec.a].name
+                    ));
                 }
+                *a_len = conv::packed_weight_len(&conv::lora_a_shape(&s, *rank), *algo);
             }
             conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), branch)
         }
