@@ -317,13 +317,14 @@ fn a_crafted_lora_branch_is_refused() {
     let dir = temp_dir("lora");
     // all_ops's first step is a grouped conv: no fused branch, whatever its tensors. Its
     // fc (a linear layer) gets branches with tensor indices out of range, rank 0, a rank
-    // over the bound and tensors of the wrong size.
+    // over the bound, tensors of the wrong size and an `A` marked raw. (A raw conv `A` of
+    // the wrong length: tests/variants.rs, `a_raw_winograd_lora_a_is_packed_for_each_runs_variant`.)
     type Edit = fn(&mut readi_runtime::plan::Manifest);
-    let cases: [(Edit, &str); 5] = [
+    let cases: [(Edit, &str); 6] = [
         (
             |m| {
                 if let Kernel::Conv2d { lora, weight, .. } = &mut m.steps[0].kernel {
-                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 1 });
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 1, a_raw: false });
                 }
             },
             "needs one group",
@@ -333,7 +334,7 @@ fn a_crafted_lora_branch_is_refused() {
                 let n = m.tensors.len();
                 let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
                 if let Kernel::Linear { lora, .. } = &mut fc.kernel {
-                    *lora = Some(LoraSpec { a: n, b: 0, rank: 2 });
+                    *lora = Some(LoraSpec { a: n, b: 0, rank: 2, a_raw: false });
                 }
             },
             "reads tensor",
@@ -342,7 +343,7 @@ fn a_crafted_lora_branch_is_refused() {
             |m| {
                 let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
                 if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
-                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 0 });
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 0, a_raw: false });
                 }
             },
             "LoRA rank 0",
@@ -351,7 +352,7 @@ fn a_crafted_lora_branch_is_refused() {
             |m| {
                 let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
                 if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
-                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: MAX_LORA_RANK + 1 });
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: MAX_LORA_RANK + 1, a_raw: false });
                 }
             },
             "it must be 1 to",
@@ -360,10 +361,20 @@ fn a_crafted_lora_branch_is_refused() {
             |m| {
                 let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
                 if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
-                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 3 });
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 3, a_raw: false });
                 }
             },
             "LoRA A `",
+        ),
+        (
+            // A raw `A` is for convs (whose algorithm the runtime packs it for).
+            |m| {
+                let fc = m.steps.iter_mut().find(|s| matches!(s.kernel, Kernel::Linear { .. })).expect("fc");
+                if let Kernel::Linear { lora, weight, .. } = &mut fc.kernel {
+                    *lora = Some(LoraSpec { a: *weight, b: *weight, rank: 1, a_raw: true });
+                }
+            },
+            "cannot be stored raw",
         ),
     ];
     for (i, (edit, want)) in cases.into_iter().enumerate() {

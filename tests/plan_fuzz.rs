@@ -423,7 +423,9 @@ fn repair(manifest: &mut Value) {
                     sizes.push((*weight, algo.packed_len(&s)));
                     if let Some(l) = lora {
                         let a = readi_plan::ops::Conv2dShape { cout: l.rank, ..s };
-                        sizes.extend([(l.a, algo.packed_len(&a)), (l.b, c.saturating_mul(l.rank))]);
+                        // A raw `A` is PyTorch's layout, the im2col packing.
+                        let stored = if l.a_raw { ConvAlgo::Im2col } else { *algo };
+                        sizes.extend([(l.a, stored.packed_len(&a)), (l.b, c.saturating_mul(l.rank))]);
                     }
                 }
                 sizes.extend(epilogue.scale.into_iter().chain(epilogue.shift).map(|t| (t, c)));

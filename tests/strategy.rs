@@ -110,14 +110,14 @@ fn tight_budget_branches_the_largest_layers_first() {
     let m = module("224");
     let (_, _, merged) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
     let merged = merged.expect("a strategy");
-    // Branching layer4.0.conv2 saves its F(2x2) weight, 16 * 512 * 512 floats, for A (packed
-    // for F(2x2) too, as the fused kernel reads it) and B, 16 * 4 * 512 + 512 * 4 floats:
-    // 16.6 MB for 1.00 ms added (A and B's multiply-adds at
+    // Branching layer4.0.conv2 saves its F(2x2) weight, 16 * 512 * 512 floats, for A (stored
+    // raw, 9 floats per 3x3; the runtime packs it for F(2x2)) and B, 4 * 512 * 9 + 512 * 4
+    // floats: 16.7 MB for 1.00 ms added (A and B's multiply-adds at
     // 1e-6 ms each), 16.7 MB/ms, the same for layer4.1's two. Next: layer4.0.conv1, 4.67 MB
     // for 0.55 ms (8.5 MB/ms); layer3's F(4x4) convs, 9.40 MB for 2.01 ms (4.7 MB/ms);
     // layer3.0.conv1, 1.16 MB for 1.10 ms (1.1 MB/ms); im2col instead of Winograd saves
     // less for far more. A budget that the three layer4 F(2x2) convs branched just meet:
-    let saved = 3 * (16 * 512 * 512 - (16 * 4 * 512 + 512 * 4)) * 4;
+    let saved = 3 * (16 * 512 * 512 - (4 * 512 * 9 + 512 * 4)) * 4;
     let need = merged.variant_bytes().into_iter().max().expect("variants") - saved;
     let pct = need as f64 * 100.0 / merged.base_bytes as f64 + 1e-9;
     let (plan, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some(pct)));
@@ -165,12 +165,12 @@ fn impossible_budget_warns_with_the_smallest_achievable() {
     assert_eq!(s.variant_bytes(), bytes);
     assert!((least - max as f64 * 100.0 / s.base_bytes as f64).abs() < 1e-9);
     // By hand: ResNet-18's BatchNorms have 4800 channels (scale and shift each), the
-    // classifier 512 * 10 + 10, the eight A and B, A packed for its layer's algorithm:
-    // layer3.0.conv1 (stride 2, im2col) 4*128*9 + 256*4, three more in layer3 (F(4x4), 36
-    // floats per 3x3) 4*256*36 + 256*4, layer4.0.conv1 (im2col) 4*256*9 + 512*4, three
-    // (F(2x2), 16 floats) 4*512*16 + 512*4.
+    // classifier 512 * 10 + 10, the eight A and B, A raw (9 floats per 3x3 per rank per
+    // input channel, whatever the layer's algorithm; the runtime packs a Winograd one):
+    // layer3.0.conv1 4*128*9 + 256*4, three more in layer3 4*256*9 + 256*4,
+    // layer4.0.conv1 4*256*9 + 512*4, three more in layer4 4*512*9 + 512*4.
     let ab =
-        (4 * 128 * 9 + 256 * 4) + 3 * (4 * 256 * 36 + 256 * 4) + (4 * 256 * 9 + 512 * 4) + 3 * (4 * 512 * 16 + 512 * 4);
+        (4 * 128 * 9 + 256 * 4) + 3 * (4 * 256 * 9 + 256 * 4) + (4 * 256 * 9 + 512 * 4) + 3 * (4 * 512 * 9 + 512 * 4);
     assert_eq!(max, ((2 * 4800 + 512 * 10 + 10) + ab) as u64 * 4);
 }
 

@@ -346,14 +346,9 @@ fn unused_adapters_leave_the_schedule() {
     assert!(with_adapters.manifest.steps.len() > base.manifest.steps.len());
 }
 
-/// A LoRA branch fused into a conv of every algorithm (Winograd F(4x4) and F(2x2), the
-/// 1x1 GEMM, im2col at stride 2 and dilation 2) and a linear layer, each followed by a
-/// tuned BatchNorm (or a ReLU): the branch plan's outputs are the merged plan's, whose
-/// weights `W + scale B A` the compiler computed in f64; at batch 1 and 3, on 1 and 2
-/// threads.
-#[test]
-fn fused_branches_match_merged_lora_on_every_algorithm() {
-    let spec = "model m {
+/// Convs of every algorithm with a LoRA branch each, and a linear: Winograd F(4x4) and
+/// F(2x2) at 3x3, the 1x1 GEMM, im2col at stride 2 and dilation 2.
+const FUSED: &str = "model m {
   input x: f32[N, 32, 14, 14] @camera
   w4 = conv2d(x, 32, kernel=3, padding=1, bias=false)
   n4 = batchnorm(w4)
@@ -377,6 +372,15 @@ variants {
   axis fog on camera: 0.03, 0.06 clear 0
 }
 ";
+
+/// A LoRA branch fused into a conv of every algorithm (Winograd F(4x4) and F(2x2), the
+/// 1x1 GEMM, im2col at stride 2 and dilation 2) and a linear layer, each followed by a
+/// tuned BatchNorm (or a ReLU): the branch plan's outputs are the merged plan's, whose
+/// weights `W + scale B A` the compiler computed in f64; at batch 1 and 3, on 1 and 2
+/// threads.
+#[test]
+fn fused_branches_match_merged_lora_on_every_algorithm() {
+    let spec = FUSED;
     let (sources, out) = common::compile_text("fused.readi", spec, &[], None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let m = out.module.expect("module");
@@ -415,5 +419,110 @@ variants {
                 );
             }
         }
+    }
+}
+
+/// A branch plan's outputs under `key` from a fresh session on 2 threads.
+fn fresh_run(plan: &Arc<Plan>, key: &str, input: &[Input<'_>]) -> Vec<f32> {
+    let mut s = Session::new(Arc::clone(plan), 2).expect("session");
+    s.set_variant(key).expect("key");
+    s.run(input).expect("run").remove(0).1.data
+}
+
+/// A Winograd layer's LoRA `A` is stored raw (9 floats per 3x3 per rank per input channel)
+/// and packed by the session when a run's variant differs from the one it packed last:
+/// switching back and forth gives a fresh session's outputs bit for bit, a run while
+/// another thread switches sees exactly one variant, and a crafted raw `A` is refused.
+#[test]
+fn a_raw_winograd_lora_a_is_packed_for_each_runs_variant() {
+    use readi_runtime::plan::Kernel;
+    let (sources, out) = common::compile_text("fused.readi", FUSED, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let keys = vec!["fog=0.03".to_string(), "fog=0.06".to_string()];
+    let variants = backend::seeded_variants(&m, &keys, SEED + 1);
+    let plan = Arc::new(compile(&sources, &m, &variants, LoraMode::Branch));
+    let stored: Vec<(&str, bool, usize)> = plan
+        .manifest
+        .steps
+        .iter()
+        .filter_map(|s| match &s.kernel {
+            Kernel::Conv2d { algo, lora: Some(l), .. } => {
+                Some((algo.name(), l.a_raw, plan.manifest.tensors[l.a].numel()))
+            }
+            _ => None,
+        })
+        .collect();
+    // w4 and w2 read 32 channels, pw 40 (1x1), s2 24: the GEMM paths' packing is the raw
+    // layout, so only the Winograd layers need the flag.
+    assert_eq!(
+        stored,
+        [
+            ("winograd4", true, 4 * 32 * 9),
+            ("winograd2", true, 4 * 32 * 9),
+            ("gemm1x1", false, 4 * 40),
+            ("im2col", false, 4 * 24 * 9)
+        ]
+    );
+
+    // A -> B -> A (and the base) in one session: a fresh session's outputs, bit for bit.
+    let shape = vec![2, 32, 14, 14];
+    let x = seeded_tensor(6, "x", &shape);
+    let input = [Input { name: "x", data: &x, shape: &shape }];
+    let want: Vec<Vec<f32>> = ["base", "fog=0.03", "fog=0.06"].iter().map(|k| fresh_run(&plan, k, &input)).collect();
+    assert!(want[1] != want[2] && want[0] != want[1], "the variants must differ");
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    for k in [1, 2, 1, 0, 2, 2, 1] {
+        s.set_variant(["base", "fog=0.03", "fog=0.06"][k]).expect("key");
+        assert_eq!(s.run(&input).expect("run")[0].1.data, want[k], "variant {k}");
+    }
+
+    // Another thread switches between A and B meanwhile: each run is one of them, the one
+    // the session reports.
+    let handle = s.switch_handle();
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let switcher = {
+        let (handle, stop) = (handle.clone(), Arc::clone(&stop));
+        std::thread::spawn(move || {
+            let mut n = 0u64;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                handle.set("fog=0.03").expect("key");
+                handle.set("fog=0.06").expect("key");
+                n += 2;
+            }
+            n
+        })
+    };
+    let (mut seen, mut i) = ([0usize; 3], 0);
+    while i < 200 || ((seen[1] == 0 || seen[2] == 0) && i < 10_000) {
+        i += 1;
+        let y = s.run(&input).expect("run").remove(0).1.data;
+        let used = s.last_variant().expect("ran");
+        assert!(used == 1 || used == 2, "run {i}: variant {used}");
+        assert_eq!(y, want[used], "run {i}: not variant {used}'s outputs");
+        seen[used] += 1;
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    assert!(switcher.join().expect("switcher") > 2);
+    assert!(seen[1] > 0 && seen[2] > 0, "{seen:?}");
+
+    // Crafted plans: a raw A read as packed, a rank its raw length does not fit, a raw A
+    // on a linear. Refused when the plan is made, with the tensor's name.
+    let tensors: Vec<Vec<f32>> = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    type Edit = fn(&mut readi_runtime::plan::LoraSpec);
+    let cases: [(usize, Edit, &str); 3] = [
+        (0, |l| l.a_raw = false, "`winograd4` at rank 4 needs 4608"),
+        (1, |l| l.rank = 3, "`raw` at rank 3 needs 864"),
+        (4, |l| l.a_raw = true, "cannot be stored raw"),
+    ];
+    for (which, edit, want) in cases {
+        let mut manifest = plan.manifest.clone();
+        let step = manifest.steps.iter_mut().filter(|s| s.kernel.lora().is_some()).nth(which).expect("step");
+        match &mut step.kernel {
+            Kernel::Conv2d { lora: Some(l), .. } | Kernel::Linear { lora: Some(l), .. } => edit(l),
+            _ => unreachable!("a LoRA step"),
+        }
+        let err = Plan::new(manifest, tensors.clone()).expect_err("refused").to_string();
+        assert!(err.contains(want) && err.contains("lora_A"), "case {which}: {err}");
     }
 }

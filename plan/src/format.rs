@@ -302,7 +302,10 @@ pub const MAX_LORA_RANK: usize = 4096;
 /// branch before the epilogue (so a folded BatchNorm scales both alike).
 ///
 /// * conv: `a` is `A` (`[rank, cin, kh, kw]`, a conv of the layer's geometry to `rank`
-///   channels) packed for the conv's algorithm at `rank` output channels; `b` is `B`,
+///   channels) packed for the conv's algorithm at `rank` output channels, or, when
+///   `a_raw`, as PyTorch has it (`rank · cin · kh · kw` values), which the runtime packs
+///   for the algorithm into a session-owned buffer when a run's variant differs from the
+///   one packed last (a Winograd `A` is 16/9 or 36/9 of its raw size); `b` is `B`,
 ///   `[cout, rank]`;
 /// * linear: `a` is `[rank, in]`, `b` is `[out, rank]`.
 ///
@@ -316,6 +319,14 @@ pub struct LoraSpec {
     /// Stored tensor of the scaled `B`.
     pub b: usize,
     pub rank: usize,
+    /// A conv's `a` is stored raw and packed by the runtime (absent: packed, the plans
+    /// compiled before it; always absent for a linear).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub a_raw: bool,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// The BatchNorm a conv or channel-affine epilogue was folded from, so that its running

@@ -232,8 +232,10 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                         algo.name()
                     ));
                 }
+                // A raw `A` is PyTorch's layout, what the im2col algorithm reads.
                 let a = Conv2dShape { cout: l.rank, ..s };
-                lora_sizes(m, l, algo.packed_len(&a), conv.out_channels, algo.name())?;
+                let (stored, how) = if l.a_raw { (ConvAlgo::Im2col, "raw") } else { (*algo, algo.name()) };
+                lora_sizes(m, l, stored.packed_len(&a), conv.out_channels, how)?;
             }
             per_channel(epilogue, conv.out_channels)
         }
@@ -247,6 +249,12 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                 ));
             }
             if let Some(l) = lora {
+                if l.a_raw {
+                    return Err(format!(
+                        "a linear's LoRA A `{}` cannot be stored raw (`a_raw` is for convs)",
+                        escaped(&m.tensors[l.a].name)
+                    ));
+                }
                 let a = (linear.in_features.max(0) as usize).saturating_mul(l.rank);
                 lora_sizes(m, l, a, linear.out_features, "linear")?;
             }

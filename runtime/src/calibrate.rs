@@ -319,11 +319,11 @@ fn execute(
             let out = &mut out_buf[..out_len];
             match at_step[k].map(|i| &mut layers[i]) {
                 None => {
-                    run_step(run, b, step, b.convs[k].as_ref(), out, &mut scratch, threads);
+                    run_step(run, b, k, step, out, &mut scratch, threads);
                     Ok(())
                 }
                 Some(layer) => {
-                    run_step(run, b, &layer.pre, b.convs[k].as_ref(), out, &mut scratch, threads);
+                    run_step(run, b, k, &layer.pre, out, &mut scratch, threads);
                     let shape = &b.shapes[step.output];
                     // The base's: no variant replaces these.
                     let gamma = run.plan.tensor(layer.info.weight);

@@ -15,6 +15,7 @@ use readi_plan::ops::{
 };
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
+use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use readi_runtime::plan::{
     EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage,
     TensorSpec, ValueSpec, VariantTable,
@@ -177,6 +178,42 @@ fn switching_and_runs_allocate_only_outputs() {
         })
         .min();
     assert_eq!(switching, Some(0), "50,000 switches allocated");
+
+    // The first run after a switch packs the raw LoRA `A`s of the plan's Winograd convs
+    // into the session's buffers (`Bound::pack_lora`, with the kernels' `pack_weight`):
+    // nothing allocated either.
+    let s3 = Conv2dShape {
+        n: 1,
+        cin: 64,
+        h: 14,
+        w: 14,
+        cout: 4,
+        kh: 3,
+        kw: 3,
+        stride_h: 1,
+        stride_w: 1,
+        pad_h: 1,
+        pad_w: 1,
+        dil_h: 1,
+        dil_w: 1,
+        groups: 1,
+        oh: 14,
+        ow: 14,
+    };
+    let raw = data(4 * 64 * 9, 9);
+    let mut bufs: Vec<(ConvAlgo, Vec<f32>)> =
+        [ConvAlgo::Winograd4, ConvAlgo::Winograd2].map(|a| (a, vec![0.0; conv::packed_weight_len(&s3, a)])).into();
+    let packing = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for (algo, buf) in &mut bufs {
+                conv::pack_weight(&s3, *algo, &raw, buf);
+            }
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min();
+    assert_eq!(packing, Some(0), "packing a raw LoRA A allocated");
 
     // Each run returns a Vec of two (name, tensor) pairs: 1 + 2 * 3 allocations.
     let per_run = 7;

@@ -43,7 +43,9 @@ impl ConvOp {
         }
         if let Some(rank) = self.lora {
             let a = Conv2d { out_channels: rank, ..self.conv.clone() };
-            let a_shape = match self.algo.filter(|_| self.packed) {
+            // `pack_weights` packs `A` only where that keeps its layout (a Winograd `A`
+            // stays raw; the runtime packs it).
+            let a_shape = match self.algo.filter(|a| self.packed && a.packs_as_is()) {
                 Some(algo) => vec![algo.packed_len(&a.shape(1, 0, 0)) as i64],
                 None => a.weight_shape().to_vec(),
             };

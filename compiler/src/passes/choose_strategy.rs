@@ -15,7 +15,7 @@
 //! (algorithm, shape) within the compile, and only when a choice depends on it (a budget
 //! the fastest assignment exceeds, or `--explain`). A branch on a conv costs what it adds
 //! to the layer's kernel, which computes it (`fuse_lora`; [`branch_ms`]), and stores `A`
-//! packed for the layer's algorithm.
+//! raw (the runtime packs a Winograd `A` per session).
 //!
 //! The choice: start from the fastest assignment (merge, each conv's default algorithm);
 //! while the largest variant exceeds the budget (`--memory-budget PCT`, percent of the
@@ -446,14 +446,10 @@ pub fn choose(
                                 if let Some(w) = param(g, n, "weight")
                                     && own(table, &w, v)
                                 {
-                                    // `fuse_lora` stores a conv's `A` packed for the layer's
-                                    // algorithm (Winograd-transformed), `B` as it is.
-                                    b += match (conv, conv_shape(g, n)) {
-                                        (Some((_, default)), Some((sa, _))) if n == a => {
-                                            algo.unwrap_or(default).packed_len(&sa) as u64
-                                        }
-                                        _ => numel(table, &w),
-                                    };
+                                    // `fuse_lora` stores a conv's `A` raw (packing it for
+                                    // the GEMM paths keeps its layout; the runtime packs a
+                                    // Winograd `A`), `B` as it is.
+                                    b += numel(table, &w);
                                 }
                             }
                         }

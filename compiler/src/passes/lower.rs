@@ -236,11 +236,12 @@ impl<'m> Lowering<'m> {
         Ok(EpilogueSpec { scale, shift, relu: e.relu, bn })
     }
 
-    /// A fused LoRA branch of `rank`: the tensors of its slots.
-    fn lora(&mut self, node: &Node, rank: Option<i64>) -> Result<Option<LoraSpec>, Diagnostics> {
+    /// A fused LoRA branch of `rank`: the tensors of its slots; `a_raw` when `A` was left
+    /// raw (`pack_weights` packs a conv's `A` only where packing keeps its layout).
+    fn lora(&mut self, node: &Node, rank: Option<i64>, a_raw: bool) -> Result<Option<LoraSpec>, Diagnostics> {
         let Some(rank) = rank else { return Ok(None) };
         let rank = usize::try_from(rank).map_err(|_| ice(format!("`{}` has LoRA rank {rank}", node.path)))?;
-        Ok(Some(LoraSpec { a: self.tensor(node, "lora_A")?, b: self.tensor(node, "lora_B")?, rank }))
+        Ok(Some(LoraSpec { a: self.tensor(node, "lora_A")?, b: self.tensor(node, "lora_B")?, rank, a_raw }))
     }
 
     fn lower_node(&mut self, id: NodeId) -> Result<(), Diagnostics> {
@@ -261,7 +262,7 @@ impl<'m> Lowering<'m> {
                     return Err(ice(format!("conv `{}` still has a bias", node.path)));
                 }
                 let weight = self.tensor(node, "weight")?;
-                let lora = self.lora(node, c.lora)?;
+                let lora = self.lora(node, c.lora, !algo.packs_as_is())?;
                 let epilogue = self.epilogue(node, &c.epilogue)?;
                 Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora }
             }
@@ -270,7 +271,7 @@ impl<'m> Lowering<'m> {
                     return Err(ice(format!("linear `{}` is not packed or still has a bias", node.path)));
                 }
                 let weight = self.tensor(node, "weight")?;
-                let lora = self.lora(node, l.lora)?;
+                let lora = self.lora(node, l.lora, false)?;
                 Kernel::Linear { linear: l.linear.clone(), weight, epilogue: self.epilogue(node, &l.epilogue)?, lora }
             }
             Op::ChannelAffine(a) => {

@@ -4,7 +4,9 @@
 //! * rule `pack_conv`: a conv's weight packed for its algorithm
 //!   (`readi_runtime::kernels::conv::pack_weight`: Winograd-transformed, or as PyTorch's
 //!   for the GEMM paths), as `<path>.weight@<algo>`, and a fused LoRA branch's `A` for
-//!   the same algorithm (a conv to `rank` channels), as `<path>.lora_A.weight@<algo>`;
+//!   the same algorithm (a conv to `rank` channels), as `<path>.lora_A.weight@<algo>`,
+//!   where packing keeps PyTorch's layout (`ConvAlgo::packs_as_is`: the GEMM paths); a
+//!   Winograd layer's `A` stays raw (`lower` marks it `a_raw`) and the runtime packs it;
 //! * rule `transpose_linear`: a linear's weight transposed to `[in, out]`, the layout the
 //!   GEMM reads fastest, as `<path>.weight@t`.
 //!
@@ -47,7 +49,11 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
                 let mut bind = vec![("weight", name.clone())];
                 let mut p = Patch::new("pack_conv");
                 p.tensors.push((name, packed));
-                if let (Some(rank), Some(slot)) = (c.lora, node.params.iter().find(|s| s.name == "lora_A")) {
+                // `A` is packed only where that keeps its layout; a Winograd `A` stays raw
+                // (16/9 or 36/9 smaller per variant) and the runtime packs it per session.
+                if let (Some(rank), Some(slot), true) =
+                    (c.lora, node.params.iter().find(|s| s.name == "lora_A"), algo.packs_as_is())
+                {
                     let a = node.param_name(slot);
                     let sa = conv::lora_a_shape(&s, rank.max(0) as usize);
                     let len = algo.packed_len(&sa);

@@ -202,6 +202,14 @@ impl ConvAlgo {
         }
     }
 
+    /// Whether packing a weight for this algorithm keeps PyTorch's layout
+    /// `[cout, cin/groups, kh, kw]` (the GEMM paths), so packing is a copy. A fused LoRA
+    /// branch's `A` is stored packed for these and raw for the others
+    /// ([`LoraSpec::a_raw`](crate::format::LoraSpec::a_raw)).
+    pub fn packs_as_is(self) -> bool {
+        matches!(self, ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise)
+    }
+
     /// Length of the weight packed for this algorithm; saturates at `usize::MAX` (which
     /// no stored tensor has, so a plan declaring such a layer is refused).
     pub fn packed_len(self, s: &Conv2dShape) -> usize {

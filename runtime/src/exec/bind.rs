@@ -9,7 +9,7 @@ use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::{elementwise, layout as layout_k, linear, norm, pool, reduce, resize, softmax};
 use readi_plan::ops::Pure;
 
-use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, show_shape};
+use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
 
 use super::{Input, RunError, bad};
 
@@ -24,6 +24,11 @@ pub(crate) struct Bound {
     pub(crate) convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
     /// Zero-filled buffers for absent optional inputs, by input index.
     pub(super) zeros: Vec<Vec<f32>>,
+    /// Per step, the packed LoRA `A` of a conv whose plan stores it raw
+    /// ([`LoraSpec::a_raw`]), empty for the others; packed for the variant
+    /// `lora_variant` (`None`: not yet) by [`Bound::pack_lora`].
+    pub(crate) lora_a: Vec<Vec<f32>>,
+    pub(super) lora_variant: Option<usize>,
     /// What this binding takes.
     pub(super) footprint: Footprint,
 }
@@ -136,6 +141,8 @@ pub struct Footprint {
     pub scratch: usize,
     /// Zero-filled stand-ins for absent optional inputs that a step or an output reads.
     pub zeros: usize,
+    /// The LoRA `A`s the session packs for a conv's algorithm (stored raw in the plan).
+    pub lora: usize,
     /// The inputs at these shapes (the caller's memory).
     pub inputs: usize,
     /// The outputs a run returns.
@@ -156,6 +163,8 @@ pub(super) struct Layout {
     convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
     /// Per input, the zeros an absent optional input needs (0 for the others).
     zeros_len: Vec<usize>,
+    /// Per step, the floats of its packed LoRA `A` buffer (0: none).
+    lora_len: Vec<usize>,
     pub(super) footprint: Footprint,
 }
 
@@ -230,17 +239,25 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         }
     }
     let mut convs = Vec::with_capacity(m.steps.len());
+    let mut lora_len = vec![0usize; m.steps.len()];
     let (mut scratch_len, mut scratch_by) = (0usize, None);
+    let mut lora_floats = 0usize;
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
         check_step(plan, step, &shapes).map_err(|e| bad(&at, e))?;
         let conv = conv_params(step, &shapes, &at)?;
         if let Some((s, algo)) = &conv {
-            let rank = step.kernel.lora().map_or(0, |l| l.rank);
+            let lora = step.kernel.lora();
+            let rank = lora.map_or(0, |l| l.rank);
             let need = conv::checked_scratch_len(s, *algo, rank, threads)
                 .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
             if need > scratch_len {
                 (scratch_len, scratch_by) = (need, Some(k));
+            }
+            // `check_step` checked the raw length, so the packed one is in range.
+            if lora.is_some_and(|l| l.a_raw) {
+                lora_len[k] = conv::packed_weight_len(&conv::lora_a_shape(s, rank), *algo);
+                lora_floats = sum([lora_floats, lora_len[k]], "the packed LoRA A buffers")?;
             }
         }
         convs.push(conv);
@@ -263,6 +280,10 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     if let Some(k) = scratch_by {
         parts.push((format!("conv scratch of step {k} (`{}`) on {threads} threads", m.steps[k].path), scratch));
     }
+    let lora = bytes_of(lora_floats, || "the packed LoRA A buffers".into())?;
+    if lora > 0 {
+        parts.push(("the packed LoRA A buffers".into(), lora));
+    }
     let mut zeros = 0usize;
     let mut inputs = 0usize;
     for (spec, &z) in m.inputs.iter().zip(&zeros_len) {
@@ -280,11 +301,11 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         outputs = sum([outputs, b], "the outputs")?;
         parts.push((format!("output `{}` {}", o.name, shape_of(o.value)), b));
     }
-    let total = sum([activations, scratch, zeros, inputs, outputs], "the memory footprint")?;
+    let total = sum([activations, scratch, lora, zeros, inputs, outputs], "the memory footprint")?;
     parts.sort_by_key(|p| std::cmp::Reverse(p.1));
     parts.truncate(LARGEST_SHOWN);
-    let footprint = Footprint { activations, scratch, zeros, inputs, outputs, total, largest: parts };
-    Ok(Layout { shapes, slot_len, scratch_len, convs, zeros_len, footprint })
+    let footprint = Footprint { activations, scratch, lora, zeros, inputs, outputs, total, largest: parts };
+    Ok(Layout { shapes, slot_len, scratch_len, convs, zeros_len, lora_len, footprint })
 }
 
 fn sum(parts: impl IntoIterator<Item = usize>, what: &str) -> Result<usize, RunError> {
@@ -344,8 +365,30 @@ pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize)
         scratch: vec![0.0; layout.scratch_len],
         convs: layout.convs,
         zeros: layout.zeros_len.into_iter().map(|n| vec![0.0; n]).collect(),
+        lora_a: layout.lora_len.into_iter().map(|n| vec![0.0; n]).collect(),
+        lora_variant: None,
         footprint: layout.footprint,
     })
+}
+
+impl Bound {
+    /// Packs every raw LoRA `A` ([`LoraSpec::a_raw`]) under the variant of `weights` into
+    /// its buffer for the conv's algorithm, unless the buffers hold that variant already.
+    /// Allocates nothing; the lengths were checked at bind time.
+    pub(crate) fn pack_lora(&mut self, plan: &Plan, weights: VariantTensors<'_>) {
+        let variant = weights.index();
+        if self.lora_variant == Some(variant) {
+            return;
+        }
+        for (k, step) in plan.manifest.steps.iter().enumerate() {
+            if let (Some(l), Some((s, algo))) = (step.kernel.lora(), &self.convs[k])
+                && l.a_raw
+            {
+                conv::pack_weight(&conv::lora_a_shape(s, l.rank), *algo, weights.get(l.a), &mut self.lora_a[k]);
+            }
+        }
+        self.lora_variant = Some(variant);
+    }
 }
 
 /// The conv parameters of a conv step at the bound shapes (its preconditions checked
@@ -390,7 +433,22 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             }
             let s = conv::layer_shape(c, n, h, w);
             let (xl, ol) = (numel(x).ok_or("conv2d input too large")?, numel(out).ok_or("conv2d output too large")?);
-            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), lora(l))
+            let mut branch = lora(l);
+            if let (Some(spec), Some((rank, a_len, _))) = (l, branch.as_mut())
+                && spec.a_raw
+            {
+                // A raw `A` is PyTorch's layout, the im2col packing; the kernel gets it
+                // packed for `algo` (`Bound::pack_lora`).
+                let raw = conv::ConvAlgo::Im2col.packed_len(&conv::lora_a_shape(&s, *rank));
+                if *a_len != raw {
+                    return Err(format!(
+                        "LoRA A `{}` has {a_len} values, raw at rank {rank} it needs {raw}",
+                        plan.manifest.tensors[spec.a].name
+                    ));
+                }
+                *a_len = conv::packed_weight_len(&conv::lora_a_shape(&s, *rank), *algo);
+            }
+            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), branch)
         }
         Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
             linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))

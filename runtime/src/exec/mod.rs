@@ -19,7 +19,10 @@
 //! index: no weight is copied or rewritten and nothing is allocated, and it may happen
 //! from any thread while a run is in progress. A run loads the index once, at its start,
 //! and resolves every tensor access through that variant's map, so each run sees exactly
-//! one variant.
+//! one variant. A conv whose LoRA `A` the plan stores raw (a Winograd layer's) reads it
+//! from a session-owned buffer, packed for its algorithm at the start of a run whose
+//! variant differs from the one the buffer holds (`Bound::pack_lora`; microseconds for a
+//! few small `A`s, nothing allocated).
 //!
 //! # Where things are
 //!
@@ -408,6 +411,9 @@ impl Session {
             .ok_or(RunError::VariantIndex { index: variant, count: plan.variant_count() })?;
         self.prepare(&plan, inputs)?;
         let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        // Before any step, on this thread: the raw LoRA `A`s packed for this variant (a
+        // few small tensors, and only when the variant differs from the last packed).
+        bound.pack_lora(&plan, weights);
         let run = Run { plan: &plan, weights, inputs, given: &self.given };
         let threads = self.threads;
         let profile = self.profile.as_deref_mut();
@@ -436,6 +442,7 @@ impl Session {
         let plan = Arc::clone(&self.plan);
         self.prepare(&plan, inputs)?;
         let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
+        bound.pack_lora(&plan, plan.base_tensors());
         let run = Run { plan: &plan, weights: plan.base_tensors(), inputs, given: &self.given };
         let threads = self.threads;
         self.pool.install(|| exec(&run, bound, threads))

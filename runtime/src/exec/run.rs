@@ -5,11 +5,11 @@ use rayon::prelude::*;
 
 use readi_plan::ops::Pure;
 
-use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
+use crate::kernels::conv;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
 use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
-use crate::plan::{EpilogueSpec, Kernel, Plan, Step, Storage, VariantTensors};
+use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
 use super::{Input, RunError, bad};
@@ -65,7 +65,7 @@ pub(super) fn execute(
         {
             let b: &Bound = bound;
             let out = &mut out_buf[..out_len];
-            run_step(run, b, step, b.convs[k].as_ref(), out, &mut scratch, threads);
+            run_step(run, b, k, step, out, &mut scratch, threads);
         }
         bound.scratch = scratch;
         bound.slots[out_slot] = out_buf;
@@ -76,17 +76,20 @@ pub(super) fn execute(
     Ok(())
 }
 
-/// Runs one step, its shapes checked at bind time.
+/// Runs `step`, the `k`-th (or a stand-in for it), its shapes checked at bind time; a
+/// raw LoRA `A` is read from `b`'s buffer, packed for the run's variant
+/// ([`Bound::pack_lora`]).
 pub(crate) fn run_step(
     run: &Run<'_>,
     b: &Bound,
+    k: usize,
     step: &Step,
-    conv_params: Option<&(Conv2dShape, ConvAlgo)>,
     out: &mut [f32],
     scratch: &mut [f32],
     threads: usize,
 ) {
     let w = run.weights;
+    let conv_params = b.convs[k].as_ref();
     let input = |j: usize| {
         let v = step.inputs[j];
         (value_slice(run, b, v), b.shapes[v].as_slice())
@@ -97,7 +100,8 @@ pub(crate) fn run_step(
     match &step.kernel {
         Kernel::Conv2d { weight, epilogue: ep, lora, .. } => {
             if let Some((s, algo)) = conv_params {
-                let lora = lora.map(|l| conv::Lora { a: w.get(l.a), b: w.get(l.b), rank: l.rank });
+                let a = |l: &LoraSpec| if l.a_raw { b.lora_a[k].as_slice() } else { w.get(l.a) };
+                let lora = lora.map(|l| conv::Lora { a: a(&l), b: w.get(l.b), rank: l.rank });
                 let (wt, e) = (w.get(*weight), epilogue(w, ep));
                 conv::conv2d_lora(s, *algo, wt, lora.as_ref(), &e, x, out, scratch, threads);
             }
