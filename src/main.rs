@@ -69,6 +69,7 @@ fn run(cli: Cli) -> ExitCode {
             melds,
             output,
             allow_unused,
+            strip_prefix,
             verbose,
             model,
         } => {
@@ -84,6 +85,7 @@ fn run(cli: Cli) -> ExitCode {
                 strict,
                 melds,
                 allow_unused,
+                strip_prefix,
                 verbose,
                 model,
             };

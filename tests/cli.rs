@@ -584,3 +584,46 @@ fn compile_reports_pruning() {
     assert!(o.status.success() && !stdout(&o).contains("pruned"), "{}", stdout(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Weights saved from a training wrapper (`module.` before every name) get one error that
+/// names the prefix and the flag, not one per tensor; `--strip-prefix` then binds them
+/// exactly as the plain file.
+#[test]
+fn a_common_name_prefix_is_named_and_stripped() {
+    use readi_compiler::backend::WeightSet;
+    let set = [("num_classes", "10"), ("img", "32")];
+    let (dir, plain) = seeded_weights_file("models/resnet18.readi", &set, "prefix");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let base = WeightSet::from_safetensors("plain", &std::fs::read(&plain).expect("read")).expect("parses");
+    let wrapped = WeightSet { tensors: base.tensors.iter().map(|(k, v)| (format!("module.{k}"), v.clone())).collect() };
+    let prefixed = dir.join("wrapped.safetensors");
+    std::fs::write(&prefixed, wrapped.to_safetensors().expect("serialises")).expect("write");
+    let compile = |weights: &std::path::Path, plan: &str, extra: &[&str]| {
+        let mut args = vec!["compile", "models/resnet18.readi", "--set", "num_classes=10", "--set", "img=32"];
+        let (w, o) = (p(weights), p(&dir.join(plan)));
+        args.extend(["--weights", &w, "-o", &o]);
+        args.extend(extra);
+        readi(&args)
+    };
+
+    let o = compile(&prefixed, "x.plan", &[]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(err.contains("--strip-prefix module."), "{err}");
+    assert_eq!(err.matches("error[").count(), 1, "one error for the whole file:\n{err}");
+
+    let o = compile(&prefixed, "stripped.plan", &["--strip-prefix", "module."]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = compile(&plain, "plain.plan", &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let tensors = |plan: &str| {
+        let plan = readi_runtime::plan::Plan::load(&dir.join(plan)).expect("loads");
+        (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect::<Vec<_>>()
+    };
+    assert!(tensors("stripped.plan") == tensors("plain.plan"), "stripped weights bind as the plain file's");
+
+    let o = compile(&prefixed, "y.plan", &["--strip-prefix", "model."]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("no tensor in") && stderr(&o).contains("`model.`"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -165,6 +165,10 @@ pub enum Command {
         /// Warn about tensors the model does not use instead of failing.
         #[arg(long)]
         allow_unused: bool,
+        /// Drop this prefix from the weights' and variant files' tensor names that have it
+        /// (`module.`, `model.`: what training wrappers add).
+        #[arg(long, value_name = "PREFIX")]
+        strip_prefix: Option<String>,
         /// Also print a table of what the `prune` rules zeroed, layer by layer.
         #[arg(long, short)]
         verbose: bool,
@@ -389,6 +393,9 @@ pub struct BackendArgs {
     /// A melded variant, `fog=0.06+gamma=0.5` (repeatable).
     #[arg(long = "meld", value_name = "KEY+KEY")]
     pub melds: Vec<String>,
+    /// Drop this prefix from the tensor names that have it, as for `readi compile`.
+    #[arg(long, value_name = "PREFIX")]
+    pub strip_prefix: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]

@@ -26,9 +26,32 @@ pub struct CompileArgs {
     pub strict: bool,
     pub melds: Vec<String>,
     pub allow_unused: bool,
+    /// Dropped from the tensor names that start with it (`--strip-prefix`).
+    pub strip_prefix: Option<String>,
     /// Print the per-layer pruning table.
     pub verbose: bool,
     pub model: ModelArgs,
+}
+
+/// `--strip-prefix`: drops `prefix` from the base weights' and the variants' tensor names
+/// that have it. A base file with no such name is an error (a mistyped prefix); a
+/// variant file may lack it.
+pub fn strip_prefix(
+    prefix: Option<&str>,
+    (base, base_name): (&mut WeightSet, &str),
+    variants: &mut [backend::VariantSource],
+) -> Result<(), Diagnostics> {
+    let Some(prefix) = prefix else { return Ok(()) };
+    if base.strip_prefix(base_name, prefix)? == 0 {
+        return Err(Diagnostics(vec![readi_grammar::diag::Diagnostic::error(
+            readi_grammar::diag::Code::Weights,
+            format!("--strip-prefix `{prefix}`: no tensor in `{base_name}` starts with it"),
+        )]));
+    }
+    for v in variants {
+        v.weights.strip_prefix(&v.origin, prefix)?;
+    }
+    Ok(())
 }
 
 pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), ExitCode> {
@@ -87,11 +110,12 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         s.report(&d);
         ExitCode::FAILURE
     };
-    let set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| report(s, d))?;
+    let mut set = WeightSet::from_safetensors(&wname, &bytes).map_err(|d| report(s, d))?;
     let mut sources = Vec::new();
     for files in &deploy::regroup_by_value(variant_files, &module) {
         sources.push(deploy::read_variant(files, &module).map_err(|d| report(s, d))?);
     }
+    strip_prefix(args.strip_prefix.as_deref(), (&mut set, &wname), &mut sources).map_err(|d| report(s, d))?;
     sources.extend(backend::seeded_variants(&module, &args.seeded_variants, 2));
     let opts = CompileOptions {
         allow_unused: args.allow_unused,

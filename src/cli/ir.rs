@@ -88,7 +88,7 @@ fn compiled(
         s.report(&d);
         ExitCode::FAILURE
     };
-    let (weights, name) = match &backend.weights {
+    let (mut weights, name) = match &backend.weights {
         Some(path) => {
             let name = path.display().to_string();
             let bytes = files::read_bounded(path, files::MAX_WEIGHTS_BYTES).map_err(|e| {
@@ -106,6 +106,8 @@ fn compiled(
     for files in deploy::regroup_by_value(deploy::variant_args(&backend.variants), &module) {
         sources.push(deploy::read_variant(&files, &module).map_err(|d| report(s, d))?);
     }
+    super::compile::strip_prefix(backend.strip_prefix.as_deref(), (&mut weights, &name), &mut sources)
+        .map_err(|d| report(s, d))?;
     sources.extend(backend::seeded_variants(&module, &backend.seeded_variants, backend.seed + 1));
     let lora = match backend.lora {
         Some(LoraArg::Branch) => LoraMode::Branch,

@@ -75,6 +75,20 @@ fn bind<'w>(
         table.iter().filter(|(_, _, s)| s.kind == SlotKind::Added).map(|(name, _, _)| name.as_str()).collect();
     // Tensors no slot claims: the likely intended names when a slot's tensor is missing.
     let unclaimed: Vec<&str> = weights.tensors.keys().filter(|k| !expected.contains(*k)).map(String::as_str).collect();
+    let missing = expected.iter().filter(|n| !weights.tensors.contains_key(*n) && !n.ends_with("num_batches_tracked"));
+    if let Some((prefix, n)) = name_prefix(&expected, &unclaimed).filter(|&(_, n)| 2 * n >= missing.count().max(1)) {
+        // One error for the whole file instead of one per tensor.
+        let d = Diagnostic::error(
+            Code::Weights,
+            format!(
+                "`{weights_name}` names its tensors with a prefix the model's parameters do not have: \
+                 {n} of its {} tensors are the model's once `{prefix}` is dropped",
+                weights.tensors.len()
+            ),
+        )
+        .with_note(format!("pass --strip-prefix {prefix} to drop it (training wrappers such as DataParallel add one)"));
+        return Err(Diagnostics(vec![d]));
+    }
     let order: Vec<NodeId> = graph.topo_order().unwrap_or_else(|| graph.node_ids().collect());
     for id in order {
         let node = graph.node(id);
@@ -148,4 +162,19 @@ fn bind<'w>(
         diags.push(d);
     }
     if diags.has_errors() { Err(diags) } else { Ok((bound, diags)) }
+}
+
+/// The dotted prefix (`module.`, `model.backbone.`) that, dropped from the most names
+/// the model does not use, leaves names it does, with how many it explains.
+fn name_prefix(expected: &std::collections::HashSet<String>, unclaimed: &[&str]) -> Option<(String, usize)> {
+    let mut counts: HashMap<&str, usize> = HashMap::new();
+    for name in unclaimed {
+        for (i, _) in name.match_indices('.') {
+            if expected.contains(&name[i + 1..]) {
+                *counts.entry(&name[..=i]).or_default() += 1;
+            }
+        }
+    }
+    // The most names explained; of equals, the shortest prefix, so the answer is stable.
+    counts.into_iter().max_by(|a, b| a.1.cmp(&b.1).then(b.0.len().cmp(&a.0.len()))).map(|(p, n)| (p.to_string(), n))
 }

@@ -59,6 +59,33 @@ impl WeightSet {
         if diags.has_errors() { Err(diags) } else { Ok(set) }
     }
 
+    /// Removes `prefix` from the names that start with it, as PyTorch's
+    /// `consume_prefix_in_state_dict_if_present` does for the `module.` a training wrapper
+    /// adds; names without it are kept. Returns how many names changed. Two names that
+    /// become one are an error naming both.
+    pub fn strip_prefix(&mut self, file: &str, prefix: &str) -> Result<usize, Diagnostics> {
+        let mut out = BTreeMap::new();
+        let mut stripped = 0;
+        for (name, t) in std::mem::take(&mut self.tensors) {
+            let new = match name.strip_prefix(prefix) {
+                Some(rest) if !rest.is_empty() => {
+                    stripped += 1;
+                    rest.to_string()
+                }
+                _ => name.clone(),
+            };
+            if out.contains_key(&new) {
+                return Err(Diagnostics(vec![file_error(
+                    file,
+                    format!("without the prefix `{prefix}`, tensor `{name}` has the name of another tensor, `{new}`"),
+                )]));
+            }
+            out.insert(new, t);
+        }
+        self.tensors = out;
+        Ok(stripped)
+    }
+
     /// The set as safetensors bytes (f32), as PyTorch's `save_file(state_dict)` writes.
     pub fn to_safetensors(&self) -> Result<Vec<u8>, String> {
         use safetensors::tensor::TensorView;
