@@ -46,7 +46,7 @@ fn run(cli: Cli) -> ExitCode {
         ColorWhen::Never => false,
         ColorWhen::Auto => std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none(),
     };
-    let mut s = Frontend { sources: SourceMap::new(), color };
+    let mut s = Frontend::new(SourceMap::new(), color);
     let result = match cli.command {
         Command::Check { files, model, deny_warnings } => cli::check::run(&mut s, &files, &model, deny_warnings),
         Command::Ast { file, debug } => cli::ast::run(&mut s, &file, debug),

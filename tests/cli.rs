@@ -627,3 +627,35 @@ fn a_common_name_prefix_is_named_and_stripped() {
     assert!(stderr(&o).contains("no tensor in") && stderr(&o).contains("`model.`"), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A deployment file holds only the adaptation and the conditions for a model written
+/// elsewhere: `use` brings the model, and the file's own `adapt` and `variants` replace
+/// the model file's. A `use` of a file that is not there is an error at its line.
+#[test]
+fn a_deployment_file_uses_a_model_file() {
+    let dir = std::env::temp_dir().join(format!("readi-cli-use-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let model = common::root().join("models/resnet18.readi");
+    let deploy = dir.join("deploy.readi");
+    let text = format!(
+        "use \"{}\"\nadapt {{\n  tune fc\n}}\nvariants {{\n  axis fog on camera: 0.01, 0.02 clear 0\n}}\n",
+        model.display()
+    );
+    std::fs::write(&deploy, text).expect("write");
+    let o = readi(&["params", deploy.to_str().expect("utf-8"), "--set", "img=32"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // The variants own what this file's adapt section says: fc only (512 * 1000 + 1000).
+    let out = stdout(&o);
+    assert!(out.contains("11,689,512"), "{out}");
+    assert!(out.contains("513,000 existing elements tuned"), "the deployment's rule decides what variants own:\n{out}");
+    // The model file's own section adds LoRA and adapters (702,272 elements); replaced.
+    assert!(out.contains(", 0 added"), "the model file's adapt section is replaced:\n{out}");
+
+    let bad = dir.join("bad.readi");
+    std::fs::write(&bad, "# a deployment\nuse \"missing.readi\"\n").expect("write");
+    let o = readi(&["check", bad.to_str().expect("utf-8")]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(err.contains("E0104") && err.contains("bad.readi:2:1") && err.contains("missing.readi"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

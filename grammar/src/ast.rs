@@ -20,6 +20,13 @@ impl SourceFile {
             _ => None,
         })
     }
+    /// The `use` declarations of the file.
+    pub fn uses(&self) -> impl Iterator<Item = &UseDecl> {
+        self.items.iter().filter_map(|i| match i {
+            Item::Use(u) => Some(u),
+            _ => None,
+        })
+    }
     /// The `block` definitions of the file.
     pub fn blocks(&self) -> impl Iterator<Item = &BlockDef> {
         self.items.iter().filter_map(|i| match i {
@@ -46,10 +53,18 @@ impl SourceFile {
 /// A top-level item.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Item {
+    Use(UseDecl),
     Block(BlockDef),
     Model(ModelDef),
     Adapt(AdaptSection),
     Variants(VariantSection),
+}
+
+/// `use "path.readi"`: another file's items, by a path relative to this file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct UseDecl {
+    pub path: String,
+    pub span: Span,
 }
 
 /// A name with its place in the source.
@@ -243,6 +258,8 @@ pub enum SeqItem {
     Call { name: Option<LayerName>, callee: Ident, args: Vec<Arg>, span: Span },
     /// `for var in start..end { items }`.
     For { var: Ident, start: Expr, end: Expr, items: Vec<SeqItem>, span: Span },
+    /// `if c { items } else if c { items } else { items }`.
+    If { branches: Vec<(Expr, Vec<SeqItem>)>, otherwise: Option<Vec<SeqItem>>, span: Span },
 }
 
 /// Prefix operators.

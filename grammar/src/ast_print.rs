@@ -44,6 +44,7 @@ impl Printer {
 
     fn item(&mut self, item: &Item) {
         match item {
+            Item::Use(u) => self.line(&format!("use \"{}\"", u.path)),
             Item::Block(b) => {
                 let params = self.params(&b.params);
                 self.open(&format!("block {}({params})", b.name.name));
@@ -201,6 +202,25 @@ impl Printer {
                 SeqItem::For { var, start, end, items, .. } => {
                     self.open(&format!("for {} in {}..{}", var.name, expr_to_source(start), expr_to_source(end)));
                     self.seq_items(items);
+                    self.close();
+                }
+                SeqItem::If { branches, otherwise, .. } => {
+                    for (i, (cond, items)) in branches.iter().enumerate() {
+                        if i > 0 {
+                            self.indent -= 1;
+                            self.line(&format!("}} else if {} {{", expr_to_source(cond)));
+                            self.indent += 1;
+                        } else {
+                            self.open(&format!("if {}", expr_to_source(cond)));
+                        }
+                        self.seq_items(items);
+                    }
+                    if let Some(items) = otherwise {
+                        self.indent -= 1;
+                        self.line("} else {");
+                        self.indent += 1;
+                        self.seq_items(items);
+                    }
                     self.close();
                 }
             }

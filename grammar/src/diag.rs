@@ -112,6 +112,8 @@ pub enum Code {
     Unclosed,
     /// A literal that cannot be represented (integer too large).
     BadLiteral,
+    /// A file a `use` names cannot be read.
+    UseFile,
     /// A name that is not bound where it is used.
     UnknownName,
     /// Two things with the same name in one place.
@@ -163,6 +165,7 @@ impl Code {
             Code::Syntax => "E0101",
             Code::Unclosed => "E0102",
             Code::BadLiteral => "E0103",
+            Code::UseFile => "E0104",
             Code::UnknownName => "E0201",
             Code::DuplicateName => "E0202",
             Code::RecursiveBlock => "E0203",

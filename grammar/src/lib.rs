@@ -14,6 +14,7 @@
 pub mod ast;
 pub mod ast_print;
 pub mod diag;
+pub mod imports;
 pub mod parser;
 
 pub use parser::{Parsed, parse};

@@ -2,7 +2,7 @@
 //! rendering diagnostics, and the one-line error summary.
 
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use readi_compiler::passes::{self, Options, Outcome, Pass};
@@ -10,33 +10,50 @@ use readi_grammar::diag::{Diagnostics, FileId, SourceMap};
 
 use super::args::ModelArgs;
 
-/// A loaded source file, its pipeline outcome, and how to show its diagnostics.
+/// The loaded source files and how to show their diagnostics.
 pub struct Frontend {
     pub sources: SourceMap,
     pub color: bool,
+    /// Each file read, by its canonical path, so a file used twice has one id.
+    read: Vec<(PathBuf, FileId)>,
 }
 
 impl Frontend {
+    pub fn new(sources: SourceMap, color: bool) -> Frontend {
+        Frontend { sources, color, read: Vec::new() }
+    }
+
     pub fn load(&mut self, path: &Path) -> Result<(FileId, String), ExitCode> {
+        self.read_source(path).map_err(|e| {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        })
+    }
+
+    /// Reads a spec file (at most the parser's limit) as UTF-8 text.
+    fn read_source(&mut self, path: &Path) -> Result<(FileId, String), String> {
         // The parser refuses longer sources; reading more would only spend memory.
         let limit = readi_grammar::parser::MAX_SOURCE_BYTES as u64;
-        match super::files::read_bounded(path, limit) {
-            Ok(bytes) => match String::from_utf8(bytes) {
-                Ok(text) => Ok((self.sources.add(path.display().to_string(), text.clone()), text)),
-                Err(e) => {
-                    eprintln!(
-                        "error: {} is not UTF-8 text (invalid byte at offset {})",
-                        path.display(),
-                        e.utf8_error().valid_up_to()
-                    );
-                    Err(ExitCode::from(2))
-                }
-            },
-            Err(e) => {
-                eprintln!("error: {e}");
-                Err(ExitCode::from(2))
-            }
+        let bytes = super::files::read_bounded(path, limit)?;
+        let text = String::from_utf8(bytes).map_err(|e| {
+            format!("{} is not UTF-8 text (invalid byte at offset {})", path.display(), e.utf8_error().valid_up_to())
+        })?;
+        let id = self.sources.add(path.display().to_string(), text.clone());
+        if let Ok(canonical) = path.canonicalize() {
+            self.read.push((canonical, id));
         }
+        Ok((id, text))
+    }
+
+    /// The file a `use "path"` in file `from` names: relative to `from`'s directory.
+    fn load_used(&mut self, from: FileId, path: &str) -> Result<(FileId, String), String> {
+        let base = Path::new(self.sources.name(from)).parent().unwrap_or(Path::new(""));
+        let full = base.join(path);
+        let canonical = full.canonicalize().map_err(|e| format!("{}: {e}", full.display()))?;
+        if let Some(&(_, id)) = self.read.iter().find(|(p, _)| *p == canonical) {
+            return Ok((id, self.sources.text(id).to_string()));
+        }
+        self.read_source(&full)
     }
 
     pub fn report(&self, diags: &Diagnostics) {
@@ -52,7 +69,7 @@ impl Frontend {
     ) -> Result<(Outcome, FileId), ExitCode> {
         let (file, text) = self.load(path)?;
         let opts = options(model, stop_after);
-        let out = passes::run(file, &text, &opts);
+        let out = passes::run_with_uses(file, &text, &opts, &mut |from, path| self.load_used(from, path));
         self.report(&out.diagnostics);
         Ok((out, file))
     }

@@ -70,6 +70,15 @@ impl<'a> Elab<'a> {
                 let Some(hint) = self.claim_name(name, frame) else { return };
                 let scope = self.new_scope(&hint, ScopeKind::Namespace, s.span);
                 let mut inner = Frame { vars: frame.vars.clone(), scope, block: frame.block, ret: None };
+                // Inside, the namespace's own name reaches the layers defined so far, so
+                // layers named by an index refer to their siblings: `1 = relu(features.0)`;
+                // unless the name means something already (an input `camera` read inside
+                // the namespace `camera`).
+                if let LayerName::Ident(id) = name
+                    && !inner.vars.contains_key(&id.name)
+                {
+                    inner.vars.insert(id.name.clone(), Value::Scope(scope));
+                }
                 self.exec_body(&body.stmts, &mut inner);
                 if inner.ret.is_some() {
                     self.error(
@@ -238,6 +247,31 @@ impl<'a> Elab<'a> {
                         }
                     }
                     restore(&mut frame.vars, &var.name, saved);
+                }
+                SeqItem::If { branches, otherwise, .. } => {
+                    let mut taken = None;
+                    for (cond, items) in branches {
+                        match self.eval(cond, frame, None) {
+                            Value::Bool(true) => {
+                                taken = Some(items);
+                                break;
+                            }
+                            Value::Bool(false) => {}
+                            Value::Poison => return Value::Poison,
+                            v => {
+                                return self.error(
+                                    Diagnostic::error(
+                                        Code::TypeMismatch,
+                                        format!("`if` needs a bool, found {}", v.kind()),
+                                    )
+                                    .with_primary(cond.span, "not a bool"),
+                                );
+                            }
+                        }
+                    }
+                    if let Some(items) = taken.or(otherwise.as_ref()) {
+                        cur = self.seq_items(items, cur, scope, counter, frame);
+                    }
                 }
             }
         }

@@ -353,7 +353,13 @@ pub struct Outcome {
 /// Runs the front end (`parse` to `check_variants`, or up to `opts.stop_after`) on one
 /// source file.
 pub fn run(file: FileId, src: &str, opts: &Options) -> Outcome {
-    let parsed = readi_grammar::parse(file, src);
+    run_with_uses(file, src, opts, &mut readi_grammar::imports::no_files)
+}
+
+/// As [`run`], for a source read from a file: `load` reads the files its `use`
+/// declarations name ([`readi_grammar::imports`]).
+pub fn run_with_uses(file: FileId, src: &str, opts: &Options, load: &mut readi_grammar::imports::Load<'_>) -> Outcome {
+    let parsed = readi_grammar::imports::parse_with_uses(file, src, load);
     let mut diags = parsed.diagnostics;
     let ast = parsed.file;
     let mut out = Outcome { ast, module: None, diagnostics: Diagnostics::default(), reached: None };

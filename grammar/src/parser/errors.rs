@@ -193,10 +193,10 @@ fn rule_words(rule: Rule) -> Option<&'static str> {
         Rule::optional_flag => "`optional`",
         Rule::type_name => "a type (`tensor`, `int`, `float`, `bool`, `str` or `list`)",
         Rule::param | Rule::param_list => "a parameter",
-        Rule::item | Rule::block_def | Rule::model_def | Rule::adapt_def | Rule::variants_def => {
-            "`block`, `model`, `adapt` or `variants`"
+        Rule::item | Rule::use_def | Rule::block_def | Rule::model_def | Rule::adapt_def | Rule::variants_def => {
+            "`use`, `block`, `model`, `adapt` or `variants`"
         }
-        Rule::seq_item | Rule::seq_for | Rule::seq_body => "a sequence item such as `conv2d(64, 3)`",
+        Rule::seq_item | Rule::seq_for | Rule::seq_if | Rule::seq_body => "a sequence item such as `conv2d(64, 3)`",
         Rule::adapt_rule | Rule::tune_rule | Rule::lora_rule | Rule::adapter_rule => {
             "a rule (`tune`, `lora` or `adapter`)"
         }
@@ -242,7 +242,7 @@ fn describe_expected(rules: &[Rule], tokens: &[String], at_start: bool, entry: R
             Rule::seq_item_only => "a sequence item such as `conv2d(64, 3)`, `for` or `}`".into(),
             Rule::rule_only => "a rule (`tune`, `lora` or `adapter`) or `}`".into(),
             Rule::decl_only => "a declaration (`axis`, `missing`, `select` or `meld`) or `}`".into(),
-            Rule::item_only | Rule::file => "`block`, `model`, `adapt` or `variants`".into(),
+            Rule::item_only | Rule::file => "`use`, `block`, `model`, `adapt` or `variants`".into(),
             _ => NOTHING_EXPECTED.into(),
         };
     }

@@ -279,6 +279,11 @@ impl<'s> Builder<'s> {
                         items.push(i);
                     }
                 }
+                Rule::seq_if => {
+                    if let Some(i) = self.parse_seq_if(p) {
+                        items.push(i);
+                    }
+                }
                 Rule::seq_error => self.recover(p, Rule::seq_item_only),
                 _ => {}
             }
@@ -309,6 +314,27 @@ impl<'s> Builder<'s> {
         let (start, end) = self.parse_range(it.next()?)?;
         let items = self.parse_seq_body(it.next()?);
         Some(SeqItem::For { var, start, end, items, span })
+    }
+
+    fn parse_seq_if(&mut self, pair: Pair<'_, Rule>) -> Option<SeqItem> {
+        let span = self.span(&pair);
+        let mut branches = Vec::new();
+        let mut otherwise = None;
+        let mut cond = None;
+        for p in pair.into_inner() {
+            match p.as_rule() {
+                Rule::expr => cond = Some(self.parse_expr(p)),
+                Rule::seq_body => {
+                    let items = self.parse_seq_body(p);
+                    match cond.take() {
+                        Some(c) => branches.push((c?, items)),
+                        None => otherwise = Some(items),
+                    }
+                }
+                _ => {}
+            }
+        }
+        Some(SeqItem::If { branches, otherwise, span })
     }
 }
 

@@ -34,6 +34,12 @@ impl<'s> Builder<'s> {
     fn parse_item(&mut self, pair: Pair<'_, Rule>) -> Option<Item> {
         let p = pair.into_inner().next()?;
         Some(match p.as_rule() {
+            Rule::use_def => {
+                let span = self.span(&p);
+                let path =
+                    p.into_inner().next()?.into_inner().next().map(|s| s.as_str().to_string()).unwrap_or_default();
+                Item::Use(UseDecl { path, span })
+            }
             Rule::block_def => Item::Block(self.parse_block_def(p)?),
             Rule::model_def => Item::Model(self.parse_model_def(p)?),
             Rule::adapt_def => Item::Adapt(self.parse_adapt_def(p)),
