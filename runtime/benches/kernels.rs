@@ -98,6 +98,88 @@ fn bench_conv(c: &mut Criterion) {
     g.finish();
 }
 
+/// The fused LoRA branch (rank 4, as in the ResNet-18 variants) on the Winograd layers of
+/// ResNet-18's layer3 and layer4: `lora0` is the conv alone, `lora4` with the branch; the
+/// ratio of the two is the branch's cost (`conv2d_lora` filters).
+fn bench_conv_lora(c: &mut Criterion) {
+    let pool = pool();
+    let mut g = c.benchmark_group("conv2d_lora");
+    g.sample_size(40).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(2));
+    for (name, cin, hw, cout) in [("l3_3x3_256", 256, 14, 256), ("l4_3x3_512", 512, 7, 512)] {
+        let s = Conv2dShape::square(1, cin, hw, cout, 3, 1, 1, 1);
+        let algo = conv::choose(&s);
+        let x = data(cin * hw * hw, 3);
+        let w = data(cout * cin * 9, 4);
+        let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
+        let shift = data(cout, 6);
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+        let mut out = vec![0.0; cout * s.oh * s.ow];
+        let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
+        conv::pack_weight(&s, algo, &w, &mut packed);
+        let rank = 4;
+        let sa = conv::lora_a_shape(&s, rank);
+        let mut packed_a = vec![0.0; conv::packed_weight_len(&sa, algo)];
+        conv::pack_weight(&sa, algo, &data(rank * cin * 9, 7), &mut packed_a);
+        let b = data(cout * rank, 8);
+        let lora = conv::Lora { a: &packed_a, b: &b, rank };
+        let mut scratch = vec![0.0; conv::lora_scratch_len(&s, algo, rank, THREADS)];
+        for threads in [1, THREADS] {
+            let run = |with: bool| {
+                let l = with.then_some(&lora);
+                conv::conv2d_lora(&s, algo, &packed, l, &ep, &x, &mut out, &mut scratch, threads);
+                black_box(&out);
+            };
+            let ratio = pool.install(|| alternate(run));
+            println!("conv2d_lora/{name}-{} at {threads} thread(s): with/without the branch {ratio}", algo.name());
+        }
+        for (id, l) in [("lora0", None), ("lora4", Some(&lora))] {
+            let mut scratch = vec![0.0; conv::lora_scratch_len(&s, algo, l.map_or(0, |l| l.rank), THREADS)];
+            g.bench_function(BenchmarkId::new(format!("{name}-{}", algo.name()), id), |bench| {
+                pool.install(|| {
+                    bench.iter(|| {
+                        conv::conv2d_lora(&s, algo, &packed, l, &ep, &x, &mut out, &mut scratch, THREADS);
+                        black_box(&out);
+                    })
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
+/// Times `run(false)` (the base) and `run(true)` alternately, one call each, 400 times
+/// (so that load from other processes hits both alike), and formats the ratio
+/// `true / false` of their fastest tenths (the least disturbed calls; the code is
+/// deterministic) and the median of the per-pair ratios.
+fn alternate(mut run: impl FnMut(bool)) -> String {
+    let mut time = |with: bool| {
+        let t = std::time::Instant::now();
+        run(with);
+        t.elapsed().as_secs_f64()
+    };
+    let (mut base, mut new, mut pairs) = (vec![], vec![], vec![]);
+    for i in 0..410 {
+        let (b, w) = (time(false), time(true));
+        if i >= 10 {
+            base.push(b);
+            new.push(w);
+            pairs.push(w / b);
+        }
+    }
+    for v in [&mut base, &mut new, &mut pairs] {
+        v.sort_by(f64::total_cmp);
+    }
+    let fast = |v: &[f64]| v[..v.len() / 10].iter().sum::<f64>() / (v.len() / 10) as f64;
+    let (b, w) = (fast(&base), fast(&new));
+    format!(
+        "{:.3}x fastest tenths ({:.1} vs {:.1} us), median pair {:.3}x",
+        w / b,
+        w * 1e6,
+        b * 1e6,
+        pairs[pairs.len() / 2]
+    )
+}
+
 fn bench_linear(c: &mut Criterion) {
     let pool = pool();
     let (rows, fin, fout) = (196, 384, 1536);
@@ -117,5 +199,5 @@ fn bench_linear(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_sgemm, bench_conv, bench_linear);
+criterion_group!(benches, bench_sgemm, bench_conv, bench_conv_lora, bench_linear);
 criterion_main!(benches);

@@ -365,6 +365,13 @@ fn lora_every_algorithm() {
     // Several Winograd blocks and im2col tiles, rank 1 and 8.
     assert_eq!(check_lora(&shape(1, 64, (30, 29), 40, (3, 3), (1, 1), (1, 1), (1, 1), 1), 8), 3);
     assert_eq!(check_lora(&shape(1, 16, (9, 7), 16, (3, 3), (1, 1), (0, 0), (1, 1), 1), 1), 3);
+    // Winograd's branch takes input channels 8 at a time: fewer than 8 (only the
+    // remainder), a multiple of 8 (none), 8 and a remainder; every other rank 2..7.
+    assert_eq!(check_lora(&shape(1, 5, (11, 12), 7, (3, 3), (1, 1), (1, 1), (1, 1), 1), 3), 3);
+    assert_eq!(check_lora(&shape(2, 24, (9, 14), 33, (3, 3), (1, 1), (1, 1), (1, 1), 1), 7), 3);
+    for rank in [2, 5, 6] {
+        assert_eq!(check_lora(&shape(1, 11, (8, 13), 9, (3, 3), (1, 1), (1, 1), (1, 1), 1), rank), 3);
+    }
     // 1x1 (GEMM and im2col), stride 2 1x1 (im2col).
     assert_eq!(check_lora(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1), 4), 2);
     assert_eq!(check_lora(&shape(1, 16, (14, 13), 24, (1, 1), (2, 2), (0, 0), (1, 1), 1), 3), 1);

@@ -4,8 +4,12 @@
 //! ([`pack_winograd`], once, at packing), and per block of tile rows the input transform,
 //! one GEMM per transformed position and the output transform with the epilogue
 //! ([`winograd_part`]). A LoRA branch's `A`, transformed like the weight, multiplies the
-//! same transformed tiles (`G = Ã V`, rank rows per position) and `B G` is added to the
-//! products before the output transform.
+//! same transformed tiles (`G = Ã V`, rank rows per position), computed inside the input
+//! transform 8 channels at a time while they are hot; `G` is output-transformed like
+//! `rank` more output channels and each output channel adds `Σ_k B[c][k] (Aᵀ G_k A)`, a
+//! rank-`rank` update on M·M instead of A·A values per tile (the transform is linear).
+//! Before, `B G` was one GEMM of inner size `rank` per position (16 or 36 per block) and
+//! `Ã V` one more, both far below the GEMM library's efficient sizes.
 //!
 //! The transforms are plain Rust on fixed-size lane arrays ([`Lanes`]), run inside pulp
 //! `WithSimd` bodies ([`InputTransform`], [`OutputTransform`]) so that they are compiled
@@ -51,6 +55,11 @@ impl<const L: usize> Lanes<L> {
     #[inline(always)]
     fn zip(self, o: Self, f: impl Fn(f32, f32) -> f32) -> Self {
         Lanes(std::array::from_fn(|i| f(self.0[i], o.0[i])))
+    }
+    /// `acc + a · self`, fused (one rounding).
+    #[inline(always)]
+    fn mul_add(self, a: f32, acc: Self) -> Self {
+        Lanes(std::array::from_fn(|i| self.0[i].mul_add(a, acc.0[i])))
     }
 }
 
@@ -202,6 +211,14 @@ impl Wino {
         self.block() + OUT_LANES.max(self.lanes)
     }
 
+    /// Floats per channel of V, M and G (`A·A` rows of [`Self::stride`]), padded to an odd
+    /// number of cache lines: the GEMMs read and write them a column at a time (one row
+    /// per channel), and with an even number (2304 floats for F(4x4) at a block of 16
+    /// tiles) the channels of a column fall into an eighth of the L1 sets.
+    fn chan(&self) -> usize {
+        (self.alpha * self.alpha * self.stride()).next_multiple_of(32) + 16
+    }
+
     /// Transform work space: the input transform's A·M phase rows and their A·M vertical
     /// transforms; the output transform's A·M + M·M rows of a block.
     fn work(&self) -> usize {
@@ -211,9 +228,11 @@ impl Wino {
         input.max(output)
     }
 
-    /// With `rank` rows of a LoRA branch's `G = Ã V` (0: none).
+    /// With `rank` rows of a LoRA branch's `G = Ã V` and their output transforms (0:
+    /// none).
     pub(super) fn scratch(&self, rank: usize) -> usize {
-        (self.cin_g + self.cout_g + rank) * self.alpha * self.alpha * self.stride() + self.work()
+        let m = self.alpha - 2;
+        (self.cin_g + self.cout_g + rank) * self.chan() + rank * m * m * self.stride() + self.work()
     }
 }
 
@@ -232,11 +251,12 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
     let wz = Wino::new::<A, M>(s);
     let (cin_g, cout_g, tx) = (s.cin_g(), s.cout_g(), wz.tx);
     let ty_n = s.oh.div_ceil(M);
-    let (aa, ts) = (A * A, wz.stride());
-    let (v, rest) = scratch.split_at_mut(cin_g * aa * ts);
-    let (mt, rest) = rest.split_at_mut(cout_g * aa * ts);
+    let (aa, ts, cs) = (A * A, wz.stride(), wz.chan());
+    let (v, rest) = scratch.split_at_mut(cin_g * cs);
+    let (mt, rest) = rest.split_at_mut(cout_g * cs);
     let rank = lora.map_or(0, |l| l.rank);
-    let (gl, work) = rest.split_at_mut(rank * aa * ts);
+    let (gl, rest) = rest.split_at_mut(rank * cs);
+    let (yg, work) = rest.split_at_mut(rank * M * M * ts);
     // Global tile rows (image · ty_n + ty) of this part; its boundaries are whole tile rows.
     let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
     let (u0, u1) = (tile_row(part.r0), tile_row(part.r1));
@@ -251,6 +271,8 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 continue;
             }
             let blocks = b0..b1;
+            // One group (checked) for a LoRA branch: Ã is `[ξ][rank][cin]`.
+            let project = lora.map(|l| Project { a: l.a, rank, g: &mut *gl, tb });
             pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
                 s,
                 wz: &wz,
@@ -258,31 +280,19 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 g,
                 blocks,
                 v,
+                project,
                 work,
                 tf: PhantomData,
             });
             // One GEMM per transformed position.
             for xi in 0..aa {
                 let lhs = MatRef::row_major(&u[(xi * s.cout + chans.start) * cin_g..][..mrows * cin_g], mrows, cin_g);
-                let rhs = MatRef { data: &v[xi * ts..], rows: cin_g, cols: tb, row_stride: aa * ts, col_stride: 1 };
-                let dst =
-                    MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
+                let rhs = MatRef { data: &v[xi * ts..], rows: cin_g, cols: tb, row_stride: cs, col_stride: 1 };
+                let dst = MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: cs, col_stride: 1 };
                 sgemm(lhs, rhs, dst, false, 1);
-                if let Some(l) = lora {
-                    // One group (checked): Ã is `[ξ][rank][cin]`.
-                    let a = MatRef::row_major(&l.a[xi * rank * cin_g..][..rank * cin_g], rank, cin_g);
-                    let g_xi =
-                        MatMut { data: &mut gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
-                    sgemm(a, rhs, g_xi, false, 1);
-                    let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
-                    let g_xi =
-                        MatRef { data: &gl[xi * ts..], rows: rank, cols: tb, row_stride: aa * ts, col_stride: 1 };
-                    let dst =
-                        MatMut { data: &mut mt[xi * ts..], rows: mrows, cols: tb, row_stride: aa * ts, col_stride: 1 };
-                    sgemm(b, g_xi, dst, true, 1);
-                }
             }
             let (wz, mt, work) = (&wz, &*mt, &mut *work);
+            let lora = lora.map(|l| LoraOut { b: l.b, rank, g: &*gl, y: &mut *yg });
             pulp::Arch::new().dispatch(OutputTransform::<T, A, M> {
                 s,
                 wz,
@@ -292,6 +302,7 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 chans,
                 part,
                 ep,
+                lora,
                 work,
                 tf: PhantomData,
             });
@@ -301,7 +312,8 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
 }
 
 /// The input transform of tile rows `blocks` (of a block), every input channel of group
-/// `g`, into `v[ci][ξ][t]`; compiled for the widest SIMD the CPU has.
+/// `g`, into `v[ci][ξ][t]` (and a LoRA branch's `G = Ã V`); compiled for the widest SIMD
+/// the CPU has.
 struct InputTransform<'a, T, const A: usize, const M: usize> {
     s: &'a Conv2dShape,
     wz: &'a Wino,
@@ -309,9 +321,22 @@ struct InputTransform<'a, T, const A: usize, const M: usize> {
     g: usize,
     blocks: std::ops::Range<usize>,
     v: &'a mut [f32],
+    project: Option<Project<'a>>,
     work: &'a mut [f32],
     tf: PhantomData<T>,
 }
+
+/// A LoRA branch's `G[k][ξ][t] = Σ_ci Ã[ξ][k][ci] V[ci][ξ][t]` over the `tb` tiles of a
+/// block (`g` laid out as V, by rank instead of channel).
+struct Project<'a> {
+    a: &'a [f32],
+    rank: usize,
+    g: &'a mut [f32],
+    tb: usize,
+}
+
+/// Input channels per step of [`project_block`].
+const PROJECT_CHANNELS: usize = 8;
 
 impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for InputTransform<'_, T, A, M> {
     type Output = ();
@@ -328,21 +353,69 @@ impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for InputTr
 impl<T: WinoTf<A, M>, const A: usize, const M: usize> InputTransform<'_, T, A, M> {
     #[inline(always)]
     fn run<const L: usize>(self) {
-        let InputTransform { s, wz, x, g, blocks, v, work, .. } = self;
-        let (cin_g, ty_n) = (s.cin_g(), s.oh.div_ceil(M));
-        for (ci, vc) in v.chunks_mut(A * A * wz.stride()).take(cin_g).enumerate() {
+        let InputTransform { s, wz, x, g, blocks, v, mut project, work, .. } = self;
+        let (cin_g, ty_n, cs) = (s.cin_g(), s.oh.div_ceil(M), wz.chan());
+        for ci in 0..cin_g {
+            let vc = &mut v[ci * cs..][..cs];
             for gu in blocks.clone() {
                 let (n, ty) = (gu / ty_n, gu % ty_n);
                 let xc = &x[(n * s.cin + g * cin_g + ci) * s.h * s.w..][..s.h * s.w];
                 input_row::<T, A, M, L>(s, wz, xc, ty, vc, (gu - blocks.start) * wz.tx, work);
             }
+            // The LoRA branch's `Ã V`, a few channels at a time while they are hot.
+            if let Some(p) = project.as_mut()
+                && ((ci + 1) % PROJECT_CHANNELS == 0 || ci + 1 == cin_g)
+            {
+                let c0 = ci / PROJECT_CHANNELS * PROJECT_CHANNELS;
+                let vb = &v[c0 * cs..(ci + 1) * cs];
+                if ci + 1 - c0 == PROJECT_CHANNELS {
+                    project_block::<PROJECT_CHANNELS>(p, A * A, cin_g, c0, vb, wz.stride(), cs);
+                } else {
+                    for (j, vj) in vb.chunks(cs).enumerate() {
+                        project_block::<1>(p, A * A, cin_g, c0 + j, vj, wz.stride(), cs);
+                    }
+                }
+            }
         }
     }
 }
 
+/// Adds channels `c0..c0 + N` (`v`, `cs` floats per channel) to the LoRA branch's `G`
+/// (the first block sets it): per position ξ and lanes `t..t + L`, the `N` transformed
+/// inputs stay in registers across the ranks, in whole lanes (past `tb` into the
+/// rows' slack, rows `ts` apart).
+#[inline(always)]
+fn project_block<const N: usize>(p: &mut Project, aa: usize, cin_g: usize, c0: usize, v: &[f32], ts: usize, cs: usize) {
+    const L: usize = OUT_LANES;
+    let Project { a, rank, g, tb } = p;
+    for xi in 0..aa {
+        for t in (0..*tb).step_by(L) {
+            let o = xi * ts + t;
+            let x: [Lanes<L>; N] = std::array::from_fn(|j| Lanes::load(&v[j * cs + o..]));
+            for k in 0..*rank {
+                let w = &a[(xi * *rank + k) * cin_g + c0..][..N];
+                let gk = &mut g[k * cs + o..];
+                let acc = if c0 == 0 { Lanes([0.0; L]) } else { Lanes::load(gk) };
+                x.iter().zip(w).fold(acc, |acc, (x, &w)| x.mul_add(w, acc)).store(gk);
+            }
+        }
+    }
+}
+
+/// A LoRA branch at the output transform: `B` (`[cout][rank]`), `G = Ã V` of the block
+/// (`g[k][ξ][t]`) and room for its output transforms `y[k][r][col][t]`, added to each
+/// output channel's as the rank-`rank` update `Σ_k B[c][k] y[k]` (the transform is
+/// linear, so this is `Aᵀ (B G) A` with `M·M` instead of `A·A` products per tile).
+struct LoraOut<'a> {
+    b: &'a [f32],
+    rank: usize,
+    g: &'a [f32],
+    y: &'a mut [f32],
+}
+
 /// The output transform and epilogue of a block (`tb` tiles from global tile row `b0`)
-/// for output channels `chans`, from `mt[co][ξ][t]`; compiled for the widest SIMD the
-/// CPU has.
+/// for output channels `chans`, from `mt[co][ξ][t]` (plus a LoRA branch's update);
+/// compiled for the widest SIMD the CPU has.
 struct OutputTransform<'a, 'p, T, const A: usize, const M: usize> {
     s: &'a Conv2dShape,
     wz: &'a Wino,
@@ -352,6 +425,7 @@ struct OutputTransform<'a, 'p, T, const A: usize, const M: usize> {
     chans: std::ops::Range<usize>,
     part: &'a mut Part<'p>,
     ep: &'a Epilogue<'a>,
+    lora: Option<LoraOut<'a>>,
     work: &'a mut [f32],
     tf: PhantomData<T>,
 }
@@ -360,9 +434,18 @@ impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for OutputT
     type Output = ();
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        let OutputTransform { s, wz, mt, tb, b0, chans, part, ep, work, .. } = self;
-        for (c, mc) in chans.zip(mt.chunks(A * A * wz.stride())) {
-            output_block::<T, A, M>(s, wz, mc, tb, b0, c, part, ep, work);
+        let OutputTransform { s, wz, mt, tb, b0, chans, part, ep, lora, work, .. } = self;
+        let (ts, plane) = (wz.stride(), M * M * wz.stride());
+        let lora = lora.map(|l| {
+            let (sbuf, _) = work.split_at_mut(A * M * ts);
+            for (gk, yk) in l.g.chunks(wz.chan()).zip(l.y.chunks_mut(plane)).take(l.rank) {
+                transform_out::<T, A, M>(gk, tb, ts, sbuf, yk);
+            }
+            (l.b, l.rank, &*l.y)
+        });
+        for (c, mc) in chans.zip(mt.chunks(wz.chan())) {
+            let lora = lora.map(|(b, rank, y)| (&b[c * rank..][..rank], y));
+            output_block::<T, A, M>(s, wz, mc, tb, b0, c, part, ep, lora, work);
         }
     }
 }
@@ -499,25 +582,17 @@ fn interleave<const M: usize>(y: &[f32], stride: usize, row: &mut [f32]) {
     }
 }
 
-/// Output transform of one output channel over a whole block (`tb` tiles starting at
-/// global tile row `b0`), from `mc[ξ][t]`, then the epilogue into the part's plane.
-#[allow(clippy::too_many_arguments)]
+/// The output transform `ybuf[r][col][t]` of one channel's `mc[ξ][t]` over a block of
+/// `tb` tiles (rows `ts` apart), in whole lanes, through `sbuf`.
 #[inline(always)]
-fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
-    s: &Conv2dShape,
-    wz: &Wino,
+fn transform_out<T: WinoTf<A, M>, const A: usize, const M: usize>(
     mc: &[f32],
     tb: usize,
-    b0: usize,
-    c: usize,
-    part: &mut Part,
-    ep: &Epilogue,
-    work: &mut [f32],
+    ts: usize,
+    sbuf: &mut [f32],
+    ybuf: &mut [f32],
 ) {
     const L: usize = OUT_LANES;
-    let ts = wz.stride();
-    let (sbuf, rest) = work.split_at_mut(A * M * ts);
-    let ybuf = &mut rest[..M * M * ts];
     // Horizontal: sbuf[i][col][t] = Σ_k Aᵀ[col][k] m[i][k][t].
     for i in 0..A {
         for t in (0..tb).step_by(L) {
@@ -533,6 +608,43 @@ fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
             let o = T::at::<L>(std::array::from_fn(|i| Lanes::load(&sbuf[(i * M + col) * ts + t..])));
             for (r, or) in o.iter().enumerate() {
                 or.store(&mut ybuf[(r * M + col) * ts + t..]);
+            }
+        }
+    }
+}
+
+/// Output transform of one output channel over a whole block (`tb` tiles starting at
+/// global tile row `b0`), from `mc[ξ][t]`, plus a LoRA branch's `Σ_k b[k] y[k]` (`b` the
+/// channel's row of `B`, `y` the transformed `G`), then the epilogue into the part's
+/// plane.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
+    s: &Conv2dShape,
+    wz: &Wino,
+    mc: &[f32],
+    tb: usize,
+    b0: usize,
+    c: usize,
+    part: &mut Part,
+    ep: &Epilogue,
+    lora: Option<(&[f32], &[f32])>,
+    work: &mut [f32],
+) {
+    const L: usize = OUT_LANES;
+    let ts = wz.stride();
+    let (sbuf, rest) = work.split_at_mut(A * M * ts);
+    let ybuf = &mut rest[..M * M * ts];
+    transform_out::<T, A, M>(mc, tb, ts, sbuf, ybuf);
+    if let Some((b, y)) = lora {
+        let plane = M * M * ts;
+        for j in 0..M * M {
+            for t in (0..tb).step_by(L) {
+                let o = j * ts + t;
+                let acc = b.iter().enumerate().fold(Lanes::<L>::load(&ybuf[o..]), |acc, (k, &bk)| {
+                    Lanes::load(&y[k * plane + o..]).mul_add(bk, acc)
+                });
+                acc.store(&mut ybuf[o..]);
             }
         }
     }
