@@ -74,7 +74,7 @@ fn bench_conv(c: &mut Criterion) {
         let w = data(cout * cin * k * k, 4);
         let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
         let shift = data(cout, 6);
-        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(readi_plan::ops::Activation::Relu) };
         let mut out = vec![0.0; cout * o * o];
         g.throughput(Throughput::Elements(2 * (cout * o * o * cin * k * k) as u64));
         let chosen = conv::choose(&s);
@@ -102,7 +102,7 @@ fn bench_linear(c: &mut Criterion) {
     let pool = pool();
     let (rows, fin, fout) = (196, 384, 1536);
     let (x, w, bias) = (data(rows * fin, 7), data(fout * fin, 8), data(fout, 9));
-    let ep = Epilogue { scale: None, shift: Some(&bias), relu: false };
+    let ep = Epilogue { scale: None, shift: Some(&bias), act: None };
     let mut out = vec![0.0; rows * fout];
     let mut g = c.benchmark_group("linear");
     g.throughput(Throughput::Elements(2 * (rows * fin * fout) as u64));
