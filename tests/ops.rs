@@ -70,7 +70,8 @@ fn conv_and_linear_activations_run_in_the_epilogue() {
     // No activation step is left reading a conv's, linear's or affine's output.
     let fusable = |v: usize| {
         steps.iter().any(|s| {
-            s.output == v && matches!(s.kernel, Kernel::Conv2d { .. } | Kernel::Linear { .. } | Kernel::ChannelAffine { .. })
+            s.output == v
+                && matches!(s.kernel, Kernel::Conv2d { .. } | Kernel::Linear { .. } | Kernel::ChannelAffine { .. })
         })
     };
     for s in steps {

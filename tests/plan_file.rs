@@ -104,7 +104,8 @@ fn version_2_plans_still_load() {
     let p = plan();
     let json = serde_json::to_string(&p.manifest).expect("manifest");
     assert!(json.contains(r#""act":"Relu""#), "the case fuses a ReLU");
-    let v2 = json.replace(r#""act":"Relu""#, r#""relu":true"#).replace(r#""format_version":3"#, r#""format_version":2"#);
+    let v2 =
+        json.replace(r#""act":"Relu""#, r#""relu":true"#).replace(r#""format_version":3"#, r#""format_version":2"#);
     let tensors: Vec<(String, Vec<usize>, Vec<u8>)> = (0..p.manifest.tensors.len())
         .map(|i| {
             let t = &p.manifest.tensors[i];

@@ -35,7 +35,10 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("reciprocal", Readi("written `1 / x` in readi")),
     ("max_pool2d", Readi("maxpool")),
     ("avg_pool2d", Readi("avgpool")),
-    ("adaptive_avg_pool2d", Readi("written `global_avgpool` in readi for output size 1 (other sizes are not supported yet)")),
+    (
+        "adaptive_avg_pool2d",
+        Readi("written `global_avgpool` in readi for output size 1 (other sizes are not supported yet)"),
+    ),
     ("batch_norm", Readi("batchnorm")),
     ("layer_norm", Readi("layernorm")),
     ("cat", Readi("concat")),

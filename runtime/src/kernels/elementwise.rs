@@ -50,7 +50,10 @@ pub fn binary(
 /// other exponents call `powf` per element (a plain loop).
 pub fn scalar(op: BinaryOp, x: &[f32], value: f32, scalar_first: bool, out: &mut [f32]) {
     assert_eq!(x.len(), out.len(), "scalar: x and out differ in length");
-    if op == BinaryOp::Pow && !scalar_first && let Some(p) = PowBy::of(value) {
+    if op == BinaryOp::Pow
+        && !scalar_first
+        && let Some(p) = PowBy::of(value)
+    {
         return par_ranges(out, |start, o| pow_by_simd(p, &x[start..start + o.len()], o));
     }
     par_ranges(out, |start, o| {
@@ -978,7 +981,10 @@ mod tests {
                 // Exact where the value is exact (signed zeros included); within 2 ulp of a
                 // transcendental value rounded from f64.
                 let near = w.is_finite() && w != 0.0 && (g - w).abs() <= 2.4e-7 * w.abs();
-                assert!(g.to_bits() == w.to_bits() || near || (g.is_nan() && w.is_nan()), "{act:?}({v}) = {g}, want {w}");
+                assert!(
+                    g.to_bits() == w.to_bits() || near || (g.is_nan() && w.is_nan()),
+                    "{act:?}({v}) = {g}, want {w}"
+                );
             }
         };
         check(Activation::Relu6, [nan, 0.0, 0.0, 0.0, 0.0, -0.0, 0.0, 1.0, 3.0, 6.0, 6.0, 6.0]);
@@ -988,9 +994,15 @@ mod tests {
         let inf = f32::INFINITY;
         check(at_least, [nan, -3.0, -3.0, -3.0, -1.0, -0.0, 0.0, 1.0, 3.0, 6.0, 7.0, inf]);
         // min > max: every value is max, as torch.clamp(x, min=2, max=1).
-        check(Activation::Clamp { min: Some(2.0), max: Some(1.0) }, [nan, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]);
+        check(
+            Activation::Clamp { min: Some(2.0), max: Some(1.0) },
+            [nan, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0],
+        );
         // hardswish(-3) = -3 · 0 / 6 = -0, hardswish(-inf) = -inf · 0 = NaN (torch too).
-        check(Activation::Hardswish, [nan, nan, -0.0, -0.0, -1.0 * 2.0 / 6.0, -0.0, 0.0, 4.0 / 6.0, 3.0, 6.0, 7.0, inf]);
+        check(
+            Activation::Hardswish,
+            [nan, nan, -0.0, -0.0, -1.0 * 2.0 / 6.0, -0.0, 0.0, 4.0 / 6.0, 3.0, 6.0, 7.0, inf],
+        );
         check(Activation::Hardsigmoid, [nan, 0.0, 0.0, 0.0, 2.0 / 6.0, 0.5, 0.5, 4.0 / 6.0, 1.0, 1.0, 1.0, 1.0]);
         let leaky = Activation::LeakyRelu { negative_slope: 0.01 };
         let s = |v: f32| v * 0.01;
@@ -1007,7 +1019,10 @@ mod tests {
         let r = |v: f32| 1.0 / v.sqrt();
         check(Activation::Rsqrt, [nan, nan, nan, nan, nan, -inf, inf, 1.0, r(3.0), r(6.0), r(7.0), 0.0]);
         let ex = |v: f64| v.exp() as f32;
-        check(Activation::Exp, [nan, 0.0, ex(-7.0), ex(-3.0), ex(-1.0), 1.0, 1.0, ex(1.0), ex(3.0), ex(6.0), ex(7.0), inf]);
+        check(
+            Activation::Exp,
+            [nan, 0.0, ex(-7.0), ex(-3.0), ex(-1.0), 1.0, 1.0, ex(1.0), ex(3.0), ex(6.0), ex(7.0), inf],
+        );
         let er = |v: f64| libm::erf(v) as f32;
         check(Activation::Erf, [nan, -1.0, -1.0, er(-3.0), er(-1.0), -0.0, 0.0, er(1.0), er(3.0), 1.0, 1.0, 1.0]);
         // exp overflows where f32 does: e^88.72 = 3.4e38 is finite, e^88.73 is not.
@@ -1033,7 +1048,10 @@ mod tests {
                     -0.5 => 1.0 / v.sqrt(),
                     _ => (v as f64).powf(e as f64) as f32,
                 };
-                assert!(g.to_bits() == want.to_bits() || (g.is_nan() && want.is_nan()), "{v} ** {e} = {g}, want {want}");
+                assert!(
+                    g.to_bits() == want.to_bits() || (g.is_nan() && want.is_nan()),
+                    "{v} ** {e} = {g}, want {want}"
+                );
             }
         }
         // 2 ** x, and x ** y broadcast against a naive loop.

@@ -342,8 +342,8 @@ fn numel(shape: &[usize]) -> Option<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{assert_close, data};
     use crate::kernels::Activation;
+    use crate::kernels::testutil::{assert_close, data};
 
     /// Plain f64 `a[m, k] · b[k, n]` over row-major slices.
     fn naive(a: &[f32], b: &[f32], m: usize, k: usize, n: usize) -> Vec<f64> {

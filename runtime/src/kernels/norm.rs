@@ -3,8 +3,8 @@
 use pulp::Simd;
 use rayon::prelude::*;
 
-use super::{Activation, elementwise};
 use super::reduce::{sum_map_simd, sum_simd};
+use super::{Activation, elementwise};
 
 /// Below this many elements a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;

@@ -4,8 +4,8 @@
 
 use super::split::split_shape;
 use super::*;
-use crate::kernels::testutil::{assert_close, data};
 use crate::kernels::Activation;
+use crate::kernels::testutil::{assert_close, data};
 
 /// Shape with PyTorch's output size.
 #[allow(clippy::too_many_arguments)]
