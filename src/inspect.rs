@@ -237,11 +237,12 @@ pub fn kernel_detail(k: &Kernel) -> String {
     if let Kernel::Conv2d { algo, .. } = k {
         parts.push(algo.to_string());
     }
-    for (on, name) in [(ep.scale.is_some(), "scale"), (ep.shift.is_some(), "shift"), (ep.relu, "relu")] {
+    for (on, name) in [(ep.scale.is_some(), "scale"), (ep.shift.is_some(), "shift")] {
         if on {
             parts.push(name.into());
         }
     }
+    parts.extend(ep.act.map(|a| a.label()));
     format!("[{}]", parts.join(" "))
 }
 

@@ -99,6 +99,29 @@ fn other_format_versions_are_refused() {
 }
 
 #[test]
+fn version_2_plans_still_load() {
+    // Version 2 wrote an epilogue's activation as `"relu": bool`; version 3 as `"act"`.
+    let p = plan();
+    let json = serde_json::to_string(&p.manifest).expect("manifest");
+    assert!(json.contains(r#""act":"Relu""#), "the case fuses a ReLU");
+    let v2 =
+        json.replace(r#""act":"Relu""#, r#""relu":true"#).replace(r#""format_version":3"#, r#""format_version":2"#);
+    let tensors: Vec<(String, Vec<usize>, Vec<u8>)> = (0..p.manifest.tensors.len())
+        .map(|i| {
+            let t = &p.manifest.tensors[i];
+            (t.name.clone(), t.shape.clone(), p.tensor(i).iter().flat_map(|v| v.to_le_bytes()).collect())
+        })
+        .collect();
+    let loaded = load_bytes("v2.plan", &common::plan_file_bytes("2", v2, &tensors)).expect("a version 2 plan loads");
+    assert_eq!(loaded.manifest.steps, p.manifest.steps);
+    let img: Vec<f32> = (0..4 * 16 * 16).map(|i| (i % 7) as f32 * 0.25 - 0.7).collect();
+    let input = [Input { name: "img", data: &img, shape: &[1, 4, 16, 16] }];
+    let want = Session::new(Arc::new(p), 1).expect("session").run(&input).expect("runs");
+    let got = Session::new(Arc::new(loaded), 1).expect("session").run(&input).expect("runs");
+    assert_eq!(got, want);
+}
+
+#[test]
 fn a_weights_file_is_not_a_plan() {
     let bytes = plan().to_bytes().expect("serialise");
     let plain = with_metadata(&bytes, |md| md.clear());

@@ -20,11 +20,17 @@ use serde::{Deserialize, Serialize};
 use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::{KeyPart, VariantKey};
-use crate::ops::{ChannelAffine, Conv2d, ConvAlgo, LayerNorm, Linear, Operator, Pure};
+use crate::ops::{Activation, ChannelAffine, Conv2d, ConvAlgo, LayerNorm, Linear, Operator, Pure};
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
 /// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
-pub const FORMAT_VERSION: u32 = 2;
+/// Version 3: an epilogue's activation is any [`Activation`] (`act`), not a `relu` flag;
+/// a runtime that reads only version 2 refuses these plans instead of ignoring `act`.
+pub const FORMAT_VERSION: u32 = 3;
+
+/// The oldest plan format version this crate still reads: version 2 plans differ only in
+/// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
+pub const OLDEST_FORMAT_VERSION: u32 = 2;
 
 /// The key of variant 0, the base model; no variant table may use it.
 pub const BASE_VARIANT: &str = crate::key::BASE_KEY;
@@ -282,17 +288,41 @@ pub struct Step {
     pub output: usize,
 }
 
-/// A per-channel epilogue read from stored tensors.
+/// A per-channel epilogue read from stored tensors: `act(acc * scale[c] + shift[c])`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(from = "EpilogueSpecRepr")]
 pub struct EpilogueSpec {
     pub scale: Option<usize>,
     pub shift: Option<usize>,
-    pub relu: bool,
+    /// The activation applied last, if any (format version 2 wrote `"relu": bool`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub act: Option<Activation>,
     /// Set when `scale` and `shift` are a folded BatchNorm: what re-estimating its
     /// statistics needs ([`crate::calibrate`]). Absent in plans compiled before it was
     /// recorded; never read by a normal run.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bn: Option<BnInfo>,
+}
+
+/// [`EpilogueSpec`] as plans of format versions 2 and 3 write it.
+#[derive(Deserialize)]
+struct EpilogueSpecRepr {
+    scale: Option<usize>,
+    shift: Option<usize>,
+    #[serde(default)]
+    act: Option<Activation>,
+    /// Version 2's activation flag.
+    #[serde(default)]
+    relu: bool,
+    #[serde(default)]
+    bn: Option<BnInfo>,
+}
+
+impl From<EpilogueSpecRepr> for EpilogueSpec {
+    fn from(r: EpilogueSpecRepr) -> EpilogueSpec {
+        let act = r.act.or(r.relu.then_some(Activation::Relu));
+        EpilogueSpec { scale: r.scale, shift: r.shift, act, bn: r.bn }
+    }
 }
 
 /// Most rank a [`LoraSpec`] may have (PEFT's ranks are 4 to 64).
@@ -470,5 +500,18 @@ mod tests {
         // A right-to-left override (a format character) and a bell.
         assert_eq!(escaped("x\u{202e}y\u{7}"), "x\\u{202e}y\\u{7}");
         assert_eq!(escaped("Grüße, 画像"), "Grüße, 画像");
+    }
+
+    #[test]
+    fn epilogues_of_version_2_and_3_read_alike() {
+        let v2: EpilogueSpec = serde_json::from_str(r#"{"scale":null,"shift":3,"relu":true}"#).expect("v2");
+        assert_eq!(v2, EpilogueSpec { shift: Some(3), act: Some(Activation::Relu), ..EpilogueSpec::default() });
+        let none: EpilogueSpec = serde_json::from_str(r#"{"scale":1,"shift":null,"relu":false}"#).expect("v2");
+        assert_eq!(none.act, None);
+        let act = Some(Activation::Clamp { min: Some(0.0), max: Some(6.0) });
+        let v3 = EpilogueSpec { scale: Some(1), shift: Some(2), act, bn: None };
+        let json = serde_json::to_string(&v3).expect("write");
+        assert!(!json.contains("relu"), "{json}");
+        assert_eq!(serde_json::from_str::<EpilogueSpec>(&json).expect("read"), v3);
     }
 }

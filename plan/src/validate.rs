@@ -194,6 +194,9 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
     let kernel = &step.kernel;
     let numel = |t: usize| m.tensors[t].numel();
     let per_channel = |ep: &EpilogueSpec, channels: i64| -> Result<(), String> {
+        if let Some(act) = ep.act {
+            act.check_options().map_err(|e| format!("epilogue: {e}"))?;
+        }
         for t in ep.scale.into_iter().chain(ep.shift) {
             if numel(t) as u64 != channels as u64 {
                 return Err(format!(

@@ -1,6 +1,6 @@
 //! Criterion benchmarks of the GEMM-based kernels at 2 threads: sgemm 512³, conv2d on
 //! ResNet-18's layer shapes (batch 1) with the algorithm `conv::choose` picks, and a
-//! transformer-sized linear. Throughput is reported in FLOP/s (criterion's "elem/s").
+//! transformer-sized linear; and the polynomial unary kernels against naive libm loops. Throughput is reported in FLOP/s (criterion's "elem/s").
 //!
 //! `cargo bench -p readi-runtime --bench kernels` runs all; a filter such as `conv2d`
 //! selects. With `READI_BENCH_ALL_ALGOS=1` every other algorithm that supports a conv
@@ -74,7 +74,7 @@ fn bench_conv(c: &mut Criterion) {
         let w = data(cout * cin * k * k, 4);
         let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
         let shift = data(cout, 6);
-        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(readi_plan::ops::Activation::Relu) };
         let mut out = vec![0.0; cout * o * o];
         g.throughput(Throughput::Elements(2 * (cout * o * o * cin * k * k) as u64));
         let chosen = conv::choose(&s);
@@ -112,7 +112,8 @@ fn bench_conv_lora(c: &mut Criterion) {
         let w = data(cout * cin * 9, 4);
         let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
         let shift = data(cout, 6);
-        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+        let ep =
+            Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(readi_runtime::kernels::Activation::Relu) };
         let mut out = vec![0.0; cout * s.oh * s.ow];
         let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
         conv::pack_weight(&s, algo, &w, &mut packed);
@@ -184,7 +185,7 @@ fn bench_linear(c: &mut Criterion) {
     let pool = pool();
     let (rows, fin, fout) = (196, 384, 1536);
     let (x, w, bias) = (data(rows * fin, 7), data(fout * fin, 8), data(fout, 9));
-    let ep = Epilogue { scale: None, shift: Some(&bias), relu: false };
+    let ep = Epilogue { scale: None, shift: Some(&bias), act: None };
     let mut out = vec![0.0; rows * fout];
     let mut g = c.benchmark_group("linear");
     g.throughput(Throughput::Elements(2 * (rows * fin * fout) as u64));
@@ -199,5 +200,61 @@ fn bench_linear(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_sgemm, bench_conv, bench_conv_lora, bench_linear);
+/// The polynomial unary kernels against a naive loop calling libm on the same data (one
+/// thread, 16384 elements, below the size that goes parallel): "no new operator slower
+/// than a naive loop". `cargo bench -p readi-runtime --bench kernels unary`.
+fn bench_unary(c: &mut Criterion) {
+    use readi_runtime::kernels::elementwise::{activation, scalar};
+    use readi_runtime::kernels::{Activation, BinaryOp};
+    let n = 1 << 14;
+    let x: Vec<f32> = data(n, 10).iter().map(|v| v * 8.0).collect();
+    let pos: Vec<f32> = x.iter().map(|v| v.abs() + 1e-3).collect();
+    let mut out = vec![0.0; n];
+    let mut g = c.benchmark_group("unary");
+    g.throughput(Throughput::Elements(n as u64));
+    type Naive = fn(f32) -> f32;
+    let cases: [(&str, Activation, Naive, &[f32]); 6] = [
+        ("exp", Activation::Exp, f32::exp, &x),
+        ("log", Activation::Log, f32::ln, &pos),
+        ("erf", Activation::Erf, libm::erff, &x),
+        ("tanh", Activation::Tanh, f32::tanh, &x),
+        ("elu", Activation::Elu { alpha: 1.0 }, |v| if v > 0.0 { v } else { v.exp_m1() }, &x),
+        ("hardswish", Activation::Hardswish, |v| v * (v + 3.0).clamp(0.0, 6.0) / 6.0, &x),
+    ];
+    for (name, act, naive, input) in cases {
+        g.bench_function(BenchmarkId::new("readi", name), |bench| {
+            bench.iter(|| {
+                activation(act, black_box(input), &mut out);
+                black_box(&out);
+            })
+        });
+        g.bench_function(BenchmarkId::new("naive", name), |bench| {
+            bench.iter(|| {
+                for (o, &v) in out.iter_mut().zip(black_box(input)) {
+                    *o = naive(v);
+                }
+                black_box(&out);
+            })
+        });
+    }
+    g.bench_function(BenchmarkId::new("readi", "pow1.5"), |bench| {
+        bench.iter(|| {
+            scalar(BinaryOp::Pow, black_box(&pos), 1.5, false, &mut out);
+            black_box(&out);
+        })
+    });
+    g.bench_function(BenchmarkId::new("naive", "pow1.5"), |bench| {
+        bench.iter(|| {
+            // The exponent a run-time value, as the kernel gets it.
+            let e = black_box(1.5f32);
+            for (o, &v) in out.iter_mut().zip(black_box(&pos)) {
+                *o = v.powf(e);
+            }
+            black_box(&out);
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_sgemm, bench_conv, bench_conv_lora, bench_linear, bench_unary);
 criterion_main!(benches);

@@ -143,7 +143,7 @@ fn main() {
         let w = data(cout * cin / groups * k * k, 4);
         let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
         let shift = data(cout, 6);
-        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(readi_plan::ops::Activation::Relu) };
         let mut out = vec![0.0; cout * o * o];
         let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
         conv::pack_weight(&s, algo, &w, &mut packed);

@@ -90,7 +90,12 @@ fn plan() -> Plan {
                 kernel: Kernel::Linear {
                     linear: Linear { in_features: FIN as i64, out_features: FOUT as i64 },
                     weight: base[0],
-                    epilogue: EpilogueSpec { scale: None, shift: Some(base[1]), relu: true, bn: None },
+                    epilogue: EpilogueSpec {
+                        scale: None,
+                        shift: Some(base[1]),
+                        act: Some(readi_plan::ops::Activation::Relu),
+                        bn: None,
+                    },
                     lora: None,
                 },
                 inputs: vec![0],

@@ -27,7 +27,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::exec::{Bound, Input, Run, RunError, Session, SessionOptions, run_step};
-use readi_plan::ops::batchnorm_channel;
+use readi_plan::ops::{Activation, batchnorm_channel};
 
 use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
 
@@ -110,7 +110,7 @@ struct Layer {
     /// The step computing the BatchNorm's input: the original step with only the folded
     /// conv bias as its epilogue.
     pre: Step,
-    relu: bool,
+    act: Option<Activation>,
     /// Sums over committed batches of the batch mean and the unbiased batch variance.
     sum_mean: Vec<f64>,
     sum_var: Vec<f64>,
@@ -162,7 +162,7 @@ impl BnCalibrator {
             let Some(ep) = step.kernel.epilogue() else { continue };
             let Some(info) = &ep.bn else { continue };
             // The BatchNorm's input: the conv plus its own bias, or the affine's input.
-            let identity = EpilogueSpec { scale: None, shift: info.conv_bias, relu: false, bn: None };
+            let identity = EpilogueSpec { scale: None, shift: info.conv_bias, act: None, bn: None };
             let kernel = match &step.kernel {
                 // A fused LoRA branch is part of what the BatchNorm reads.
                 Kernel::Conv2d { conv, algo, weight, lora, .. } => {
@@ -181,7 +181,7 @@ impl BnCalibrator {
                 info: info.clone(),
                 step: k,
                 pre,
-                relu: ep.relu,
+                act: ep.act,
                 sum_mean: vec![0.0; c],
                 sum_var: vec![0.0; c],
                 batch_mean: vec![0.0; c],
@@ -393,7 +393,7 @@ fn train_mode_batchnorm(
         }
         affine.push((a, b));
     }
-    let relu = layer.relu;
+    let relu = layer.act == Some(Activation::Relu);
     x.par_chunks_mut(inner.max(1)).with_min_len((CHUNK / inner.max(1)).max(1)).enumerate().for_each(|(row, xs)| {
         let (a, b) = affine[row % c];
         for v in xs {
@@ -401,5 +401,8 @@ fn train_mode_batchnorm(
             *v = if relu { y.max(0.0) } else { y };
         }
     });
+    if let Some(act) = layer.act.filter(|a| *a != Activation::Relu) {
+        crate::kernels::elementwise::activation_in_place(act, x);
+    }
     Ok(())
 }

@@ -83,7 +83,7 @@ fn plan() -> Plan {
             "bn",
             Kernel::ChannelAffine {
                 affine: ChannelAffine { channels: 10 },
-                epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), relu: false, bn: None },
+                epilogue: EpilogueSpec { scale: Some(aff_s), shift: Some(aff_t), act: None, bn: None },
             },
             vec![2],
             3,

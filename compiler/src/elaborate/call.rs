@@ -15,6 +15,7 @@ use super::builtins;
 use super::eval::as_f64;
 use super::{Call, Elab, Frame, Hint, MAX_BLOCK_DEPTH, Value};
 use crate::ir::*;
+use crate::ops::pytorch::Spelling;
 use crate::ops::{Args, Def};
 
 impl<'a> Elab<'a> {
@@ -55,10 +56,23 @@ impl<'a> Elab<'a> {
         if let Some(&def) = self.blocks.get(name) {
             return self.call_block(def, args, span, hint, frame);
         }
-        let mut candidates: Vec<&str> = builtins::names().collect();
-        candidates.extend(self.blocks.keys().copied());
         let mut d = Diagnostic::error(Code::UnknownName, format!("unknown op or block `{name}`"))
             .with_primary(callee.span, "not an op, block or function");
+        // A PyTorch name gets its own answer, never a nearby name (`relu6` is not `relu`).
+        match crate::ops::pytorch::lookup(name) {
+            Some(Spelling::Readi(s)) if s.contains(' ') => {
+                return self.error(d.with_note(format!("PyTorch's `{name}` is {s}")));
+            }
+            Some(Spelling::Readi(s)) => {
+                return self.error(d.with_note(format!("PyTorch's `{name}` is written `{s}` in readi")));
+            }
+            Some(Spelling::Unsupported) => {
+                return self.error(d.with_note(format!("PyTorch's `{name}` is not supported (yet)")));
+            }
+            None => {}
+        }
+        let mut candidates: Vec<&str> = builtins::names().collect();
+        candidates.extend(self.blocks.keys().copied());
         if let Some(s) = suggest(name, candidates) {
             d = d.with_note(format!("did you mean `{s}`?"));
         }

@@ -465,6 +465,7 @@ fn tensor_kind(op: BinaryOp) -> Option<TensorOp> {
         BinaryOp::Sub => Some(TensorOp::Sub),
         BinaryOp::Mul => Some(TensorOp::Mul),
         BinaryOp::Div => Some(TensorOp::Div),
+        BinaryOp::Pow => Some(TensorOp::Pow),
         _ => None,
     }
 }

@@ -1,11 +1,11 @@
 //! What the back end fuses into a conv, linear or channel-affine node after its
-//! accumulation: `relu(acc * scale[c] + shift[c])`, and the BatchNorm it folded.
+//! accumulation: `act(acc * scale[c] + shift[c])`, and the BatchNorm it folded.
 //!
 //! Empty in the front end. `fold_batchnorm` adds a scale and a shift (and the record
-//! AdaBN needs to undo the fold), `fuse_epilogues` turns a bias into a shift and absorbs a
-//! ReLU. Each part brings its parameter slots, bound to the tensors the pass derived.
+//! AdaBN needs to undo the fold), `fuse_epilogues` turns a bias into a shift and absorbs an
+//! activation. Each part brings its parameter slots, bound to the tensors the pass derived.
 
-use crate::ir::ParamSlot;
+use crate::ir::{Activation, ParamSlot};
 
 /// See the module documentation.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -14,7 +14,8 @@ pub struct Epilogue {
     pub scale: bool,
     /// A per-channel shift (a bias, a folded BatchNorm's shift): slot `shift`.
     pub shift: bool,
-    pub relu: bool,
+    /// Applied last (a ReLU, a clamp, a SiLU, ...).
+    pub act: Option<Activation>,
     /// The BatchNorm folded into `scale` and `shift`.
     pub bn: Option<BnFold>,
 }
@@ -61,11 +62,9 @@ impl Epilogue {
         if self.is_empty() {
             return None;
         }
-        let parts: Vec<&str> = [(self.scale, "scale"), (self.shift, "shift"), (self.relu, "relu")]
-            .iter()
-            .filter(|p| p.0)
-            .map(|p| p.1)
-            .collect();
+        let mut parts: Vec<String> =
+            [(self.scale, "scale"), (self.shift, "shift")].iter().filter(|p| p.0).map(|p| p.1.to_string()).collect();
+        parts.extend(self.act.map(Activation::label));
         let mut s = parts.join("+");
         if let Some(bn) = &self.bn {
             s.push_str(&format!(" ({} folded)", bn.name));

@@ -15,16 +15,18 @@
 //! |------------------|-------------------------------------------------------------|
 //! | `conv.rs`        | `conv2d`                                                    |
 //! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`                      |
-//! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, every activation (`relu`, `gelu`, ...) |
+//! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, `pow`, every activation (`relu`, `clamp`, `gelu`, ...) and unary function (`exp`, `sqrt`, ...) |
 //! | `linear.rs`      | `linear`, `matmul`                                          |
 //! | `norm.rs`        | `batchnorm`, `layernorm`                                    |
 //! | `layout.rs`      | `concat`, `reshape`, `flatten`, `transpose`, `permute`      |
 //! | `reduce.rs`      | `mean`, `softmax`                                           |
 //! | `resize.rs`      | `upsample`                                                  |
 //! | `parameter.rs`   | `parameter`                                                 |
+//! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
-//! options becomes a builtin `name(x)` by itself (`docs/contributing.md`).
+//! options becomes a builtin `name(x)` by itself (`docs/contributing.md`); those with
+//! options (`clamp`, `leaky_relu`, ...) have a builder in `elementwise.rs`.
 
 mod args;
 mod conv;
@@ -35,6 +37,7 @@ mod linear;
 mod norm;
 mod parameter;
 mod pool;
+pub mod pytorch;
 mod reduce;
 mod resize;
 

@@ -233,7 +233,7 @@ fn time_conv(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
     let mut out = vec![0.0f32; s.n * s.cout * s.oh * s.ow];
     let mut scratch = vec![0.0f32; conv::lora_scratch_len(s, algo, rank, 1)];
     let shift = vec![0.0f32; s.cout];
-    let ep = Epilogue { scale: None, shift: Some(&shift), relu: true };
+    let ep = Epilogue { scale: None, shift: Some(&shift), act: Some(readi_plan::ops::Activation::Relu) };
     let once = |out: &mut [f32], scratch: &mut [f32]| {
         conv::conv2d_lora(s, algo, &packed, lora.as_ref(), &ep, &x, out, scratch, 1)
     };

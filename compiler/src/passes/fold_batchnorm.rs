@@ -59,7 +59,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             .map_err(internal)?;
         let shift = shift_tensor(table, [&w, &b, &mean, &var], conv_bias.as_deref(), c, eps).map_err(internal)?;
         let fold = BnFold { name: node.path.clone(), eps, conv_bias: conv_bias.is_some() };
-        let epilogue = Epilogue { scale: true, shift: true, relu: false, bn: Some(fold) };
+        let epilogue = Epilogue { scale: true, shift: true, act: None, bn: Some(fold) };
         let mut bind =
             vec![("scale", scale_name.clone()), ("shift", shift_name.clone()), ("bn.weight", w), ("bn.bias", b)];
         let mut p = match conv {

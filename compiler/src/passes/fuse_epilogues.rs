@@ -3,10 +3,13 @@
 //!
 //! * rule `bias_to_shift`: a conv's or linear's bias becomes its epilogue's shift (the
 //!   same tensor; a folded BatchNorm already has a shift and no bias);
-//! * rule `fuse_relu`: a ReLU whose input is a conv, linear or channel affine that
-//!   nothing else reads runs in that node's epilogue; the ReLU leaves the graph.
+//! * rule `fuse_activation`: an activation (any [`Activation`]: relu, relu6, clamp,
+//!   hardswish, silu, gelu, ..., and the unary functions such as `exp`) whose input is a
+//!   conv, linear or channel affine without one, that nothing else reads, runs in that
+//!   node's epilogue; the activation leaves the graph. One per node: a second
+//!   activation stays a node.
 //!
-//! Does nothing when no bias is left and no ReLU follows such a node. Assumes
+//! Does nothing when no bias is left and no activation follows such a node. Assumes
 //! `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
 
 use readi_grammar::diag::Diagnostics;
@@ -44,13 +47,13 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             patches.push(p);
             continue;
         }
-        if matches!(node.op, Op::Pure(Pure::Activation(Activation::Relu)))
+        if let Op::Pure(Pure::Activation(act)) = node.op
             && let Some(x) = g.inputs(id).first()
-            && let Some(new) = with_relu(g, x.node)
+            && let Some(new) = with_activation(g, x.node, act)
         {
             let producer = g.node(x.node);
             let slots = rebind(&new, &producer.params, &[]);
-            let mut p = Patch::new("fuse_relu");
+            let mut p = Patch::new("fuse_activation");
             p.rewrite.push((x.node, new, slots));
             p.replace_uses.push((ValueRef { node: id, port: 0 }, *x));
             p.fuse.push((x.node, node.path.clone()));
@@ -61,13 +64,13 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     Ok(Output::Patches(patches))
 }
 
-/// The op of `producer` with a ReLU in its epilogue, if it is a conv, linear or channel
-/// affine without one whose output only the ReLU reads.
-fn with_relu(g: &Graph, producer: NodeId) -> Option<Op> {
+/// The op of `producer` with `act` in its epilogue, if it is a conv, linear or channel
+/// affine without an activation whose output only `act` reads.
+fn with_activation(g: &Graph, producer: NodeId, act: Activation) -> Option<Op> {
     if g.uses(producer) != 1 {
         return None;
     }
-    let relu = |e: &Epilogue| (!e.relu).then(|| Epilogue { relu: true, ..e.clone() });
+    let relu = |e: &Epilogue| e.act.is_none().then(|| Epilogue { act: Some(act), ..e.clone() });
     Some(match &g.node(producer).op {
         Op::Conv2d(c) => Op::Conv2d(crate::ops::ConvOp { epilogue: relu(&c.epilogue)?, ..c.clone() }),
         Op::Linear(l) => Op::Linear(crate::ops::LinearOp { epilogue: relu(&l.epilogue)?, ..l.clone() }),

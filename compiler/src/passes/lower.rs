@@ -233,7 +233,7 @@ impl<'m> Lowering<'m> {
             }
             None => None,
         };
-        Ok(EpilogueSpec { scale, shift, relu: e.relu, bn })
+        Ok(EpilogueSpec { scale, shift, act: e.act, bn })
     }
 
     /// A fused LoRA branch of `rank`: the tensors of its slots; `a_raw` when `A` was left

@@ -713,8 +713,9 @@ impl<'a> Options<'a> {
 
     fn activation(&self, name: &str, diags: &mut Diagnostics) -> Option<Activation> {
         let Some(o) = self.get(name) else { return Some(Activation::Relu) };
-        // Every activation by its name (`gelu` is the exact one).
-        let mut acts: Vec<&str> = Activation::ALL.iter().map(|a| a.name()).collect();
+        // Every activation without options by its name, and `gelu` (the exact one).
+        let plain = Activation::ALL.into_iter().filter(|a| !a.has_options() || *a == Activation::Gelu);
+        let mut acts: Vec<&str> = plain.map(|a| a.name()).collect();
         acts.dedup();
         match &o.value {
             Some(OptionValue::Word(w)) if acts.contains(&w.name.as_str()) => {

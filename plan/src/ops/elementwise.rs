@@ -18,9 +18,13 @@ pub enum BinaryOp {
     Sub,
     Mul,
     Div,
+    /// `a ** b`, C's `powf` (PyTorch's `pow`; with a constant exponent 2, 3, 0.5, -0.5, -1
+    /// or -2 it is the product, root or reciprocal, as in PyTorch's kernel).
+    Pow,
 }
 
 impl BinaryOp {
+    /// The operations with a builtin `name(a, b)` (`pow` has its own, `pow(x, exponent)`).
     pub const ALL: [BinaryOp; 4] = [BinaryOp::Add, BinaryOp::Sub, BinaryOp::Mul, BinaryOp::Div];
 
     pub fn name(self) -> &'static str {
@@ -29,6 +33,7 @@ impl BinaryOp {
             BinaryOp::Sub => "sub",
             BinaryOp::Mul => "mul",
             BinaryOp::Div => "div",
+            BinaryOp::Pow => "pow",
         }
     }
 
@@ -40,6 +45,7 @@ impl BinaryOp {
             BinaryOp::Sub => a - b,
             BinaryOp::Mul => a * b,
             BinaryOp::Div => a / b,
+            BinaryOp::Pow => a.powf(b),
         }
     }
 }
@@ -117,8 +123,12 @@ impl Operator for Scalar {
     }
 }
 
-/// Element-wise activations.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+/// Element-wise activations and unary functions, each with PyTorch's semantics (NaN in,
+/// NaN out; `log` of a negative number is NaN, of 0 is `-inf`).
+///
+/// The ones with options (`Clamp`, `LeakyRelu`, `Elu`) hold them as f32, the precision
+/// PyTorch applies them in to an f32 tensor.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Activation {
     /// `max(x, 0)`.
     Relu,
@@ -132,17 +142,59 @@ pub enum Activation {
     Tanh,
     /// `x * sigmoid(x)` (PyTorch's `SiLU`, also called swish).
     Silu,
+    /// `min(max(x, 0), 6)`.
+    Relu6,
+    /// `min(max(x, min), max)`, either bound optional (PyTorch's `clamp`; `hardtanh` is
+    /// both bounds, -1 and 1 by default). With `min > max` every value is `max`, as in
+    /// PyTorch.
+    Clamp { min: Option<f32>, max: Option<f32> },
+    /// `x * relu6(x + 3) / 6`.
+    Hardswish,
+    /// `relu6(x + 3) / 6`.
+    Hardsigmoid,
+    /// `x` for `x > 0`, else `negative_slope * x`.
+    LeakyRelu { negative_slope: f32 },
+    /// `x` for `x > 0`, else `alpha * (exp(x) - 1)`.
+    Elu { alpha: f32 },
+    /// `e^x`.
+    Exp,
+    /// The natural logarithm.
+    Log,
+    /// `√x`.
+    Sqrt,
+    /// `1 / √x`.
+    Rsqrt,
+    /// `|x|`.
+    Abs,
+    /// `-x`.
+    Neg,
+    /// The error function.
+    Erf,
 }
 
 impl Activation {
-    /// Every activation.
-    pub const ALL: [Activation; 6] = [
+    /// Every activation, those with options at PyTorch's defaults (`Clamp` as
+    /// `hardtanh`'s -1 and 1).
+    pub const ALL: [Activation; 19] = [
         Activation::Relu,
         Activation::Gelu,
         Activation::GeluTanh,
         Activation::Sigmoid,
         Activation::Tanh,
         Activation::Silu,
+        Activation::Relu6,
+        Activation::Clamp { min: Some(-1.0), max: Some(1.0) },
+        Activation::Hardswish,
+        Activation::Hardsigmoid,
+        Activation::LeakyRelu { negative_slope: 0.01 },
+        Activation::Elu { alpha: 1.0 },
+        Activation::Exp,
+        Activation::Log,
+        Activation::Sqrt,
+        Activation::Rsqrt,
+        Activation::Abs,
+        Activation::Neg,
+        Activation::Erf,
     ];
 
     /// The name in the language (both GELUs are `gelu`; `approximate` tells them apart).
@@ -153,12 +205,66 @@ impl Activation {
             Activation::Sigmoid => "sigmoid",
             Activation::Tanh => "tanh",
             Activation::Silu => "silu",
+            Activation::Relu6 => "relu6",
+            Activation::Clamp { .. } => "clamp",
+            Activation::Hardswish => "hardswish",
+            Activation::Hardsigmoid => "hardsigmoid",
+            Activation::LeakyRelu { .. } => "leaky_relu",
+            Activation::Elu { .. } => "elu",
+            Activation::Exp => "exp",
+            Activation::Log => "log",
+            Activation::Sqrt => "sqrt",
+            Activation::Rsqrt => "rsqrt",
+            Activation::Abs => "abs",
+            Activation::Neg => "neg",
+            Activation::Erf => "erf",
+        }
+    }
+
+    /// The activation for printouts: its name, and its options in parentheses
+    /// (`leaky_relu(negative_slope=0.1)`).
+    pub fn label(self) -> String {
+        let attrs = self.attrs();
+        if attrs.is_empty() {
+            return self.name().to_string();
+        }
+        let a: Vec<String> = attrs.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        format!("{}({})", self.name(), a.join(", "))
+    }
+
+    /// Whether the language writes it with options (`gelu(x, approximate=)`,
+    /// `clamp(x, min=, max=)`, ...) rather than as `name(x)` alone.
+    pub fn has_options(self) -> bool {
+        matches!(
+            self,
+            Activation::Gelu
+                | Activation::GeluTanh
+                | Activation::Clamp { .. }
+                | Activation::LeakyRelu { .. }
+                | Activation::Elu { .. }
+        )
+    }
+
+    /// Its options are usable: a clamp has a bound, none is NaN, a slope or alpha is finite.
+    pub fn check_options(self) -> Result<(), String> {
+        let bad = |what: &str, v: f32| Err(format!("{} with {what} {v}: must be a number", self.name()));
+        match self {
+            Activation::Clamp { min: None, max: None } => {
+                Err("clamp without `min` or `max`: give at least one".to_string())
+            }
+            Activation::Clamp { min: Some(v), .. } if v.is_nan() => bad("min", v),
+            Activation::Clamp { max: Some(v), .. } if v.is_nan() => bad("max", v),
+            Activation::LeakyRelu { negative_slope: v } if !v.is_finite() => bad("negative_slope", v),
+            Activation::Elu { alpha: v } if !v.is_finite() => bad("alpha", v),
+            _ => Ok(()),
         }
     }
 
     /// The activation's formula, evaluated in f64 with libm: what the runtime's vectorised
     /// kernels are tested against.
     pub fn reference(self, x: f64) -> f64 {
+        // `f64::clamp` keeps NaN.
+        let relu6 = |v: f64| v.clamp(0.0, 6.0);
         match self {
             Activation::Relu => x.max(0.0),
             Activation::Gelu => 0.5 * x * (1.0 + libm::erf(x / std::f64::consts::SQRT_2)),
@@ -169,6 +275,36 @@ impl Activation {
             Activation::Sigmoid => 1.0 / (1.0 + (-x).exp()),
             Activation::Tanh => x.tanh(),
             Activation::Silu => x / (1.0 + (-x).exp()),
+            Activation::Relu6 => relu6(x),
+            Activation::Clamp { min, max } => {
+                let lo = min.map_or(f64::NEG_INFINITY, f64::from);
+                let hi = max.map_or(f64::INFINITY, f64::from);
+                let y = if x < lo { lo } else { x };
+                if y > hi { hi } else { y }
+            }
+            Activation::Hardswish => x * relu6(x + 3.0) / 6.0,
+            Activation::Hardsigmoid => relu6(x + 3.0) / 6.0,
+            Activation::LeakyRelu { negative_slope } => {
+                if x > 0.0 {
+                    x
+                } else {
+                    x * f64::from(negative_slope)
+                }
+            }
+            Activation::Elu { alpha } => {
+                if x > 0.0 {
+                    x
+                } else {
+                    f64::from(alpha) * x.exp_m1()
+                }
+            }
+            Activation::Exp => x.exp(),
+            Activation::Log => x.ln(),
+            Activation::Sqrt => x.sqrt(),
+            Activation::Rsqrt => 1.0 / x.sqrt(),
+            Activation::Abs => x.abs(),
+            Activation::Neg => -x,
+            Activation::Erf => libm::erf(x),
         }
     }
 }
@@ -179,12 +315,19 @@ impl Operator for Activation {
     }
 
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        self.check_options().map_err(ShapeError::new)?;
         Ok(inputs[0].clone())
     }
 
     fn attrs(&self) -> Vec<(&'static str, String)> {
-        match self {
+        let f = |v: f32| float(f64::from(v));
+        match *self {
             Activation::GeluTanh => vec![("approximate", "tanh".into())],
+            Activation::Clamp { min, max } => {
+                min.map(|v| ("min", f(v))).into_iter().chain(max.map(|v| ("max", f(v)))).collect()
+            }
+            Activation::LeakyRelu { negative_slope } => vec![("negative_slope", f(negative_slope))],
+            Activation::Elu { alpha } => vec![("alpha", f(alpha))],
             _ => Vec::new(),
         }
     }
@@ -217,6 +360,29 @@ mod tests {
         assert!(close(Activation::Gelu.reference(1.0), 0.841_344_7));
         assert!(close(Activation::Sigmoid.reference(0.0), 0.5));
         assert_eq!(Activation::Relu.reference(-3.0), 0.0);
+        // hardswish(-3) = 0, hardswish(3) = 3, hardswish(1) = 1 * 4 / 6; hardsigmoid(0) = 1/2;
+        // elu(-1) = e^-1 - 1 = -0.632120...; clamp's bounds; log(-1) is NaN.
+        assert_eq!(Activation::Hardswish.reference(-3.0), 0.0);
+        assert_eq!(Activation::Hardswish.reference(3.0), 3.0);
+        assert!(close(Activation::Hardswish.reference(1.0), 4.0 / 6.0));
+        assert_eq!(Activation::Hardsigmoid.reference(0.0), 0.5);
+        assert!(close(Activation::Elu { alpha: 1.0 }.reference(-1.0), -0.632_120_56));
+        assert_eq!(Activation::Relu6.reference(7.0), 6.0);
+        let c = Activation::Clamp { min: Some(-0.5), max: None };
+        assert_eq!((c.reference(-2.0), c.reference(9.0)), (-0.5, 9.0));
+        assert!(Activation::Log.reference(-1.0).is_nan());
+        assert!(close(Activation::Erf.reference(1.0), 0.842_700_8));
+    }
+
+    #[test]
+    fn activation_options_are_checked_and_printed() {
+        let clamp = Activation::Clamp { min: None, max: None };
+        assert!(run(&clamp, &[t(&[2])]).expect_err("no bounds").message.contains("at least one"));
+        assert!(run(&Activation::Clamp { min: Some(f32::NAN), max: None }, &[t(&[2])]).is_err());
+        assert!(run(&Activation::Elu { alpha: f32::INFINITY }, &[t(&[2])]).is_err());
+        let c = Activation::Clamp { min: Some(0.0), max: Some(6.5) };
+        assert_eq!(c.attrs(), vec![("min", "0.0".to_string()), ("max", "6.5".to_string())]);
+        assert_eq!(Activation::LeakyRelu { negative_slope: 0.2 }.attrs()[0].0, "negative_slope");
     }
 
     #[test]

@@ -40,7 +40,7 @@ pub(super) fn value_slice<'a>(run: &Run<'a>, bound: &'a Bound, v: usize) -> &'a 
 }
 
 fn epilogue<'a>(w: VariantTensors<'a>, e: &EpilogueSpec) -> Epilogue<'a> {
-    Epilogue { scale: e.scale.map(|t| w.get(t)), shift: e.shift.map(|t| w.get(t)), relu: e.relu }
+    Epilogue { scale: e.scale.map(|t| w.get(t)), shift: e.shift.map(|t| w.get(t)), act: e.act }
 }
 
 /// Runs every step in order. Allocates nothing: inputs are fetched by each kernel as
@@ -120,7 +120,7 @@ pub(crate) fn run_step(
             let (n, c) = (xs[0], xs[1]);
             let inner = xs[2..].iter().product();
             let e = epilogue(w, ep);
-            norm::channel_affine(x, n, c, inner, e.scale, e.shift, e.relu, out);
+            norm::channel_affine(x, n, c, inner, e.scale, e.shift, e.act, out);
         }
         Kernel::LayerNorm { norm: ln, weight, bias } => {
             let f = xs.last().copied().unwrap_or(1);

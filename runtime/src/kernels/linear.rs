@@ -155,12 +155,13 @@ pub fn linear_lora(
 simd_fn! {
     /// [`epilogue_row`] over every row (of `out_features`) of a block, vectorised.
     fn epilogue_rows(rows: &mut [f32], out_features: usize, ep: &Epilogue<'_>) {
-        if ep.scale.is_none() && ep.shift.is_none() && !ep.relu {
+        if ep.scale.is_none() && ep.shift.is_none() && ep.act.is_none() {
             return;
         }
         for row in rows.chunks_mut(out_features) {
             epilogue_row(row, ep);
         }
+        ep.finish_act(rows);
     }
 }
 
@@ -173,7 +174,7 @@ fn epilogue_row(row: &mut [f32], ep: &Epilogue) {
         (None, Some(sh)) => row.iter_mut().zip(sh).for_each(|(v, b)| *v += b),
         (Some(sc), Some(sh)) => row.iter_mut().zip(sc.iter().zip(sh)).for_each(|(v, (s, b))| *v = *v * s + b),
     }
-    if ep.relu {
+    if ep.relu() {
         row.iter_mut().for_each(|v| *v = v.max(0.0));
     }
 }
@@ -341,6 +342,7 @@ fn numel(shape: &[usize]) -> Option<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kernels::Activation;
     use crate::kernels::testutil::{assert_close, data};
 
     /// Plain f64 `a[m, k] · b[k, n]` over row-major slices.
@@ -366,9 +368,11 @@ mod tests {
             let acc = naive(&x, &wt, rows, fin, fout);
             let eps = [
                 Epilogue::default(),
-                Epilogue { scale: None, shift: Some(&shift), relu: false },
-                Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true },
-                Epilogue { scale: Some(&scale), shift: None, relu: false },
+                Epilogue { scale: None, shift: Some(&shift), act: None },
+                Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) },
+                Epilogue { scale: Some(&scale), shift: None, act: None },
+                Epilogue { scale: None, shift: Some(&shift), act: Some(Activation::Gelu) },
+                Epilogue { scale: None, shift: None, act: Some(Activation::LeakyRelu { negative_slope: 0.1 }) },
             ];
             for ep in &eps {
                 let want: Vec<f32> = acc
@@ -378,7 +382,7 @@ mod tests {
                         let j = i % fout;
                         let y =
                             a * ep.scale.map_or(1.0, |s| f64::from(s[j])) + ep.shift.map_or(0.0, |s| f64::from(s[j]));
-                        (if ep.relu { y.max(0.0) } else { y }) as f32
+                        ep.act.map_or(y, |act| act.reference(y)) as f32
                     })
                     .collect();
                 for threads in [1, 2, 3] {
@@ -410,7 +414,7 @@ mod tests {
             let base = naive(&x, &wt, rows, fin, fout);
             let t: Vec<f32> = naive(&x, &at, rows, fin, rank).into_iter().map(|v| v as f32).collect();
             let t64 = naive(&t, &bt, rows, rank, fout);
-            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true };
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
             let want: Vec<f32> = (0..rows * fout)
                 .map(|i| {
                     let j = i % fout;
@@ -436,7 +440,7 @@ mod tests {
     fn linear_with_no_inputs_is_the_epilogue_of_zero() {
         let shift = [1.0, -2.0];
         let mut out = vec![f32::NAN; 6];
-        let ep = Epilogue { scale: None, shift: Some(&shift), relu: true };
+        let ep = Epilogue { scale: None, shift: Some(&shift), act: Some(Activation::Relu) };
         linear(&[], 3, 0, &[], WeightLayout::OutIn, 2, &ep, &mut out, 2);
         assert_eq!(out, [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]);
     }

@@ -104,5 +104,26 @@ pub use readi_plan::ops::{Activation, BinaryOp};
 pub struct Epilogue<'a> {
     pub scale: Option<&'a [f32]>,
     pub shift: Option<&'a [f32]>,
-    pub relu: bool,
+    /// Applied last; `Relu` runs in the affine's own loop, any other activation as a
+    /// second pass over the block the affine just wrote (still in cache).
+    pub act: Option<Activation>,
+}
+
+impl Epilogue<'_> {
+    /// Whether the activation is a ReLU, which the kernels fuse into the affine's loop.
+    #[inline(always)]
+    pub fn relu(&self) -> bool {
+        self.act == Some(Activation::Relu)
+    }
+
+    /// Applies the activation other than a ReLU (see [`Epilogue::relu`]) to `out`, the
+    /// finished affine of a block, on the calling thread.
+    #[inline]
+    pub fn finish_act(&self, out: &mut [f32]) {
+        if let Some(act) = self.act
+            && act != Activation::Relu
+        {
+            elementwise::activation_chunk(act, out);
+        }
+    }
 }

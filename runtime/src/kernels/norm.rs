@@ -3,8 +3,8 @@
 use pulp::Simd;
 use rayon::prelude::*;
 
-use super::elementwise;
 use super::reduce::{sum_map_simd, sum_simd};
+use super::{Activation, elementwise};
 
 /// Below this many elements a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;
@@ -39,7 +39,7 @@ pub fn batchnorm(
     });
 }
 
-/// `y = x * scale[c] + shift[c]`, then `max(y, 0)` if `relu`, over axis 1 of `x` viewed as
+/// `y = act(x * scale[c] + shift[c])` over axis 1 of `x` viewed as
 /// `[n, c, inner]`. A missing `scale` is 1, a missing `shift` 0; each present one has
 /// length `c`.
 #[allow(clippy::too_many_arguments)]
@@ -50,7 +50,7 @@ pub fn channel_affine(
     inner: usize,
     scale: Option<&[f32]>,
     shift: Option<&[f32]>,
-    relu: bool,
+    act: Option<Activation>,
     out: &mut [f32],
 ) {
     debug_assert_eq!(
@@ -62,10 +62,13 @@ pub fn channel_affine(
     assert_eq!(out.len(), x.len(), "channel_affine: out and x differ in length");
     assert!(scale.is_none_or(|s| s.len() == c), "channel_affine: scale must have length c");
     assert!(shift.is_none_or(|s| s.len() == c), "channel_affine: shift must have length c");
-    affine_rows(x, out, inner, relu, |row| {
+    affine_rows(x, out, inner, act == Some(Activation::Relu), |row| {
         let ch = row % c;
         (scale.map_or(1.0, |s| s[ch]), shift.map_or(0.0, |s| s[ch]))
     });
+    if let Some(act) = act.filter(|a| *a != Activation::Relu) {
+        elementwise::activation_in_place(act, out);
+    }
 }
 
 /// LayerNorm over the last axis of `x` viewed as `[rows, features]`:
@@ -287,7 +290,7 @@ mod tests {
                 (Some(&scale[..]), Some(&shift[..]), true),
             ] {
                 let mut got = vec![f32::NAN; x.len()];
-                channel_affine(&x, n, c, inner, sc, sh, relu, &mut got);
+                channel_affine(&x, n, c, inner, sc, sh, relu.then_some(Activation::Relu), &mut got);
                 let want: Vec<f32> = (0..x.len())
                     .map(|j| {
                         let ch = j / inner % c;

@@ -94,6 +94,11 @@ pub enum PlanError {
     },
 }
 
+/// Whether this runtime reads plans of format `version` (see [`OLDEST_FORMAT_VERSION`]).
+fn readable_version(version: Option<u32>) -> bool {
+    version.is_some_and(|v| (OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&v))
+}
+
 impl fmt::Display for PlanError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -108,7 +113,7 @@ impl fmt::Display for PlanError {
             }
             PlanError::Version { path, found } => write!(
                 f,
-                "{path}: plan format version {}, but this readi reads version {FORMAT_VERSION}; recompile the plan",
+                "{path}: plan format version {}, but this readi reads versions {OLDEST_FORMAT_VERSION} to {FORMAT_VERSION}; recompile the plan",
                 escaped(found)
             ),
             PlanError::Manifest { path, detail } => write!(f, "{path}: invalid plan manifest: {detail}"),
@@ -256,7 +261,8 @@ impl Plan {
         let md = meta.metadata().clone().unwrap_or_default();
         let get = |key: &'static str| md.get(key).ok_or(PlanError::NotAPlan { path: path.into(), missing: key });
         let version = get(KEY_VERSION)?;
-        if version.trim() != FORMAT_VERSION.to_string() {
+        let meta_version: Option<u32> = version.trim().parse().ok();
+        if !readable_version(meta_version) {
             return Err(PlanError::Version { path: path.into(), found: version.clone() });
         }
         let json = get(KEY_MANIFEST)?;
@@ -264,7 +270,8 @@ impl Plan {
         // serde's message may quote the text it could not read: escaped like a name.
         let manifest: Manifest = serde_json::from_str(json)
             .map_err(|e| PlanError::Manifest { path: path.into(), detail: escaped(&e.to_string()).into_owned() })?;
-        if manifest.format_version != FORMAT_VERSION {
+        // The manifest's version is the container's (a flipped bit turns "3" into "2").
+        if !readable_version(Some(manifest.format_version)) || meta_version != Some(manifest.format_version) {
             return Err(PlanError::Version { path: path.into(), found: manifest.format_version.to_string() });
         }
         let data_start = 8 + header_len;
@@ -290,7 +297,9 @@ impl Plan {
             ranges.push(start..start + view.data().len());
         }
         let computed = Plan::checksum(json, ranges.iter().map(|r| &map[r.clone()]));
-        if u32::from_str_radix(stored.trim(), 16).ok() != Some(computed) {
+        // The text the writer wrote, exactly: parsed as a number, a flipped case bit
+        // (`d` to `D`) or a digit flipped to a space would pass.
+        if *stored != format!("{computed:08x}") {
             return Err(PlanError::Checksum { path: path.into(), stored: stored.clone(), computed });
         }
         drop(st);

@@ -166,7 +166,12 @@ pub fn mlp(fin: usize, fout: usize) -> Mlp {
             kernel: Kernel::Linear {
                 linear: Linear { in_features: fin as i64, out_features: fout as i64 },
                 weight: w,
-                epilogue: EpilogueSpec { scale: None, shift: Some(bias), relu: true, bn: None },
+                epilogue: EpilogueSpec {
+                    scale: None,
+                    shift: Some(bias),
+                    act: Some(readi_plan::ops::Activation::Relu),
+                    bn: None,
+                },
                 lora: None,
             },
             inputs: vec![0],
@@ -280,7 +285,12 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                 },
                 algo: readi_plan::ops::ConvAlgo::Im2col,
                 weight: w,
-                epilogue: EpilogueSpec { scale: Some(scale1), shift: Some(shift1), relu: true, bn: None },
+                epilogue: EpilogueSpec {
+                    scale: Some(scale1),
+                    shift: Some(shift1),
+                    act: Some(readi_plan::ops::Activation::Relu),
+                    bn: None,
+                },
                 lora: None,
             },
             inputs: vec![0],
@@ -290,7 +300,7 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
             path: "bn2".into(),
             kernel: Kernel::ChannelAffine {
                 affine: ChannelAffine { channels: cout as i64 },
-                epilogue: EpilogueSpec { scale: Some(scale2), shift: Some(shift2), relu: false, bn: None },
+                epilogue: EpilogueSpec { scale: Some(scale2), shift: Some(shift2), act: None, bn: None },
             },
             inputs: vec![1],
             output: 2,

@@ -30,11 +30,12 @@ simd_fn! {
         depthwise_acc(s, xc, k, dst);
         let acc_scale = ep.scale.map_or(1.0, |v| v[c]);
         let shift = ep.shift.map_or(0.0, |v| v[c]);
-        if ep.relu {
+        if ep.relu() {
             dst.iter_mut().for_each(|d| *d = (*d * acc_scale + shift).max(0.0));
         } else {
             dst.iter_mut().for_each(|d| *d = *d * acc_scale + shift);
         }
+        ep.finish_act(dst);
     }
 }
 

@@ -372,12 +372,13 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
     let scale = ep.scale.map_or(1.0, |v| v[c]);
     let shift = ep.shift.map_or(0.0, |v| v[c]);
     let dst = &mut dst[..acc.len()];
-    match (ep.scale.is_some(), ep.relu) {
+    match (ep.scale.is_some(), ep.relu()) {
         (true, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a * scale + shift).max(0.0)),
         (true, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a * scale + shift),
         (false, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a + shift).max(0.0)),
         (false, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a + shift),
     }
+    ep.finish_act(dst);
 }
 
 /// One part's scratch; `rank` rows more of the tile (of the transformed block) for a

@@ -4,6 +4,7 @@
 
 use super::split::split_shape;
 use super::*;
+use crate::kernels::Activation;
 use crate::kernels::testutil::{assert_close, data};
 
 /// Shape with PyTorch's output size.
@@ -50,8 +51,8 @@ fn reference(s: &Conv2dShape, x: &[f32], w: &[f32], ep: &Epilogue) -> Vec<f32> {
                     }
                     let mut y =
                         acc * ep.scale.map_or(1.0, |v| f64::from(v[co])) + ep.shift.map_or(0.0, |v| f64::from(v[co]));
-                    if ep.relu {
-                        y = y.max(0.0);
+                    if let Some(act) = ep.act {
+                        y = act.reference(y);
                     }
                     out[((n * s.cout + co) * s.oh + oy) * s.ow + ox] = y as f32;
                 }
@@ -75,8 +76,10 @@ fn check(s: &Conv2dShape, algo: ConvAlgo) {
     pack_weight(s, algo, &w, &mut packed);
     let eps = [
         Epilogue::default(),
-        Epilogue { scale: None, shift: Some(&shift), relu: false },
-        Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true },
+        Epilogue { scale: None, shift: Some(&shift), act: None },
+        Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) },
+        Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Hardswish) },
+        Epilogue { scale: None, shift: Some(&shift), act: Some(Activation::Silu) },
     ];
     for ep in &eps {
         let want = reference(s, &x, &w, ep);
@@ -305,8 +308,8 @@ fn reference_lora(s: &Conv2dShape, x: &[f32], w: &[f32], a: &[f32], b: &[f32], r
                 let acc = base[(n * s.cout + co) * plane + p] + branch;
                 let mut y =
                     acc * ep.scale.map_or(1.0, |v| f64::from(v[co])) + ep.shift.map_or(0.0, |v| f64::from(v[co]));
-                if ep.relu {
-                    y = y.max(0.0);
+                if let Some(act) = ep.act {
+                    y = act.reference(y);
                 }
                 out[(n * s.cout + co) * plane + p] = y as f32;
             }
@@ -329,8 +332,9 @@ fn check_lora(s: &Conv2dShape, rank: usize) -> usize {
     let shift = data(s.cout, 16);
     let eps = [
         Epilogue::default(),
-        Epilogue { scale: Some(&scale), shift: Some(&shift), relu: true },
-        Epilogue { scale: Some(&scale), shift: None, relu: false },
+        Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) },
+        Epilogue { scale: Some(&scale), shift: None, act: None },
+        Epilogue { scale: None, shift: Some(&shift), act: Some(Activation::Relu6) },
     ];
     let algos: Vec<ConvAlgo> =
         ConvAlgo::ALL.into_iter().filter(|a| a.supports(s) && *a != ConvAlgo::Depthwise).collect();

@@ -1,0 +1,150 @@
+//! PyTorch's names for functions the language spells differently or does not have, so
+//! that an unknown call that is a PyTorch name gets an answer that cannot mislead: the
+//! readi spelling of the same function, or "not supported (yet)". The elaborator consults
+//! [`lookup`] before its edit-distance suggestion, which never fires for these names
+//! (`relu6` once got "did you mean `relu`?", a different function).
+//!
+//! A name here is never a builtin (a test checks it): builtins with PyTorch's names
+//! (`relu6`, `clamp`, `silu`, ...) need no entry.
+
+/// What readi has for a PyTorch function.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Spelling {
+    /// The same function, written this way in readi: a builtin's name, or a phrase
+    /// (`written `x ** 2``, `the identity in eval mode: leave it out`).
+    Readi(&'static str),
+    /// Not in readi (yet).
+    Unsupported,
+}
+
+use Spelling::{Readi, Unsupported};
+
+/// PyTorch names (`torch.*`, `torch.nn.functional.*`, tensor methods) and their readi
+/// spelling.
+pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
+    // Aliases of builtins.
+    ("clip", Readi("clamp")),
+    ("swish", Readi("silu")),
+    ("negative", Readi("neg")),
+    ("absolute", Readi("abs")),
+    ("multiply", Readi("mul")),
+    ("divide", Readi("div")),
+    ("true_divide", Readi("div")),
+    ("subtract", Readi("sub")),
+    ("square", Readi("written `x ** 2` in readi")),
+    ("reciprocal", Readi("written `1 / x` in readi")),
+    ("max_pool2d", Readi("maxpool")),
+    ("avg_pool2d", Readi("avgpool")),
+    (
+        "adaptive_avg_pool2d",
+        Readi("written `global_avgpool` in readi for output size 1 (other sizes are not supported yet)"),
+    ),
+    ("batch_norm", Readi("batchnorm")),
+    ("layer_norm", Readi("layernorm")),
+    ("cat", Readi("concat")),
+    ("view", Readi("reshape")),
+    ("interpolate", Readi("upsample")),
+    ("mm", Readi("matmul")),
+    ("bmm", Readi("matmul")),
+    ("dropout", Readi("the identity in eval mode: leave it out")),
+    ("identity", Readi("the identity: use the value itself")),
+    // Activations and unary functions readi does not have: each close, by spelling, to
+    // one it has (selu, celu, prelu, rrelu to relu or elu; log1p, log2, log10 to log;
+    // expm1 to exp; logsigmoid to sigmoid; softmin, log_softmax to softmax).
+    ("selu", Unsupported),
+    ("celu", Unsupported),
+    ("prelu", Unsupported),
+    ("rrelu", Unsupported),
+    ("glu", Unsupported),
+    ("mish", Unsupported),
+    ("softplus", Unsupported),
+    ("softsign", Unsupported),
+    ("logsigmoid", Unsupported),
+    ("tanhshrink", Unsupported),
+    ("hardshrink", Unsupported),
+    ("softshrink", Unsupported),
+    ("threshold", Unsupported),
+    ("softmin", Unsupported),
+    ("log_softmax", Unsupported),
+    ("log1p", Unsupported),
+    ("log2", Unsupported),
+    ("log10", Unsupported),
+    ("expm1", Unsupported),
+    ("exp2", Unsupported),
+    ("erfc", Unsupported),
+    ("erfinv", Unsupported),
+    ("sin", Unsupported),
+    ("cos", Unsupported),
+    ("tan", Unsupported),
+    ("sinh", Unsupported),
+    ("cosh", Unsupported),
+    ("asin", Unsupported),
+    ("acos", Unsupported),
+    ("atan", Unsupported),
+    ("atan2", Unsupported),
+    ("floor", Unsupported),
+    ("ceil", Unsupported),
+    ("round", Unsupported),
+    ("trunc", Unsupported),
+    ("frac", Unsupported),
+    ("sign", Unsupported),
+    ("maximum", Unsupported),
+    ("minimum", Unsupported),
+    ("where", Unsupported),
+    // Operators of issue 12 not written yet.
+    ("conv_transpose2d", Unsupported),
+    ("conv1d", Unsupported),
+    ("conv3d", Unsupported),
+    ("pad", Unsupported),
+    ("roll", Unsupported),
+    ("narrow", Unsupported),
+    ("chunk", Unsupported),
+    ("split", Unsupported),
+    ("squeeze", Unsupported),
+    ("unsqueeze", Unsupported),
+    ("expand", Unsupported),
+    ("gather", Unsupported),
+    ("index_select", Unsupported),
+    ("embedding", Unsupported),
+    ("sum", Unsupported),
+    ("amax", Unsupported),
+    ("amin", Unsupported),
+    ("argmax", Unsupported),
+    ("argmin", Unsupported),
+    ("var", Unsupported),
+    ("std", Unsupported),
+    ("group_norm", Unsupported),
+    ("instance_norm", Unsupported),
+    ("pixel_shuffle", Unsupported),
+    ("pixel_unshuffle", Unsupported),
+    ("adaptive_max_pool2d", Unsupported),
+    ("topk", Unsupported),
+    ("einsum", Unsupported),
+];
+
+/// What readi has for the PyTorch function `name`, if it is one of [`PYTORCH_NAMES`].
+pub fn lookup(name: &str) -> Option<Spelling> {
+    PYTORCH_NAMES.iter().find(|(n, _)| *n == name).map(|(_, s)| *s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn no_pytorch_name_is_a_builtin_and_each_spelling_is_one() {
+        for (name, spelling) in PYTORCH_NAMES {
+            assert!(super::super::builtin(name).is_none(), "`{name}` is a builtin: drop its entry");
+            if let Readi(s) = spelling
+                && !s.contains(' ')
+            {
+                assert!(super::super::builtin(s).is_some(), "`{name}` -> `{s}`, which is no builtin");
+            }
+        }
+        let mut names: Vec<&str> = PYTORCH_NAMES.iter().map(|p| p.0).collect();
+        names.sort_unstable();
+        let n = names.len();
+        names.dedup();
+        assert_eq!(names.len(), n, "a name listed twice");
+    }
+}
