@@ -415,12 +415,14 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue, lora } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch } => {
                 let x = &inputs[0].shape;
                 let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 if x.len() == 4 {
                     let s = conv.shape(1, known(&x[2]), known(&x[3]));
-                    sizes.push((*weight, algo.packed_len(&s)));
+                    // Merged on switch, the weight is raw (the im2col packing).
+                    let w_algo = if *switch { ConvAlgo::Im2col } else { *algo };
+                    sizes.push((*weight, w_algo.packed_len(&s)));
                     if let Some(l) = lora {
                         let a = readi_plan::ops::Conv2dShape { cout: l.rank, ..s };
                         // A raw `A` is PyTorch's layout, the im2col packing.

@@ -264,7 +264,7 @@ impl<'m> Lowering<'m> {
                 let weight = self.tensor(node, "weight")?;
                 let lora = self.lora(node, c.lora, !algo.packs_as_is())?;
                 let epilogue = self.epilogue(node, &c.epilogue)?;
-                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora }
+                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: false }
             }
             Op::Linear(l) => {
                 if !l.packed || l.bias {
