@@ -149,7 +149,7 @@ impl Strategy {
     }
     /// The re-merge work of a switch, ms: the layers merged on switch, summed.
     pub fn switch_ms(&self) -> f64 {
-        self.layers.iter().filter_map(|l| l.switch_ms).sum()
+        self.layers.iter().filter_map(|l| l.switch_ms).fold(0.0, |a, b| a + b)
     }
     /// The working copies of the layers merged on switch, bytes (once per session).
     pub fn working_bytes(&self) -> u64 {
