@@ -707,11 +707,35 @@ fn crafted_merge_on_switch_plans_are_refused() {
     type Edit = fn(&mut Kernel);
     let cases: [(&str, Edit, &str); 3] = [
         // A raw weight read as packed.
-        ("w4", |k| if let Kernel::Conv2d { switch, .. } = k { *switch = false }, "`winograd4` needs 36864"),
+        (
+            "w4",
+            |k| {
+                if let Kernel::Conv2d { switch, .. } = k {
+                    *switch = false
+                }
+            },
+            "`winograd4` needs 36864",
+        ),
         // The LoRA A packed (it must be raw to be merged).
-        ("w4", |k| if let Kernel::Conv2d { lora: Some(l), .. } = k { l.a_raw = false }, "must be stored raw"),
+        (
+            "w4",
+            |k| {
+                if let Kernel::Conv2d { lora: Some(l), .. } = k {
+                    l.a_raw = false
+                }
+            },
+            "must be stored raw",
+        ),
         // A rank the raw A and B do not fit.
-        ("w2", |k| if let Kernel::Conv2d { lora: Some(l), .. } = k { l.rank = 3 }, "at rank 3 needs"),
+        (
+            "w2",
+            |k| {
+                if let Kernel::Conv2d { lora: Some(l), .. } = k {
+                    l.rank = 3
+                }
+            },
+            "at rank 3 needs",
+        ),
     ];
     for (path, edit, want) in cases {
         let mut manifest = plan.manifest.clone();

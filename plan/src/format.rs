@@ -101,7 +101,8 @@ pub struct PlanFootprint {
     pub activations: u64,
     /// The conv kernels' scratch on one thread.
     pub scratch: u64,
-    /// Everything a run takes: buffers, scratch, zeros for absent optional inputs, the
+    /// Everything a run takes: buffers, scratch, the session's packed LoRA `A`s and the
+    /// working copies of convs merged on switch, zeros for absent optional inputs, the
     /// inputs and the outputs.
     pub total: u64,
 }

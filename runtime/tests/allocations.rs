@@ -156,7 +156,8 @@ fn switch_plan() -> Plan {
     let mut variants = Vec::new();
     for v in 1..=2u64 {
         let key = VariantKey::level("fog", v as f64);
-        let (va, vb) = (add(format!("a~{key}"), vec![2, 64, 3, 3], 10 + v), add(format!("b~{key}"), vec![4, 2], 20 + v));
+        let (va, vb) =
+            (add(format!("a~{key}"), vec![2, 64, 3, 3], 10 + v), add(format!("b~{key}"), vec![4, 2], 20 + v));
         variants.push(VariantTable {
             key,
             replaces: [(a, va), (b, vb)].iter().map(|&(base, with)| Replacement { base, with, added: false }).collect(),

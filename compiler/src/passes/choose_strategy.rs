@@ -192,10 +192,8 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
         m => Some(m),
     };
     let mut timer = Timer::new(opts.timing);
-    let budgets = Budgets {
-        memory_pct: opts.memory_budget,
-        switch_ms: opts.switch_budget.unwrap_or(DEFAULT_SWITCH_BUDGET_MS),
-    };
+    let budgets =
+        Budgets { memory_pct: opts.memory_budget, switch_ms: opts.switch_budget.unwrap_or(DEFAULT_SWITCH_BUDGET_MS) };
     let s = choose(module, table, forced, budgets, opts.explain, &mut timer);
     let Some(s) = s else { return Ok(Output::Patches(Vec::new())) };
     if let Some(least) = s.unmet {
@@ -550,7 +548,12 @@ pub fn choose(
         // `A` for the GEMM paths keeps its layout; the runtime packs a Winograd `A`).
         let ab_elems = |v: usize| -> u64 {
             branch.map_or(0, |(a, bb)| {
-                [a, bb].into_iter().filter_map(|n| param(g, n, "weight")).filter(|w| own(table, w, v)).map(|w| numel(table, &w)).sum()
+                [a, bb]
+                    .into_iter()
+                    .filter_map(|n| param(g, n, "weight"))
+                    .filter(|w| own(table, w, v))
+                    .map(|w| numel(table, &w))
+                    .sum()
             })
         };
         let mut opts = Vec::new();
@@ -733,9 +736,9 @@ impl Costs<'_> {
         while self.total(at) > budget {
             let used = self.switch_total(at, timer);
             let mut best: Option<(bool, f64, usize, usize)> = None;
-            for i in 0..self.items.len() {
-                let cur = &self.items[i].opts[at[i]];
-                let (cur_total, cur_ms, cur_sw) = (cur.total(), self.ms(i, at[i], timer), self.switch(i, at[i], timer));
+            for (i, &here) in at.iter().enumerate() {
+                let cur = &self.items[i].opts[here];
+                let (cur_total, cur_ms, cur_sw) = (cur.total(), self.ms(i, here, timer), self.switch(i, here, timer));
                 let mut next: Option<(f64, u64, usize)> = None;
                 for k in 0..self.items[i].opts.len() {
                     let o = &self.items[i].opts[k];

@@ -15,7 +15,7 @@ use super::conv::{self, Conv2dShape, ConvAlgo};
 /// # Panics
 /// When the lengths disagree with `rank` (callers check them first).
 pub fn merge_lora(w: &[f32], a: &[f32], b: &[f32], rank: usize, factor: f64, out: &mut [f32]) {
-    assert!(rank > 0 && a.len() % rank == 0 && b.len() % rank == 0, "merge: rank {rank}");
+    assert!(rank > 0 && a.len().is_multiple_of(rank) && b.len().is_multiple_of(rank), "merge: rank {rank}");
     let (cols, rows) = (a.len() / rank, b.len() / rank);
     assert!(w.len() == rows * cols && out.len() == w.len(), "merge: W has {} values, B A {rows}x{cols}", w.len());
     for o in 0..rows {
