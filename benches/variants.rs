@@ -15,6 +15,10 @@
 //! * a melded variant's latency against its parts';
 //! * the issue's ResNet-18 case: LoRA r = 4 on the 3x3 convs of layer3 and layer4, tuned
 //!   BatchNorm and fc: bytes per variant and latency against the base, merged and as a branch;
+//! * merge on switch under `--lora auto --memory-budget 3 --switch-budget 1`, on both
+//!   models: bytes per variant, latency against the base, the re-merge of a switch timed
+//!   directly (every layer merged on switch, `kernels::merge::switch_pack`, p50/p99), and
+//!   the first run after a switch minus a steady run (p50/p99);
 //! * reloading a full model copy from disk (read + checksum), for comparison.
 
 use std::sync::Arc;
@@ -174,6 +178,108 @@ fn adaptation_cost(
     }
 }
 
+/// A percentile of `v` (0..=100).
+fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p / 100.0).round() as usize]
+}
+
+/// `--lora auto --memory-budget 3 --switch-budget 1` on `m` with `variants` variants:
+/// what the strategy chose, bytes per variant, latency against `base`, and the switch.
+fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize, usize), quick: bool) {
+    use readi_runtime::kernels::{Lora, conv, merge};
+    use readi_runtime::plan::Kernel;
+    let weights = backend::seeded_weights(&m.graph, 1);
+    let keys = m.variants.as_ref().map(|v| v.keys()).unwrap_or_default();
+    let keys: Vec<String> =
+        round_robin(keys.into_iter().map(|k| k.to_string()).collect()).into_iter().take(variants).collect();
+    let sources = backend::seeded_variants(m, &keys, 10);
+    let opts = CompileOptions {
+        lora: LoraMode::Auto,
+        memory_budget: Some(3.0),
+        switch_budget: Some(1.0),
+        ..Default::default()
+    };
+    let (p, warnings, s) = backend::compile_explained(m, &weights, "seeded", &sources, &opts).expect("compiles");
+    let p = Arc::new(p);
+    let s = s.expect("a strategy");
+    let count = |f: &dyn Fn(&readi_compiler::passes::choose_strategy::LayerChoice) -> bool| {
+        s.layers.iter().filter(|l| f(l)).count()
+    };
+    println!(
+        "strategy: {} layers merged on switch ({:.3} ms predicted per switch, working copies {:.2} MiB per session), {} \
+         branch, {} merged; {:.2}% per variant{}",
+        count(&|l| l.switch),
+        s.switch_ms(),
+        s.working_bytes() as f64 / (1024.0 * 1024.0),
+        count(&|l| !l.switch && l.lora == Some(LoraMode::Branch)),
+        count(&|l| !l.switch && l.lora != Some(LoraMode::Branch)),
+        s.max_pct(),
+        if warnings.0.is_empty() { String::new() } else { format!(" ({})", warnings.0[0].message) }
+    );
+    plan_size("merge on switch", &p);
+    let mut runners = vec![("base", Runner::new(base.clone())), ("variant", Runner::new(p.clone()))];
+    runners[1].1.session.set_variant(p.variant_key(1)).expect("key");
+    let t = interleaved(&mut runners, rounds.0, rounds.1);
+    println!("  variant {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
+
+    // The re-merge a switch does, timed directly: every layer merged on switch, from the
+    // plan's own raw tensors, into working copies like the session's.
+    let mf = &p.manifest;
+    type Layer = (conv::Conv2dShape, conv::ConvAlgo, usize, Option<(usize, usize, usize)>);
+    let mut layers: Vec<Layer> = Vec::new();
+    for step in &mf.steps {
+        if let Kernel::Conv2d { conv: c, algo, weight, lora, switch: true, .. } = &step.kernel {
+            let x = &mf.values[step.inputs[0]].shape;
+            let known = |d: &readi_plan::Dim| d.as_known().map_or(1, |v| v as usize);
+            let sh = c.shape(1, known(&x[2]), known(&x[3]));
+            layers.push((sh, *algo, *weight, lora.map(|l| (l.a, l.b, l.rank))));
+        }
+    }
+    let tmp_len = layers.iter().map(|(sh, a, _, l)| merge::switch_tmp_len(sh, *a, l.is_some())).max().unwrap_or(0);
+    let mut tmp = vec![0.0f32; tmp_len];
+    let mut working: Vec<Vec<f32>> =
+        layers.iter().map(|(sh, a, _, _)| vec![0.0f32; conv::packed_weight_len(sh, *a)]).collect();
+    let n = if quick { 50 } else { 300 };
+    let remerge: Vec<f64> = (0..n)
+        .map(|_| {
+            let t = Instant::now();
+            for ((sh, a, w, l), out) in layers.iter().zip(&mut working) {
+                let l = l.map(|(la, lb, rank)| Lora { a: p.tensor(la), b: p.tensor(lb), rank });
+                merge::switch_pack(sh, *a, p.tensor(*w), l.as_ref(), &mut tmp, out);
+            }
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    println!(
+        "  re-merge per switch ({} layers, timed directly): p50 {:.3} ms, p99 {:.3} ms",
+        layers.len(),
+        percentile(remerge.clone(), 50.0),
+        percentile(remerge, 99.0)
+    );
+    // The first run after a switch against a steady run, alternating: switch, run, run.
+    let mut r = Runner::new(p.clone());
+    let (a, b) = (p.variant_key(1).to_string(), p.variant_key(2.min(p.variant_count() - 1)).to_string());
+    for _ in 0..3 {
+        r.run();
+    }
+    let (mut first, mut steady) = (Vec::new(), Vec::new());
+    for i in 0..if quick { 20 } else { 100 } {
+        r.session.set_variant(if i % 2 == 0 { &a } else { &b }).expect("key");
+        first.push(r.run());
+        steady.push(r.run());
+    }
+    let extra: Vec<f64> = first.iter().zip(&steady).map(|(f, s)| f - s).collect();
+    println!(
+        "  first run after a switch minus the steady run after it: p50 {:+.3} ms, p99 {:+.3} ms (steady p50 {:.2} ms, \
+         first/steady {:.3})",
+        percentile(extra.clone(), 50.0),
+        percentile(extra, 99.0),
+        percentile(steady.clone(), 50.0),
+        percentile(first.clone(), 50.0) / percentile(steady, 50.0)
+    );
+}
+
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     let (rounds, per_round) = if quick { (3, 3) } else { (10, 5) };
@@ -264,6 +370,8 @@ fn main() {
     for (name, p) in [("merged", &merged), ("branch", &branch)] {
         plan_size(name, p);
     }
+    println!("-- bevfusion_tiny, --lora auto --memory-budget 3 --switch-budget 1, 12 variants --");
+    merge_on_switch(&m, &base, 12, (rounds, per_round), quick);
 
     // A melded variant against its parts: the meld stores its own values, never extra steps.
     let meld = "fog=0.06+gamma=0.5";
@@ -309,6 +417,8 @@ fn main() {
         let t = interleaved(&mut runners, rounds, per_round);
         println!("  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
     }
+    println!("-- --lora auto --memory-budget 3 --switch-budget 1 --");
+    merge_on_switch(&m, &base, 2, (rounds, per_round), quick);
 
     // Reloading a whole model copy: what a system without variants does on a switch.
     let path = std::env::temp_dir().join(format!("readi-bench-{}.plan", std::process::id()));

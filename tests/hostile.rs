@@ -386,6 +386,27 @@ fn a_crafted_lora_branch_is_refused() {
 }
 
 #[test]
+fn a_crafted_merge_on_switch_conv_is_refused() {
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("switch");
+    // all_ops's conv merged on switch, its weight swapped for the fc's (not the raw
+    // weight's length). (A raw weight read as packed, a packed LoRA A on a switched conv:
+    // tests/variants.rs, `crafted_merge_on_switch_plans_are_refused`.)
+    let path = hostile_plan(&dir, "switch.plan", |m| {
+        let fc = m.steps.iter().find_map(|s| match s.kernel {
+            Kernel::Linear { weight, .. } => Some(weight),
+            _ => None,
+        });
+        if let (Kernel::Conv2d { switch, weight, .. }, Some(fc)) = (&mut m.steps[0].kernel, fc) {
+            (*switch, *weight) = (true, fc);
+        }
+    });
+    let err = refused(&readi(&["run", &s(&path)]));
+    assert!(err.contains("step 0 (`conv (+bn, relu#0)`)") && err.contains("`raw` needs"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn an_input_declared_unlike_its_value_is_refused() {
     let dir = temp_dir("declared");
     let path = hostile_plan(&dir, "declared.plan", |m| {
@@ -412,7 +433,14 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
     use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
     let window = Window2 { kernel: [5, 5], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
     let conv = Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 };
-    let kernel = Kernel::Conv2d { conv, algo: ConvAlgo::Im2col, weight: 0, epilogue: Default::default(), lora: None };
+    let kernel = Kernel::Conv2d {
+        conv,
+        algo: ConvAlgo::Im2col,
+        weight: 0,
+        epilogue: Default::default(),
+        lora: None,
+        switch: false,
+    };
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
     let err = run_refused(&dir, "small.plan", plan, &[1, 1, 3, 3]);

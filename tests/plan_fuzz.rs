@@ -61,6 +61,7 @@ const SPECS: &[(&str, LoraMode, usize)] = &[
     ("tests/cases/ok/all_ops.readi", LoraMode::Merge, 0),
     ("conv_algorithms", LoraMode::Merge, 0),
     ("conv_algorithms_lora", LoraMode::Branch, 1),
+    ("conv_algorithms_switch", LoraMode::Auto, 1),
 ];
 
 /// A spec with a conv of every algorithm the compiler chooses (Winograd F(4x4) and
@@ -103,7 +104,7 @@ fn seeds() -> &'static [Seed] {
 fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
     let (sources, out) = if rel == "conv_algorithms" {
         common::compile_text(rel, CONV_ALGORITHMS, &[], None)
-    } else if rel == "conv_algorithms_lora" {
+    } else if rel == "conv_algorithms_lora" || rel == "conv_algorithms_switch" {
         common::compile_text(rel, &format!("{CONV_ALGORITHMS}{LORA_RULES}"), &[], None)
     } else {
         common::compile(rel, &[], None)
@@ -121,11 +122,28 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
         .collect();
     let weights = backend::seeded_weights(&module.graph, 1);
     let sources_v = backend::seeded_variants(&module, &keys, 2);
-    let opts = CompileOptions { lora, ..CompileOptions::default() };
+    let mut opts = CompileOptions { lora, ..CompileOptions::default() };
+    if rel == "conv_algorithms_switch" {
+        // Every LoRA conv merged on switch: an unreachable budget keeps the free savings,
+        // fixed costs make it deterministic.
+        fn ms(s: &ops::Conv2dShape, _: ConvAlgo) -> f64 {
+            (s.cout * s.k() * s.oh * s.ow) as f64 * 1e-6
+        }
+        fn switch(_: &ops::Conv2dShape, _: ConvAlgo, _: usize) -> f64 {
+            0.01
+        }
+        opts.memory_budget = Some(0.0);
+        opts.switch_budget = Some(1.0);
+        opts.timing = readi_compiler::passes::choose_strategy::Timing::FixedSwitch(ms, switch);
+    }
     let (plan, _) = backend::compile_variants(&module, &weights, "seeded", &sources_v, &opts)
         .unwrap_or_else(|d| panic!("{rel}: {}", sources.render_all(&d, false)));
     if rel == "conv_algorithms_lora" {
         assert_eq!(plan.manifest.steps.iter().filter(|s| s.kernel.lora().is_some()).count(), 5, "fused branches");
+    }
+    if rel == "conv_algorithms_switch" {
+        let switched = plan.manifest.steps.iter().filter(|s| matches!(s.kernel, Kernel::Conv2d { switch: true, .. }));
+        assert_eq!(switched.count(), 4, "convs merged on switch");
     }
     let tensors =
         plan.manifest.tensors.iter().enumerate().map(|(i, t)| (t.name.clone(), plan.tensor(i).to_vec())).collect();
@@ -415,12 +433,14 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue, lora } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch } => {
                 let x = &inputs[0].shape;
                 let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 if x.len() == 4 {
                     let s = conv.shape(1, known(&x[2]), known(&x[3]));
-                    sizes.push((*weight, algo.packed_len(&s)));
+                    // Merged on switch, the weight is raw (the im2col packing).
+                    let w_algo = if *switch { ConvAlgo::Im2col } else { *algo };
+                    sizes.push((*weight, w_algo.packed_len(&s)));
                     if let Some(l) = lora {
                         let a = readi_plan::ops::Conv2dShape { cout: l.rank, ..s };
                         // A raw `A` is PyTorch's layout, the im2col packing.

@@ -155,23 +155,94 @@ fn impossible_budget_warns_with_the_smallest_achievable() {
     assert!(warnings[0].contains("cannot be met"), "{}", warnings[0]);
     let least = s.unmet.expect("unmet");
     assert!(warnings[0].contains(&format!("{least:.2}%")), "{}", warnings[0]);
-    // Every layer branched; what is left is the BatchNorms' scale and shift, the
-    // classifier and A and B.
+    // Paying latency would not meet the budget: the fastest assignment is kept (no
+    // layer's switch, as long as a run of its kernel here, fits the 1 ms switch budget).
     for l in &s.layers {
-        assert_eq!(l.lora, Some(LoraMode::Branch), "{}", l.path);
+        assert_eq!((l.lora, l.switch), (Some(LoraMode::Merge), false), "{}", l.path);
     }
+    assert!(warnings[0].contains("kept the fastest assignment"), "{}", warnings[0]);
+    assert!(s.unmet_added_ms.expect("what the least costs") > 0.0);
     let bytes = plan_variant_bytes(&plan.manifest);
-    let max = *bytes.iter().max().expect("variants");
     assert_eq!(s.variant_bytes(), bytes);
-    assert!((least - max as f64 * 100.0 / s.base_bytes as f64).abs() < 1e-9);
-    // By hand: ResNet-18's BatchNorms have 4800 channels (scale and shift each), the
-    // classifier 512 * 10 + 10, the eight A and B, A raw (9 floats per 3x3 per rank per
-    // input channel, whatever the layer's algorithm; the runtime packs a Winograd one):
-    // layer3.0.conv1 4*128*9 + 256*4, three more in layer3 4*256*9 + 256*4,
-    // layer4.0.conv1 4*256*9 + 512*4, three more in layer4 4*512*9 + 512*4.
+    // The smallest by hand: ResNet-18's BatchNorms have 4800 channels (scale and shift
+    // each), the classifier 512 * 10 + 10, the eight A and B, A raw (9 floats per 3x3 per
+    // rank per input channel, whatever the layer's algorithm; the runtime packs a
+    // Winograd one): layer3.0.conv1 4*128*9 + 256*4, three more in layer3 4*256*9 +
+    // 256*4, layer4.0.conv1 4*256*9 + 512*4, three more in layer4 4*512*9 + 512*4.
     let ab =
         (4 * 128 * 9 + 256 * 4) + 3 * (4 * 256 * 9 + 256 * 4) + (4 * 256 * 9 + 512 * 4) + 3 * (4 * 512 * 9 + 512 * 4);
-    assert_eq!(max, ((2 * 4800 + 512 * 10 + 10) + ab) as u64 * 4);
+    let max = ((2 * 4800 + 512 * 10 + 10) + ab) as u64 * 4;
+    assert!((least - max as f64 * 100.0 / s.base_bytes as f64).abs() < 1e-9);
+    // And that is what `--lora branch` stores.
+    let (branched, _, _) = compile(&m, &opts(LoraMode::Branch, None));
+    assert_eq!(plan_variant_bytes(&branched.manifest).into_iter().max(), Some(max));
+}
+
+/// A switch merges and packs the layer's weight: 1e-6 ms per weight element here.
+fn merge_ms(s: &Conv2dShape, _: ConvAlgo, _: usize) -> f64 {
+    (s.cout * s.k()) as f64 * 1e-6
+}
+
+fn switch_opts(budget: Option<f64>, switch_ms: f64) -> CompileOptions {
+    CompileOptions {
+        timing: Timing::FixedSwitch(macs, merge_ms),
+        switch_budget: Some(switch_ms),
+        ..opts(LoraMode::Auto, budget)
+    }
+}
+
+fn switched(s: &Strategy) -> Vec<&str> {
+    s.layers.iter().filter(|l| l.switch).map(|l| l.path.as_str()).collect()
+}
+
+#[test]
+fn a_layer_goes_merge_on_switch_when_its_merge_fits_the_switch_budget() {
+    let m = module("224");
+    let (_, _, merged) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
+    let merged = merged.expect("a strategy");
+    // Merging layer3.0.conv2 on switch saves its F(4x4) weight, 36 * 256 * 256 floats, for
+    // raw A and B (4 * 256 * 9 + 256 * 4), adds no latency and costs its merge, 256 * 2304
+    // elements = 0.590 ms: the first move, if it fits the switch budget.
+    let saved = (36 * 256 * 256 - (4 * 256 * 9 + 256 * 4)) * 4;
+    let need = merged.variant_bytes().into_iter().max().expect("variants") - saved;
+    let pct = need as f64 * 100.0 / merged.base_bytes as f64 + 1e-9;
+    let (plan, warnings, s) = compile(&m, &switch_opts(Some(pct), 1.0));
+    let s = s.expect("a strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    assert_eq!(switched(&s), ["layer3.0.conv2"]);
+    let l = choose_strategy::by_path(&s)["layer3.0.conv2"];
+    // Stored per variant: raw A and B, the plan's tables byte for byte; the working copy
+    // (F(4x4)) once per session; no latency added.
+    assert_eq!(l.bytes, vec![(4 * 256 * 9 + 256 * 4) * 4; 2]);
+    assert_eq!(l.working, 36 * 256 * 256 * 4);
+    assert_eq!(l.added_ms, Some(0.0));
+    assert!((s.switch_ms() - 256.0 * 2304.0 * 1e-6).abs() < 1e-12);
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+    for o in s.layers.iter().filter(|l| !l.switch) {
+        assert_eq!(o.lora, Some(LoraMode::Merge), "{}", o.path);
+    }
+    let step = plan.manifest.steps.iter().find(|st| st.path.starts_with("layer3.0.conv2")).expect("step");
+    assert!(matches!(step.kernel, readi_runtime::plan::Kernel::Conv2d { switch: true, .. }), "{:?}", step.kernel);
+
+    // A switch budget below its merge: it does not; the budget is met by branching.
+    let (plan, warnings, s) = compile(&m, &switch_opts(Some(pct), 0.5));
+    let s = s.expect("a strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    assert!(!switched(&s).contains(&"layer3.0.conv2"), "{:?}", switched(&s));
+    assert!(s.switch_ms() <= 0.5);
+    assert!(s.layers.iter().any(|l| l.lora == Some(LoraMode::Branch) && !l.switch));
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+
+    // An unreachable budget keeps the free savings: the most bytes per switch ms that fit
+    // 1 ms, layer3.0.conv2 (0.590 ms) then layer3.0.conv1 (256 * 1152 elements, 0.295 ms);
+    // layer4's (1.18 and 2.36 ms) never fit.
+    let (plan, warnings, s) = compile(&m, &switch_opts(Some(0.1), 1.0));
+    let s = s.expect("a strategy");
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert_eq!(switched(&s), ["layer3.0.conv1", "layer3.0.conv2"]);
+    assert!((s.switch_ms() - (2304.0 + 1152.0) * 256.0 * 1e-6).abs() < 1e-12);
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+    assert!(choose_strategy::explain(&s).contains("merge-on-switch"));
 }
 
 /// Runs every variant of a plan on one seeded image.
@@ -226,7 +297,9 @@ fn mixed_strategies_compute_what_all_merge_and_all_branch_compute() {
 #[test]
 fn explain_table() {
     let m = module("224");
-    let mut o = opts(LoraMode::Auto, Some(20.0));
+    // Merges at 1e-6 ms per weight element: layer3.0.conv2 (0.590 ms) and layer3.0.conv1
+    // (0.295 ms) fit the 1 ms switch budget.
+    let mut o = switch_opts(Some(20.0), 1.0);
     o.explain = true;
     let (_, _, s) = compile(&m, &o);
     insta::assert_snapshot!(choose_strategy::explain(&s.expect("strategy")));

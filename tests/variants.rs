@@ -526,3 +526,231 @@ fn a_raw_winograd_lora_a_is_packed_for_each_runs_variant() {
         assert!(err.contains(want) && err.contains("lora_A"), "case {which}: {err}");
     }
 }
+
+/// [`FUSED`] with a tuned Winograd conv `t4` (no LoRA): each of its variants owns the
+/// conv's weight and bias.
+const SWITCHED: &str = "model m {
+  input x: f32[N, 32, 14, 14] @camera
+  w4 = conv2d(x, 32, kernel=3, padding=1, bias=false)
+  n4 = batchnorm(w4)
+  t4 = conv2d(relu(n4), 32, kernel=3, padding=1)
+  small = maxpool(relu(t4), kernel=2)
+  w2 = conv2d(small, 40, kernel=3, padding=1, bias=false)
+  n2 = batchnorm(w2)
+  pw = conv2d(relu(n2), 24, kernel=1)
+  s2 = conv2d(pw, 16, kernel=3, stride=2, padding=2, dilation=2)
+  fc = linear(flatten(relu(s2), start=1), 10)
+  output y = fc
+}
+adapt {
+  tune batchnorm
+  tune t4
+  lora rank=4 alpha=8 on w4
+  lora rank=4 alpha=8 on w2
+  lora rank=4 alpha=8 on pw
+  lora rank=4 alpha=8 on s2
+  lora rank=4 alpha=8 on fc
+}
+variants {
+  axis fog on camera: 0.03, 0.06 clear 0
+}
+";
+
+/// [`SWITCHED`] compiled with every conv it can merge on switch merged on switch (an
+/// unreachable memory budget keeps the free savings; a switch budget nothing exceeds),
+/// and with `--lora merge`.
+fn switched_plans() -> (Arc<Plan>, Arc<Plan>) {
+    use readi_compiler::passes::choose_strategy::{Conv2dShape, ConvAlgo, Timing};
+    let (sources, out) = common::compile_text("switched.readi", SWITCHED, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let keys = vec!["fog=0.03".to_string(), "fog=0.06".to_string()];
+    let variants = backend::seeded_variants(&m, &keys, SEED + 1);
+    let weights = base_weights(&m);
+    // Multiply-adds, 1e-6 ms each; Winograd does 4x (F(4x4)) or 2.25x (F(2x2)) fewer.
+    fn kernel(s: &Conv2dShape, algo: ConvAlgo) -> f64 {
+        let speed = match algo {
+            ConvAlgo::Winograd4 => 4.0,
+            ConvAlgo::Winograd2 => 2.25,
+            _ => 1.0,
+        };
+        (s.cout * s.k() * s.oh * s.ow) as f64 * 1e-6 / speed
+    }
+    fn switch(_: &Conv2dShape, _: ConvAlgo, _: usize) -> f64 {
+        0.01
+    }
+    let opts = CompileOptions {
+        lora: LoraMode::Auto,
+        memory_budget: Some(0.0),
+        switch_budget: Some(1.0),
+        timing: Timing::FixedSwitch(kernel, switch),
+        ..Default::default()
+    };
+    let (plan, warnings) = backend::compile_variants(&m, &weights, "base.safetensors", &variants, &opts)
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    assert_eq!(warnings.0.len(), 1, "{}", sources.render_all(&warnings, false));
+    assert!(warnings.0[0].message.contains("kept the fastest assignment"), "{}", warnings.0[0].message);
+    let merged = compile(&sources, &m, &variants, LoraMode::Merge);
+    (Arc::new(plan), Arc::new(merged))
+}
+
+/// Merge on switch: the plan stores each switched conv's weight raw and its variants only
+/// raw tensors (raw `A` and `B`, a tuned conv's raw weight); a session computes what the
+/// merged-per-variant plan computes (to rounding: it merges the pre-scaled `B`), A -> B ->
+/// A gives a fresh session's outputs bit for bit, the stored tensors are never written,
+/// and a run while another thread switches sees exactly one variant.
+#[test]
+fn merge_on_switch_is_consistent_exact_and_thread_safe() {
+    use readi_runtime::plan::Kernel;
+    let (plan, merged) = switched_plans();
+    let m = &plan.manifest;
+    let switched: Vec<(&str, &str, usize, bool)> = m
+        .steps
+        .iter()
+        .filter_map(|s| match &s.kernel {
+            Kernel::Conv2d { algo, weight, lora, switch: true, .. } => {
+                Some((s.path.as_str(), algo.name(), m.tensors[*weight].numel(), lora.is_some()))
+            }
+            _ => None,
+        })
+        .collect();
+    // Every conv: raw weights (9 floats per 3x3 per channel pair) at each algorithm.
+    let paths: Vec<&str> = switched.iter().map(|s| s.0.split(' ').next().expect("path")).collect();
+    assert_eq!(paths, ["w4", "t4", "w2", "pw", "s2"], "{switched:?}");
+    let want_algos = ["winograd4", "winograd4", "winograd2", "gemm1x1", "im2col"];
+    let want_len = [32 * 32 * 9, 32 * 32 * 9, 40 * 32 * 9, 24 * 40, 16 * 24 * 9];
+    for (i, s) in switched.iter().enumerate() {
+        assert_eq!((s.1, s.2, s.3), (want_algos[i], want_len[i], i != 1), "{s:?}");
+    }
+    // A variant stores no packed weight: only raw ones (t4's), raw A and B, BatchNorm
+    // affines, the fc's merged weight.
+    for v in &m.variants {
+        for r in &v.replaces {
+            let name = &m.tensors[r.with].name;
+            assert!(!name.contains("@winograd"), "{} stores {name}", v.key);
+        }
+    }
+
+    let shape = vec![2, 32, 14, 14];
+    let x = seeded_tensor(6, "x", &shape);
+    let input = [Input { name: "x", data: &x, shape: &shape }];
+    let keys = ["base", "fog=0.03", "fog=0.06"];
+    let stored: Vec<Vec<u32>> =
+        (0..m.tensors.len()).map(|i| plan.tensor(i).iter().map(|v| v.to_bits()).collect()).collect();
+    let want: Vec<Vec<f32>> = keys.iter().map(|k| fresh_run(&plan, k, &input)).collect();
+    assert!(want[1] != want[2] && want[0] != want[1], "the variants must differ");
+    // The merged-per-variant plan, to within 1e-6 of the output's scale.
+    for (k, key) in keys.iter().enumerate() {
+        let y = fresh_run(&merged, key, &input);
+        let scale = y.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1.0);
+        let err = max_abs_error(&y, &want[k]);
+        assert!(err <= 1e-6 * scale, "{key}: {err:e} (scale {scale})");
+    }
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    for k in [1, 2, 1, 0, 2, 2, 1, 0] {
+        s.set_variant(keys[k]).expect("key");
+        assert_eq!(s.run(&input).expect("run")[0].1.data, want[k], "variant {k}");
+    }
+    // Batch 1 rebinds (new buffers): still the right variant.
+    let shape1 = vec![1, 32, 14, 14];
+    let input1 = [Input { name: "x", data: &x[..32 * 14 * 14], shape: &shape1 }];
+    let want1 = fresh_run(&plan, "fog=0.06", &input1);
+    s.set_variant("fog=0.06").expect("key");
+    assert_eq!(s.run(&input1).expect("run")[0].1.data, want1);
+    s.set_variant("fog=0.03").expect("key");
+    assert_eq!(s.run(&input).expect("run")[0].1.data, want[1]);
+
+    // Another thread switches meanwhile: each run is one variant, the one reported.
+    let handle = s.switch_handle();
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let switcher = {
+        let (handle, stop) = (handle.clone(), Arc::clone(&stop));
+        std::thread::spawn(move || {
+            let mut n = 0u64;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                handle.set("fog=0.03").expect("key");
+                handle.set("fog=0.06").expect("key");
+                handle.set("base").expect("key");
+                n += 3;
+            }
+            n
+        })
+    };
+    let (mut seen, mut i) = ([0usize; 3], 0);
+    while i < 200 || (seen.contains(&0) && i < 10_000) {
+        i += 1;
+        let y = s.run(&input).expect("run").remove(0).1.data;
+        let used = s.last_variant().expect("ran");
+        assert_eq!(y, want[used], "run {i}: not variant {used}'s outputs");
+        seen[used] += 1;
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    assert!(switcher.join().expect("switcher") > 3);
+    assert!(!seen.contains(&0), "{seen:?}");
+    // The stored tensors (the base's and the variants') are as they were.
+    for (i, bits) in stored.iter().enumerate() {
+        assert!(plan.tensor(i).iter().map(|v| v.to_bits()).eq(bits.iter().copied()), "tensor {i} was written");
+    }
+    // The working copies are the session's, counted once (not per variant).
+    let f = readi_runtime::exec::footprint(&plan, 1, 1).expect("footprint");
+    let packed: usize = [32 * 32 * 36, 32 * 32 * 36, 40 * 32 * 16, 24 * 40, 16 * 24 * 9].iter().sum();
+    // With the raw buffer of the largest Winograd layer with LoRA (w2: 40 * 32 * 9).
+    assert_eq!(f.working, (packed + 40 * 32 * 9) * 4);
+}
+
+/// Crafted merge-on-switch plans are refused when the plan is made, naming the tensor.
+#[test]
+fn crafted_merge_on_switch_plans_are_refused() {
+    use readi_runtime::plan::Kernel;
+    let (plan, merged_plan) = switched_plans();
+    let tensors: Vec<Vec<f32>> = (0..plan.manifest.tensors.len()).map(|i| plan.tensor(i).to_vec()).collect();
+    type Edit = fn(&mut Kernel);
+    let cases: [(&str, Edit, &str); 3] = [
+        // A raw weight read as packed.
+        (
+            "w4",
+            |k| {
+                if let Kernel::Conv2d { switch, .. } = k {
+                    *switch = false
+                }
+            },
+            "`winograd4` needs 36864",
+        ),
+        // The LoRA A packed (it must be raw to be merged).
+        (
+            "w4",
+            |k| {
+                if let Kernel::Conv2d { lora: Some(l), .. } = k {
+                    l.a_raw = false
+                }
+            },
+            "must be stored raw",
+        ),
+        // A rank the raw A and B do not fit.
+        (
+            "w2",
+            |k| {
+                if let Kernel::Conv2d { lora: Some(l), .. } = k {
+                    l.rank = 3
+                }
+            },
+            "at rank 3 needs",
+        ),
+    ];
+    for (path, edit, want) in cases {
+        let mut manifest = plan.manifest.clone();
+        let step = manifest.steps.iter_mut().find(|s| s.path.split(' ').next() == Some(path)).expect("step");
+        edit(&mut step.kernel);
+        let err = Plan::new(manifest, tensors.clone()).expect_err("refused").to_string();
+        assert!(err.contains(want) && err.contains(path), "{path}: {err}");
+    }
+    // A packed (Winograd) weight marked raw: its length is the packed one.
+    let mut manifest = merged_plan.manifest.clone();
+    let tensors: Vec<Vec<f32>> = (0..manifest.tensors.len()).map(|i| merged_plan.tensor(i).to_vec()).collect();
+    let step = manifest.steps.iter_mut().find(|s| s.path.starts_with("t4")).expect("t4");
+    if let Kernel::Conv2d { switch, .. } = &mut step.kernel {
+        *switch = true;
+    }
+    let err = Plan::new(manifest, tensors).expect_err("refused").to_string();
+    assert!(err.contains("`raw` needs 9216") && err.contains("t4"), "{err}");
+}

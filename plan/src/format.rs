@@ -107,7 +107,8 @@ pub struct PlanFootprint {
     pub activations: u64,
     /// The conv kernels' scratch on one thread.
     pub scratch: u64,
-    /// Everything a run takes: buffers, scratch, zeros for absent optional inputs, the
+    /// Everything a run takes: buffers, scratch, the session's packed LoRA `A`s and the
+    /// working copies of convs merged on switch, zeros for absent optional inputs, the
     /// inputs and the outputs.
     pub total: u64,
 }
@@ -392,7 +393,7 @@ impl BnInfo {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Kernel {
     /// 2-D convolution with a fused per-channel epilogue. `weight` is the packed weight
-    /// for `algo` (see `readi_runtime::kernels::conv`).
+    /// for `algo` (see `readi_runtime::kernels::conv`), or raw when `switch`.
     Conv2d {
         conv: Conv2d,
         algo: ConvAlgo,
@@ -402,6 +403,14 @@ pub enum Kernel {
         /// in plans without one (and in those written before it existed).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         lora: Option<LoraSpec>,
+        /// **Merge on switch**: `weight` is stored raw (PyTorch's `[cout, cin/groups, kh,
+        /// kw]`, for the base and each variant that owns it), and the session packs it
+        /// for `algo`, with the LoRA update `B A` merged in when `lora` is set (whose `A`
+        /// is then raw), into one working copy of its own when a run's variant differs
+        /// from the one the copy holds; the kernel runs that copy as a plain conv (no
+        /// branch). The stored weights are never modified. Absent: `weight` is packed.
+        #[serde(default, skip_serializing_if = "is_false")]
+        switch: bool,
     },
     /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
     /// stored transposed, `[in, out]`.

@@ -209,7 +209,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
         Ok(())
     };
     match kernel {
-        Kernel::Conv2d { conv, algo, weight, epilogue, lora } => {
+        Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch } => {
             // The shape rule has checked the spatial sizes are known; the batch does not matter.
             let x = &m.values[step.inputs[0]].shape;
             let known = |d: &Dim| d.as_known().and_then(|v| usize::try_from(v).ok()).unwrap_or(0);
@@ -217,13 +217,14 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             if !algo.supports(&s) {
                 return Err(format!("conv algorithm `{}` cannot compute this layer", algo.name()));
             }
-            if numel(*weight) != algo.packed_len(&s) {
+            // Merged on switch, the weight is stored raw (PyTorch's layout, what im2col reads).
+            let (stored, how) = if *switch { (ConvAlgo::Im2col, "raw") } else { (*algo, algo.name()) };
+            if numel(*weight) != stored.packed_len(&s) {
                 return Err(format!(
-                    "conv2d weight `{}` has {} values, `{}` needs {}",
+                    "conv2d weight `{}` has {} values, `{how}` needs {}",
                     escaped(&m.tensors[*weight].name),
                     numel(*weight),
-                    algo.name(),
-                    algo.packed_len(&s)
+                    stored.packed_len(&s)
                 ));
             }
             if let Some(l) = lora {
@@ -233,6 +234,12 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                          the depthwise loop",
                         conv.groups,
                         algo.name()
+                    ));
+                }
+                if *switch && !l.a_raw {
+                    return Err(format!(
+                        "LoRA A `{}` of a conv merged on switch must be stored raw (`a_raw`)",
+                        escaped(&m.tensors[l.a].name)
                     ));
                 }
                 // A raw `A` is PyTorch's layout, what the im2col algorithm reads.

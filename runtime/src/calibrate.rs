@@ -165,9 +165,14 @@ impl BnCalibrator {
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, act: None, bn: None };
             let kernel = match &step.kernel {
                 // A fused LoRA branch is part of what the BatchNorm reads.
-                Kernel::Conv2d { conv, algo, weight, lora, .. } => {
-                    Kernel::Conv2d { conv: conv.clone(), algo: *algo, weight: *weight, epilogue: identity, lora: *lora }
-                }
+                Kernel::Conv2d { conv, algo, weight, lora, switch, .. } => Kernel::Conv2d {
+                    conv: conv.clone(),
+                    algo: *algo,
+                    weight: *weight,
+                    epilogue: identity,
+                    lora: *lora,
+                    switch: *switch,
+                },
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {
                     Kernel::ChannelAffine { affine: affine.clone(), epilogue: identity }

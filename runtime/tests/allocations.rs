@@ -16,6 +16,7 @@ use readi_plan::ops::{
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
+use readi_runtime::kernels::merge;
 use readi_runtime::plan::{
     EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage,
     TensorSpec, ValueSpec, VariantTable,
@@ -137,6 +138,72 @@ fn plan() -> Plan {
     Plan::new(manifest, tensors).expect("a valid plan")
 }
 
+/// `x: [1, 64, 14, 14]` through a 3x3 conv to 4 channels at Winograd F(4x4) merged on
+/// switch (its weight raw, a rank-2 LoRA with raw `A`), two variants replacing `A` and `B`.
+fn switch_plan() -> Plan {
+    use readi_plan::ops::Conv2d;
+    use readi_runtime::plan::LoraSpec;
+    let mut specs = Vec::new();
+    let mut tensors = Vec::new();
+    let mut add = |name: String, shape: Vec<usize>, seed: u64| {
+        tensors.push(data(shape.iter().product(), seed));
+        specs.push(TensorSpec { name, shape });
+        specs.len() - 1
+    };
+    let w = add("conv.weight".into(), vec![4, 64, 3, 3], 1);
+    let a = add("conv.lora_A.weight".into(), vec![2, 64, 3, 3], 2);
+    let b = add("conv.lora_B.weight@scaled".into(), vec![4, 2], 3);
+    let mut variants = Vec::new();
+    for v in 1..=2u64 {
+        let key = VariantKey::level("fog", v as f64);
+        let (va, vb) =
+            (add(format!("a~{key}"), vec![2, 64, 3, 3], 10 + v), add(format!("b~{key}"), vec![4, 2], 20 + v));
+        variants.push(VariantTable {
+            key,
+            replaces: [(a, va), (b, vb)].iter().map(|&(base, with)| Replacement { base, with, added: false }).collect(),
+            tuned_elements: 0,
+            added_elements: 0,
+            fallback: Vec::new(),
+            scopes: Vec::new(),
+        });
+    }
+    let window = Window2 { kernel: [3, 3], stride: [1, 1], padding: [1, 1], dilation: [1, 1] };
+    let kernel = Kernel::Conv2d {
+        conv: Conv2d { in_channels: 64, out_channels: 4, window, groups: 1 },
+        algo: ConvAlgo::Winograd4,
+        weight: w,
+        epilogue: EpilogueSpec::default(),
+        lora: Some(LoraSpec { a, b, rank: 2, a_raw: true }),
+        switch: true,
+    };
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "switch".into(),
+        model_params: Vec::new(),
+        symbols: Vec::new(),
+        inputs: vec![InputSpec {
+            name: "x".into(),
+            shape: shape(false, &[1, 64, 14, 14]),
+            modality: None,
+            optional: false,
+            value: 0,
+        }],
+        outputs: vec![OutputSpec { name: "y".into(), value: 1 }],
+        values: vec![
+            ValueSpec { shape: shape(false, &[1, 64, 14, 14]), storage: Storage::Input(0) },
+            ValueSpec { shape: shape(false, &[1, 4, 14, 14]), storage: Storage::Slot(0) },
+        ],
+        steps: vec![Step { path: "conv".into(), kernel, inputs: vec![0], output: 1 }],
+        slots: 1,
+        tensors: specs,
+        params: Vec::new(),
+        variants,
+        conditions: None,
+        footprint: None,
+    };
+    Plan::new(manifest, tensors).expect("a valid plan")
+}
+
 #[test]
 fn switching_and_runs_allocate_only_outputs() {
     let plan = Arc::new(plan());
@@ -214,6 +281,50 @@ fn switching_and_runs_allocate_only_outputs() {
         })
         .min();
     assert_eq!(packing, Some(0), "packing a raw LoRA A allocated");
+
+    // A conv merged on switch: the re-merge (`kernels::merge::switch_pack`, W + B A
+    // packed for Winograd into the working copy) allocates nothing, and in a session the
+    // first run after a switch allocates what a steady run does.
+    let (w, a, b) = (data(4 * 64 * 9, 11), data(2 * 64 * 9, 12), data(4 * 2, 13));
+    let lora = readi_runtime::kernels::Lora { a: &a, b: &b, rank: 2 };
+    let mut tmp = vec![0.0; merge::switch_tmp_len(&s3, ConvAlgo::Winograd4, true)];
+    let mut working = vec![0.0; conv::packed_weight_len(&s3, ConvAlgo::Winograd4)];
+    let merging = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            merge::switch_pack(&s3, ConvAlgo::Winograd4, &w, Some(&lora), &mut tmp, &mut working);
+            merge::switch_pack(&s3, ConvAlgo::Winograd2, &w, None, &mut tmp, &mut working[..4 * 64 * 16]);
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min();
+    assert_eq!(merging, Some(0), "re-merging a layer allocated");
+    let switched = Arc::new(switch_plan());
+    let mut sw = Session::new(Arc::clone(&switched), 1).expect("session");
+    let xs = data(64 * 14 * 14, 14);
+    let input = [Input { name: "x", data: &xs, shape: &[1, 64, 14, 14] }];
+    for k in ["base", "fog=1", "fog=2", "base"] {
+        sw.set_variant(k).expect("key");
+        sw.run(&input).expect("runs");
+    }
+    let count = |sw: &mut Session, switch: bool| {
+        (0..TRIALS)
+            .map(|_| {
+                let region = Region::new(GLOBAL);
+                for i in 0..10 {
+                    if switch {
+                        sw.set_variant(["fog=1", "fog=2"][i % 2]).expect("key");
+                    }
+                    sw.run(&input).expect("runs");
+                }
+                let c = region.change();
+                c.allocations + c.reallocations
+            })
+            .min()
+            .expect("trials")
+    };
+    let (steady, switching) = (count(&mut sw, false), count(&mut sw, true));
+    assert_eq!(switching, steady, "10 runs each after a switch allocated {switching}, 10 steady runs {steady}");
 
     // Each run returns a Vec of two (name, tensor) pairs: 1 + 2 * 3 allocations.
     let per_run = 7;

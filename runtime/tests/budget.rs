@@ -16,7 +16,7 @@ fn the_footprint_counts_every_part_and_grows_with_the_batch() {
     // x: [2, 4], y: [2, 3], floats of 4 bytes.
     assert_eq!(f2.inputs, 2 * 4 * 4);
     assert_eq!(f2.outputs, 2 * 3 * 4);
-    assert_eq!(f2.total, f2.activations + f2.scratch + f2.lora + f2.zeros + f2.inputs + f2.outputs);
+    assert_eq!(f2.total, f2.activations + f2.scratch + f2.lora + f2.working + f2.zeros + f2.inputs + f2.outputs);
     let f4 = exec::footprint(&plan, 4, 1).expect("a footprint");
     assert_eq!(f4.activations, 2 * f2.activations);
     assert!(!f2.largest.is_empty() && f2.largest.windows(2).all(|w| w[0].1 >= w[1].1), "{:?}", f2.largest);

@@ -144,6 +144,12 @@ pub enum Command {
         /// Implies `--lora auto` unless --lora is given.
         #[arg(long, value_name = "PCT", value_parser = parse_budget)]
         memory_budget: Option<f64>,
+        /// Most re-merge work a variant switch may take, in milliseconds (default 1): the
+        /// layers merged on switch (one shared working copy per layer, re-merged when the
+        /// variant changes; no latency, raw tensors per variant), their measured
+        /// merge-and-pack times summed. 0: none is merged on switch.
+        #[arg(long, value_name = "MS", value_parser = parse_switch_budget)]
+        switch_budget: Option<f64>,
         /// Print the per-layer strategy: merge or branch, algorithm, bytes per variant,
         /// predicted and measured latency, and the totals.
         #[arg(long)]
@@ -410,6 +416,13 @@ fn parse_budget(s: &str) -> Result<f64, String> {
     match s.trim_end_matches('%').parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
         _ => Err(format!("`{s}` is not a percentage (a number, at least 0, e.g. `3`)")),
+    }
+}
+
+fn parse_switch_budget(s: &str) -> Result<f64, String> {
+    match s.trim_end_matches("ms").parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("`{s}` is not a time in milliseconds (a number, at least 0, e.g. `1`)")),
     }
 }
 

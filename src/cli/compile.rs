@@ -21,6 +21,7 @@ pub struct CompileArgs {
     pub variants: Vec<(String, String)>,
     pub lora: Option<LoraArg>,
     pub memory_budget: Option<f64>,
+    pub switch_budget: Option<f64>,
     pub explain: bool,
     pub seeded_variants: Vec<String>,
     pub strict: bool,
@@ -123,6 +124,7 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         strict: args.strict,
         melds,
         memory_budget: args.memory_budget,
+        switch_budget: args.switch_budget,
         explain: args.explain,
         ..CompileOptions::default()
     };

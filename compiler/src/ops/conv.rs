@@ -20,12 +20,16 @@ pub struct ConvOp {
     /// Back end: a LoRA branch of this rank computed in the layer's kernel (`fuse_lora`),
     /// slots `lora_A` (packed with the weight) and `lora_B` (pre-scaled).
     pub lora: Option<i64>,
+    /// Back end: merged on switch (`pack_weights`, as `choose_strategy` decided): the
+    /// weight and `lora_A` slots stay raw although `packed`; the runtime packs the weight,
+    /// `B A` merged in, into a per-session working copy when the variant changes.
+    pub switch: bool,
 }
 
 impl ConvOp {
     /// A conv as the language writes it.
     pub fn new(conv: Conv2d, bias: bool) -> ConvOp {
-        ConvOp { conv, bias, epilogue: Epilogue::default(), algo: None, packed: false, lora: None }
+        ConvOp { conv, bias, epilogue: Epilogue::default(), algo: None, packed: false, lora: None, switch: false }
     }
 
     /// `weight [out, in/groups, kh, kw]` (packed: `[len]` of the algorithm's layout),
@@ -33,7 +37,7 @@ impl ConvOp {
     /// (packed: `[len]` of the algorithm's layout at `rank` outputs) and
     /// `lora_B [out, rank]`, then the epilogue's slots.
     pub fn param_slots(&self) -> Vec<ParamSlot> {
-        let weight = match self.algo.filter(|_| self.packed) {
+        let weight = match self.algo.filter(|_| self.packed && !self.switch) {
             Some(algo) => vec![algo.packed_len(&self.conv.shape(1, 0, 0)) as i64],
             None => self.conv.weight_shape().to_vec(),
         };
@@ -45,7 +49,7 @@ impl ConvOp {
             let a = Conv2d { out_channels: rank, ..self.conv.clone() };
             // `pack_weights` packs `A` only where that keeps its layout (a Winograd `A`
             // stays raw; the runtime packs it).
-            let a_shape = match self.algo.filter(|a| self.packed && a.packs_as_is()) {
+            let a_shape = match self.algo.filter(|a| self.packed && a.packs_as_is() && !self.switch) {
                 Some(algo) => vec![algo.packed_len(&a.shape(1, 0, 0)) as i64],
                 None => a.weight_shape().to_vec(),
             };
@@ -72,6 +76,9 @@ impl Operator for ConvOp {
         }
         if let Some(rank) = self.lora {
             v.push(("lora", format!("rank {rank}")));
+        }
+        if self.switch {
+            v.push(("switch", "merge on switch".to_string()));
         }
         if let Some(e) = self.epilogue.attr() {
             v.push(("epilogue", e));

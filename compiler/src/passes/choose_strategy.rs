@@ -1,8 +1,13 @@
 //! `choose_strategy`: decides, per LoRA layer, whether each variant stores the merged
-//! weight (**merge**: no run-time cost) or only `A` and `B` (**branch**: the branch's two
-//! small kernels run), and per variant-owned conv (a conv whose weight differs per variant
-//! once merged: a tuned conv, a merged LoRA layer) the algorithm, whose packed weight
-//! each variant stores (Winograd F(4x4) 4x the raw weight, F(2x2) 16/9 of it, im2col 1x).
+//! weight (**merge**: no run-time cost), only `A` and `B` (**branch**: the branch's two
+//! small kernels run, fused into the layer's), or only `A` and `B` with the layer
+//! **merged on switch** (no latency: the session keeps one working copy of the layer,
+//! into which it writes `pack(W + B A)` at the start of a run whose variant changed; that
+//! takes switch time), and per variant-owned conv (a conv whose weight differs per
+//! variant once merged: a tuned conv, a merged LoRA layer) the algorithm, whose packed
+//! weight each variant stores (Winograd F(4x4) 4x the raw weight, F(2x2) 16/9 of it,
+//! im2col 1x), or merge on switch (the variant stores the raw weight; the session packs
+//! it into its working copy at a switch).
 //! A side table ([`Strategy`], `Module::strategy`) that `commute_adapters`, `merge_lora`
 //! and `choose_conv_algo` read; it changes nothing in the graph, so no choice changes a
 //! number the plan computes.
@@ -15,15 +20,29 @@
 //! (algorithm, shape) within the compile, and only when a choice depends on it (a budget
 //! the fastest assignment exceeds, or `--explain`). A branch on a conv costs what it adds
 //! to the layer's kernel, which computes it (`fuse_lora`; [`branch_ms`]), and stores `A`
-//! raw (the runtime packs a Winograd `A` per session).
+//! raw (the runtime packs a Winograd `A` per session). Merge on switch costs no latency
+//! (the layer runs as a merged conv at its default algorithm), stores per variant what a
+//! branch stores (a tuned conv: its raw weight), and costs its switch time: the
+//! runtime's own merge-and-pack (`readi_runtime::kernels::merge::switch_pack`) timed on
+//! the layer's shapes like the kernels ([`Timer::switch_ms`]). Its working copy (the
+//! packed weight, once per session, whatever the number of variants) is counted on the
+//! session's side (`Footprint::working`), not per variant; `--explain` prints it.
 //!
 //! The choice: start from the fastest assignment (merge, each conv's default algorithm);
 //! while the largest variant exceeds the budget (`--memory-budget PCT`, percent of the
-//! base plan's bytes), move the layer with the most bytes saved per millisecond added to
-//! its next cheaper option (the fastest option that stores fewer bytes). If even every
-//! layer's smallest option exceeds the budget, a warning gives the smallest achievable
-//! percentage. `--lora merge|branch` forces every LoRA layer (the algorithms are still
-//! chosen under a budget).
+//! base plan's bytes), move one layer to its next cheaper option (the fastest option that
+//! stores fewer bytes and keeps the layers merged on switch within `--switch-budget MS`,
+//! their switch times summed): first the moves that add no latency (merge on switch),
+//! the most bytes saved per switch millisecond first, then the others, the most bytes
+//! saved per millisecond of latency added first. Then give back latency (the largest
+//! gain first) while both budgets hold, since one large move may overshoot.
+//!
+//! An unreachable budget: when even every layer's smallest option exceeds it, latency
+//! would be paid for a budget missed anyway, so the pass keeps the fastest assignment
+//! that saves what costs no latency (merge on switch within the switch budget) and warns
+//! with the smallest achievable percentage and the latency it would have cost.
+//! `--lora merge|branch` forces every LoRA layer (the algorithms, and merge on switch
+//! for tuned convs, are still chosen under a budget).
 //!
 //! Does nothing (records no table) when no adaptation plan has a LoRA layer or a
 //! variant-owned conv, or there are no variants. Assumes `drop_inactive` ran (a dropped
@@ -34,10 +53,11 @@ use std::fmt::Write as _;
 use std::time::Instant;
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
-use readi_runtime::kernels::{Epilogue, conv};
+use readi_runtime::kernels::{Epilogue, conv, merge};
 
 use super::bind_variants::{not_bound, same_bits};
 use super::choose_conv_algo::spatial;
+use super::fuse_lora;
 use super::{BackendInputs, LoraMode, Output};
 use crate::adapt::Injection;
 use crate::ir::{Graph, NodeId, Op};
@@ -53,9 +73,17 @@ pub enum Timing {
     /// the median, on one thread.
     #[default]
     Measure,
-    /// Milliseconds as this function says.
+    /// Milliseconds as this function says; a layer's switch (merge and pack) as long as
+    /// one run of its kernel at the algorithm.
     Fixed(fn(&Conv2dShape, ConvAlgo) -> f64),
+    /// Kernels as the first function says, a switch as the second (shape, algorithm,
+    /// LoRA rank, 0 for a tuned conv).
+    FixedSwitch(fn(&Conv2dShape, ConvAlgo) -> f64, fn(&Conv2dShape, ConvAlgo, usize) -> f64),
 }
+
+/// `--switch-budget` when not given: 1 ms of re-merge work per switch, issue 11's p99
+/// target for a switch.
+pub const DEFAULT_SWITCH_BUDGET_MS: f64 = 1.0;
 
 /// The decisions, and what they cost, per layer and in total.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -74,6 +102,10 @@ pub struct Strategy {
     pub unmet: Option<f64>,
     /// The base model's conv time (every conv at its algorithm), when timed.
     pub base_ms: Option<f64>,
+    /// `--switch-budget`, ms.
+    pub switch_budget_ms: f64,
+    /// With [`Strategy::unmet`]: the latency the smallest assignment would have added.
+    pub unmet_added_ms: Option<f64>,
 }
 
 /// One layer's decision.
@@ -93,6 +125,13 @@ pub struct LayerChoice {
     pub added_ms: Option<f64>,
     /// The chosen kernels timed again after the choice (`--explain`).
     pub measured_ms: Option<f64>,
+    /// Merged on switch (a LoRA layer's `lora` is then `Branch`: its `A` and `B` are
+    /// fused into the layer, which the runtime merges into its working copy).
+    pub switch: bool,
+    /// Merged on switch: the re-merge time per switch, ms, when timed.
+    pub switch_ms: Option<f64>,
+    /// Merged on switch: the bytes of its working copy (once per session).
+    pub working: u64,
 }
 
 impl Strategy {
@@ -103,6 +142,18 @@ impl Strategy {
     /// The algorithm chosen for a conv (by path).
     pub fn algo_of(&self, path: &str) -> Option<ConvAlgo> {
         self.layers.iter().find(|l| l.path == path).and_then(|l| l.algo)
+    }
+    /// Whether the layer at `path` is merged on switch.
+    pub fn switch_of(&self, path: &str) -> bool {
+        self.layers.iter().any(|l| l.path == path && l.switch)
+    }
+    /// The re-merge work of a switch, ms: the layers merged on switch, summed.
+    pub fn switch_ms(&self) -> f64 {
+        self.layers.iter().filter_map(|l| l.switch_ms).fold(0.0, |a, b| a + b)
+    }
+    /// The working copies of the layers merged on switch, bytes (once per session).
+    pub fn working_bytes(&self) -> u64 {
+        self.layers.iter().map(|l| l.working).sum()
     }
     /// Per variant, the bytes it stores: the fixed part and every layer's.
     pub fn variant_bytes(&self) -> Vec<u64> {
@@ -140,8 +191,10 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
         LoraMode::Auto => None,
         m => Some(m),
     };
-    let mut timer = Timer { timing: opts.timing, cache: HashMap::new(), lora_cache: HashMap::new() };
-    let s = choose(module, table, forced, opts.memory_budget, opts.explain, &mut timer);
+    let mut timer = Timer::new(opts.timing);
+    let budgets =
+        Budgets { memory_pct: opts.memory_budget, switch_ms: opts.switch_budget.unwrap_or(DEFAULT_SWITCH_BUDGET_MS) };
+    let s = choose(module, table, forced, budgets, opts.explain, &mut timer);
     let Some(s) = s else { return Ok(Output::Patches(Vec::new())) };
     if let Some(least) = s.unmet {
         warnings.push(
@@ -149,18 +202,32 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
                 Code::Limit,
                 format!(
                     "the memory budget of {:.2}% per variant cannot be met: the smallest achievable is {least:.2}% of \
-                     the base's {}",
+                     the base's {} (+{:.3} ms); kept the fastest assignment instead, {:.2}% per variant with no \
+                     latency added",
                     s.budget_pct.unwrap_or(0.0),
-                    crate::print::bytes(s.base_bytes)
+                    crate::print::bytes(s.base_bytes),
+                    s.unmet_added_ms.unwrap_or(0.0),
+                    s.max_pct()
                 ),
             )
             .with_primary(module.graph.scopes[0].span, "in this model")
             .with_note(
-                "every LoRA layer branched and every variant-owned conv at im2col; the rest is BatchNorms and heads",
+                "the smallest: every LoRA layer branched and every variant-owned conv at im2col; the rest is \
+                 BatchNorms and heads. Latency paid for a budget missed anyway would buy nothing: the layers merged \
+                 on switch (within --switch-budget) are the savings kept; a budget at or above the smallest gets it",
             ),
         );
     }
     Ok(Output::Strategy(Box::new(s)))
+}
+
+/// The budgets the choice is under.
+#[derive(Clone, Copy, Debug)]
+pub struct Budgets {
+    /// `--memory-budget`, percent of the base's bytes per variant.
+    pub memory_pct: Option<f64>,
+    /// `--switch-budget`, ms of re-merge work per switch.
+    pub switch_ms: f64,
 }
 
 /// Caches kernel timings per (algorithm, shape) within one compile.
@@ -169,6 +236,8 @@ pub struct Timer {
     pub cache: HashMap<(ConvAlgo, [usize; 16]), f64>,
     /// The fused kernel with a LoRA branch, by algorithm, shape and rank.
     pub lora_cache: HashMap<(ConvAlgo, [usize; 16], usize), f64>,
+    /// A layer's merge and pack at a switch, by algorithm, shape and rank.
+    pub switch_cache: HashMap<(ConvAlgo, [usize; 16], usize), f64>,
 }
 
 /// A shape as a cache key.
@@ -180,6 +249,26 @@ fn key(s: &Conv2dShape) -> [usize; 16] {
 }
 
 impl Timer {
+    pub fn new(timing: Timing) -> Timer {
+        Timer { timing, cache: HashMap::new(), lora_cache: HashMap::new(), switch_cache: HashMap::new() }
+    }
+
+    /// The time a switch takes to merge and pack a layer merged on switch, in ms
+    /// (cached): `switch_pack` of the raw weight with a LoRA update of `rank` (0: a
+    /// tuned conv's raw weight alone) into the working copy packed for `algo`.
+    pub fn switch_ms(&mut self, s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
+        if let Some(&t) = self.switch_cache.get(&(algo, key(s), rank)) {
+            return t;
+        }
+        let t = match self.timing {
+            Timing::Fixed(f) => f(s, algo),
+            Timing::FixedSwitch(_, f) => f(s, algo, rank),
+            Timing::Measure => time_switch(s, algo, rank),
+        };
+        self.switch_cache.insert((algo, key(s), rank), t);
+        t
+    }
+
     /// The kernel's latency on the shape, in ms (cached).
     pub fn ms(&mut self, s: &Conv2dShape, algo: ConvAlgo) -> f64 {
         if let Some(&t) = self.cache.get(&(algo, key(s))) {
@@ -193,7 +282,7 @@ impl Timer {
     /// A new timing, not the cache's.
     pub fn fresh(&self, s: &Conv2dShape, algo: ConvAlgo) -> f64 {
         match self.timing {
-            Timing::Fixed(f) => f(s, algo),
+            Timing::Fixed(f) | Timing::FixedSwitch(f, _) => f(s, algo),
             Timing::Measure => time_conv(s, algo, 0),
         }
     }
@@ -242,6 +331,28 @@ fn time_conv(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
         .map(|_| {
             let t = Instant::now();
             once(&mut out, &mut scratch);
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[2]
+}
+
+/// The runtime's merge and pack of a layer merged on switch (`switch_pack`), on `s` at
+/// `algo` with a LoRA update of `rank` (0: none): the median of 5 runs after a warm-up,
+/// in ms, on one thread (a switch runs on the running thread).
+fn time_switch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
+    let w: Vec<f32> = (0..s.cout * s.k()).map(|i| ((i % 7) as f32 - 3.0) * 0.01).collect();
+    let a: Vec<f32> = (0..rank * s.k()).map(|i| ((i % 3) as f32 - 1.0) * 0.01).collect();
+    let b: Vec<f32> = (0..s.cout * rank).map(|i| ((i % 5) as f32 - 2.0) * 0.01).collect();
+    let lora = (rank > 0).then(|| conv::Lora { a: &a, b: &b, rank });
+    let mut tmp = vec![0.0f32; merge::switch_tmp_len(s, algo, rank > 0)];
+    let mut out = vec![0.0f32; conv::packed_weight_len(s, algo)];
+    merge::switch_pack(s, algo, &w, lora.as_ref(), &mut tmp, &mut out);
+    let mut times: Vec<f64> = (0..5)
+        .map(|_| {
+            let t = Instant::now();
+            merge::switch_pack(s, algo, &w, lora.as_ref(), &mut tmp, &mut out);
             t.elapsed().as_secs_f64() * 1e3
         })
         .collect();
@@ -300,6 +411,8 @@ struct Opt {
     lora: Option<LoraMode>,
     algo: Option<ConvAlgo>,
     bytes: Vec<u64>,
+    /// Merged on switch (at `algo`, the default).
+    switch: bool,
 }
 
 impl Opt {
@@ -317,6 +430,8 @@ struct Item {
     node: NodeId,
     /// The LoRA branch's `A` and `B`.
     branch: Option<(NodeId, NodeId)>,
+    /// The LoRA rank merged at a switch (0: a tuned conv).
+    rank: usize,
     opts: Vec<Opt>,
     /// The index of the fastest option (merge, the default algorithm).
     start: usize,
@@ -349,7 +464,7 @@ pub fn choose(
     module: &Module,
     table: &TensorTable,
     forced: Option<LoraMode>,
-    budget_pct: Option<f64>,
+    budgets: Budgets,
     explain: bool,
     timer: &mut Timer,
 ) -> Option<Strategy> {
@@ -366,6 +481,17 @@ pub fn choose(
         .filter_map(|i| match *i {
             Injection::Lora { base, a, b, .. } => Some((base, (a, b))),
             Injection::Adapter { .. } => None,
+        })
+        .collect();
+    // The LoRA layers a session can merge on switch: convs whose branch `fuse_lora`
+    // computes in the layer (so the plan holds `A` and `B` beside the layer's weight).
+    let fusable: std::collections::HashSet<NodeId> = injections
+        .iter()
+        .filter_map(|i| match *i {
+            Injection::Lora { base, .. } if matches!(g.node(base).op, Op::Conv2d(_)) => {
+                fuse_lora::fusable(g, i).map(|_| base)
+            }
+            _ => None,
         })
         .collect();
     let branch_nodes: std::collections::HashSet<NodeId> =
@@ -418,6 +544,18 @@ pub fn choose(
             (Some((s, _)), Some(a)) => a.packed_len(&s) as u64,
             _ => weight.as_deref().map_or(0, |w| numel(table, w)),
         };
+        // The branch's `A` and `B` a variant owns, as the plan stores them: raw (packing
+        // `A` for the GEMM paths keeps its layout; the runtime packs a Winograd `A`).
+        let ab_elems = |v: usize| -> u64 {
+            branch.map_or(0, |(a, bb)| {
+                [a, bb]
+                    .into_iter()
+                    .filter_map(|n| param(g, n, "weight"))
+                    .filter(|w| own(table, w, v))
+                    .map(|w| numel(table, &w))
+                    .sum()
+            })
+        };
         let mut opts = Vec::new();
         let strategies: Vec<Option<LoraMode>> = match (branch, forced) {
             (None, _) => vec![None],
@@ -441,17 +579,8 @@ pub fn choose(
                         if owned_w(v) || merged_delta {
                             b += w_elems(algo);
                         }
-                        if let (Some((a, bb)), Some(LoraMode::Branch)) = (branch, lm) {
-                            for n in [a, bb] {
-                                if let Some(w) = param(g, n, "weight")
-                                    && own(table, &w, v)
-                                {
-                                    // `fuse_lora` stores a conv's `A` raw (packing it for
-                                    // the GEMM paths keeps its layout; the runtime packs a
-                                    // Winograd `A`), `B` as it is.
-                                    b += numel(table, &w);
-                                }
-                            }
+                        if lm == Some(LoraMode::Branch) {
+                            b += ab_elems(v);
                         }
                         b * 4
                     })
@@ -461,92 +590,65 @@ pub fn choose(
                 if !owned && algo != packed_options.first().copied() {
                     continue;
                 }
-                opts.push(Opt { lora: lm, algo, bytes });
+                opts.push(Opt { lora: lm, algo, bytes, switch: false });
             }
         }
-        items.push(Item { path: node.path.clone(), node: id, branch, opts, start: 0 });
+        // Merge on switch, at the default algorithm: a conv whose weight the variants own
+        // (stored raw), or a LoRA layer `fuse_lora` fuses (its `A` and `B` stored raw);
+        // not with `--lora merge|branch` on a LoRA layer.
+        let switchable = match (branch, conv) {
+            (_, None) => false,
+            (Some(_), Some(_)) => forced.is_none() && fusable.contains(&id),
+            (None, Some(_)) => owned_anywhere,
+        };
+        if switchable {
+            let bytes =
+                variants.clone().map(|v| (if owned_w(v) { w_elems(None) } else { 0 } + ab_elems(v)) * 4).collect();
+            let lm = branch.map(|_| LoraMode::Branch);
+            opts.push(Opt { lora: lm, algo: packed_options.first().copied(), bytes, switch: true });
+        }
+        let rank = branch.and_then(|(a, _)| conv_shape(g, a)).map_or(0, |(sa, _)| sa.cout);
+        items.push(Item { path: node.path.clone(), node: id, branch, rank, opts, start: 0 });
     }
     if items.is_empty() {
         return None;
     }
 
-    let budget = budget_pct.map(|p| (p / 100.0 * base_bytes as f64).floor() as u64);
+    let budget = budgets.memory_pct.map(|p| (p / 100.0 * base_bytes as f64).floor() as u64);
+    let c = Costs { g, items: &items, fixed: &fixed, switch_budget: budgets.switch_ms };
     let mut at: Vec<usize> = items.iter().map(|i| i.start).collect();
-    let total = |at: &[usize], items: &[Item]| -> u64 {
-        (0..nv)
-            .map(|v| fixed[v] + items.iter().zip(at).map(|(it, &k)| it.opts[k].bytes[v]).sum::<u64>())
-            .max()
-            .unwrap_or(0)
-    };
     let mut timed = explain;
-    let latency =
-        |i: usize, k: usize, items: &[Item], timer: &mut Timer| option_ms(g, &items[i], &items[i].opts[k], timer);
-    let mut unmet = None;
+    let (mut unmet, mut unmet_added_ms) = (None, None);
     if let Some(budget) = budget
-        && total(&at, &items) > budget
+        && c.total(&at) > budget
     {
         timed = true;
-        loop {
-            if total(&at, &items) <= budget {
-                break;
-            }
-            // Each layer's next cheaper option: the fastest that stores fewer bytes.
-            let mut best: Option<(f64, usize, usize)> = None;
-            for i in 0..items.len() {
-                let cur = &items[i].opts[at[i]];
-                let (cur_total, cur_ms) = (cur.total(), latency(i, at[i], &items, timer));
-                let mut next: Option<(f64, u64, usize)> = None;
-                for k in 0..items[i].opts.len() {
-                    let o = &items[i].opts[k];
-                    if o.total() >= cur_total {
-                        continue;
-                    }
-                    let ms = latency(i, k, &items, timer);
-                    if next.is_none_or(|(nms, nb, _)| ms < nms || (ms == nms && o.total() > nb)) {
-                        next = Some((ms, o.total(), k));
-                    }
-                }
-                let Some((ms, bytes, k)) = next else { continue };
-                let saved = (cur_total - bytes) as f64;
-                let ratio = saved / (ms - cur_ms).max(1e-9);
-                if best.is_none_or(|(r, _, _)| ratio > r) {
-                    best = Some((ratio, i, k));
-                }
-            }
-            let Some((_, i, k)) = best else { break };
-            at[i] = k;
-        }
-        // The greedy moves may overshoot (one large layer saves more than was missing):
-        // give back latency while the budget holds, the largest gain first.
-        loop {
-            let mut best: Option<(f64, usize, usize)> = None;
-            for i in 0..items.len() {
-                let cur_ms = latency(i, at[i], &items, timer);
-                for k in 0..items[i].opts.len() {
-                    let ms = latency(i, k, &items, timer);
-                    let mut trial = at.clone();
-                    trial[i] = k;
-                    if ms < cur_ms && total(&trial, &items) <= budget && best.is_none_or(|(g, _, _)| cur_ms - ms > g) {
-                        best = Some((cur_ms - ms, i, k));
-                    }
-                }
-            }
-            let Some((_, i, k)) = best else { break };
-            at[i] = k;
-        }
-        if total(&at, &items) > budget {
+        c.shrink(&mut at, budget, false, timer);
+        c.give_back(&mut at, budget, timer);
+        if c.total(&at) > budget {
+            // Unreachable: the smallest assignment (switch aside: a branch or im2col
+            // stores as little), and what it would cost; then keep only the free savings.
             let least: Vec<usize> = items
                 .iter()
-                .map(|it| (0..it.opts.len()).min_by_key(|&k| (it.opts[k].max(), it.opts[k].total(), k)).unwrap_or(0))
+                .map(|it| {
+                    (0..it.opts.len())
+                        .filter(|&k| !it.opts[k].switch)
+                        .min_by_key(|&k| (it.opts[k].max(), it.opts[k].total(), k))
+                        .unwrap_or(0)
+                })
                 .collect();
-            unmet = Some(pct(total(&least, &items), base_bytes));
+            unmet = Some(pct(c.total(&least), base_bytes));
+            let added: f64 = (0..items.len()).map(|i| c.ms(i, least[i], timer) - c.ms(i, items[i].start, timer)).sum();
+            unmet_added_ms = Some(added.max(0.0));
+            at = items.iter().map(|i| i.start).collect();
+            c.shrink(&mut at, budget, true, timer);
         }
     }
     let mut layers = Vec::new();
     for (i, it) in items.iter().enumerate() {
         let o = &it.opts[at[i]];
         let (predicted, added, measured) = if timed {
-            let p = latency(i, at[i], &items, timer);
+            let p = c.ms(i, at[i], timer);
             // Over the base model's layer: its kernel at the default algorithm, no branch.
             let base = kernel(g, it.node).map_or(0.0, |(s, a)| timer.ms(&s, a));
             let m = explain.then(|| option_ms_fresh(g, it, o, timer));
@@ -555,6 +657,10 @@ pub fn choose(
             (None, None, None)
         };
         let algo = o.algo.or_else(|| conv_shape(g, it.node).map(|c| c.1));
+        let working = match (o.switch, conv_shape(g, it.node), algo) {
+            (true, Some((s, _)), Some(a)) => a.packed_len(&s) as u64 * 4,
+            _ => 0,
+        };
         layers.push(LayerChoice {
             path: it.path.clone(),
             lora: o.lora,
@@ -563,6 +669,9 @@ pub fn choose(
             predicted_ms: predicted,
             added_ms: added,
             measured_ms: measured,
+            switch: o.switch,
+            switch_ms: o.switch.then(|| c.switch(i, at[i], timer)),
+            working,
         });
     }
     let base_ms = timed.then(|| {
@@ -578,21 +687,121 @@ pub fn choose(
         base_bytes,
         fixed_bytes: fixed,
         keys: table.variants.iter().map(|v| v.key.to_string()).collect(),
-        budget_pct,
+        budget_pct: budgets.memory_pct,
         unmet,
         base_ms,
+        switch_budget_ms: budgets.switch_ms,
+        unmet_added_ms,
     })
 }
 
-/// An option's latency: the layer's kernel at the option's algorithm, and its branch.
+/// The layers' options and what an assignment (an option index per layer) costs.
+struct Costs<'a> {
+    g: &'a Graph,
+    items: &'a [Item],
+    fixed: &'a [u64],
+    switch_budget: f64,
+}
+
+impl Costs<'_> {
+    /// The largest variant's bytes.
+    fn total(&self, at: &[usize]) -> u64 {
+        (0..self.fixed.len())
+            .map(|v| self.fixed[v] + self.items.iter().zip(at).map(|(it, &k)| it.opts[k].bytes[v]).sum::<u64>())
+            .max()
+            .unwrap_or(0)
+    }
+    /// Option `k` of layer `i`: its latency.
+    fn ms(&self, i: usize, k: usize, timer: &mut Timer) -> f64 {
+        option_ms(self.g, &self.items[i], &self.items[i].opts[k], timer)
+    }
+    /// Option `k` of layer `i`: its switch time (0 unless merged on switch).
+    fn switch(&self, i: usize, k: usize, timer: &mut Timer) -> f64 {
+        let it = &self.items[i];
+        match (it.opts[k].switch, conv_shape(self.g, it.node), it.opts[k].algo) {
+            (true, Some((s, _)), Some(a)) => timer.switch_ms(&s, a, it.rank),
+            _ => 0.0,
+        }
+    }
+    fn switch_total(&self, at: &[usize], timer: &mut Timer) -> f64 {
+        (0..at.len()).map(|i| self.switch(i, at[i], timer)).sum()
+    }
+
+    /// Moves layers to cheaper options until the largest variant fits `budget` or no
+    /// move is left (`free_only`: only moves that add no latency): per layer its next
+    /// cheaper option, the fastest that stores fewer bytes within the switch budget;
+    /// of those, the free ones first by bytes saved per switch ms, then the others by
+    /// bytes saved per ms added.
+    fn shrink(&self, at: &mut [usize], budget: u64, free_only: bool, timer: &mut Timer) {
+        while self.total(at) > budget {
+            let used = self.switch_total(at, timer);
+            let mut best: Option<(bool, f64, usize, usize)> = None;
+            for (i, &here) in at.iter().enumerate() {
+                let cur = &self.items[i].opts[here];
+                let (cur_total, cur_ms, cur_sw) = (cur.total(), self.ms(i, here, timer), self.switch(i, here, timer));
+                let mut next: Option<(f64, u64, usize)> = None;
+                for k in 0..self.items[i].opts.len() {
+                    let o = &self.items[i].opts[k];
+                    if o.total() >= cur_total || used - cur_sw + self.switch(i, k, timer) > self.switch_budget + 1e-12 {
+                        continue;
+                    }
+                    let ms = self.ms(i, k, timer);
+                    if next.is_none_or(|(nms, nb, _)| ms < nms || (ms == nms && o.total() > nb)) {
+                        next = Some((ms, o.total(), k));
+                    }
+                }
+                let Some((ms, bytes, k)) = next else { continue };
+                let free = ms <= cur_ms;
+                if free_only && !free {
+                    continue;
+                }
+                let saved = (cur_total - bytes) as f64;
+                let cost = if free { self.switch(i, k, timer) - cur_sw } else { ms - cur_ms };
+                let ratio = saved / cost.max(1e-9);
+                if best.is_none_or(|(f, r, _, _)| (free, ratio) > (f, r)) {
+                    best = Some((free, ratio, i, k));
+                }
+            }
+            let Some((_, _, i, k)) = best else { break };
+            at[i] = k;
+        }
+    }
+
+    /// The greedy moves may overshoot (one large layer saves more than was missing):
+    /// gives back latency while both budgets hold, the largest gain first.
+    fn give_back(&self, at: &mut [usize], budget: u64, timer: &mut Timer) {
+        loop {
+            let mut best: Option<(f64, usize, usize)> = None;
+            for i in 0..self.items.len() {
+                let cur_ms = self.ms(i, at[i], timer);
+                for k in 0..self.items[i].opts.len() {
+                    let ms = self.ms(i, k, timer);
+                    if ms >= cur_ms || best.is_some_and(|(g, _, _)| cur_ms - ms <= g) {
+                        continue;
+                    }
+                    let mut trial = at.to_vec();
+                    trial[i] = k;
+                    if self.total(&trial) <= budget && self.switch_total(&trial, timer) <= self.switch_budget + 1e-12 {
+                        best = Some((cur_ms - ms, i, k));
+                    }
+                }
+            }
+            let Some((_, i, k)) = best else { break };
+            at[i] = k;
+        }
+    }
+}
+
+/// An option's latency: the layer's kernel at the option's algorithm, and its branch
+/// (none when merged on switch: the layer runs its working copy).
 fn option_ms(g: &Graph, it: &Item, o: &Opt, timer: &mut Timer) -> f64 {
     let own = match (kernel(g, it.node), o.algo) {
         (Some((s, _)), Some(a)) => timer.ms(&s, a),
         (Some((s, a)), None) => timer.ms(&s, a),
         _ => 0.0,
     };
-    let branch = match (it.branch, o.lora) {
-        (Some((a, b)), Some(LoraMode::Branch)) => branch_ms(g, it.node, o.algo, a, b, timer),
+    let branch = match (it.branch, o.lora, o.switch) {
+        (Some((a, b)), Some(LoraMode::Branch), false) => branch_ms(g, it.node, o.algo, a, b, timer),
         _ => 0.0,
     };
     own + branch
@@ -600,7 +809,7 @@ fn option_ms(g: &Graph, it: &Item, o: &Opt, timer: &mut Timer) -> f64 {
 
 /// [`option_ms`] timed again, not from the cache.
 fn option_ms_fresh(g: &Graph, it: &Item, o: &Opt, timer: &Timer) -> f64 {
-    let mut fresh = Timer { timing: timer.timing, cache: HashMap::new(), lora_cache: HashMap::new() };
+    let mut fresh = Timer::new(timer.timing);
     option_ms(g, it, o, &mut fresh)
 }
 
@@ -655,8 +864,10 @@ fn fixed_node_bytes(g: &Graph, table: &TensorTable, id: NodeId, v: usize, has_ch
 }
 
 /// The `--explain` table: one row per layer with a choice (its largest variant's bytes;
-/// the latency the option predicts, what it adds over the base model's layer, and the
-/// chosen kernels timed again), then the totals.
+/// the latency the option predicts, what it adds over the base model's layer, the
+/// chosen kernels timed again, and a layer merged on switch's re-merge time), then the
+/// totals, the switch's and the working copies' (once per session, not per variant)
+/// among them.
 pub fn explain(s: &Strategy) -> String {
     use crate::print::bytes;
     let mut out = String::new();
@@ -665,21 +876,23 @@ pub fn explain(s: &Strategy) -> String {
     let width = s.layers.iter().map(|l| l.path.len()).max().unwrap_or(5).max(5);
     let _ = writeln!(
         out,
-        "{:<width$}  {:<8}  {:<9}  {:>13}  {:>10}  {:>10}  {:>10}",
-        "layer", "strategy", "algorithm", "bytes/variant", "predicted", "added", "measured"
+        "{:<width$}  {:<15}  {:<9}  {:>13}  {:>10}  {:>10}  {:>10}  {:>9}",
+        "layer", "strategy", "algorithm", "bytes/variant", "predicted", "added", "measured", "switch"
     );
     for l in &s.layers {
         let b = l.bytes.iter().copied().max().unwrap_or(0);
+        let strategy = if l.switch { "merge-on-switch" } else { l.lora.map_or("-", LoraMode::name) };
         let _ = writeln!(
             out,
-            "{:<width$}  {:<8}  {:<9}  {:>13}  {:>10}  {:>10}  {:>10}",
+            "{:<width$}  {:<15}  {:<9}  {:>13}  {:>10}  {:>10}  {:>10}  {:>9}",
             l.path,
-            l.lora.map_or("-", LoraMode::name),
+            strategy,
             l.algo.map_or("-", ConvAlgo::name),
             bytes(b),
             ms(l.predicted_ms),
             plus(l.added_ms),
-            ms(l.measured_ms)
+            ms(l.measured_ms),
+            if l.switch { ms(l.switch_ms) } else { "-".to_string() }
         );
     }
     let totals = s.variant_bytes();
@@ -701,8 +914,21 @@ pub fn explain(s: &Strategy) -> String {
         let _ = writeln!(out, "  per variant: {}", each.join(", "));
     }
     if let Some(least) = s.unmet {
-        let _ = writeln!(out, "the budget cannot be met: the smallest achievable is {least:.2}%");
+        let _ = writeln!(
+            out,
+            "the budget cannot be met: the smallest achievable is {least:.2}% (+{:.3} ms); kept the fastest assignment",
+            s.unmet_added_ms.unwrap_or(0.0)
+        );
     }
+    let switched = s.layers.iter().filter(|l| l.switch).count();
+    let _ = writeln!(
+        out,
+        "switch: {:.3} ms of re-merge per variant switch ({switched} layers merged on switch; budget {:.3} ms); their \
+         working copies {} once per session, not per variant",
+        s.switch_ms(),
+        s.switch_budget_ms,
+        bytes(s.working_bytes())
+    );
     match s.base_ms {
         Some(base) => {
             let added: f64 = s.layers.iter().filter_map(|l| l.added_ms).sum();

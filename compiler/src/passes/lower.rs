@@ -262,9 +262,9 @@ impl<'m> Lowering<'m> {
                     return Err(ice(format!("conv `{}` still has a bias", node.path)));
                 }
                 let weight = self.tensor(node, "weight")?;
-                let lora = self.lora(node, c.lora, !algo.packs_as_is())?;
+                let lora = self.lora(node, c.lora, !algo.packs_as_is() || c.switch)?;
                 let epilogue = self.epilogue(node, &c.epilogue)?;
-                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora }
+                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: c.switch }
             }
             Op::Linear(l) => {
                 if !l.packed || l.bias {

@@ -43,11 +43,13 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, _: &mut Diagnostics) -> 
     Ok(Output::Patches(patches))
 }
 
-/// `W + factor * B A` from `[W, A, B]`, accumulated in f64.
+/// `W + factor * B A` from `[W, A, B]`, accumulated in f64: the runtime's merge
+/// (`readi_runtime::kernels::merge::merge_lora`), which a session merging a layer on
+/// switch runs too.
 fn merge(v: &[&[f32]], rank: usize, factor: f64) -> Vec<f32> {
-    let w = v[0];
-    let delta = lora_delta(v[1], v[2], rank);
-    w.iter().zip(delta).map(|(&w, d)| (w as f64 + factor * d) as f32).collect()
+    let mut out = vec![0.0f32; v[0].len()];
+    readi_runtime::kernels::merge::merge_lora(v[0], v[1], v[2], rank, factor, &mut out);
+    out
 }
 
 /// `B A` in f64, row-major `[rows, cols]`, from `A` `[rank, cols]` and `B` `[rows, rank]`

@@ -510,6 +510,10 @@ pub struct CompileOptions {
     pub memory_budget: Option<f64>,
     /// Time the chosen kernels for `--explain` even when no choice needs it.
     pub explain: bool,
+    /// Milliseconds of re-merge work a variant switch may take (`--switch-budget`): the
+    /// layers `choose_strategy` merges on switch, their measured merge-and-pack time
+    /// summed. `None`: [`choose_strategy::DEFAULT_SWITCH_BUDGET_MS`].
+    pub switch_budget: Option<f64>,
     /// How `choose_strategy` learns kernel latencies (tests give fixed ones).
     pub timing: choose_strategy::Timing,
 }

@@ -7,6 +7,10 @@
 //!   the same algorithm (a conv to `rank` channels), as `<path>.lora_A.weight@<algo>`,
 //!   where packing keeps PyTorch's layout (`ConvAlgo::packs_as_is`: the GEMM paths); a
 //!   Winograd layer's `A` stays raw (`lower` marks it `a_raw`) and the runtime packs it;
+//! * rule `keep_raw`: a conv `choose_strategy` merges on switch keeps its weight and its
+//!   fused LoRA `A` raw (the plan's variants store only raw tensors) and is marked
+//!   `switch`; the runtime packs `W + B A` into a per-session working copy when the
+//!   variant changes;
 //! * rule `transpose_linear`: a linear's weight transposed to `[in, out]`, the layout the
 //!   GEMM reads fastest, as `<path>.weight@t`.
 //!
@@ -32,6 +36,15 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         let Some(slot) = node.params.iter().find(|s| s.name == "weight") else { continue };
         let weight = node.param_name(slot);
         match &node.op {
+            Op::Conv2d(c) if !c.packed && module.strategy.as_ref().is_some_and(|s| s.switch_of(&node.path)) => {
+                if c.algo.is_none() {
+                    return Err(internal(format!("conv `{}` has no algorithm", node.path)));
+                }
+                let new = Op::Conv2d(ConvOp { packed: true, switch: true, ..c.clone() });
+                let mut p = Patch::new("keep_raw");
+                p.rewrite.push((id, new.clone(), rebind(&new, &node.params, &[])));
+                patches.push(p);
+            }
             Op::Conv2d(c) if !c.packed => {
                 let Some(algo) = c.algo else { return Err(internal(format!("conv `{}` has no algorithm", node.path))) };
                 let (h, w) = spatial(g, id);

@@ -6,7 +6,7 @@
 use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
-use crate::kernels::{elementwise, layout as layout_k, linear, norm, pool, reduce, resize, softmax};
+use crate::kernels::{self, elementwise, layout as layout_k, linear, merge, norm, pool, reduce, resize, softmax};
 use readi_plan::ops::Pure;
 
 use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
@@ -28,6 +28,14 @@ pub(crate) struct Bound {
     /// ([`LoraSpec::a_raw`]), empty for the others; packed for the variant
     /// `lora_variant` (`None`: not yet) by [`Bound::pack_lora`].
     pub(crate) lora_a: Vec<Vec<f32>>,
+    /// Per step, the working copy of a conv merged on switch (`Kernel::Conv2d::switch`):
+    /// its raw weight, with its LoRA update merged in, packed for its algorithm under the
+    /// variant `lora_variant`; empty for the others. One per session, whatever the
+    /// number of variants.
+    pub(crate) working: Vec<Vec<f32>>,
+    /// The raw merged weight of the largest Winograd layer merged on switch with a LoRA
+    /// update, before packing (`kernels::merge::switch_tmp_len`).
+    pub(super) switch_tmp: Vec<f32>,
     pub(super) lora_variant: Option<usize>,
     /// What this binding takes.
     pub(super) footprint: Footprint,
@@ -143,6 +151,9 @@ pub struct Footprint {
     pub zeros: usize,
     /// The LoRA `A`s the session packs for a conv's algorithm (stored raw in the plan).
     pub lora: usize,
+    /// The working copies of the convs merged on switch (each packed for its algorithm)
+    /// and the raw buffer a merge packs from.
+    pub working: usize,
     /// The inputs at these shapes (the caller's memory).
     pub inputs: usize,
     /// The outputs a run returns.
@@ -165,6 +176,10 @@ pub(super) struct Layout {
     zeros_len: Vec<usize>,
     /// Per step, the floats of its packed LoRA `A` buffer (0: none).
     lora_len: Vec<usize>,
+    /// Per step, the floats of its working copy (0: not merged on switch), and the raw
+    /// buffer's.
+    working_len: Vec<usize>,
+    switch_tmp_len: usize,
     pub(super) footprint: Footprint,
 }
 
@@ -242,13 +257,23 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     let mut lora_len = vec![0usize; m.steps.len()];
     let (mut scratch_len, mut scratch_by) = (0usize, None);
     let mut lora_floats = 0usize;
+    let mut working_len = vec![0usize; m.steps.len()];
+    let (mut working_floats, mut switch_tmp_len) = (0usize, 0usize);
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
         check_step(plan, step, &shapes).map_err(|e| bad(&at, e))?;
         let conv = conv_params(step, &shapes, &at)?;
         if let Some((s, algo)) = &conv {
-            let lora = step.kernel.lora();
+            let switch = matches!(step.kernel, Kernel::Conv2d { switch: true, .. });
+            // Merged on switch, the kernel runs the working copy without a branch.
+            let lora = step.kernel.lora().filter(|_| !switch);
             let rank = lora.map_or(0, |l| l.rank);
+            if switch {
+                // `check_step` checked the raw lengths, so these are in range.
+                working_len[k] = conv::packed_weight_len(s, *algo);
+                working_floats = sum([working_floats, working_len[k]], "the working copies")?;
+                switch_tmp_len = switch_tmp_len.max(merge::switch_tmp_len(s, *algo, step.kernel.lora().is_some()));
+            }
             let need = conv::checked_scratch_len(s, *algo, rank, threads)
                 .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
             if need > scratch_len {
@@ -284,6 +309,12 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     if lora > 0 {
         parts.push(("the packed LoRA A buffers".into(), lora));
     }
+    let working = bytes_of(sum([working_floats, switch_tmp_len], "the working copies")?, || {
+        "the working copies of the convs merged on switch".into()
+    })?;
+    if working > 0 {
+        parts.push(("the working copies of the convs merged on switch".into(), working));
+    }
     let mut zeros = 0usize;
     let mut inputs = 0usize;
     for (spec, &z) in m.inputs.iter().zip(&zeros_len) {
@@ -301,11 +332,11 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         outputs = sum([outputs, b], "the outputs")?;
         parts.push((format!("output `{}` {}", o.name, shape_of(o.value)), b));
     }
-    let total = sum([activations, scratch, lora, zeros, inputs, outputs], "the memory footprint")?;
+    let total = sum([activations, scratch, lora, working, zeros, inputs, outputs], "the memory footprint")?;
     parts.sort_by_key(|p| std::cmp::Reverse(p.1));
     parts.truncate(LARGEST_SHOWN);
-    let footprint = Footprint { activations, scratch, lora, zeros, inputs, outputs, total, largest: parts };
-    Ok(Layout { shapes, slot_len, scratch_len, convs, zeros_len, lora_len, footprint })
+    let footprint = Footprint { activations, scratch, lora, working, zeros, inputs, outputs, total, largest: parts };
+    Ok(Layout { shapes, slot_len, scratch_len, convs, zeros_len, lora_len, working_len, switch_tmp_len, footprint })
 }
 
 fn sum(parts: impl IntoIterator<Item = usize>, what: &str) -> Result<usize, RunError> {
@@ -366,22 +397,33 @@ pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize)
         convs: layout.convs,
         zeros: layout.zeros_len.into_iter().map(|n| vec![0.0; n]).collect(),
         lora_a: layout.lora_len.into_iter().map(|n| vec![0.0; n]).collect(),
+        working: layout.working_len.into_iter().map(|n| vec![0.0; n]).collect(),
+        switch_tmp: vec![0.0; layout.switch_tmp_len],
         lora_variant: None,
         footprint: layout.footprint,
     })
 }
 
 impl Bound {
-    /// Packs every raw LoRA `A` ([`LoraSpec::a_raw`]) under the variant of `weights` into
-    /// its buffer for the conv's algorithm, unless the buffers hold that variant already.
-    /// Allocates nothing; the lengths were checked at bind time.
+    /// Prepares the session's buffers for the variant of `weights`, unless they hold it
+    /// already: packs every raw LoRA `A` ([`LoraSpec::a_raw`]) for its conv's algorithm,
+    /// and writes every working copy of a conv merged on switch
+    /// (`Kernel::Conv2d::switch`): `pack(W + B A)` from the variant's raw tensors
+    /// (`kernels::merge::switch_pack`). Reads the stored tensors, never writes them;
+    /// allocates nothing (the lengths were checked at bind time). The caller runs it on
+    /// the running thread before any step, so no step sees a half-written copy.
     pub(crate) fn pack_lora(&mut self, plan: &Plan, weights: VariantTensors<'_>) {
         let variant = weights.index();
         if self.lora_variant == Some(variant) {
             return;
         }
         for (k, step) in plan.manifest.steps.iter().enumerate() {
-            if let (Some(l), Some((s, algo))) = (step.kernel.lora(), &self.convs[k])
+            let Some((s, algo)) = &self.convs[k] else { continue };
+            if let Kernel::Conv2d { weight, lora, switch: true, .. } = &step.kernel {
+                let l = lora.map(|l| kernels::Lora { a: weights.get(l.a), b: weights.get(l.b), rank: l.rank });
+                let (tmp, out) = (&mut self.switch_tmp, &mut self.working[k]);
+                merge::switch_pack(s, *algo, weights.get(*weight), l.as_ref(), tmp, out);
+            } else if let Some(l) = step.kernel.lora()
                 && l.a_raw
             {
                 conv::pack_weight(&conv::lora_a_shape(s, l.rank), *algo, weights.get(l.a), &mut self.lora_a[k]);
@@ -426,7 +468,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let out = shapes[step.output].as_slice();
     let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
     match &step.kernel {
-        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l } => {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch } => {
             let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
             if cin != u(c.in_channels)? {
                 return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
@@ -448,7 +490,22 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
                 }
                 *a_len = conv::packed_weight_len(&conv::lora_a_shape(&s, *rank), *algo);
             }
-            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), branch)
+            let mut w_len = len(*weight);
+            if *switch {
+                // A raw weight, packed for `algo` into the working copy the kernel reads.
+                let raw = s.cout.saturating_mul(s.k());
+                if w_len != raw {
+                    return Err(format!(
+                        "conv2d weight `{}` merged on switch has {w_len} values, raw it needs {raw}",
+                        plan.manifest.tensors[*weight].name
+                    ));
+                }
+                if l.is_some_and(|l| !l.a_raw) {
+                    return Err("a conv merged on switch needs its LoRA A raw".into());
+                }
+                w_len = conv::packed_weight_len(&s, *algo);
+            }
+            conv::check(&s, *algo, w_len, xl, ol, ep(epilogue), branch)
         }
         Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
             linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))

@@ -98,11 +98,13 @@ pub(crate) fn run_step(
     // Every kernel takes at least one input (checked at bind time).
     let (x, xs) = input(0);
     match &step.kernel {
-        Kernel::Conv2d { weight, epilogue: ep, lora, .. } => {
+        Kernel::Conv2d { weight, epilogue: ep, lora, switch, .. } => {
             if let Some((s, algo)) = conv_params {
                 let a = |l: &LoraSpec| if l.a_raw { b.lora_a[k].as_slice() } else { w.get(l.a) };
-                let lora = lora.map(|l| conv::Lora { a: a(&l), b: w.get(l.b), rank: l.rank });
-                let (wt, e) = (w.get(*weight), epilogue(w, ep));
+                // Merged on switch: the working copy, `B A` in it (`Bound::pack_lora`).
+                let lora = lora.filter(|_| !switch).map(|l| conv::Lora { a: a(&l), b: w.get(l.b), rank: l.rank });
+                let wt = if *switch { b.working[k].as_slice() } else { w.get(*weight) };
+                let e = epilogue(w, ep);
                 conv::conv2d_lora(s, *algo, wt, lora.as_ref(), &e, x, out, scratch, threads);
             }
         }

@@ -86,6 +86,7 @@ pub mod elementwise;
 pub mod gemm;
 pub mod layout;
 pub mod linear;
+pub mod merge;
 pub mod norm;
 pub mod pool;
 pub mod reduce;

@@ -292,6 +292,7 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                     bn: None,
                 },
                 lora: None,
+                switch: false,
             },
             inputs: vec![0],
             output: 1,
