@@ -412,7 +412,14 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
     use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
     let window = Window2 { kernel: [5, 5], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
     let conv = Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 };
-    let kernel = Kernel::Conv2d { conv, algo: ConvAlgo::Im2col, weight: 0, epilogue: Default::default(), lora: None };
+    let kernel = Kernel::Conv2d {
+        conv,
+        algo: ConvAlgo::Im2col,
+        weight: 0,
+        epilogue: Default::default(),
+        lora: None,
+        adapter: None,
+    };
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
     let err = run_refused(&dir, "small.plan", plan, &[1, 1, 3, 3]);

@@ -415,7 +415,7 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue, lora } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, lora, adapter } => {
                 let x = &inputs[0].shape;
                 let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 if x.len() == 4 {
@@ -429,6 +429,10 @@ fn repair(manifest: &mut Value) {
                     }
                 }
                 sizes.extend(epilogue.scale.into_iter().chain(epilogue.shift).map(|t| (t, c)));
+                if let Some(a) = adapter {
+                    let mc = a.mid.saturating_mul(c);
+                    sizes.extend([(a.down, mc), (a.down_bias, a.mid), (a.up, mc), (a.up_bias, c)]);
+                }
             }
             Kernel::Linear { linear, weight, epilogue, lora } => {
                 let (i, o) = (

@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use crate::exec::{Bound, Input, Run, RunError, Session, SessionOptions, run_step};
 use readi_plan::ops::batchnorm_channel;
 
-use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
+use crate::plan::{AdapterSpec, BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
 
 /// Why calibration failed.
 #[derive(Clone, Debug, PartialEq)]
@@ -111,6 +111,9 @@ struct Layer {
     /// conv bias as its epilogue.
     pre: Step,
     relu: bool,
+    /// A fused adapter after the BatchNorm, before its ReLU: applied to the normalised
+    /// output, as the step applies it to its own.
+    adapter: Option<AdapterSpec>,
     /// Sums over committed batches of the batch mean and the unbiased batch variance.
     sum_mean: Vec<f64>,
     sum_var: Vec<f64>,
@@ -165,9 +168,15 @@ impl BnCalibrator {
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, relu: false, bn: None };
             let kernel = match &step.kernel {
                 // A fused LoRA branch is part of what the BatchNorm reads.
-                Kernel::Conv2d { conv, algo, weight, lora, .. } => {
-                    Kernel::Conv2d { conv: conv.clone(), algo: *algo, weight: *weight, epilogue: identity, lora: *lora }
-                }
+                // A fused adapter reads the BatchNorm's output: not part of its input.
+                Kernel::Conv2d { conv, algo, weight, lora, .. } => Kernel::Conv2d {
+                    conv: conv.clone(),
+                    algo: *algo,
+                    weight: *weight,
+                    epilogue: identity,
+                    lora: *lora,
+                    adapter: None,
+                },
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {
                     Kernel::ChannelAffine { affine: affine.clone(), epilogue: identity }
@@ -182,6 +191,7 @@ impl BnCalibrator {
                 step: k,
                 pre,
                 relu: ep.relu,
+                adapter: step.kernel.adapter().copied(),
                 sum_mean: vec![0.0; c],
                 sum_var: vec![0.0; c],
                 batch_mean: vec![0.0; c],
@@ -328,7 +338,13 @@ fn execute(
                     // The base's: no variant replaces these.
                     let gamma = run.plan.tensor(layer.info.weight);
                     let beta = run.plan.tensor(layer.info.bias);
-                    train_mode_batchnorm(layer, out, shape[0], shape[1], gamma, beta)
+                    let adapted = layer.adapter.zip(b.convs[k].as_ref());
+                    train_mode_batchnorm(layer, adapted.is_none(), out, shape[0], shape[1], gamma, beta).map(|()| {
+                        if let Some((a, (s, _))) = adapted {
+                            let ad = crate::exec::adapter_of(run, &a);
+                            crate::kernels::conv::adapter_after(s, &ad, out, layer.relu, &mut scratch, threads);
+                        }
+                    })
                 }
             }
         };
@@ -344,9 +360,11 @@ const CHUNK: usize = 1 << 14;
 
 /// Computes the batch statistics of `x` (`[n, c, inner]`) into the layer's batch
 /// accumulators and normalises `x` with them in place: `y = (x - mean) / sqrt(var + eps)
-/// * gamma + beta` with the biased variance, then ReLU if the step fused one.
+/// * gamma + beta` with the biased variance, then ReLU if the step fused one and `relu`
+/// (an adapter comes before it otherwise).
 fn train_mode_batchnorm(
     layer: &mut Layer,
+    relu: bool,
     x: &mut [f32],
     n: usize,
     c: usize,
@@ -393,7 +411,7 @@ fn train_mode_batchnorm(
         }
         affine.push((a, b));
     }
-    let relu = layer.relu;
+    let relu = layer.relu && relu;
     x.par_chunks_mut(inner.max(1)).with_min_len((CHUNK / inner.max(1)).max(1)).enumerate().for_each(|(row, xs)| {
         let (a, b) = affine[row % c];
         for v in xs {

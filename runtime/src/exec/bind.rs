@@ -249,7 +249,8 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         if let Some((s, algo)) = &conv {
             let lora = step.kernel.lora();
             let rank = lora.map_or(0, |l| l.rank);
-            let need = conv::checked_scratch_len(s, *algo, rank, threads)
+            let mid = step.kernel.adapter().map_or(0, |a| a.mid);
+            let need = conv::adapter_scratch_len(s, *algo, rank, mid, threads)
                 .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
             if need > scratch_len {
                 (scratch_len, scratch_by) = (need, Some(k));
@@ -426,7 +427,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let out = shapes[step.output].as_slice();
     let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
     match &step.kernel {
-        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l } => {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, adapter } => {
             let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
             if cin != u(c.in_channels)? {
                 return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
@@ -448,7 +449,20 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
                 }
                 *a_len = conv::packed_weight_len(&conv::lora_a_shape(&s, *rank), *algo);
             }
-            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), branch)
+            conv::check(&s, *algo, len(*weight), xl, ol, ep(epilogue), branch)?;
+            if let Some(a) = adapter {
+                let t = |i: usize| base.get(i);
+                let ad = conv::Adapter {
+                    down: t(a.down),
+                    down_bias: t(a.down_bias),
+                    up: t(a.up),
+                    up_bias: t(a.up_bias),
+                    mid: a.mid,
+                    act: a.act,
+                };
+                ad.check(s.cout)?;
+            }
+            Ok(())
         }
         Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
             linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))

@@ -282,6 +282,7 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                 weight: w,
                 epilogue: EpilogueSpec { scale: Some(scale1), shift: Some(shift1), relu: true, bn: None },
                 lora: None,
+                adapter: None,
             },
             inputs: vec![0],
             output: 1,
