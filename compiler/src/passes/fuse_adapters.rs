@@ -133,8 +133,13 @@ fn matched(g: &Graph, add: NodeId, y: ValueRef, u: ValueRef) -> Option<Fusable> 
     };
     let ((d_in, mid), (u_in, u_out)) = (plain(down)?, plain(up)?);
     let channels = c.conv.out_channels;
-    (d_in == channels && u_in == mid && u_out == channels && mid >= 1)
-        .then_some(Fusable { conv, down, act, up, adapter: AdapterOp { mid, act: f } })
+    (d_in == channels && u_in == mid && u_out == channels && mid >= 1).then_some(Fusable {
+        conv,
+        down,
+        act,
+        up,
+        adapter: AdapterOp { mid, act: f },
+    })
 }
 
 fn sorted(a: NodeId, b: NodeId) -> Vec<NodeId> {

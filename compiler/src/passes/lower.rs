@@ -25,8 +25,8 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::diag::Diagnostics;
 use readi_plan::format::{
-    AdapterSpec, BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, LoraSpec, Manifest, OutputSpec, ParamSpec, Replacement,
-    Step, Storage, TensorSpec, ValueSpec, VariantTable,
+    AdapterSpec, BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, LoraSpec, Manifest, OutputSpec, ParamSpec,
+    Replacement, Step, Storage, TensorSpec, ValueSpec, VariantTable,
 };
 
 use super::bind_variants::{not_bound, same_bits};

@@ -226,8 +226,7 @@ mod tests {
                                     if iy < 0 || ix < 0 || iy >= s.h as isize || ix >= s.w as isize {
                                         continue;
                                     }
-                                    let xv =
-                                        x[((n * s.cin + g * cin_g + ci) * s.h + iy as usize) * s.w + ix as usize];
+                                    let xv = x[((n * s.cin + g * cin_g + ci) * s.h + iy as usize) * s.w + ix as usize];
                                     let wv = w[((co * cin_g + ci) * s.kh + ky) * s.kw + kx];
                                     acc += f64::from(xv) * f64::from(wv);
                                 }
@@ -259,7 +258,15 @@ mod tests {
         out
     }
 
-    fn shape(n: usize, cin: usize, hw: (usize, usize), cout: usize, k: usize, stride: usize, groups: usize) -> Conv2dShape {
+    fn shape(
+        n: usize,
+        cin: usize,
+        hw: (usize, usize),
+        cout: usize,
+        k: usize,
+        stride: usize,
+        groups: usize,
+    ) -> Conv2dShape {
         let pad = k / 2;
         let oh = (hw.0 + 2 * pad - k) / stride + 1;
         let ow = (hw.1 + 2 * pad - k) / stride + 1;
@@ -328,9 +335,10 @@ mod tests {
         for algo in [ConvAlgo::Winograd2, ConvAlgo::Winograd4] {
             assert_eq!(check(&shape(2, 6, (13, 12), 8, 3, 1, 1), algo, 4, Activation::Relu), [false, false]);
         }
-        assert_eq!(check(&shape(2, 8, (10, 9), 8, 3, 1, 8), ConvAlgo::Depthwise, 2, Activation::Sigmoid), [
-            false, false
-        ]);
+        assert_eq!(
+            check(&shape(2, 8, (10, 9), 8, 3, 1, 8), ConvAlgo::Depthwise, 2, Activation::Sigmoid),
+            [false, false]
+        );
         // Groups: after the conv.
         assert_eq!(check(&shape(1, 8, (7, 6), 8, 3, 1, 2), ConvAlgo::Im2col, 4, Activation::Relu), [false, false]);
     }

@@ -5,8 +5,8 @@
 //! (one group, a row split: the tile holds every channel) runs on the scaled and shifted
 //! tile before it is copied out ([`super::adapter`]).
 
-use super::split::Part;
 use super::adapter::{Adapter, apply_tile};
+use super::split::Part;
 use super::{Conv2dShape, ConvAlgo, Lora, finish};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, sgemm};
