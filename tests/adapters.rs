@@ -113,3 +113,35 @@ fn bevfusion_tiny_fused_adapters_match_the_unfused_plan() {
     // variant the fuser's.
     check("models/bevfusion_tiny.readi", &[], &["gamma=0.25", "fog=0.06"], adapters);
 }
+
+/// Writes `resnet18.plan` (adapters fused), `resnet18_unfused.plan` and
+/// `resnet18_no_adapters.plan` (the spec without its adapter rules), likewise for
+/// bevfusion_tiny, each with one seeded variant (`gamma=0.5`, `gamma=0.25`), into the directory
+/// `READI_ADAPTER_PLANS`, for timing with `readi bench --variant KEY`:
+///
+///     READI_ADAPTER_PLANS=/tmp/ap cargo test --test adapters -- --ignored write_bench_plans
+#[test]
+#[ignore = "writes plan files for measurements"]
+fn write_bench_plans() {
+    let dir = std::path::PathBuf::from(std::env::var("READI_ADAPTER_PLANS").expect("READI_ADAPTER_PLANS"));
+    std::fs::create_dir_all(&dir).expect("create the directory");
+    for (name, rel, overrides, key) in [
+        ("resnet18", "models/resnet18.readi", &[("num_classes", "1000")][..], "gamma=0.5"),
+        ("bevfusion_tiny", "models/bevfusion_tiny.readi", &[][..], "gamma=0.25"),
+    ] {
+        let m = module(rel, overrides);
+        let src = std::fs::read_to_string(common::root().join(rel)).expect("read the spec");
+        let stripped: String =
+            src.lines().filter(|l| !l.trim_start().starts_with("adapter ")).map(|l| format!("{l}\n")).collect();
+        let (sources, out) = common::compile_text(rel, &stripped, overrides, None);
+        assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+        let bare = out.module.expect("module");
+        for (suffix, p) in [
+            ("", plan(&m, &[key], false)),
+            ("_unfused", plan(&m, &[key], true)),
+            ("_no_adapters", plan(&bare, &[key], false)),
+        ] {
+            p.write(&dir.join(format!("{name}{suffix}.plan"))).expect("write the plan");
+        }
+    }
+}
