@@ -72,11 +72,24 @@ pub(super) fn chunk(cout: usize, mid: usize, plane: usize) -> usize {
     p.min(plane.div_ceil(16) * 16).max(16)
 }
 
+/// The pixels per chunk [`apply_planes`] uses and the chunks per image: [`chunk`]'s, made
+/// smaller where that gives every thread the same number of chunks (a small image, or a
+/// count of chunks the threads do not divide, would leave a thread idle).
+fn chunks(s: &Conv2dShape, mid: usize, threads: usize) -> (usize, usize) {
+    let plane = s.oh * s.ow;
+    let p0 = chunk(s.cout, mid, plane);
+    let (t, jobs0) = (threads.max(1), s.n * plane.div_ceil(p0));
+    if t == 1 || jobs0.is_multiple_of(t) {
+        return (p0, plane.div_ceil(p0));
+    }
+    let per_image = (jobs0.div_ceil(t) * t).div_ceil(s.n.max(1));
+    let p = plane.div_ceil(per_image).div_ceil(16).saturating_mul(16).clamp(1, p0);
+    (p, plane.div_ceil(p))
+}
+
 /// Scratch floats [`apply_planes`] needs at this thread count.
 pub(super) fn planes_scratch_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
-    let p = chunk(s.cout, mid, s.oh * s.ow);
-    let jobs = s.n * (s.oh * s.ow).div_ceil(p);
-    threads.max(1).min(jobs.max(1)) * (s.cout + mid) * p
+    threads.max(1) * (s.cout + mid) * chunk(s.cout, mid, s.oh * s.ow)
 }
 
 /// The adapter on one tile `y` (`cout` rows of `tp` pixels, row-major, already scaled and
@@ -126,8 +139,7 @@ pub(super) fn apply_planes(
     if plane == 0 || s.n == 0 {
         return;
     }
-    let p = chunk(cout, mid, plane);
-    let per_image = plane.div_ceil(p);
+    let (p, per_image) = chunks(s, mid, threads);
     // Each job: one chunk of one image, as one slice per channel.
     let mut jobs: Vec<Vec<&mut [f32]>> = (0..s.n * per_image).map(|_| Vec::with_capacity(cout)).collect();
     for (idx, pl) in out.chunks_mut(plane).enumerate() {
@@ -361,6 +373,15 @@ mod tests {
         // Odd chunk counts over two threads.
         let s = shape(3, 4, (30, 30), 16, 3, 1, 1);
         check(&s, ConvAlgo::Winograd2, 4, Activation::Relu);
+    }
+
+    #[test]
+    fn chunks_are_shared_evenly() {
+        // One chunk of a 7x7 image becomes two for two threads; five of 56x56 six.
+        assert_eq!(chunks(&shape(1, 8, (7, 7), 512, 3, 1, 1), 256, 2), (32, 2));
+        assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 2), (528, 6));
+        assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 1), (672, 5));
+        check(&shape(1, 8, (7, 7), 64, 3, 1, 1), ConvAlgo::Winograd2, 32, Activation::Relu);
     }
 
     #[test]
