@@ -360,8 +360,9 @@ const CHUNK: usize = 1 << 14;
 
 /// Computes the batch statistics of `x` (`[n, c, inner]`) into the layer's batch
 /// accumulators and normalises `x` with them in place: `y = (x - mean) / sqrt(var + eps)
-/// * gamma + beta` with the biased variance, then ReLU if the step fused one and `relu`
-/// (an adapter comes before it otherwise).
+/// * gamma + beta` with the biased variance, then ReLU if the step fused one and `relu`.
+///
+/// `relu` is false for a step whose fused adapter comes between the two.
 fn train_mode_batchnorm(
     layer: &mut Layer,
     relu: bool,

@@ -87,6 +87,9 @@ fn chunks(s: &Conv2dShape, mid: usize, threads: usize) -> (usize, usize) {
     (p, plane.div_ceil(p))
 }
 
+/// One chunk of pixels of one image, as one slice per channel.
+type Job<'a> = Vec<&'a mut [f32]>;
+
 /// Scratch floats [`apply_planes`] needs at this thread count.
 pub(super) fn planes_scratch_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
     threads.max(1) * (s.cout + mid) * chunk(s.cout, mid, s.oh * s.ow)
@@ -163,7 +166,7 @@ pub(super) fn apply_planes(
         return;
     }
     // Contiguous runs of jobs per worker, so each owns one part of the scratch.
-    let mut groups: Vec<(&mut [Vec<&mut [f32]>], &mut [f32])> = Vec::with_capacity(workers);
+    let mut groups: Vec<(&mut [Job<'_>], &mut [f32])> = Vec::with_capacity(workers);
     let (mut rest, mut scratch) = (jobs.as_mut_slice(), &mut scratch[..workers * per]);
     for w in 0..workers {
         let take = (rest.len()) / (workers - w);
