@@ -136,6 +136,7 @@ fn passes_lists_the_pipeline_in_order() {
         "merge_lora",
         "fuse_lora",
         "fold_batchnorm",
+        "fuse_adapters",
         "fuse_epilogues",
         "choose_conv_algo",
         "pack_weights",

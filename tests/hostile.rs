@@ -407,6 +407,55 @@ fn a_crafted_merge_on_switch_conv_is_refused() {
 }
 
 #[test]
+fn a_crafted_adapter_is_refused() {
+    use readi_plan::ops::Activation;
+    use readi_runtime::plan::{AdapterSpec, Kernel};
+    let dir = temp_dir("adapter");
+    // all_ops's first step is a conv: an adapter on it with tensor indices out of range,
+    // no bottleneck, one wider than the conv, and tensors of the wrong size.
+    type Edit = fn(&mut readi_runtime::plan::Manifest);
+    fn set(m: &mut readi_runtime::plan::Manifest, f: fn(usize, usize) -> AdapterSpec) {
+        let n = m.tensors.len();
+        if let Kernel::Conv2d { adapter, weight, .. } = &mut m.steps[0].kernel {
+            *adapter = Some(f(*weight, n));
+        }
+    }
+    let cases: [(Edit, &str); 4] = [
+        (
+            |m| set(m, |w, n| AdapterSpec { down: w, down_bias: w, up: n, up_bias: w, mid: 1, act: Activation::Relu }),
+            "reads tensor",
+        ),
+        (
+            |m| set(m, |w, _| AdapterSpec { down: w, down_bias: w, up: w, up_bias: w, mid: 0, act: Activation::Relu }),
+            "adapter bottleneck of 0 channels",
+        ),
+        (
+            |m| {
+                set(m, |w, _| AdapterSpec {
+                    down: w,
+                    down_bias: w,
+                    up: w,
+                    up_bias: w,
+                    mid: 1 << 20,
+                    act: Activation::Relu,
+                })
+            },
+            "it must be 1 to the conv's",
+        ),
+        (
+            |m| set(m, |w, _| AdapterSpec { down: w, down_bias: w, up: w, up_bias: w, mid: 1, act: Activation::Gelu }),
+            "adapter down `",
+        ),
+    ];
+    for (i, (edit, want)) in cases.into_iter().enumerate() {
+        let path = hostile_plan(&dir, &format!("adapter{i}.plan"), edit);
+        let err = refused(&readi(&["run", &s(&path)]));
+        assert!(err.contains(want) && err.contains("step 0"), "case {i}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn an_input_declared_unlike_its_value_is_refused() {
     let dir = temp_dir("declared");
     let path = hostile_plan(&dir, "declared.plan", |m| {
@@ -440,6 +489,7 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
         epilogue: Default::default(),
         lora: None,
         switch: false,
+        adapter: None,
     };
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);

@@ -62,6 +62,7 @@ const SPECS: &[(&str, LoraMode, usize)] = &[
     ("conv_algorithms", LoraMode::Merge, 0),
     ("conv_algorithms_lora", LoraMode::Branch, 1),
     ("conv_algorithms_switch", LoraMode::Auto, 1),
+    ("conv_algorithms_adapters", LoraMode::Merge, 1),
 ];
 
 /// A spec with a conv of every algorithm the compiler chooses (Winograd F(4x4) and
@@ -96,6 +97,31 @@ variants {
 }
 ";
 
+/// A conv, BatchNorm and ReLU block for each algorithm but Winograd F(2x2) (F(4x4),
+/// 1x1 GEMM, depthwise, im2col at stride 2), each with an adapter fused into its conv.
+const ADAPTERS: &str = "\
+block CB(x: tensor, c: int, k: int, s: int, p: int, g: int) {
+  conv = conv2d(x, c, kernel=k, stride=s, padding=p, groups=g, bias=false)
+  bn = batchnorm(conv)
+  return relu(bn)
+}
+model convs {
+  input x: f32[N, 32, 12, 12] @camera
+  w4 = CB(x, 32, 3, 1, 1, 1)
+  pw = CB(w4, 16, 1, 1, 0, 1)
+  dw = CB(pw, 16, 3, 1, 1, 16)
+  s2 = CB(dw, 8, 3, 2, 1, 1)
+  head = linear(flatten(global_avgpool(s2), start=1), 4)
+  output y = head
+}
+adapt {
+  adapter squeeze=2 act=relu in CB before bn
+}
+variants {
+  axis fog on camera: 0.03 clear 0
+}
+";
+
 fn seeds() -> &'static [Seed] {
     static SEEDS: OnceLock<Vec<Seed>> = OnceLock::new();
     SEEDS.get_or_init(|| SPECS.iter().map(|&(rel, lora, n)| compile_seed(rel, lora, n)).collect())
@@ -106,6 +132,8 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
         common::compile_text(rel, CONV_ALGORITHMS, &[], None)
     } else if rel == "conv_algorithms_lora" || rel == "conv_algorithms_switch" {
         common::compile_text(rel, &format!("{CONV_ALGORITHMS}{LORA_RULES}"), &[], None)
+    } else if rel == "conv_algorithms_adapters" {
+        common::compile_text(rel, ADAPTERS, &[], None)
     } else {
         common::compile(rel, &[], None)
     };
@@ -144,6 +172,19 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
     if rel == "conv_algorithms_switch" {
         let switched = plan.manifest.steps.iter().filter(|s| matches!(s.kernel, Kernel::Conv2d { switch: true, .. }));
         assert_eq!(switched.count(), 4, "convs merged on switch");
+    }
+    if rel == "conv_algorithms_adapters" {
+        let fused: Vec<&str> = plan
+            .manifest
+            .steps
+            .iter()
+            .filter(|s| s.kernel.adapter().is_some())
+            .filter_map(|s| match &s.kernel {
+                readi_runtime::plan::Kernel::Conv2d { algo, .. } => Some(algo.name()),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(fused, ["winograd4", "gemm1x1", "depthwise", "im2col"], "fused adapters");
     }
     let tensors =
         plan.manifest.tensors.iter().enumerate().map(|(i, t)| (t.name.clone(), plan.tensor(i).to_vec())).collect();
@@ -433,7 +474,7 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch, adapter } => {
                 let x = &inputs[0].shape;
                 let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 if x.len() == 4 {
@@ -449,6 +490,10 @@ fn repair(manifest: &mut Value) {
                     }
                 }
                 sizes.extend(epilogue.scale.into_iter().chain(epilogue.shift).map(|t| (t, c)));
+                if let Some(a) = adapter {
+                    let mc = a.mid.saturating_mul(c);
+                    sizes.extend([(a.down, mc), (a.down_bias, a.mid), (a.up, mc), (a.up_bias, c)]);
+                }
             }
             Kernel::Linear { linear, weight, epilogue, lora } => {
                 let (i, o) = (

@@ -360,6 +360,36 @@ fn is_false(b: &bool) -> bool {
     !*b
 }
 
+/// A residual bottleneck adapter fused into the conv that produces its input
+/// (`fuse_adapters`): on the conv's output after the epilogue's scale and shift,
+/// `y + up(act(down y + down_bias)) + up_bias`, then the epilogue's ReLU if any. `down` is
+/// `[mid, cout]` (a 1x1 conv's weight `[mid, cout, 1, 1]`), `up` `[cout, mid]`, the biases
+/// `[mid]` and `[cout]`; all four are the adapter's own tensors, which a variant replaces
+/// through its table as it replaces a LoRA branch's. The kernel computes it per chunk of
+/// output pixels while the chunk is in cache.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdapterSpec {
+    /// Stored tensor of the down-projection's weight, `[mid, cout]`.
+    pub down: usize,
+    /// Stored tensor of its bias, `[mid]`.
+    pub down_bias: usize,
+    /// Stored tensor of the up-projection's weight, `[cout, mid]`.
+    pub up: usize,
+    /// Stored tensor of its bias, `[cout]`.
+    pub up_bias: usize,
+    /// The bottleneck's channels, `cout / squeeze`.
+    pub mid: usize,
+    /// The activation between the projections.
+    pub act: Activation,
+}
+
+impl AdapterSpec {
+    /// The stored tensors it reads.
+    pub fn tensors(&self) -> [usize; 4] {
+        [self.down, self.down_bias, self.up, self.up_bias]
+    }
+}
+
 /// The BatchNorm a conv or channel-affine epilogue was folded from, so that its running
 /// statistics can be re-estimated (AdaBN) from a plan that holds only the folded affine.
 ///
@@ -411,6 +441,10 @@ pub enum Kernel {
         /// branch). The stored weights are never modified. Absent: `weight` is packed.
         #[serde(default, skip_serializing_if = "is_false")]
         switch: bool,
+        /// A residual adapter on the output, between the epilogue's shift and its ReLU.
+        /// Absent in plans without one (and in those written before it existed).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        adapter: Option<AdapterSpec>,
     },
     /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
     /// stored transposed, `[in, out]`.
@@ -467,6 +501,14 @@ impl Kernel {
         }
     }
 
+    /// The conv kernel's fused adapter, if it has one.
+    pub fn adapter(&self) -> Option<&AdapterSpec> {
+        match self {
+            Kernel::Conv2d { adapter, .. } => adapter.as_ref(),
+            _ => None,
+        }
+    }
+
     /// The kernel's per-channel epilogue, if it has one.
     pub fn epilogue(&self) -> Option<&EpilogueSpec> {
         match self {
@@ -486,6 +528,7 @@ impl Kernel {
                 let mut v = vec![*weight];
                 v.extend(lora.iter().flat_map(|l| [l.a, l.b]));
                 v.extend(ep(epilogue));
+                v.extend(self.adapter().iter().flat_map(|a| a.tensors()));
                 v
             }
             Kernel::ChannelAffine { epilogue, .. } => ep(epilogue),

@@ -38,7 +38,9 @@ use std::collections::HashSet;
 
 use crate::conditions::{KeySource, MeldBy, MissingPolicy};
 use crate::dim::Dim;
-use crate::format::{BASE_VARIANT, EpilogueSpec, Kernel, LoraSpec, MAX_LORA_RANK, Manifest, Step, Storage, escaped};
+use crate::format::{
+    AdapterSpec, BASE_VARIANT, EpilogueSpec, Kernel, LoraSpec, MAX_LORA_RANK, Manifest, Step, Storage, escaped,
+};
 use crate::key::{KeyPart, MISSING_AXIS};
 use crate::ops::{self, Conv2dShape, ConvAlgo, TensorType};
 
@@ -209,7 +211,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
         Ok(())
     };
     match kernel {
-        Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch } => {
+        Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch, adapter } => {
             // The shape rule has checked the spatial sizes are known; the batch does not matter.
             let x = &m.values[step.inputs[0]].shape;
             let known = |d: &Dim| d.as_known().and_then(|v| usize::try_from(v).ok()).unwrap_or(0);
@@ -246,6 +248,9 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                 let a = Conv2dShape { cout: l.rank, ..s };
                 let (stored, how) = if l.a_raw { (ConvAlgo::Im2col, "raw") } else { (*algo, algo.name()) };
                 lora_sizes(m, l, stored.packed_len(&a), conv.out_channels, how)?;
+            }
+            if let Some(a) = adapter {
+                adapter_sizes(m, a, conv.out_channels)?;
             }
             per_channel(epilogue, conv.out_channels)
         }
@@ -305,6 +310,34 @@ fn lora_sizes(m: &Manifest, l: &LoraSpec, a_len: usize, out: i64, how: &str) -> 
             l.rank,
             escaped(&m.tensors[l.b].name)
         ));
+    }
+    Ok(())
+}
+
+/// A fused adapter on a conv of `cout` channels: `mid` of 1 to `cout`, `down` of
+/// `[mid, cout]`, `up` of `[cout, mid]`, biases of `[mid]` and `[cout]` (as element
+/// counts: a 1x1 conv's weight `[mid, cout, 1, 1]` is `[mid, cout]`). The tensor indices
+/// were checked with the step's.
+fn adapter_sizes(m: &Manifest, a: &AdapterSpec, cout: i64) -> Result<(), String> {
+    let c = cout.max(0) as usize;
+    if a.mid == 0 || a.mid > c {
+        return Err(format!("adapter bottleneck of {} channels: it must be 1 to the conv's {c}", a.mid));
+    }
+    let mc = a.mid.saturating_mul(c);
+    let want = [("down", a.down, mc, [a.mid, c]), ("down bias", a.down_bias, a.mid, [a.mid, 1])];
+    let want_up = [("up", a.up, mc, [c, a.mid]), ("up bias", a.up_bias, c, [c, 1])];
+    for (what, t, n, shape) in want.into_iter().chain(want_up) {
+        let got = m.tensors[t].numel();
+        if got != n {
+            let shape = if shape[1] == 1 { format!("[{}]", shape[0]) } else { format!("[{}, {}]", shape[0], shape[1]) };
+            return Err(format!(
+                "adapter {what} `{}` has {got} values (shape {:?}), it needs {shape} ({n}) for {c} channels \
+                 and a bottleneck of {}",
+                escaped(&m.tensors[t].name),
+                m.tensors[t].shape,
+                a.mid
+            ));
+        }
     }
     Ok(())
 }

@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use crate::exec::{Bound, Input, Run, RunError, Session, SessionOptions, run_step};
 use readi_plan::ops::{Activation, batchnorm_channel};
 
-use crate::plan::{BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
+use crate::plan::{AdapterSpec, BnInfo, EpilogueSpec, Kernel, Plan, Step, Storage, escaped};
 
 /// Why calibration failed.
 #[derive(Clone, Debug, PartialEq)]
@@ -111,6 +111,9 @@ struct Layer {
     /// conv bias as its epilogue.
     pre: Step,
     act: Option<Activation>,
+    /// A fused adapter after the BatchNorm, before its activation: applied to the
+    /// normalised output, as the step applies it to its own.
+    adapter: Option<AdapterSpec>,
     /// Sums over committed batches of the batch mean and the unbiased batch variance.
     sum_mean: Vec<f64>,
     sum_var: Vec<f64>,
@@ -165,6 +168,7 @@ impl BnCalibrator {
             let identity = EpilogueSpec { scale: None, shift: info.conv_bias, act: None, bn: None };
             let kernel = match &step.kernel {
                 // A fused LoRA branch is part of what the BatchNorm reads.
+                // A fused adapter reads the BatchNorm's output: not part of its input.
                 Kernel::Conv2d { conv, algo, weight, lora, switch, .. } => Kernel::Conv2d {
                     conv: conv.clone(),
                     algo: *algo,
@@ -172,6 +176,7 @@ impl BnCalibrator {
                     epilogue: identity,
                     lora: *lora,
                     switch: *switch,
+                    adapter: None,
                 },
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {
@@ -187,6 +192,7 @@ impl BnCalibrator {
                 step: k,
                 pre,
                 act: ep.act,
+                adapter: step.kernel.adapter().copied(),
                 sum_mean: vec![0.0; c],
                 sum_var: vec![0.0; c],
                 batch_mean: vec![0.0; c],
@@ -333,7 +339,13 @@ fn execute(
                     // The base's: no variant replaces these.
                     let gamma = run.plan.tensor(layer.info.weight);
                     let beta = run.plan.tensor(layer.info.bias);
-                    train_mode_batchnorm(layer, out, shape[0], shape[1], gamma, beta)
+                    let adapted = layer.adapter.zip(b.convs[k].as_ref());
+                    train_mode_batchnorm(layer, adapted.is_none(), out, shape[0], shape[1], gamma, beta).map(|()| {
+                        if let Some((a, (s, _))) = adapted {
+                            let ad = crate::exec::adapter_of(run, &a);
+                            crate::kernels::conv::adapter_after(s, &ad, out, layer.act, &mut scratch, threads);
+                        }
+                    })
                 }
             }
         };
@@ -349,9 +361,12 @@ const CHUNK: usize = 1 << 14;
 
 /// Computes the batch statistics of `x` (`[n, c, inner]`) into the layer's batch
 /// accumulators and normalises `x` with them in place: `y = (x - mean) / sqrt(var + eps)
-/// * gamma + beta` with the biased variance, then ReLU if the step fused one.
+/// * gamma + beta` with the biased variance, then the step's fused activation if `act`.
+///
+/// `act` is false for a step whose fused adapter comes between the two.
 fn train_mode_batchnorm(
     layer: &mut Layer,
+    act: bool,
     x: &mut [f32],
     n: usize,
     c: usize,
@@ -398,7 +413,7 @@ fn train_mode_batchnorm(
         }
         affine.push((a, b));
     }
-    let relu = layer.act == Some(Activation::Relu);
+    let relu = act && layer.act == Some(Activation::Relu);
     x.par_chunks_mut(inner.max(1)).with_min_len((CHUNK / inner.max(1)).max(1)).enumerate().for_each(|(row, xs)| {
         let (a, b) = affine[row % c];
         for v in xs {
@@ -406,8 +421,8 @@ fn train_mode_batchnorm(
             *v = if relu { y.max(0.0) } else { y };
         }
     });
-    if let Some(act) = layer.act.filter(|a| *a != Activation::Relu) {
-        crate::kernels::elementwise::activation_in_place(act, x);
+    if let Some(f) = layer.act.filter(|a| act && *a != Activation::Relu) {
+        crate::kernels::elementwise::activation_in_place(f, x);
     }
     Ok(())
 }

@@ -175,6 +175,7 @@ fn switch_plan() -> Plan {
         epilogue: EpilogueSpec::default(),
         lora: Some(LoraSpec { a, b, rank: 2, a_raw: true }),
         switch: true,
+        adapter: None,
     };
     let manifest = Manifest {
         format_version: FORMAT_VERSION,

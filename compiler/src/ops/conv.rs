@@ -24,12 +24,41 @@ pub struct ConvOp {
     /// weight and `lora_A` slots stay raw although `packed`; the runtime packs the weight,
     /// `B A` merged in, into a per-session working copy when the variant changes.
     pub switch: bool,
+    /// Back end: a residual adapter on the output (`fuse_adapters`), between the
+    /// epilogue's shift and its ReLU.
+    pub adapter: Option<AdapterOp>,
+}
+
+/// A bottleneck adapter fused into a conv: `y + up(act(down y))` on its output, `down`
+/// a 1x1 conv to `mid` channels and `up` one back, both with a bias: slots
+/// `adapter.down.weight [mid, out, 1, 1]`, `adapter.down.bias [mid]`,
+/// `adapter.up.weight [out, mid, 1, 1]`, `adapter.up.bias [out]`, bound to the adapter's
+/// own tensors.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdapterOp {
+    pub mid: i64,
+    pub act: readi_plan::ops::Activation,
+}
+
+impl AdapterOp {
+    /// The slot names, in the order [`ConvOp::param_slots`] lists them.
+    pub const SLOTS: [&'static str; 4] =
+        ["adapter.down.weight", "adapter.down.bias", "adapter.up.weight", "adapter.up.bias"];
 }
 
 impl ConvOp {
     /// A conv as the language writes it.
     pub fn new(conv: Conv2d, bias: bool) -> ConvOp {
-        ConvOp { conv, bias, epilogue: Epilogue::default(), algo: None, packed: false, lora: None, switch: false }
+        ConvOp {
+            conv,
+            bias,
+            epilogue: Epilogue::default(),
+            algo: None,
+            packed: false,
+            lora: None,
+            switch: false,
+            adapter: None,
+        }
     }
 
     /// `weight [out, in/groups, kh, kw]` (packed: `[len]` of the algorithm's layout),
@@ -57,6 +86,14 @@ impl ConvOp {
             v.push(ParamSlot::param("lora_B", vec![self.conv.out_channels, rank]));
         }
         v.extend(self.epilogue.slots(self.conv.out_channels));
+        if let Some(a) = &self.adapter {
+            let c = self.conv.out_channels;
+            let [dw, db, uw, ub] = AdapterOp::SLOTS;
+            v.push(ParamSlot::param(dw, vec![a.mid, c, 1, 1]));
+            v.push(ParamSlot::param(db, vec![a.mid]));
+            v.push(ParamSlot::param(uw, vec![c, a.mid, 1, 1]));
+            v.push(ParamSlot::param(ub, vec![c]));
+        }
         v
     }
 }
@@ -82,6 +119,9 @@ impl Operator for ConvOp {
         }
         if let Some(e) = self.epilogue.attr() {
             v.push(("epilogue", e));
+        }
+        if let Some(a) = &self.adapter {
+            v.push(("adapter", format!("mid {} {}", a.mid, a.act.name())));
         }
         v
     }

@@ -44,7 +44,7 @@ mod resize;
 use std::sync::LazyLock;
 
 pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, req};
-pub use conv::ConvOp;
+pub use conv::{AdapterOp, ConvOp};
 pub use epilogue::{BnFold, Epilogue};
 pub use linear::LinearOp;
 pub use norm::{AffineOp, batchnorm_slots, layernorm_slots};

@@ -25,8 +25,8 @@ use std::hash::{Hash, Hasher};
 
 use readi_grammar::diag::Diagnostics;
 use readi_plan::format::{
-    BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, LoraSpec, Manifest, OutputSpec, ParamSpec, Replacement,
-    Step, Storage, TensorSpec, ValueSpec, VariantTable,
+    AdapterSpec, BnInfo, EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, LoraSpec, Manifest, OutputSpec, ParamSpec,
+    Replacement, Step, Storage, TensorSpec, ValueSpec, VariantTable,
 };
 
 use super::bind_variants::{not_bound, same_bits};
@@ -264,7 +264,23 @@ impl<'m> Lowering<'m> {
                 let weight = self.tensor(node, "weight")?;
                 let lora = self.lora(node, c.lora, !algo.packs_as_is() || c.switch)?;
                 let epilogue = self.epilogue(node, &c.epilogue)?;
-                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: c.switch }
+                let adapter = match &c.adapter {
+                    Some(a) => {
+                        let [dw, db, uw, ub] = crate::ops::AdapterOp::SLOTS;
+                        let mid = usize::try_from(a.mid)
+                            .map_err(|_| ice(format!("`{}` has an adapter of {} channels", node.path, a.mid)))?;
+                        Some(AdapterSpec {
+                            down: self.tensor(node, dw)?,
+                            down_bias: self.tensor(node, db)?,
+                            up: self.tensor(node, uw)?,
+                            up_bias: self.tensor(node, ub)?,
+                            mid,
+                            act: a.act,
+                        })
+                    }
+                    None => None,
+                };
+                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: c.switch, adapter }
             }
             Op::Linear(l) => {
                 if !l.packed || l.bias {

@@ -18,6 +18,7 @@
 //! | `merge_lora`       | merges LoRA into the layer's weight, per variant               | `--lora merge`           |
 //! | `fuse_lora`        | a LoRA branch into its conv's or linear's kernel               | LoRA left as branches    |
 //! | `fold_batchnorm`   | BatchNorm into the conv before it, or a channel affine         | adaptations placed       |
+//! | `fuse_adapters`    | an adapter into the conv producing its input (an epilogue)     | BatchNorms folded        |
 //! | `fuse_epilogues`   | biases into epilogue shifts, ReLUs into their producer         | BatchNorms folded        |
 //! | `choose_conv_algo` | an algorithm per conv                                          | epilogues fused          |
 //! | `pack_weights`     | conv weights packed for their algorithm, linear transposed     | algorithms chosen        |
@@ -44,6 +45,7 @@ pub mod commute_adapters;
 pub mod dead_code;
 pub mod drop_inactive;
 pub mod fold_batchnorm;
+pub mod fuse_adapters;
 pub mod fuse_epilogues;
 pub mod fuse_lora;
 pub mod inject_adapt;
@@ -88,6 +90,7 @@ pub enum Pass {
     MergeLora,
     FuseLora,
     FoldBatchnorm,
+    FuseAdapters,
     FuseEpilogues,
     ChooseConvAlgo,
     PackWeights,
@@ -113,6 +116,7 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::MergeLora, "merge_lora", "merge LoRA into the adapted layer's weight, per variant (--lora merge)"),
     (Pass::FuseLora, "fuse_lora", "compute each LoRA branch in its conv's or linear's kernel (--lora branch)"),
     (Pass::FoldBatchnorm, "fold_batchnorm", "fold BatchNorm into the conv before it, or make it a channel affine"),
+    (Pass::FuseAdapters, "fuse_adapters", "compute each adapter in the kernel of the conv producing its input"),
     (
         Pass::FuseEpilogues,
         "fuse_epilogues",
@@ -516,6 +520,8 @@ pub struct CompileOptions {
     pub switch_budget: Option<f64>,
     /// How `choose_strategy` learns kernel latencies (tests give fixed ones).
     pub timing: choose_strategy::Timing,
+    /// Keep adapters as separate steps (`fuse_adapters` does nothing): for comparisons.
+    pub unfused_adapters: bool,
 }
 
 /// What the back end compiles a module with.
@@ -557,6 +563,7 @@ fn backend_pass(pass: Pass) -> Option<BackendPass> {
         Pass::MergeLora => merge_lora::run,
         Pass::FuseLora => fuse_lora::run,
         Pass::FoldBatchnorm => fold_batchnorm::run,
+        Pass::FuseAdapters => fuse_adapters::run,
         Pass::FuseEpilogues => fuse_epilogues::run,
         Pass::ChooseConvAlgo => choose_conv_algo::run,
         Pass::PackWeights => pack_weights::run,

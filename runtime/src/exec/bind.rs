@@ -274,7 +274,8 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
                 working_floats = sum([working_floats, working_len[k]], "the working copies")?;
                 switch_tmp_len = switch_tmp_len.max(merge::switch_tmp_len(s, *algo, step.kernel.lora().is_some()));
             }
-            let need = conv::checked_scratch_len(s, *algo, rank, threads)
+            let mid = step.kernel.adapter().map_or(0, |a| a.mid);
+            let need = conv::adapter_scratch_len(s, *algo, rank, mid, threads)
                 .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
             if need > scratch_len {
                 (scratch_len, scratch_by) = (need, Some(k));
@@ -468,7 +469,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let out = shapes[step.output].as_slice();
     let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
     match &step.kernel {
-        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch } => {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch, adapter } => {
             let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
             if cin != u(c.in_channels)? {
                 return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
@@ -505,7 +506,20 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
                 }
                 w_len = conv::packed_weight_len(&s, *algo);
             }
-            conv::check(&s, *algo, w_len, xl, ol, ep(epilogue), branch)
+            conv::check(&s, *algo, w_len, xl, ol, ep(epilogue), branch)?;
+            if let Some(a) = adapter {
+                let t = |i: usize| base.get(i);
+                let ad = conv::Adapter {
+                    down: t(a.down),
+                    down_bias: t(a.down_bias),
+                    up: t(a.up),
+                    up_bias: t(a.up_bias),
+                    mid: a.mid,
+                    act: a.act,
+                };
+                ad.check(s.cout)?;
+            }
+            Ok(())
         }
         Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
             linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))

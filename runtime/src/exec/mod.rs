@@ -46,7 +46,7 @@ use crate::plan::{Plan, escaped};
 
 pub(crate) use bind::Bound;
 pub use bind::Footprint;
-pub(crate) use run::{Run, run_step};
+pub(crate) use run::{Run, adapter_of, run_step};
 pub use switch::VariantSwitch;
 
 /// A dense f32 tensor returned by a run.

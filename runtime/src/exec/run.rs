@@ -9,7 +9,7 @@ use crate::kernels::conv;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
 use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
-use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
+use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
 use super::{Input, RunError, bad};
@@ -41,6 +41,22 @@ pub(super) fn value_slice<'a>(run: &Run<'a>, bound: &'a Bound, v: usize) -> &'a 
 
 fn epilogue<'a>(w: VariantTensors<'a>, e: &EpilogueSpec) -> Epilogue<'a> {
     Epilogue { scale: e.scale.map(|t| w.get(t)), shift: e.shift.map(|t| w.get(t)), act: e.act }
+}
+
+/// A conv step's fused adapter, its tensors resolved under the run's variant.
+pub(crate) fn adapter_of<'a>(run: &Run<'a>, a: &AdapterSpec) -> conv::Adapter<'a> {
+    conv_adapter(run.weights, a)
+}
+
+fn conv_adapter<'a>(w: VariantTensors<'a>, a: &AdapterSpec) -> conv::Adapter<'a> {
+    conv::Adapter {
+        down: w.get(a.down),
+        down_bias: w.get(a.down_bias),
+        up: w.get(a.up),
+        up_bias: w.get(a.up_bias),
+        mid: a.mid,
+        act: a.act,
+    }
 }
 
 /// Runs every step in order. Allocates nothing: inputs are fetched by each kernel as
@@ -98,14 +114,15 @@ pub(crate) fn run_step(
     // Every kernel takes at least one input (checked at bind time).
     let (x, xs) = input(0);
     match &step.kernel {
-        Kernel::Conv2d { weight, epilogue: ep, lora, switch, .. } => {
+        Kernel::Conv2d { weight, epilogue: ep, lora, switch, adapter, .. } => {
             if let Some((s, algo)) = conv_params {
                 let a = |l: &LoraSpec| if l.a_raw { b.lora_a[k].as_slice() } else { w.get(l.a) };
                 // Merged on switch: the working copy, `B A` in it (`Bound::pack_lora`).
                 let lora = lora.filter(|_| !switch).map(|l| conv::Lora { a: a(&l), b: w.get(l.b), rank: l.rank });
                 let wt = if *switch { b.working[k].as_slice() } else { w.get(*weight) };
+                let adapter = adapter.as_ref().map(|a| conv_adapter(w, a));
                 let e = epilogue(w, ep);
-                conv::conv2d_lora(s, *algo, wt, lora.as_ref(), &e, x, out, scratch, threads);
+                conv::conv2d_adapter(s, *algo, wt, lora.as_ref(), adapter.as_ref(), &e, x, out, scratch, threads);
             }
         }
         // Rows from the leading axes, not by dividing the length: a last axis may be 0.

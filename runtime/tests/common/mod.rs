@@ -293,6 +293,7 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                 },
                 lora: None,
                 switch: false,
+                adapter: None,
             },
             inputs: vec![0],
             output: 1,

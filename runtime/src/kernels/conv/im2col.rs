@@ -1,8 +1,11 @@
 //! The GEMM paths, [`ConvAlgo::Gemm1x1`] and [`ConvAlgo::Im2col`]: per tile of output
 //! pixels (of one image and group), the input as it is or unfolded by [`im2col`], one GEMM
 //! into scratch, and the epilogue into the part's output planes. A LoRA branch reads the
-//! same tile: `t = A col` (rank rows) and `acc += B t`, before the epilogue.
+//! same tile: `t = A col` (rank rows) and `acc += B t`, before the epilogue. An adapter
+//! (one group, a row split: the tile holds every channel) runs on the scaled and shifted
+//! tile before it is copied out ([`super::adapter`]).
 
+use super::adapter::{Adapter, apply_tile};
 use super::split::Part;
 use super::{Conv2dShape, ConvAlgo, Lora, finish};
 use crate::kernels::Epilogue;
@@ -25,6 +28,7 @@ pub(super) fn gemm_part(
     algo: ConvAlgo,
     w: &[f32],
     lora: Option<&Lora>,
+    adapter: Option<&Adapter>,
     ep: &Epilogue,
     x: &[f32],
     part: &mut Part,
@@ -35,7 +39,8 @@ pub(super) fn gemm_part(
     let tile = gemm_tile(s, algo);
     let rank = lora.map_or(0, |l| l.rank);
     let (acc, rest) = scratch.split_at_mut(tile * cout_g);
-    let (t, col) = rest.split_at_mut(tile * rank);
+    let (t, rest) = rest.split_at_mut(tile * rank);
+    let (h, col) = rest.split_at_mut(tile * adapter.map_or(0, |a| a.mid));
     let last = (part.r1 - 1) / s.oh;
     for n in part.n0..=last {
         let (lo, hi) = part.rows_of(n, s.oh);
@@ -66,7 +71,16 @@ pub(super) fn gemm_part(
                     let acc = MatMut::row_major(&mut acc[..mrows * tp], mrows, tp);
                     sgemm(b, MatRef::row_major(t, rank, tp), acc, true, 1);
                 }
-                finish_tile(part, n, chans, p0 - p_lo, acc, tp, ep);
+                if let Some(ad) = adapter {
+                    // Every channel of the tile (one group, a row split): scale and shift
+                    // in place, the adapter and the ReLU, then a plain copy out.
+                    let acc = &mut acc[..mrows * tp];
+                    finish_in_place(acc, tp, &Epilogue { act: None, ..*ep });
+                    apply_tile(ad, acc, mrows, tp, h, ep.act);
+                    finish_tile(part, n, chans, p0 - p_lo, acc, tp, &Epilogue::default());
+                } else {
+                    finish_tile(part, n, chans, p0 - p_lo, acc, tp, ep);
+                }
             }
             p0 += tp;
         }
@@ -87,6 +101,22 @@ simd_fn! {
     ) {
         for (c, acc_row) in chans.zip(acc.chunks(tp)) {
             finish(&mut part.plane(n, c)[off..], acc_row, c, ep);
+        }
+    }
+}
+
+simd_fn! {
+    /// The epilogue on a tile of every channel (rows of `tp`), in place.
+    fn finish_in_place(acc: &mut [f32], tp: usize, ep: &Epilogue<'_>) {
+        for (c, row) in acc.chunks_mut(tp).enumerate() {
+            let scale = ep.scale.map_or(1.0, |v| v[c]);
+            let shift = ep.shift.map_or(0.0, |v| v[c]);
+            match (ep.scale.is_some(), ep.relu()) {
+                (true, true) => row.iter_mut().for_each(|a| *a = (*a * scale + shift).max(0.0)),
+                (true, false) => row.iter_mut().for_each(|a| *a = *a * scale + shift),
+                (false, true) => row.iter_mut().for_each(|a| *a = (*a + shift).max(0.0)),
+                (false, false) => row.iter_mut().for_each(|a| *a += shift),
+            }
         }
     }
 }

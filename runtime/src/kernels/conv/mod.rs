@@ -37,6 +37,11 @@
 //! folded BatchNorm scales it as it scales the conv. Groups and depthwise layers have no
 //! fused branch ([`check`] refuses one): their LoRA runs as separate steps.
 //!
+//! A layer may also carry a residual bottleneck adapter on its output ([`Adapter`],
+//! `adapter.rs`): `y + up · act(down · y + bd) + bu` between the epilogue's shift and its
+//! ReLU, computed per chunk of pixels (all channels) while the chunk is in cache: inside
+//! the GEMM paths' tile under a row split, else in one pass over the finished output.
+//!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
 //! paths (Gemm1x1, Im2col), `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
@@ -44,8 +49,9 @@
 
 use rayon::prelude::*;
 
-use super::Epilogue;
+use super::{Activation, Epilogue};
 
+mod adapter;
 mod depthwise;
 mod im2col;
 mod split;
@@ -53,9 +59,10 @@ mod winograd;
 
 use self::depthwise::depthwise;
 use self::im2col::{gemm_part, gemm_tile};
-use self::split::{Part, parts, split};
+use self::split::{Part, parts, split, split_shape};
 use self::winograd::{F2, F2_G, F4, F4_G, Wino, pack_winograd, winograd_part};
 
+pub use self::adapter::Adapter;
 pub use readi_plan::ops::{Conv2dShape, ConvAlgo};
 
 /// The kernel's view of a conv layer at an input of `n x cin x h x w`
@@ -132,6 +139,28 @@ pub fn scratch_len(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
 /// (0: none) at this thread count.
 pub fn lora_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, threads: usize) -> usize {
     parts(s, algo, threads) * part_scratch(s, algo, rank)
+}
+
+/// Scratch floats [`conv2d_adapter`] needs with a LoRA branch of `rank` and an adapter
+/// of `mid` bottleneck channels (0: none of either), or `None` if it overflows.
+pub fn adapter_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, mid: usize, threads: usize) -> Option<usize> {
+    let conv = checked_scratch_len(s, algo, rank, threads)?;
+    if mid == 0 {
+        return Some(conv);
+    }
+    // In the tiles: the bottleneck rows of a tile beside each part's scratch. After the
+    // conv (and for AdaBN's [`adapter_after`]): the pass over the output, which reuses
+    // the conv's scratch.
+    let tile = parts(s, algo, threads).checked_mul(gemm_tile(s, algo))?.checked_mul(mid)?;
+    let in_tile = if adapter_in_tile(s, algo, threads) { conv.checked_add(tile)? } else { conv };
+    let per = s.cout.checked_add(mid)?.checked_mul(adapter::chunk(s.cout, mid, s.oh * s.ow))?;
+    Some(in_tile.max(threads.max(1).checked_mul(per)?))
+}
+
+/// Whether [`conv2d_adapter`] computes a layer's adapter inside its GEMM tiles: a GEMM
+/// path of one group split by output rows, so each tile holds every channel of its pixels.
+fn adapter_in_tile(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> bool {
+    matches!(algo, ConvAlgo::Gemm1x1 | ConvAlgo::Im2col) && s.groups == 1 && split_shape(s, algo, threads).1 == 1
 }
 
 /// Most elements of a conv's input, output or weight [`check`] accepts: far beyond any
@@ -275,7 +304,7 @@ pub fn conv2d(
     scratch: &mut [f32],
     threads: usize,
 ) {
-    conv2d_lora(s, algo, packed_weight, None, ep, x, out, scratch, threads)
+    conv2d_adapter(s, algo, packed_weight, None, None, ep, x, out, scratch, threads)
 }
 
 /// [`conv2d`] with a fused LoRA branch: `out = epilogue(conv(x, weight) + B (A x))`;
@@ -295,6 +324,35 @@ pub fn conv2d_lora(
     scratch: &mut [f32],
     threads: usize,
 ) {
+    conv2d_adapter(s, algo, packed_weight, lora, None, ep, x, out, scratch, threads)
+}
+
+/// [`conv2d_lora`] with a fused adapter on the output:
+/// `out = relu?(z + up · act(down · z + bd) + bu)` with `z = conv(x, weight) + B (A x)`
+/// scaled and shifted by the epilogue, whose ReLU (if any) comes last; `scratch` holds at
+/// least [`adapter_scratch_len`] floats.
+///
+/// # Panics
+/// As [`conv2d_lora`], and if the adapter's lengths do not fit `cout`.
+#[allow(clippy::too_many_arguments)]
+pub fn conv2d_adapter(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    packed_weight: &[f32],
+    lora: Option<&Lora>,
+    adapter: Option<&Adapter>,
+    ep: &Epilogue,
+    x: &[f32],
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    if let Some(a) = adapter
+        && let Err(e) = a.check(s.cout)
+    {
+        panic!("conv: {e}");
+    }
+    let mid = adapter.map_or(0, |a| a.mid);
     let rank = lora.map_or(0, |l| l.rank);
     if let Some(l) = lora {
         assert!(s.groups == 1 && algo != ConvAlgo::Depthwise && l.rank > 0, "conv: LoRA on {s:?} with {algo:?}");
@@ -322,28 +380,63 @@ pub fn conv2d_lora(
     for v in [ep.scale, ep.shift].into_iter().flatten() {
         assert_eq!(v.len(), s.cout, "conv: epilogue length");
     }
-    let need = lora_scratch_len(s, algo, rank, threads);
+    let need = adapter_scratch_len(s, algo, rank, mid, threads).unwrap_or(usize::MAX);
     assert!(scratch.len() >= need, "conv: scratch has {} floats, needs {need}", scratch.len());
     if out.is_empty() {
         return;
     }
+    // Where the adapter runs: in the GEMM tiles, or after the conv over its output, the
+    // conv's ReLU then deferred to after the adapter.
+    let in_tile = adapter.filter(|_| adapter_in_tile(s, algo, threads));
+    let after = adapter.filter(|_| in_tile.is_none());
+    let conv_ep = Epilogue { act: ep.act.filter(|_| after.is_none()), ..*ep };
     if algo == ConvAlgo::Depthwise {
-        return depthwise(s, packed_weight, ep, x, out, threads);
-    }
-    let per = part_scratch(s, algo, rank);
-    let mut jobs: Vec<(Part, &mut [f32])> =
-        split(out, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
-    let run = |(part, scratch): &mut (Part, &mut [f32])| match algo {
-        ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => gemm_part(s, algo, packed_weight, lora, ep, x, part, scratch),
-        ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, lora, ep, x, part, scratch),
-        ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, lora, ep, x, part, scratch),
-        ConvAlgo::Depthwise => unreachable!("handled above"),
-    };
-    if jobs.len() == 1 {
-        run(&mut jobs[0]);
+        depthwise(s, packed_weight, &conv_ep, x, out, threads);
     } else {
-        jobs.par_iter_mut().for_each(run);
+        let ep = &conv_ep;
+        let per = part_scratch(s, algo, rank) + in_tile.map_or(0, |a| a.mid * gemm_tile(s, algo));
+        let mut jobs: Vec<(Part, &mut [f32])> =
+            split(out, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
+        let run = |(part, scratch): &mut (Part, &mut [f32])| match algo {
+            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => {
+                gemm_part(s, algo, packed_weight, lora, in_tile, ep, x, part, scratch)
+            }
+            ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, lora, ep, x, part, scratch),
+            ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, lora, ep, x, part, scratch),
+            ConvAlgo::Depthwise => unreachable!("handled above"),
+        };
+        if jobs.len() == 1 {
+            run(&mut jobs[0]);
+        } else {
+            jobs.par_iter_mut().for_each(run);
+        }
     }
+    if let Some(a) = after {
+        adapter::apply_planes(s, a, out, ep.act, scratch, threads);
+    }
+}
+
+/// The adapter of a conv step on the conv's finished output (scaled and shifted, no
+/// activation yet), then the activation `act`: what [`conv2d_adapter`] computes after the conv
+/// when not in its tiles. For AdaBN, which normalises a conv's output itself; `scratch`
+/// holds at least [`adapter_scratch_len`] floats.
+///
+/// # Panics
+/// If the adapter's or the output's lengths do not fit the shape.
+pub fn adapter_after(
+    s: &Conv2dShape,
+    ad: &Adapter,
+    out: &mut [f32],
+    act: Option<Activation>,
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    if let Err(e) = ad.check(s.cout) {
+        panic!("conv: {e}");
+    }
+    assert_eq!(out.len(), s.n * s.cout * s.oh * s.ow, "conv: output length");
+    assert!(scratch.len() >= adapter::planes_scratch_len(s, ad.mid, threads), "conv: adapter scratch");
+    adapter::apply_planes(s, ad, out, act, scratch, threads);
 }
 
 #[track_caller]

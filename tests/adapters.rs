@@ -1,0 +1,147 @@
+//! Adapters fused into the conv that produces their input (`fuse_adapters`) against the
+//! same plan with every adapter left as separate steps
+//! (`CompileOptions::unfused_adapters`): ResNet-18 (64x64) and bevfusion_tiny with
+//! seeded weights and variants, outputs within 1e-5 of the output's scale, at 1 and 2
+//! threads; and switching variants on the fused plan, A -> B -> A, gives A's outputs bit
+//! for bit.
+
+mod common;
+
+use std::sync::Arc;
+
+use readi_compiler::Module;
+use readi_compiler::backend::{self, CompileOptions};
+use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::plan::Plan;
+
+fn module(rel: &str, overrides: &[(&str, &str)]) -> Module {
+    let (sources, out) = common::compile(rel, overrides, None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    out.module.expect("module")
+}
+
+/// The plan with `keys`' seeded variants, adapters fused or not.
+fn plan(m: &Module, keys: &[&str], unfused_adapters: bool) -> Arc<Plan> {
+    let keys: Vec<String> = keys.iter().map(|k| k.to_string()).collect();
+    let sources = backend::seeded_variants(m, &keys, 30);
+    let opts = CompileOptions { unfused_adapters, ..Default::default() };
+    let weights = backend::seeded_weights(&m.graph, 1);
+    Arc::new(backend::compile_variants(m, &weights, "seeded", &sources, &opts).expect("compiles").0)
+}
+
+/// Seeded data for every input of the plan, at batch 1.
+fn input_data(plan: &Plan) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+    plan.manifest
+        .input_shapes(1)
+        .into_iter()
+        .map(|(name, shape)| {
+            let n: usize = shape.iter().product();
+            let data = (0..n).map(|k| ((k * 7919 % 1000) as f32 / 500.0) - 1.0).collect();
+            (name.to_string(), shape, data)
+        })
+        .collect()
+}
+
+fn run(session: &mut Session, key: &str, data: &[(String, Vec<usize>, Vec<f32>)]) -> Vec<(String, Tensor)> {
+    session.set_variant(key).expect("known key");
+    let inputs: Vec<Input<'_>> =
+        data.iter().map(|(n, s, d)| Input { name: n.as_str(), data: d.as_slice(), shape: s.as_slice() }).collect();
+    session.run(&inputs).expect("run")
+}
+
+/// Worst difference relative to the reference output's largest magnitude (at least 1).
+fn rel_error(got: &[(String, Tensor)], want: &[(String, Tensor)]) -> f32 {
+    assert_eq!(got.len(), want.len());
+    got.iter()
+        .zip(want)
+        .map(|((n, a), (m, b))| {
+            assert_eq!((n, &a.shape), (m, &b.shape));
+            let scale = b.data.iter().fold(1.0f32, |s, v| s.max(v.abs()));
+            a.data.iter().zip(&b.data).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max) / scale
+        })
+        .fold(0.0, f32::max)
+}
+
+fn bits(out: &[(String, Tensor)]) -> Vec<Vec<u32>> {
+    out.iter().map(|(_, t)| t.data.iter().map(|v| v.to_bits()).collect()).collect()
+}
+
+/// The fused plan has `fused` adapters in its convs and at least `3 * fused` steps fewer than the
+/// unfused one (four with a ReLU after the sum), and agrees with it under every key at 1 and 2 threads; then A -> B -> A.
+fn check(rel: &str, overrides: &[(&str, &str)], keys: &[&str], fused: usize) {
+    let m = module(rel, overrides);
+    let (with, without) = (plan(&m, keys, false), plan(&m, keys, true));
+    let count = |p: &Plan| p.manifest.steps.iter().filter(|s| s.kernel.adapter().is_some()).count();
+    assert_eq!((count(&with), count(&without)), (fused, 0), "{rel}: fused adapters");
+    // Unfused, each adapter is three steps: down (its activation fused in), up, the sum;
+    // and a ReLU after the sum is one more, which fuses into the conv with the adapter.
+    let (n, unfused) = (with.manifest.steps.len(), without.manifest.steps.len());
+    assert!(n + 3 * fused <= unfused && unfused <= n + 4 * fused, "{rel}: {n} steps fused, {unfused} not");
+    let data = input_data(&with);
+    for threads in [1, 2] {
+        let mut a = Session::new(with.clone(), threads).expect("session");
+        let mut b = Session::new(without.clone(), threads).expect("session");
+        for &key in keys.iter().chain(&["base"]) {
+            let key = if key == "base" { with.variant_key(0).to_string() } else { key.to_string() };
+            let e = rel_error(&run(&mut a, &key, &data), &run(&mut b, &key, &data));
+            assert!(e <= 1e-5, "{rel}, {key}, {threads} threads: fused and unfused differ by {e:e}");
+        }
+    }
+    // A -> B -> A on one session: A's outputs again, bit for bit, and B's differ.
+    let mut s = Session::new(with.clone(), 2).expect("session");
+    let first = run(&mut s, keys[0], &data);
+    let other = run(&mut s, keys[1], &data);
+    let again = run(&mut s, keys[0], &data);
+    assert_eq!(bits(&first), bits(&again), "{rel}: A -> B -> A");
+    assert_ne!(bits(&first), bits(&other), "{rel}: the variants differ");
+}
+
+#[test]
+fn resnet18_fused_adapters_match_the_unfused_plan() {
+    // One adapter per BasicBlock, before bn2: conv2's output, 8 of them.
+    check("models/resnet18.readi", &[("img", "64"), ("num_classes", "10")], &["gamma=0.5", "blur=5"], 8);
+}
+
+#[test]
+fn bevfusion_tiny_fused_adapters_match_the_unfused_plan() {
+    let m = module("models/bevfusion_tiny.readi", &[]);
+    let adapters = m.adapt.as_ref().map_or(0, |a| {
+        a.injections.iter().filter(|i| matches!(i, readi_compiler::adapt::Injection::Adapter { .. })).count()
+    });
+    assert!(adapters > 0);
+    // The camera variant owns the camera backbone's adapters and the fuser's, the lidar
+    // variant the fuser's.
+    check("models/bevfusion_tiny.readi", &[], &["gamma=0.25", "fog=0.06"], adapters);
+}
+
+/// Writes `resnet18.plan` (adapters fused), `resnet18_unfused.plan` and
+/// `resnet18_no_adapters.plan` (the spec without its adapter rules), likewise for
+/// bevfusion_tiny, each with one seeded variant (`gamma=0.5`, `gamma=0.25`), into the directory
+/// `READI_ADAPTER_PLANS`, for timing with `readi bench --variant KEY`:
+///
+///     READI_ADAPTER_PLANS=/tmp/ap cargo test --test adapters -- --ignored write_bench_plans
+#[test]
+#[ignore = "writes plan files for measurements"]
+fn write_bench_plans() {
+    let dir = std::path::PathBuf::from(std::env::var("READI_ADAPTER_PLANS").expect("READI_ADAPTER_PLANS"));
+    std::fs::create_dir_all(&dir).expect("create the directory");
+    for (name, rel, overrides, key) in [
+        ("resnet18", "models/resnet18.readi", &[("num_classes", "1000")][..], "gamma=0.5"),
+        ("bevfusion_tiny", "models/bevfusion_tiny.readi", &[][..], "gamma=0.25"),
+    ] {
+        let m = module(rel, overrides);
+        let src = std::fs::read_to_string(common::root().join(rel)).expect("read the spec");
+        let stripped: String =
+            src.lines().filter(|l| !l.trim_start().starts_with("adapter ")).map(|l| format!("{l}\n")).collect();
+        let (sources, out) = common::compile_text(rel, &stripped, overrides, None);
+        assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+        let bare = out.module.expect("module");
+        for (suffix, p) in [
+            ("", plan(&m, &[key], false)),
+            ("_unfused", plan(&m, &[key], true)),
+            ("_no_adapters", plan(&bare, &[key], false)),
+        ] {
+            p.write(&dir.join(format!("{name}{suffix}.plan"))).expect("write the plan");
+        }
+    }
+}
