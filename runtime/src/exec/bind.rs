@@ -508,16 +508,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             }
             conv::check(&s, *algo, w_len, xl, ol, ep(epilogue), branch)?;
             if let Some(a) = adapter {
-                let t = |i: usize| base.get(i);
-                let ad = conv::Adapter {
-                    down: t(a.down),
-                    down_bias: t(a.down_bias),
-                    up: t(a.up),
-                    up_bias: t(a.up_bias),
-                    mid: a.mid,
-                    act: a.act,
-                };
-                ad.check(s.cout)?;
+                super::run::conv_adapter(base, a).check(s.cout)?;
             }
             Ok(())
         }

@@ -48,7 +48,8 @@ pub(crate) fn adapter_of<'a>(run: &Run<'a>, a: &AdapterSpec) -> conv::Adapter<'a
     conv_adapter(run.weights, a)
 }
 
-fn conv_adapter<'a>(w: VariantTensors<'a>, a: &AdapterSpec) -> conv::Adapter<'a> {
+/// The adapter `a` names, its tensors resolved through `w`.
+pub(super) fn conv_adapter<'a>(w: VariantTensors<'a>, a: &AdapterSpec) -> conv::Adapter<'a> {
     conv::Adapter {
         down: w.get(a.down),
         down_bias: w.get(a.down_bias),
