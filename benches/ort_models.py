@@ -3,8 +3,11 @@
 
 From the workspace root:
 
-    python3 benches/ort_models.py                # ResNet-18, 1x3x224x224, 2 threads
+    python3 benches/ort_models.py                   # ResNet-18, 1x3x224x224, 2 threads
     python3 benches/ort_models.py --threads 1 --rounds 5
+    python3 benches/ort_models.py --models all --threads 1,2 --markdown
+                                                    # every zoo model with a spec in models/,
+                                                    # at 1 and 2 threads, and the README table
 
 For each model it
   1. builds the PyTorch module the spec describes (torchvision's ResNet-18; the ViT
@@ -39,14 +42,33 @@ from make_fixtures import VitEncoder, seed_model  # noqa: E402
 READI = os.path.join(ROOT, "target", "release", "readi")
 
 
+# torchvision's zoo: each entry runs when its spec `models/<name>.readi` exists.
+ZOO = [
+    "resnet18",
+    "resnet50",
+    "mobilenet_v2",
+    "mobilenet_v3_large",
+    "efficientnet_b0",
+    "convnext_tiny",
+    "swin_t",
+    "vit_b_16",
+    "regnet_y_400mf",
+]
+
+
 def models():
-    return {
-        "resnet18": (
-            "models/resnet18.readi",
+    zoo = {
+        name: (
+            f"models/{name}.readi",
             [],
-            lambda: torchvision.models.resnet18(),
+            (lambda name=name: getattr(torchvision.models, name)()),
             {"image": (1, 3, 224, 224)},
-        ),
+        )
+        for name in ZOO
+        if os.path.exists(os.path.join(ROOT, "models", f"{name}.readi"))
+    }
+    return {
+        **zoo,
         "vit_encoder": (
             "models/vit_encoder.readi",
             [],
@@ -82,19 +104,30 @@ def ort_median(sess, feeds, runs):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", default="2", help="thread counts, comma-separated: 1,2")
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--models", default="resnet18", help="comma-separated: resnet18,vit_encoder")
+    ap.add_argument(
+        "--models", default="resnet18", help="comma-separated (resnet18,vit_encoder), or `all`: the zoo's specs"
+    )
+    ap.add_argument("--markdown", action="store_true", help="end with the table as markdown")
     args = ap.parse_args()
+    table = models()
+    names = [n for n in ZOO if n in table] if args.models == "all" else args.models.split(",")
+    unknown = [n for n in names if n not in table]
+    if unknown:
+        sys.exit(f"unknown model(s) {unknown}: known are {sorted(table)} (a zoo model needs models/<name>.readi)")
+    thread_counts = [int(t) for t in args.threads.split(",")]
+    rows = []
 
     import onnxruntime as ort
     from safetensors.torch import save_file
 
     run(["cargo", "build", "--release", "-q", "--bin", "readi"])
     tmp = tempfile.mkdtemp(prefix="readi-ort-")
-    for name in args.models.split(","):
-        spec, overrides, build, inputs = models()[name]
+    for name in names:
+        spec, overrides, build, inputs = table[name]
+        print(f"{name}: compiling and exporting", file=sys.stderr, flush=True)
         model = seed_model(build(), 1)
         weights = os.path.join(tmp, f"{name}.safetensors")
         save_file({k: v.contiguous() for k, v in model.state_dict().items()}, weights)
@@ -104,41 +137,51 @@ def main():
         x = {k: torch.randn(*s) for k, s in inputs.items()}
         onnx_path = os.path.join(tmp, f"{name}.onnx")
         torch.onnx.export(model, tuple(x.values()), onnx_path, input_names=list(x), dynamo=False)
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = args.threads
-        so.inter_op_num_threads = 1
-        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        sess = ort.InferenceSession(onnx_path, so, providers=["CPUExecutionProvider"])
         feeds = {k: v.numpy() for k, v in x.items()}
-
-        # Agreement on one input.
         npys = []
         for k, v in feeds.items():
             p = os.path.join(tmp, f"{k}.npy")
             np.save(p, v)
             npys += ["--input", f"{k}={p}"]
-        out_path = os.path.join(tmp, "out.safetensors")
-        run([READI, "run", plan, "--output", out_path, "--threads", str(args.threads)] + npys)
-        from safetensors.numpy import load_file
+        ratios = {}
+        for threads in thread_counts:
+            so = ort.SessionOptions()
+            so.intra_op_num_threads = threads
+            so.inter_op_num_threads = 1
+            so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            sess = ort.InferenceSession(onnx_path, so, providers=["CPUExecutionProvider"])
 
-        readi_out = load_file(out_path)
-        ort_out = sess.run(None, feeds)
-        errs = [float(np.abs(a - b).max()) for a, b in zip(readi_out.values(), ort_out) if a.shape == b.shape]
-        torch_out = model(*x.values())
-        torch_out = torch_out if isinstance(torch_out, tuple) else (torch_out,)
+            # Agreement on one input.
+            out_path = os.path.join(tmp, "out.safetensors")
+            run([READI, "run", plan, "--output", out_path, "--threads", str(threads)] + npys)
+            from safetensors.numpy import load_file
 
-        readi_t, ort_t = [], []
-        for _ in range(args.rounds):
-            readi_t.append(readi_median(plan, args.threads, args.runs))
-            ort_t.append(ort_median(sess, feeds, args.runs))
-        r, o = statistics.median(readi_t), statistics.median(ort_t)
-        print(
-            f"{name}: {args.threads} threads, {args.rounds} rounds x {args.runs} runs: "
-            f"readi {r:.2f} ms, ORT {o:.2f} ms, readi/ORT = {r / o:.2f} "
-            f"(max abs error vs ORT {max(errs) if errs else float('nan'):.2e}; rounds readi {readi_t}, ORT {ort_t})"
-        )
+            readi_out = load_file(out_path)
+            ort_out = sess.run(None, feeds)
+            errs = [float(np.abs(a - b).max()) for a, b in zip(readi_out.values(), ort_out) if a.shape == b.shape]
 
+            readi_t, ort_t = [], []
+            for _ in range(args.rounds):
+                readi_t.append(readi_median(plan, threads, args.runs))
+                ort_t.append(ort_median(sess, feeds, args.runs))
+            r, o = statistics.median(readi_t), statistics.median(ort_t)
+            ratios[threads] = r / o
+            print(
+                f"{name}: {threads} threads, {args.rounds} rounds x {args.runs} runs: "
+                f"readi {r:.2f} ms, ORT {o:.2f} ms, readi/ORT = {r / o:.2f} "
+                f"(max abs error vs ORT {max(errs) if errs else float('nan'):.2e}; "
+                f"rounds readi {readi_t}, ORT {ort_t})",
+                flush=True,
+            )
+        rows.append((name, ratios))
+
+    if args.markdown:
+        heads = " | ".join(f"readi / ORT, {t} thread{'s' if t > 1 else ''}" for t in thread_counts)
+        print(f"\n| model (1x3x224x224) | {heads} |")
+        print("| --- |" + " --- |" * len(thread_counts))
+        for name, ratios in rows:
+            print(f"| {name} | " + " | ".join(f"{ratios[t]:.2f}" for t in thread_counts) + " |")
 
 if __name__ == "__main__":
     main()
