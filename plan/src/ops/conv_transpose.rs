@@ -126,12 +126,16 @@ impl Operator for ConvTranspose2d {
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let name = "conv_transpose2d";
         let x = nchw(inputs[0], name)?;
-        let cin = x.known_dim(1).ok_or_else(|| ShapeError::new(format!("{name} needs a known channel count, got {x}")))?;
+        let cin =
+            x.known_dim(1).ok_or_else(|| ShapeError::new(format!("{name} needs a known channel count, got {x}")))?;
         if cin != self.in_channels {
             return Err(ShapeError::new(format!("{name} expects {} input channels, got {x}", self.in_channels)));
         }
         if self.out_channels < 1 {
-            return Err(ShapeError::new(format!("{name} needs at least one output channel, not {}", self.out_channels)));
+            return Err(ShapeError::new(format!(
+                "{name} needs at least one output channel, not {}",
+                self.out_channels
+            )));
         }
         if self.groups < 1 || cin % self.groups != 0 || self.out_channels % self.groups != 0 {
             return Err(ShapeError::new(format!(

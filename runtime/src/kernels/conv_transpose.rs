@@ -108,7 +108,13 @@ pub fn check(
         }
     }
     if weight_len != w {
-        return Err(format!("weight has {weight_len} values, [{}, {}, {}, {}] needs {w}", s.cin, s.cout_g(), s.kh, s.kw));
+        return Err(format!(
+            "weight has {weight_len} values, [{}, {}, {}, {}] needs {w}",
+            s.cin,
+            s.cout_g(),
+            s.kh,
+            s.kw
+        ));
     }
     if x_len != x || out_len != o {
         return Err(format!("input has {x_len} values (needs {x}), output {out_len} (needs {o})"));
