@@ -144,6 +144,15 @@ impl Operator for ConvTranspose2d {
             )));
         }
         let w = &self.window;
+        if w.kernel.iter().chain(&w.stride).chain(&w.dilation).any(|&v| v < 1) || w.padding.iter().any(|&p| p < 0) {
+            return Err(ShapeError::new(format!(
+                "{name} kernel {}, stride {}, dilation {}: each must be at least 1, and padding {} at least 0",
+                pair(w.kernel),
+                pair(w.stride),
+                pair(w.dilation),
+                pair(w.padding)
+            )));
+        }
         for i in 0..2 {
             let (op, s, d) = (self.output_padding[i], w.stride[i], w.dilation[i]);
             if op < 0 || (op >= s && op >= d) {
@@ -232,6 +241,8 @@ mod tests {
         assert!(e.message.contains("gives no output"), "{e:?}");
         let e = run(&ct(4, 4, 1, 1, 0, 0, 1, 1), &[t(&[4, 3, 3])]).expect_err("an error");
         assert!(e.message.contains("4-D"), "{e:?}");
+        let e = run(&ct(4, 4, 2, 0, 0, 0, 1, 1), &[t(&[1, 4, 3, 3])]).expect_err("an error");
+        assert!(e.message.contains("stride 0, dilation 1: each must be at least 1"), "{e:?}");
         assert_eq!(transpose_out(i64::MAX, 3, 2, 0, 1, 0), None);
         assert_eq!(transpose_out(4, 3, 0, 0, 1, 0), None);
     }
