@@ -120,3 +120,28 @@ fn conv_and_linear_activations_run_in_the_epilogue() {
         }
     }
 }
+
+/// A transposed conv's weight in a conv's layout (`[out, in/groups, kh, kw]`), and a
+/// conv1d's with the 2-D kernel height: errors naming the tensor, both shapes and the
+/// layer's source line.
+#[test]
+fn conv_weights_of_the_wrong_layout_are_refused() {
+    let spec = "tests/fixtures/ops/convs.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    let module = out.module.expect("module");
+    let cases = [
+        ("t2.weight", vec![4, 3, 3, 3], "[6, 2, 3, 3]", ":11:8"),
+        ("c1.weight", vec![6, 4, 1, 3], "[6, 4, 3]", ":21:8"),
+    ];
+    for (name, shape, want, line) in cases {
+        let mut weights = fixture("convs.weights.safetensors");
+        let n = shape.iter().product();
+        weights.tensors.insert(name.into(), (shape.clone(), vec![0.0; n]));
+        let d = backend::compile(&module, &weights, "convs.weights.safetensors", &CompileOptions::default())
+            .expect_err("a wrong shape");
+        let text = sources.render_all(&d, false);
+        let got = format!("{shape:?}");
+        assert!(text.contains(name) && text.contains(want) && text.contains(&got), "{text}");
+        assert!(text.contains(&format!("convs.readi{line}")), "{text}");
+    }
+}
