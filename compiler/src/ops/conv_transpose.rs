@@ -73,13 +73,12 @@ fn conv_transpose2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         dilation: args.pair("dilation", 1)?,
     };
     let output_padding = args.pair("output_padding", 0)?;
-    for i in 0..2 {
-        if output_padding[i] >= window.stride[i] && output_padding[i] >= window.dilation[i] {
+    for ((&op, &stride), &dilation) in output_padding.iter().zip(&window.stride).zip(&window.dilation) {
+        if op >= stride && op >= dilation {
             return Err(args.bad_value(
                 "output_padding",
                 format!(
-                    "output_padding {} must be smaller than either the stride {} or the dilation {}",
-                    output_padding[i], window.stride[i], window.dilation[i]
+                    "output_padding {op} must be smaller than either the stride {stride} or the dilation {dilation}"
                 ),
             ));
         }
