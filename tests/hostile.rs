@@ -499,6 +499,53 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
 }
 
 #[test]
+fn a_crafted_conv_transpose_is_refused() {
+    use readi_plan::ops::{ConvTranspose2d, Window2};
+    use readi_runtime::plan::{EpilogueSpec, Kernel};
+    let dir = temp_dir("convt");
+    // in 2, out 4, kernel 2, stride 2: [N, 2, 3, 3] to [N, 4, 6, 6]; weight [2, 4, 2, 2], bias [4].
+    let plan = |edit: &dyn Fn(&mut ConvTranspose2d), weight: usize, bias: usize| {
+        let window = Window2 { kernel: [2, 2], stride: [2, 2], padding: [0, 0], dilation: [1, 1] };
+        let mut conv = ConvTranspose2d { in_channels: 2, out_channels: 4, window, output_padding: [0, 0], groups: 1 };
+        edit(&mut conv);
+        let epilogue = EpilogueSpec { shift: Some(1), ..EpilogueSpec::default() };
+        let kernel = Kernel::ConvTranspose2d { conv, weight: 0, epilogue };
+        let tensors = [("w", vec![weight]), ("b", vec![bias])];
+        one_step(&[None, Some(2), Some(3), Some(3)], kernel, &[None, Some(4), Some(6), Some(6)], &tensors)
+    };
+    // The unedited plan runs, so each refusal below is its edit's.
+    let (m, data) = plan(&|_| {}, 32, 4);
+    let path = dir.join("ok.plan");
+    std::fs::write(&path, plan_bytes(&m, &data)).expect("write plan");
+    let x = dir.join("x.npy");
+    write_npy(&x, &[1, 2, 3, 3]);
+    let o = readi(&["run", &s(&path), "--input", &format!("x={}", s(&x))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let x_shape = [1, 2, 3, 3];
+    let err = run_refused(&dir, "weight.plan", plan(&|_| {}, 31, 4), &x_shape);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");
+    assert!(
+        err.contains("conv_transpose2d weight `w` has 31 values (shape [31]), it needs 32 ([2, 4, 2, 2])"),
+        "{err}"
+    );
+    let err = run_refused(&dir, "bias.plan", plan(&|_| {}, 32, 3), &x_shape);
+    assert!(err.contains("epilogue tensor `b` has 3 values for 4 channels"), "{err}");
+    let err = run_refused(&dir, "stride.plan", plan(&|c| c.window.stride = [0, 2], 32, 4), &x_shape);
+    assert!(err.contains("stride 0x2, dilation 1: each must be at least 1"), "{err}");
+    let err = run_refused(&dir, "outpad.plan", plan(&|c| c.output_padding = [2, 0], 32, 4), &x_shape);
+    assert!(err.contains("output_padding 2x0 must be smaller than either stride 2 or dilation 1"), "{err}");
+    let err = run_refused(&dir, "groups.plan", plan(&|c| c.groups = 3, 32, 4), &x_shape);
+    assert!(err.contains("groups=3 must divide both 2 input and 4 output channels"), "{err}");
+    // The output declared one row taller than the layer makes.
+    let err = run_refused(&dir, "size.plan", plan(&|c| c.output_padding = [1, 0], 32, 4), &x_shape);
+    assert!(
+        err.contains("its output has shape [N, 4, 6, 6], but conv_transpose2d of its inputs gives [N, 4, 7, 6]"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn a_linear_with_zero_input_features_is_refused() {
     use readi_plan::ops::Linear;
     use readi_runtime::plan::Kernel;

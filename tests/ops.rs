@@ -1,14 +1,16 @@
-//! Activations and unary functions against PyTorch: tests/fixtures/ops/activations.readi
-//! run on the inputs and weights tests/fixtures/ops/make_activation_fixtures.py wrote,
+//! Operators against PyTorch: tests/fixtures/ops/activations.readi (activations and unary
+//! functions) and tests/fixtures/ops/convs.readi (transposed and 1-D convolutions) run on
+//! the inputs and weights make_activation_fixtures.py and make_conv_fixtures.py wrote,
 //! against the outputs torch computed, to 1e-5 (absolute, or relative to values above 1);
-//! NaN and infinities where torch has them. Its conv + batchnorm + act and linear + act
-//! chains must compile to one fused kernel each.
+//! NaN and infinities where torch has them. The activations' conv + batchnorm + act and
+//! linear + act chains must compile to one fused kernel each.
 
 mod common;
 
 use std::sync::Arc;
 
 use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_plan::ops::Pure;
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::plan::{Kernel, Plan};
 
@@ -21,25 +23,63 @@ fn fixture(name: &str) -> WeightSet {
 }
 
 fn plan() -> Plan {
-    let (sources, out) = common::compile(SPEC, &[], None);
+    compile(SPEC, "activations.weights.safetensors")
+}
+
+fn compile(spec: &str, weights: &str) -> Plan {
+    let (sources, out) = common::compile(spec, &[], None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
-    let weights = fixture("activations.weights.safetensors");
-    let (plan, _) = backend::compile(&module, &weights, "activations.weights.safetensors", &CompileOptions::default())
+    let (plan, _) = backend::compile(&module, &fixture(weights), weights, &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
     plan
 }
 
 #[test]
 fn activations_match_pytorch() {
-    let plan = Arc::new(plan());
-    let io = fixture("activations.io.safetensors");
+    matches_pytorch(plan(), "activations.io.safetensors", 2);
+}
+
+#[test]
+fn transposed_and_1d_convs_match_pytorch() {
+    for threads in [1, 2] {
+        matches_pytorch(
+            compile("tests/fixtures/ops/convs.readi", "convs.weights.safetensors"),
+            "convs.io.safetensors",
+            threads,
+        );
+    }
+}
+
+#[test]
+fn transposed_convs_take_their_bias_and_activation() {
+    let plan = compile("tests/fixtures/ops/convs.readi", "convs.weights.safetensors");
+    let steps = &plan.manifest.steps;
+    let step = |name: &str| steps.iter().find(|s| s.path.starts_with(name)).unwrap_or_else(|| panic!("no {name}"));
+    let Kernel::ConvTranspose2d { epilogue, .. } = &step("t1").kernel else { panic!("t1 is {:?}", step("t1")) };
+    assert!(epilogue.shift.is_some() && epilogue.act.is_none(), "{epilogue:?}");
+    let Kernel::ConvTranspose2d { epilogue, .. } = &step("t4").kernel else { panic!("t4 is {:?}", step("t4")) };
+    assert!(epilogue.shift.is_some() && epilogue.act.is_some(), "the ReLU is not fused: {epilogue:?}");
+    // A BatchNorm after a transposed conv stays a channel affine, which takes the ReLU.
+    assert!(matches!(step("b5").kernel, Kernel::ChannelAffine { ref epilogue, .. } if epilogue.act.is_some()));
+    // conv1d: a conv2d between two reshapes, the BatchNorm and ReLU fused into it.
+    let c2: Vec<&Kernel> = steps.iter().filter(|s| s.path.starts_with("c2")).map(|s| &s.kernel).collect();
+    let [Kernel::Pure(Pure::Reshape(_)), Kernel::Conv2d { epilogue, .. }, Kernel::Pure(Pure::Reshape(_))] = &c2[..]
+    else {
+        panic!("c2 is {c2:?}")
+    };
+    assert!(epilogue.bn.is_some() && epilogue.act.is_some(), "{epilogue:?}");
+}
+
+fn matches_pytorch(plan: Plan, io: &str, threads: usize) {
+    let plan = Arc::new(plan);
+    let io = fixture(io);
     let inputs: Vec<Input<'_>> = io
         .tensors
         .iter()
         .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
         .collect();
-    let outputs = Session::new(plan, 2).expect("session").run(&inputs).expect("runs");
+    let outputs = Session::new(plan, threads).expect("session").run(&inputs).expect("runs");
     assert_eq!(outputs.len(), io.tensors.keys().filter(|k| k.starts_with("output.")).count());
     for (name, t) in &outputs {
         let (shape, want) = &io.tensors[&format!("output.{name}")];
@@ -78,5 +118,30 @@ fn conv_and_linear_activations_run_in_the_epilogue() {
         if matches!(s.kernel, Kernel::Pure(readi_plan::ops::Pure::Activation(_))) {
             assert!(!fusable(s.inputs[0]), "{} was not fused", s.path);
         }
+    }
+}
+
+/// A transposed conv's weight in a conv's layout (`[out, in/groups, kh, kw]`), and a
+/// conv1d's with the 2-D kernel height: errors naming the tensor, both shapes and the
+/// layer's source line.
+#[test]
+fn conv_weights_of_the_wrong_layout_are_refused() {
+    let spec = "tests/fixtures/ops/convs.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    let module = out.module.expect("module");
+    let cases = [
+        ("t2.weight", vec![4, 3, 3, 3], "[6, 2, 3, 3]", ":11:8"),
+        ("c1.weight", vec![6, 4, 1, 3], "[6, 4, 3]", ":21:8"),
+    ];
+    for (name, shape, want, line) in cases {
+        let mut weights = fixture("convs.weights.safetensors");
+        let n = shape.iter().product();
+        weights.tensors.insert(name.into(), (shape.clone(), vec![0.0; n]));
+        let d = backend::compile(&module, &weights, "convs.weights.safetensors", &CompileOptions::default())
+            .expect_err("a wrong shape");
+        let text = sources.render_all(&d, false);
+        let got = format!("{shape:?}");
+        assert!(text.contains(name) && text.contains(want) && text.contains(&got), "{text}");
+        assert!(text.contains(&format!("convs.readi{line}")), "{text}");
     }
 }

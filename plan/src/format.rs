@@ -20,7 +20,7 @@ use serde::{Deserialize, Serialize};
 use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::{KeyPart, VariantKey};
-use crate::ops::{Activation, ChannelAffine, Conv2d, ConvAlgo, LayerNorm, Linear, Operator, Pure};
+use crate::ops::{Activation, ChannelAffine, Conv2d, ConvAlgo, ConvTranspose2d, LayerNorm, Linear, Operator, Pure};
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
 /// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
@@ -446,6 +446,13 @@ pub enum Kernel {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         adapter: Option<AdapterSpec>,
     },
+    /// Transposed 2-D convolution with a fused per-channel epilogue (bias = shift).
+    /// `weight` is PyTorch's `[in, out/groups, kh, kw]`, as it is.
+    ConvTranspose2d {
+        conv: ConvTranspose2d,
+        weight: usize,
+        epilogue: EpilogueSpec,
+    },
     /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
     /// stored transposed, `[in, out]`.
     Linear {
@@ -475,6 +482,7 @@ impl Kernel {
     pub fn op(&self) -> &dyn Operator {
         match self {
             Kernel::Conv2d { conv, .. } => conv,
+            Kernel::ConvTranspose2d { conv, .. } => conv,
             Kernel::Linear { linear, .. } => linear,
             Kernel::ChannelAffine { affine, .. } => affine,
             Kernel::LayerNorm { norm, .. } => norm,
@@ -513,6 +521,7 @@ impl Kernel {
     pub fn epilogue(&self) -> Option<&EpilogueSpec> {
         match self {
             Kernel::Conv2d { epilogue, .. }
+            | Kernel::ConvTranspose2d { epilogue, .. }
             | Kernel::Linear { epilogue, .. }
             | Kernel::ChannelAffine { epilogue, .. } => Some(epilogue),
             _ => None,
@@ -529,6 +538,11 @@ impl Kernel {
                 v.extend(lora.iter().flat_map(|l| [l.a, l.b]));
                 v.extend(ep(epilogue));
                 v.extend(self.adapter().iter().flat_map(|a| a.tensors()));
+                v
+            }
+            Kernel::ConvTranspose2d { weight, epilogue, .. } => {
+                let mut v = vec![*weight];
+                v.extend(ep(epilogue));
                 v
             }
             Kernel::ChannelAffine { epilogue, .. } => ep(epilogue),

@@ -254,6 +254,22 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             }
             per_channel(epilogue, conv.out_channels)
         }
+        Kernel::ConvTranspose2d { conv, weight, epilogue } => {
+            // The shape rule has checked channels, groups and stride; the batch does not matter.
+            let x = &m.values[step.inputs[0]].shape;
+            let known = |d: &Dim| d.as_known().and_then(|v| usize::try_from(v).ok()).unwrap_or(0);
+            let want = conv.shape(1, known(&x[2]), known(&x[3])).weight_len();
+            if numel(*weight) != want {
+                return Err(format!(
+                    "conv_transpose2d weight `{}` has {} values (shape {:?}), it needs {want} ({:?})",
+                    escaped(&m.tensors[*weight].name),
+                    numel(*weight),
+                    m.tensors[*weight].shape,
+                    conv.weight_shape()
+                ));
+            }
+            per_channel(epilogue, conv.out_channels)
+        }
         Kernel::Linear { linear, weight, epilogue, lora } => {
             let want = (linear.in_features as u64).saturating_mul(linear.out_features as u64);
             if numel(*weight) as u64 != want {

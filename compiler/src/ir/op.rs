@@ -9,7 +9,7 @@
 use readi_plan::ops::{self, BatchNorm, LayerNorm, Operator, Pure, ShapeError, ShapeResult};
 
 use super::{DType, TensorType};
-use crate::ops::{AffineOp, ConvOp, LinearOp, ParameterOp, batchnorm_slots, layernorm_slots};
+use crate::ops::{AffineOp, ConvOp, ConvTransposeOp, LinearOp, ParameterOp, batchnorm_slots, layernorm_slots};
 
 /// An operation of the graph. The tensor inputs are the node's incoming edges; everything
 /// else is an attribute here.
@@ -21,6 +21,9 @@ pub enum Op {
     Parameter(ParameterOp),
     /// 2-D convolution over NCHW, weight `[out, in/groups, kh, kw]`, optional bias `[out]`.
     Conv2d(ConvOp),
+    /// Transposed 2-D convolution over NCHW, weight `[in, out/groups, kh, kw]`, optional
+    /// bias `[out]`.
+    ConvTranspose2d(ConvTransposeOp),
     /// Batch normalisation over axis 1 with affine parameters and running statistics.
     BatchNorm(BatchNorm),
     /// Layer normalisation over the last axis.
@@ -117,6 +120,7 @@ impl Op {
             Op::Input(o) => o,
             Op::Parameter(o) => o,
             Op::Conv2d(o) => o,
+            Op::ConvTranspose2d(o) => o,
             Op::BatchNorm(o) => o,
             Op::LayerNorm(o) => o,
             Op::Linear(o) => o,
@@ -151,6 +155,7 @@ impl Op {
         match self {
             Op::Parameter(p) => p.param_slots(),
             Op::Conv2d(c) => c.param_slots(),
+            Op::ConvTranspose2d(c) => c.param_slots(),
             Op::BatchNorm(bn) => batchnorm_slots(bn),
             Op::LayerNorm(ln) => layernorm_slots(ln),
             Op::Linear(l) => l.param_slots(),

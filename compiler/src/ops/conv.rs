@@ -1,6 +1,9 @@
-//! `conv2d(x, out, kernel, stride=1, padding=0, dilation=1, groups=1, bias=true)`.
+//! `conv2d(x, out, kernel, stride=1, padding=0, dilation=1, groups=1, bias=true)` and
+//! `conv1d` with the same arguments on `[N, C, L]`: PyTorch's `Conv1d`, computed as the
+//! conv2d over `[N, C, 1, L]` with a `1 x kernel` window (lowering reshapes around it),
+//! its weight `[out, in/groups, kernel]` as PyTorch's `state_dict` has it.
 
-use readi_plan::ops::{Conv2d, ConvAlgo, Operator, ShapeResult, TensorType, Window2};
+use readi_plan::ops::{Conv2d, ConvAlgo, Operator, ShapeError, ShapeResult, TensorType, Window2};
 
 use super::{Args, Builtin, Epilogue, P, R, boolean, int, req};
 use crate::ir::{Op, ParamSlot, ValueRef};
@@ -27,6 +30,10 @@ pub struct ConvOp {
     /// Back end: a residual adapter on the output (`fuse_adapters`), between the
     /// epilogue's shift and its ReLU.
     pub adapter: Option<AdapterOp>,
+    /// A `conv1d`: the input is `[N, C, L]` and the output `[N, out, L']`, computed as
+    /// `conv` (kernel height 1) on `[N, C, 1, L]`; unpacked weights drop the kernel
+    /// height (`[out, in/groups, kw]`).
+    pub one_d: bool,
 }
 
 /// A bottleneck adapter fused into a conv: `y + up(act(down y))` on its output, `down`
@@ -58,7 +65,18 @@ impl ConvOp {
             lora: None,
             switch: false,
             adapter: None,
+            one_d: false,
         }
+    }
+
+    /// The unpacked weight shape of a conv to `out` channels: PyTorch's, without the
+    /// kernel height of a `conv1d`.
+    fn raw_weight_shape(&self, out: i64) -> Vec<i64> {
+        let mut w = Conv2d { out_channels: out, ..self.conv.clone() }.weight_shape().to_vec();
+        if self.one_d {
+            w.remove(2);
+        }
+        w
     }
 
     /// `weight [out, in/groups, kh, kw]` (packed: `[len]` of the algorithm's layout),
@@ -68,7 +86,7 @@ impl ConvOp {
     pub fn param_slots(&self) -> Vec<ParamSlot> {
         let weight = match self.algo.filter(|_| self.packed && !self.switch) {
             Some(algo) => vec![algo.packed_len(&self.conv.shape(1, 0, 0)) as i64],
-            None => self.conv.weight_shape().to_vec(),
+            None => self.raw_weight_shape(self.conv.out_channels),
         };
         let mut v = vec![ParamSlot::param("weight", weight)];
         if self.bias {
@@ -80,7 +98,7 @@ impl ConvOp {
             // stays raw; the runtime packs it).
             let a_shape = match self.algo.filter(|a| self.packed && a.packs_as_is() && !self.switch) {
                 Some(algo) => vec![algo.packed_len(&a.shape(1, 0, 0)) as i64],
-                None => a.weight_shape().to_vec(),
+                None => self.raw_weight_shape(rank),
             };
             v.push(ParamSlot::param("lora_A", a_shape));
             v.push(ParamSlot::param("lora_B", vec![self.conv.out_channels, rank]));
@@ -100,13 +118,32 @@ impl ConvOp {
 
 impl Operator for ConvOp {
     fn kind_name(&self) -> &'static str {
-        self.conv.kind_name()
+        if self.one_d { "conv1d" } else { self.conv.kind_name() }
     }
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
-        self.conv.infer(inputs)
+        if !self.one_d {
+            return self.conv.infer(inputs);
+        }
+        let x = inputs[0];
+        if x.rank() != 3 {
+            return Err(ShapeError::new(format!("conv1d expects a 3-D [N, C, L] tensor, got {x}")));
+        }
+        let mut shape = x.shape.clone();
+        shape.insert(2, readi_plan::Dim::known(1));
+        let mut out = self.conv.infer(&[&TensorType::new(x.dtype, shape)])?;
+        out.shape.remove(2);
+        Ok(out)
     }
     fn attrs(&self) -> Vec<(&'static str, String)> {
         let mut v = self.conv.attrs();
+        if self.one_d {
+            // The window's width: its height is 1, stride 1, no padding, no dilation.
+            let w = &self.conv.window;
+            let width = [w.kernel[1], w.stride[1], w.padding[1], w.dilation[1]];
+            for ((_, value), x) in v[2..6].iter_mut().zip(width) {
+                *value = x.to_string();
+            }
+        }
         v.push(("bias", self.bias.to_string()));
         if let Some(algo) = self.algo {
             v.push(("algo", algo.name().to_string()));
@@ -139,7 +176,43 @@ const PARAMS: &[P] = &[
 ];
 
 pub(super) fn builtins() -> Vec<Builtin> {
-    vec![Builtin::new("conv2d", PARAMS, conv2d)]
+    vec![Builtin::new("conv2d", PARAMS, conv2d), Builtin::new("conv1d", PARAMS, conv1d)]
+}
+
+/// `conv1d`: the conv2d of a `1 x kernel` window over `[N, C, 1, L]`.
+fn conv1d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    let t = args.ttype("x")?;
+    let in_channels = t.known_dim(1).filter(|_| t.rank() == 3).ok_or_else(|| {
+        args.bad_value("x", format!("conv1d needs an [N, C, L] tensor with a known channel count, got {t}"))
+    })?;
+    let window = Window2 {
+        kernel: [1, args.int_at_least("kernel", 1)?],
+        stride: [1, args.int_at_least("stride", 1)?],
+        padding: [0, args.int_at_least("padding", 0)?],
+        dilation: [1, args.int_at_least("dilation", 1)?],
+    };
+    let conv = Conv2d {
+        in_channels,
+        out_channels: args.int_at_least("out", 1)?,
+        window,
+        groups: args.int_at_least("groups", 1)?,
+    };
+    check_groups(args, &conv)?;
+    let op = ConvOp { one_d: true, ..ConvOp::new(conv, args.boolean("bias")?) };
+    Ok((Op::Conv2d(op), vec![args.tensor("x")?]))
+}
+
+fn check_groups(args: &Args<'_>, conv: &Conv2d) -> R<()> {
+    if conv.in_channels % conv.groups != 0 || conv.out_channels % conv.groups != 0 {
+        return Err(args.bad_value(
+            "groups",
+            format!(
+                "groups={} must divide both the {} input and {} output channels",
+                conv.groups, conv.in_channels, conv.out_channels
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn conv2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
@@ -159,14 +232,6 @@ fn conv2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         window,
         groups: args.int_at_least("groups", 1)?,
     };
-    if in_channels % conv.groups != 0 || conv.out_channels % conv.groups != 0 {
-        return Err(args.bad_value(
-            "groups",
-            format!(
-                "groups={} must divide both the {in_channels} input and {} output channels",
-                conv.groups, conv.out_channels
-            ),
-        ));
-    }
+    check_groups(args, &conv)?;
     Ok((Op::Conv2d(ConvOp::new(conv, args.boolean("bias")?)), vec![args.tensor("x")?]))
 }

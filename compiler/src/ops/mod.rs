@@ -13,7 +13,8 @@
 //!
 //! | file             | builtins                                                    |
 //! |------------------|-------------------------------------------------------------|
-//! | `conv.rs`        | `conv2d`                                                    |
+//! | `conv.rs`        | `conv2d`, `conv1d` (a conv2d over `[N, C, 1, L]`)           |
+//! | `conv_transpose.rs` | `conv_transpose2d`                                       |
 //! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`                      |
 //! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, `pow`, every activation (`relu`, `clamp`, `gelu`, ...) and unary function (`exp`, `sqrt`, ...) |
 //! | `linear.rs`      | `linear`, `matmul`                                          |
@@ -30,6 +31,7 @@
 
 mod args;
 mod conv;
+mod conv_transpose;
 mod elementwise;
 mod epilogue;
 mod layout;
@@ -45,6 +47,7 @@ use std::sync::LazyLock;
 
 pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, req};
 pub use conv::{AdapterOp, ConvOp};
+pub use conv_transpose::ConvTransposeOp;
 pub use epilogue::{BnFold, Epilogue};
 pub use linear::LinearOp;
 pub use norm::{AffineOp, batchnorm_slots, layernorm_slots};
@@ -77,6 +80,7 @@ impl Builtin {
 static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
     let families = [
         conv::builtins(),
+        conv_transpose::builtins(),
         norm::builtins(),
         linear::builtins(),
         elementwise::builtins(),

@@ -92,8 +92,6 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("minimum", Unsupported),
     ("where", Unsupported),
     // Operators of issue 12 not written yet.
-    ("conv_transpose2d", Unsupported),
-    ("conv1d", Unsupported),
     ("conv3d", Unsupported),
     ("pad", Unsupported),
     ("roll", Unsupported),

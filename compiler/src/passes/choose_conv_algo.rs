@@ -42,5 +42,6 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
 pub(super) fn spatial(g: &Graph, id: NodeId) -> (usize, usize) {
     let t = g.inputs(id).first().and_then(|v| g.value_type(*v).cloned());
     let dim = |axis: usize| t.as_ref().and_then(|t| t.known_dim(axis)).map_or(0, |d| d.max(0) as usize);
-    (dim(2), dim(3))
+    // A conv1d's `[N, C, L]` is `[N, C, 1, L]`.
+    if t.as_ref().is_some_and(|t| t.rank() == 3) { (1, dim(2)) } else { (dim(2), dim(3)) }
 }

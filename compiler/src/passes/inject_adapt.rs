@@ -96,7 +96,9 @@ fn lora(graph: &mut Graph, base: NodeId, rank: i64, scale: f64, rule: usize, spa
         Op::Conv2d(c) => {
             let a = Conv2d { out_channels: rank, groups: 1, ..c.conv.clone() };
             let b = Conv2d { in_channels: rank, out_channels: c.conv.out_channels, window: Window2::ONE, groups: 1 };
-            (Op::Conv2d(ConvOp::new(a, false)), Op::Conv2d(ConvOp::new(b, false)))
+            // A conv1d's branch is two conv1ds (PEFT's `Conv1d` LoRA: `A [rank, in, k]`).
+            let op = |conv| Op::Conv2d(ConvOp { one_d: c.one_d, ..ConvOp::new(conv, false) });
+            (op(a), op(b))
         }
         op => return Err(format!("LoRA on a `{}` layer `{}`", op.kind_name(), node.path)),
     };

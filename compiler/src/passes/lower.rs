@@ -2,12 +2,13 @@
 //! stored tensors and its variant tables.
 //!
 //! A one-to-one map: an input becomes an input value, a `parameter` a stored-tensor
-//! value, a conv, linear, channel affine or layernorm a kernel reading the tensors its
+//! value, a conv, transposed conv, linear, channel affine or layernorm a kernel reading the tensors its
 //! slots name (the epilogue's scale, shift and BatchNorm record included), and every other
 //! op the same [`Pure`](readi_plan::ops::Pure) operator as a kernel. The rewrites happened
 //! before (fold, fuse, pack); a node they should have changed (an unfolded BatchNorm, an
 //! unpacked weight) is a compiler bug. A step's path lists the nodes fused into it
-//! (`conv1 (+bn1, relu#0)`).
+//! (`conv1 (+bn1, relu#0)`). A `conv1d` is its conv2d step between two reshapes to and
+//! from `[N, C, 1, L]` (paths `<path> [to N, C, 1, L]` and `<path> [to N, C, L]`).
 //!
 //! Stored tensors are the ones the steps read, each once, in the order of first use, with
 //! the base's values. Each variant's table replaces every tensor whose value under the
@@ -35,6 +36,8 @@ use crate::ir::{Graph, Node, NodeId, Op, ValueRef};
 use crate::module::{Lowered, Module};
 use crate::ops::Epilogue;
 use crate::weights::tensors::{Data, TensorTable};
+use readi_plan::Dim;
+use readi_plan::ops::{Pure, Reshape};
 
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;
@@ -280,7 +283,19 @@ impl<'m> Lowering<'m> {
                     }
                     None => None,
                 };
-                Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: c.switch, adapter }
+                let kernel =
+                    Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: c.switch, adapter };
+                if c.one_d {
+                    return self.lower_conv1d(id, kernel, inputs);
+                }
+                kernel
+            }
+            Op::ConvTranspose2d(c) => {
+                if c.bias {
+                    return Err(ice(format!("conv_transpose2d `{}` still has a bias", node.path)));
+                }
+                let weight = self.tensor(node, "weight")?;
+                Kernel::ConvTranspose2d { conv: c.conv.clone(), weight, epilogue: self.epilogue(node, &c.epilogue)? }
             }
             Op::Linear(l) => {
                 if !l.packed || l.bias {
@@ -307,6 +322,36 @@ impl<'m> Lowering<'m> {
         let output = self.new_value(ValueRef { node: id, port: 0 }, Storage::Slot(0));
         self.steps.push(Step { path: node.display_path(), kernel, inputs, output });
         Ok(())
+    }
+
+    /// A conv1d: its conv2d `kernel` between two reshapes, `[N, C, L]` to
+    /// `[N, C, 1, L]` and back (each a copy).
+    fn lower_conv1d(&mut self, id: NodeId, kernel: Kernel, inputs: Vec<usize>) -> Result<(), Diagnostics> {
+        let node = self.graph.node(id);
+        let x = *inputs.first().ok_or_else(|| ice(format!("conv1d `{}` has no input", node.path)))?;
+        let four_d = |shape: &[Dim]| {
+            let mut s = shape.to_vec();
+            s.insert(2, Dim::known(1));
+            s
+        };
+        let x4 = four_d(&self.values[x].shape);
+        let out = node.outputs[0].shape.clone();
+        let (x4, y4) = (self.slot_value(x4), self.slot_value(four_d(&out)));
+        let path = node.display_path();
+        let reshape = |shape: Vec<Dim>| Kernel::Pure(Pure::Reshape(Reshape { shape }));
+        let step = |path: String, kernel, input, output| Step { path, kernel, inputs: vec![input], output };
+        self.steps.push(step(format!("{path} [to N, C, 1, L]"), reshape(self.values[x4].shape.clone()), x, x4));
+        self.steps.push(step(path.clone(), kernel, x4, y4));
+        let output = self.new_value(ValueRef { node: id, port: 0 }, Storage::Slot(0));
+        self.steps.push(step(format!("{path} [to N, C, L]"), reshape(out), y4, output));
+        Ok(())
+    }
+
+    /// A value of `shape` in a buffer of its own that no graph value maps to.
+    fn slot_value(&mut self, shape: Vec<Dim>) -> usize {
+        let slot = self.values.iter().filter(|v| matches!(v.storage, Storage::Slot(_))).count();
+        self.values.push(ValueSpec { shape, storage: Storage::Slot(slot) });
+        self.values.len() - 1
     }
 }
 

@@ -11,6 +11,7 @@
 //! | file            | operators                                                        |
 //! |-----------------|------------------------------------------------------------------|
 //! | `conv.rs`       | `conv2d`                                                         |
+//! | `conv_transpose.rs` | `conv_transpose2d`                                           |
 //! | `pool.rs`       | `maxpool`, `avgpool`, `global_avgpool`                           |
 //! | `window.rs`     | the sliding-window geometry of conv and pool                     |
 //! | `elementwise.rs`| binary ops with broadcasting, ops with a scalar, activations      |
@@ -26,6 +27,7 @@
 //! of their stored tensors.
 
 mod conv;
+mod conv_transpose;
 mod elementwise;
 mod layout;
 mod linear;
@@ -41,6 +43,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::dim::Dim;
 pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
+pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};

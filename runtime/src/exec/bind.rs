@@ -6,6 +6,7 @@
 use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
+use crate::kernels::conv_transpose;
 use crate::kernels::{self, elementwise, layout as layout_k, linear, merge, norm, pool, reduce, resize, softmax};
 use readi_plan::ops::Pure;
 
@@ -286,6 +287,15 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
                 lora_floats = sum([lora_floats, lora_len[k]], "the packed LoRA A buffers")?;
             }
         }
+        if let Kernel::ConvTranspose2d { conv: c, .. } = &step.kernel {
+            // `check_step` checked the layer, so its sizes are in range.
+            let x = &shapes[step.inputs[0]];
+            let need = conv_transpose::scratch_len(&c.shape(x[0], x[2], x[3]), threads)
+                .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
+            if need > scratch_len {
+                (scratch_len, scratch_by) = (need, Some(k));
+            }
+        }
         convs.push(conv);
     }
     let zeros_len: Vec<usize> =
@@ -511,6 +521,21 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
                 super::run::conv_adapter(base, a).check(s.cout)?;
             }
             Ok(())
+        }
+        Kernel::ConvTranspose2d { conv: c, weight, epilogue } => {
+            let [n, cin, h, w] = x[..] else {
+                return Err(format!("conv_transpose2d of a value of shape {x:?}, not 4-D"));
+            };
+            if cin != u(c.in_channels)? {
+                return Err(format!("conv_transpose2d expects {} input channels, its input is {x:?}", c.in_channels));
+            }
+            let s = c.shape(n, h, w);
+            if [s.oh, s.ow] != out.get(2..).unwrap_or_default() {
+                return Err(format!("conv_transpose2d of {x:?} gives {}x{}, its output is {out:?}", s.oh, s.ow));
+            }
+            let xl = numel(x).ok_or("conv_transpose2d input too large")?;
+            let ol = numel(out).ok_or("conv_transpose2d output too large")?;
+            conv_transpose::check(&s, len(*weight), xl, ol, ep(epilogue))
         }
         Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
             linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))

@@ -6,6 +6,7 @@ use rayon::prelude::*;
 use readi_plan::ops::Pure;
 
 use crate::kernels::conv;
+use crate::kernels::conv_transpose;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
 use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
@@ -125,6 +126,10 @@ pub(crate) fn run_step(
                 let e = epilogue(w, ep);
                 conv::conv2d_adapter(s, *algo, wt, lora.as_ref(), adapter.as_ref(), &e, x, out, scratch, threads);
             }
+        }
+        Kernel::ConvTranspose2d { conv: c, weight, epilogue: ep } => {
+            let s = c.shape(xs[0], xs[2], xs[3]);
+            conv_transpose::conv_transpose2d(&s, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
         }
         // Rows from the leading axes, not by dividing the length: a last axis may be 0.
         Kernel::Linear { linear: l, weight, epilogue: ep, lora } => {
