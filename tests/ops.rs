@@ -1,8 +1,13 @@
-//! Activations and unary functions against PyTorch: tests/fixtures/ops/activations.readi
-//! run on the inputs and weights tests/fixtures/ops/make_activation_fixtures.py wrote,
-//! against the outputs torch computed, to 1e-5 (absolute, or relative to values above 1);
-//! NaN and infinities where torch has them. Its conv + batchnorm + act and linear + act
-//! chains must compile to one fused kernel each.
+//! Operators against PyTorch: each spec in tests/fixtures/ops/ run on the inputs and
+//! weights its script there wrote, against the outputs torch computed, to 1e-5 (absolute,
+//! or relative to values above 1); NaN and infinities where torch has them.
+//!
+//! - `activations.readi` (`make_activation_fixtures.py`): activations and unary
+//!   functions; its conv + batchnorm + act and linear + act chains must compile to one
+//!   fused kernel each.
+//! - `reductions.readi` (`make_reduction_fixtures.py`): sum, mean, max, min, var
+//!   (corrections 0 and 1), std; adaptive pooling to divisible, non-divisible and larger
+//!   sizes; groupnorm with affine weights, without, and in one group; pixel (un)shuffle.
 
 mod common;
 
@@ -21,19 +26,42 @@ fn fixture(name: &str) -> WeightSet {
 }
 
 fn plan() -> Plan {
-    let (sources, out) = common::compile(SPEC, &[], None);
+    compile(SPEC, "activations.weights.safetensors")
+}
+
+fn compile(spec: &str, weights: &str) -> Plan {
+    let (sources, out) = common::compile(spec, &[], None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
-    let weights = fixture("activations.weights.safetensors");
-    let (plan, _) = backend::compile(&module, &weights, "activations.weights.safetensors", &CompileOptions::default())
+    let (plan, _) = backend::compile(&module, &fixture(weights), weights, &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
     plan
 }
 
 #[test]
 fn activations_match_pytorch() {
-    let plan = Arc::new(plan());
-    let io = fixture("activations.io.safetensors");
+    matches_pytorch(plan(), "activations.io.safetensors");
+}
+
+#[test]
+fn reductions_pooling_groupnorm_and_pixel_shuffle_match_pytorch() {
+    let plan = compile("tests/fixtures/ops/reductions.readi", "reductions.weights.safetensors");
+    // Adaptive pooling with bins that are all alike runs as the plain pooling it equals.
+    let kinds: Vec<&str> = plan.manifest.steps.iter().map(|s| s.kernel.name()).collect();
+    for k in ["sum", "mean", "max", "min", "var", "std", "adaptive_avgpool", "adaptive_maxpool", "global_avgpool"] {
+        assert!(kinds.contains(&k), "no `{k}` step in {kinds:?}");
+    }
+    for k in ["pool", "groupnorm", "pixel_shuffle", "pixel_unshuffle"] {
+        assert!(kinds.contains(&k), "no `{k}` step in {kinds:?}");
+    }
+    matches_pytorch(plan, "reductions.io.safetensors");
+}
+
+/// Runs `plan` on the fixture's `input.*` tensors at two threads and compares every
+/// output with the fixture's `output.*`.
+fn matches_pytorch(plan: Plan, io: &str) {
+    let plan = Arc::new(plan);
+    let io = fixture(io);
     let inputs: Vec<Input<'_>> = io
         .tensors
         .iter()

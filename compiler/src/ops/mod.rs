@@ -14,13 +14,13 @@
 //! | file             | builtins                                                    |
 //! |------------------|-------------------------------------------------------------|
 //! | `conv.rs`        | `conv2d`                                                    |
-//! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`                      |
+//! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`, `adaptive_avgpool`, `adaptive_maxpool` |
 //! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, `pow`, every activation (`relu`, `clamp`, `gelu`, ...) and unary function (`exp`, `sqrt`, ...) |
 //! | `linear.rs`      | `linear`, `matmul`                                          |
-//! | `norm.rs`        | `batchnorm`, `layernorm`                                    |
+//! | `norm.rs`        | `batchnorm`, `layernorm`, `groupnorm`                       |
 //! | `layout.rs`      | `concat`, `reshape`, `flatten`, `transpose`, `permute`      |
-//! | `reduce.rs`      | `mean`, `softmax`                                           |
-//! | `resize.rs`      | `upsample`                                                  |
+//! | `reduce.rs`      | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`        |
+//! | `resize.rs`      | `upsample`, `pixel_shuffle`, `pixel_unshuffle`              |
 //! | `parameter.rs`   | `parameter`                                                 |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
@@ -47,7 +47,7 @@ pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, 
 pub use conv::{AdapterOp, ConvOp};
 pub use epilogue::{BnFold, Epilogue};
 pub use linear::LinearOp;
-pub use norm::{AffineOp, batchnorm_slots, layernorm_slots};
+pub use norm::{AffineOp, batchnorm_slots, groupnorm_slots, layernorm_slots};
 pub use parameter::ParameterOp;
 
 use crate::ir::{Op, ValueRef};
