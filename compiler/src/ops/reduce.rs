@@ -55,7 +55,9 @@ fn reduce(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         let what = if kind == ReduceKind::Max { "maximum" } else { "minimum" };
         return Err(args.bad_value(
             "dim",
-            format!("`{name}` reduces over axes; the element-wise {what} of two tensors (torch.{what}) is not supported"),
+            format!(
+                "`{name}` reduces over axes; the element-wise {what} of two tensors (torch.{what}) is not supported"
+            ),
         ));
     }
     let given = if args.present("axes") { "axes" } else { "dim" };

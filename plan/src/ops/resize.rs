@@ -79,7 +79,8 @@ impl Operator for PixelShuffle {
         let x = nchw(inputs[0], name)?;
         let r = self.factor;
         let rr = r.checked_mul(r).filter(|_| r >= 1).ok_or_else(|| ShapeError::new(format!("{name} factor {r}")))?;
-        let c = x.known_dim(1).ok_or_else(|| ShapeError::new(format!("{name} needs a known channel count, got {x}")))?;
+        let c =
+            x.known_dim(1).ok_or_else(|| ShapeError::new(format!("{name} needs a known channel count, got {x}")))?;
         let rd = Dim::known(r);
         let overflow = || ShapeError::new(format!("{name} by {r} of {x}: a size overflows"));
         let shape = if self.inverse {

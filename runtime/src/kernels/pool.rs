@@ -710,7 +710,9 @@ mod tests {
                         (hs..he).flat_map(|y| (ws..we).map(move |xx| x[(p * h + y) * w + xx] as f64)).collect();
                     out.push(match kind {
                         PoolKind::Avg => vals.iter().sum::<f64>() / vals.len() as f64,
-                        PoolKind::Max => vals.iter().fold(f64::NEG_INFINITY, |a, &v| if v > a || v.is_nan() { v } else { a }),
+                        PoolKind::Max => {
+                            vals.iter().fold(f64::NEG_INFINITY, |a, &v| if v > a || v.is_nan() { v } else { a })
+                        }
                     } as f32);
                 }
             }

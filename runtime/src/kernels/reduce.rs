@@ -350,7 +350,8 @@ impl View {
                     let d = simd.sub_f32s(v, vmean);
                     simd.mul_f32s(d, d)
                 };
-                let sq: f32 = (0..combos).map(|r| sum_map_simd(simd, row(r), sq_dev, |v| (v - mean) * (v - mean))).sum();
+                let sq: f32 =
+                    (0..combos).map(|r| sum_map_simd(simd, row(r), sq_dev, |v| (v - mean) * (v - mean))).sum();
                 *o = sq / div;
             }
         } else {
@@ -456,7 +457,9 @@ mod tests {
                 let v = match kind {
                     ReduceKind::Sum => g.iter().sum(),
                     ReduceKind::Mean => g.iter().sum::<f64>() / g.len() as f64,
-                    ReduceKind::Max => g.iter().fold(f64::NEG_INFINITY, |a, &v| if v > a || v.is_nan() { v } else { a }),
+                    ReduceKind::Max => {
+                        g.iter().fold(f64::NEG_INFINITY, |a, &v| if v > a || v.is_nan() { v } else { a })
+                    }
                     ReduceKind::Min => g.iter().fold(f64::INFINITY, |a, &v| if v < a || v.is_nan() { v } else { a }),
                     ReduceKind::Var { correction } => var(g, correction),
                     ReduceKind::Std { correction } => var(g, correction).sqrt(),

@@ -278,7 +278,10 @@ pub fn check_pixel_shuffle(inverse: bool, r: usize, x: &[usize], out: &[usize]) 
     let (small, big) = if inverse { (out, x) } else { (x, out) };
     match (small, big) {
         (&[n, crr, h, w], &[n2, c, hr, wr])
-            if r >= 1 && n == n2 && Some(crr) == c.checked_mul(r * r) && Some(hr) == h.checked_mul(r)
+            if r >= 1
+                && n == n2
+                && Some(crr) == c.checked_mul(r * r)
+                && Some(hr) == h.checked_mul(r)
                 && Some(wr) == w.checked_mul(r) =>
         {
             Ok(())
