@@ -758,7 +758,8 @@ fn a_crafted_groupnorm_is_refused() {
     // missing bias on an affine norm, parameters on a plain one, groups that do not divide
     // the channels, a tensor index out of range.
     let six = || ("b", vec![6]);
-    let cases: [(GroupNorm, Option<usize>, Option<usize>, Vec<(&str, Vec<usize>)>, &str); 5] = [
+    type Case = (GroupNorm, Option<usize>, Option<usize>, Vec<(&'static str, Vec<usize>)>, &'static str);
+    let cases: [Case; 5] = [
         (
             gn(2, true),
             Some(0),

@@ -183,7 +183,7 @@ pub fn groupnorm(
     );
     assert_eq!(x.len(), n * c * inner, "groupnorm: x is not [n, c, inner]");
     assert_eq!(out.len(), x.len(), "groupnorm: out and x differ in length");
-    assert!(groups >= 1 && c % groups == 0, "groupnorm: groups must divide the channels");
+    assert!(groups >= 1 && c.is_multiple_of(groups), "groupnorm: groups must divide the channels");
     assert!(weight.is_none_or(|w| w.len() == c) && bias.is_none_or(|b| b.len() == c), "groupnorm: parameters of c");
     let block = c / groups * inner;
     if block == 0 {
@@ -349,7 +349,7 @@ pub fn check_groupnorm(
     if x.len() < 2 || x[1] != channels {
         return Err(format!("groupnorm of {channels} channels on a value of shape {x:?}"));
     }
-    if groups == 0 || channels % groups != 0 {
+    if groups == 0 || !channels.is_multiple_of(groups) {
         return Err(format!("groupnorm: {channels} channels in {groups} groups"));
     }
     if let Some(n) = params.into_iter().flatten().find(|&n| n != channels) {
