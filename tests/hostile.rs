@@ -793,3 +793,36 @@ fn an_empty_tensor_with_huge_inner_axes_is_refused() {
     assert!(err.contains("value 0 (input `x`) at N = 1 does not fit in memory"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_crafted_groupnorm_is_refused() {
+    use readi_plan::ops::GroupNorm;
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("groupnorm");
+    let x = [None, Some(6), Some(4), Some(4)];
+    let gn = |num_groups, affine| GroupNorm { num_groups, num_channels: 6, eps: 1e-5, affine };
+    // (norm, weight, bias, stored tensors, the refusal): tensors of the wrong size, a
+    // missing bias on an affine norm, parameters on a plain one, groups that do not divide
+    // the channels, a tensor index out of range.
+    let six = || ("b", vec![6]);
+    type Case = (GroupNorm, Option<usize>, Option<usize>, Vec<(&'static str, Vec<usize>)>, &'static str);
+    let cases: [Case; 5] = [
+        (
+            gn(2, true),
+            Some(0),
+            Some(1),
+            vec![("w", vec![5]), six()],
+            "groupnorm tensor `w` has 5 values for 6 channels",
+        ),
+        (gn(2, true), Some(0), None, vec![("w", vec![6])], "groupnorm parameters do not match its `affine`"),
+        (gn(2, false), Some(0), Some(1), vec![("w", vec![6]), six()], "groupnorm parameters do not match its `affine`"),
+        (gn(4, true), Some(0), Some(1), vec![("w", vec![6]), six()], "6 channels do not divide into 4 groups"),
+        (gn(3, true), Some(0), Some(7), vec![("w", vec![6]), six()], "reads tensor"),
+    ];
+    for (i, (norm, weight, bias, tensors, want)) in cases.into_iter().enumerate() {
+        let plan = one_step(&x, Kernel::GroupNorm { norm, weight, bias }, &x, &tensors);
+        let err = run_refused(&dir, &format!("groupnorm{i}.plan"), plan, &[1, 6, 4, 4]);
+        assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains(want), "case {i}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,9 +1,15 @@
-//! Operators against PyTorch: tests/fixtures/ops/activations.readi (activations and unary
-//! functions) and tests/fixtures/ops/convs.readi (transposed and 1-D convolutions) run on
-//! the inputs and weights make_activation_fixtures.py and make_conv_fixtures.py wrote,
-//! against the outputs torch computed, to 1e-5 (absolute, or relative to values above 1);
-//! NaN and infinities where torch has them. The activations' conv + batchnorm + act and
-//! linear + act chains must compile to one fused kernel each.
+//! Operators against PyTorch: each spec in tests/fixtures/ops/ run on the inputs and
+//! weights its script there wrote, against the outputs torch computed, to 1e-5 (absolute,
+//! or relative to values above 1); NaN and infinities where torch has them.
+//!
+//! - `activations.readi` (`make_activation_fixtures.py`): activations and unary
+//!   functions; its conv + batchnorm + act and linear + act chains must compile to one
+//!   fused kernel each.
+//! - `convs.readi` (`make_conv_fixtures.py`): transposed and 1-D convolutions, at 1 and 2
+//!   threads.
+//! - `reductions.readi` (`make_reduction_fixtures.py`): sum, mean, max, min, var
+//!   (corrections 0 and 1), std; adaptive pooling to divisible, non-divisible and larger
+//!   sizes; groupnorm with affine weights, without, and in one group; pixel (un)shuffle.
 
 mod common;
 
@@ -71,6 +77,22 @@ fn transposed_convs_take_their_bias_and_activation() {
     assert!(epilogue.bn.is_some() && epilogue.act.is_some(), "{epilogue:?}");
 }
 
+#[test]
+fn reductions_pooling_groupnorm_and_pixel_shuffle_match_pytorch() {
+    let plan = compile("tests/fixtures/ops/reductions.readi", "reductions.weights.safetensors");
+    // Adaptive pooling with bins that are all alike runs as the plain pooling it equals.
+    let kinds: Vec<&str> = plan.manifest.steps.iter().map(|s| s.kernel.name()).collect();
+    for k in ["sum", "mean", "max", "min", "var", "std", "adaptive_avgpool", "adaptive_maxpool", "global_avgpool"] {
+        assert!(kinds.contains(&k), "no `{k}` step in {kinds:?}");
+    }
+    for k in ["pool", "groupnorm", "pixel_shuffle", "pixel_unshuffle"] {
+        assert!(kinds.contains(&k), "no `{k}` step in {kinds:?}");
+    }
+    matches_pytorch(plan, "reductions.io.safetensors", 2);
+}
+
+/// Runs `plan` on the fixture's `input.*` tensors at `threads` threads and compares every
+/// output with the fixture's `output.*`.
 fn matches_pytorch(plan: Plan, io: &str, threads: usize) {
     let plan = Arc::new(plan);
     let io = fixture(io);

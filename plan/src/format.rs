@@ -20,7 +20,9 @@ use serde::{Deserialize, Serialize};
 use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::{KeyPart, VariantKey};
-use crate::ops::{Activation, ChannelAffine, Conv2d, ConvAlgo, ConvTranspose2d, LayerNorm, Linear, Operator, Pure};
+use crate::ops::{
+    Activation, ChannelAffine, Conv2d, ConvAlgo, ConvTranspose2d, GroupNorm, LayerNorm, Linear, Operator, Pure,
+};
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
 /// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
@@ -473,6 +475,12 @@ pub enum Kernel {
         weight: Option<usize>,
         bias: Option<usize>,
     },
+    /// Group normalisation over axis 1; `weight` and `bias` (`[num_channels]`) when affine.
+    GroupNorm {
+        norm: GroupNorm,
+        weight: Option<usize>,
+        bias: Option<usize>,
+    },
     /// An operator without stored tensors, as the IR holds it.
     Pure(Pure),
 }
@@ -486,6 +494,7 @@ impl Kernel {
             Kernel::Linear { linear, .. } => linear,
             Kernel::ChannelAffine { affine, .. } => affine,
             Kernel::LayerNorm { norm, .. } => norm,
+            Kernel::GroupNorm { norm, .. } => norm,
             Kernel::Pure(p) => p.op(),
         }
     }
@@ -546,7 +555,9 @@ impl Kernel {
                 v
             }
             Kernel::ChannelAffine { epilogue, .. } => ep(epilogue),
-            Kernel::LayerNorm { weight, bias, .. } => weight.iter().chain(bias).copied().collect(),
+            Kernel::LayerNorm { weight, bias, .. } | Kernel::GroupNorm { weight, bias, .. } => {
+                weight.iter().chain(bias).copied().collect()
+            }
             Kernel::Pure(_) => Vec::new(),
         }
     }

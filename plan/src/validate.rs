@@ -307,6 +307,22 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             }
             Ok(())
         }
+        Kernel::GroupNorm { norm, weight, bias } => {
+            if weight.is_some() != norm.affine || bias.is_some() != norm.affine {
+                return Err("groupnorm parameters do not match its `affine`".into());
+            }
+            for t in weight.iter().chain(bias) {
+                if numel(*t) as u64 != norm.num_channels.max(0) as u64 {
+                    return Err(format!(
+                        "groupnorm tensor `{}` has {} values for {} channels",
+                        escaped(&m.tensors[*t].name),
+                        numel(*t),
+                        norm.num_channels
+                    ));
+                }
+            }
+            Ok(())
+        }
         Kernel::Pure(_) => Ok(()),
     }
 }

@@ -1,6 +1,6 @@
 //! The builtin functions of the language: computed while elaborating, they make no node
 //! (`dim(x, 1)`, `rank(x)`, `len(list)`, `min(a, b)`, `max(a, b)`). Builtin ops are in
-//! [`crate::ops`].
+//! [`crate::ops`]; `min` and `max` with a tensor argument are the reduction ops.
 
 use crate::ops::{P, Sig, req};
 

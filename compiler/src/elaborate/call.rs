@@ -28,7 +28,10 @@ impl<'a> Elab<'a> {
         frame: &mut Frame<'a>,
     ) -> Value {
         let name = callee.name.as_str();
-        let op = crate::ops::builtin(name);
+        // `min(a, b)` and `max(a, b)` of numbers are functions; with a tensor, reductions.
+        let op = crate::ops::builtin(name).filter(|_| {
+            builtins::function(name).is_none() || args.iter().any(|(_, v, _)| matches!(v, Value::Tensor { .. }))
+        });
         if let Some(sig) = op.map(|b| &b.sig).or_else(|| builtins::function(name)) {
             let Some(values) = self.bind_args(
                 name,

@@ -6,10 +6,12 @@
 //! The attributes and shape rules are `readi_plan::ops`'s, shared with the runtime;
 //! [`Op::def`] gives the rule of any op.
 
-use readi_plan::ops::{self, BatchNorm, LayerNorm, Operator, Pure, ShapeError, ShapeResult};
+use readi_plan::ops::{self, BatchNorm, GroupNorm, LayerNorm, Operator, Pure, ShapeError, ShapeResult};
 
 use super::{DType, TensorType};
-use crate::ops::{AffineOp, ConvOp, ConvTransposeOp, LinearOp, ParameterOp, batchnorm_slots, layernorm_slots};
+use crate::ops::{
+    AffineOp, ConvOp, ConvTransposeOp, LinearOp, ParameterOp, batchnorm_slots, groupnorm_slots, layernorm_slots,
+};
 
 /// An operation of the graph. The tensor inputs are the node's incoming edges; everything
 /// else is an attribute here.
@@ -28,6 +30,8 @@ pub enum Op {
     BatchNorm(BatchNorm),
     /// Layer normalisation over the last axis.
     LayerNorm(LayerNorm),
+    /// Group normalisation over groups of axis 1's channels.
+    GroupNorm(GroupNorm),
     /// `y = x W^T + b` over the last axis.
     Linear(LinearOp),
     /// A per-channel affine: a BatchNorm folded by the back end that no conv absorbed.
@@ -123,6 +127,7 @@ impl Op {
             Op::ConvTranspose2d(o) => o,
             Op::BatchNorm(o) => o,
             Op::LayerNorm(o) => o,
+            Op::GroupNorm(o) => o,
             Op::Linear(o) => o,
             Op::ChannelAffine(o) => o,
             Op::Pure(p) => p.op(),
@@ -158,6 +163,7 @@ impl Op {
             Op::ConvTranspose2d(c) => c.param_slots(),
             Op::BatchNorm(bn) => batchnorm_slots(bn),
             Op::LayerNorm(ln) => layernorm_slots(ln),
+            Op::GroupNorm(gn) => groupnorm_slots(gn),
             Op::Linear(l) => l.param_slots(),
             Op::ChannelAffine(a) => a.param_slots(),
             Op::Input(_) | Op::Pure(_) => Vec::new(),

@@ -15,13 +15,13 @@
 //! |------------------|-------------------------------------------------------------|
 //! | `conv.rs`        | `conv2d`, `conv1d` (a conv2d over `[N, C, 1, L]`)           |
 //! | `conv_transpose.rs` | `conv_transpose2d`                                       |
-//! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`                      |
+//! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`, `adaptive_avgpool`, `adaptive_maxpool` |
 //! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, `pow`, every activation (`relu`, `clamp`, `gelu`, ...) and unary function (`exp`, `sqrt`, ...) |
 //! | `linear.rs`      | `linear`, `matmul`                                          |
-//! | `norm.rs`        | `batchnorm`, `layernorm`                                    |
+//! | `norm.rs`        | `batchnorm`, `layernorm`, `groupnorm`                       |
 //! | `layout.rs`      | `concat`, `reshape`, `flatten`, `transpose`, `permute`      |
-//! | `reduce.rs`      | `mean`, `softmax`                                           |
-//! | `resize.rs`      | `upsample`                                                  |
+//! | `reduce.rs`      | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`        |
+//! | `resize.rs`      | `upsample`, `pixel_shuffle`, `pixel_unshuffle`              |
 //! | `parameter.rs`   | `parameter`                                                 |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
@@ -50,7 +50,7 @@ pub use conv::{AdapterOp, ConvOp};
 pub use conv_transpose::ConvTransposeOp;
 pub use epilogue::{BnFold, Epilogue};
 pub use linear::LinearOp;
-pub use norm::{AffineOp, batchnorm_slots, layernorm_slots};
+pub use norm::{AffineOp, batchnorm_slots, groupnorm_slots, layernorm_slots};
 pub use parameter::ParameterOp;
 
 use crate::ir::{Op, ValueRef};

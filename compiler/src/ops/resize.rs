@@ -1,7 +1,8 @@
-//! `upsample(x, scale= | size=, mode="nearest", align_corners=false)`.
+//! `upsample(x, scale= | size=, mode="nearest", align_corners=false)`,
+//! `pixel_shuffle(x, upscale_factor)` and `pixel_unshuffle(x, downscale_factor)`.
 
 use readi_grammar::diag::{Code, Diagnostic};
-use readi_plan::ops::{Pure, Upsample, UpsampleMode};
+use readi_plan::ops::{PixelShuffle, Pure, Upsample, UpsampleMode};
 
 use super::{Args, Builtin, Def, P, R, absent, boolean, positive_float, req};
 use crate::ir::{Op, ValueRef};
@@ -14,8 +15,24 @@ const UPSAMPLE: &[P] = &[
     boolean("align_corners", false),
 ];
 
+const SHUFFLE: &[P] = &[req("x"), req("upscale_factor")];
+const UNSHUFFLE: &[P] = &[req("x"), req("downscale_factor")];
+
 pub(super) fn builtins() -> Vec<Builtin> {
-    vec![Builtin::new("upsample", UPSAMPLE, upsample)]
+    vec![
+        Builtin::new("upsample", UPSAMPLE, upsample),
+        Builtin::new("pixel_shuffle", SHUFFLE, pixel_shuffle),
+        Builtin::new("pixel_unshuffle", UNSHUFFLE, pixel_shuffle),
+    ]
+}
+
+fn pixel_shuffle(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    let inverse = args.sig.name == "pixel_unshuffle";
+    let factor = args.int_at_least(if inverse { "downscale_factor" } else { "upscale_factor" }, 1)?;
+    if factor > 1 << 15 {
+        return Err(args.bad_value(args.sig.params[1].name, format!("{factor} is too large")));
+    }
+    Ok((Op::Pure(Pure::PixelShuffle(PixelShuffle { factor, inverse })), vec![args.tensor("x")?]))
 }
 
 fn upsample(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {

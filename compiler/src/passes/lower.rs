@@ -2,7 +2,7 @@
 //! stored tensors and its variant tables.
 //!
 //! A one-to-one map: an input becomes an input value, a `parameter` a stored-tensor
-//! value, a conv, transposed conv, linear, channel affine or layernorm a kernel reading the tensors its
+//! value, a conv, transposed conv, linear, channel affine, layernorm or groupnorm a kernel reading the tensors its
 //! slots name (the epilogue's scale, shift and BatchNorm record included), and every other
 //! op the same [`Pure`](readi_plan::ops::Pure) operator as a kernel. The rewrites happened
 //! before (fold, fuse, pack); a node they should have changed (an unfolded BatchNorm, an
@@ -315,6 +315,14 @@ impl<'m> Lowering<'m> {
                     (None, None)
                 };
                 Kernel::LayerNorm { norm: ln.clone(), weight, bias }
+            }
+            Op::GroupNorm(gn) => {
+                let (weight, bias) = if gn.affine {
+                    (Some(self.tensor(node, "weight")?), Some(self.tensor(node, "bias")?))
+                } else {
+                    (None, None)
+                };
+                Kernel::GroupNorm { norm: gn.clone(), weight, bias }
             }
             Op::BatchNorm(_) => return Err(ice(format!("BatchNorm `{}` was not folded", node.path))),
             Op::Pure(p) => Kernel::Pure(p.clone()),

@@ -12,14 +12,14 @@
 //! |-----------------|------------------------------------------------------------------|
 //! | `conv.rs`       | `conv2d`                                                         |
 //! | `conv_transpose.rs` | `conv_transpose2d`                                           |
-//! | `pool.rs`       | `maxpool`, `avgpool`, `global_avgpool`                           |
+//! | `pool.rs`       | `maxpool`, `avgpool`, `global_avgpool`, `adaptive_{avg,max}pool` |
 //! | `window.rs`     | the sliding-window geometry of conv and pool                     |
 //! | `elementwise.rs`| binary ops with broadcasting, ops with a scalar, activations      |
 //! | `linear.rs`     | `linear`, `matmul`                                               |
-//! | `norm.rs`       | `batchnorm`, `layernorm`, the channel affine a BatchNorm folds to |
+//! | `norm.rs`       | `batchnorm`, `layernorm`, `groupnorm`, the channel affine a BatchNorm folds to |
 //! | `layout.rs`     | `concat`, `reshape`, `permute`                                   |
-//! | `reduce.rs`     | `mean`, `softmax`                                                |
-//! | `resize.rs`     | `upsample`                                                       |
+//! | `reduce.rs`     | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`             |
+//! | `resize.rs`     | `upsample`, `pixel_shuffle`, `pixel_unshuffle`                   |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -47,10 +47,10 @@ pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};
-pub use norm::{BatchNorm, ChannelAffine, LayerNorm, batchnorm_affine, batchnorm_channel};
-pub use pool::{GlobalAvgPool, Pool2d, PoolKind};
-pub use reduce::{Mean, Softmax};
-pub use resize::{Upsample, UpsampleMode};
+pub use norm::{BatchNorm, ChannelAffine, GroupNorm, LayerNorm, batchnorm_affine, batchnorm_channel};
+pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
+pub use reduce::{Reduce, ReduceKind, Softmax};
+pub use resize::{PixelShuffle, Upsample, UpsampleMode};
 pub use window::{Window2, window_out};
 
 /// Element types of tensors.
@@ -208,7 +208,11 @@ pub enum Pure {
     Pool(Pool2d),
     GlobalAvgPool(GlobalAvgPool),
     Upsample(Upsample),
-    Mean(Mean),
+    AdaptivePool(AdaptivePool2d),
+    PixelShuffle(PixelShuffle),
+    /// Plans of format version 3 and before call it `Mean` (it was the only kind).
+    #[serde(alias = "Mean")]
+    Reduce(Reduce),
 }
 
 impl Pure {
@@ -226,7 +230,9 @@ impl Pure {
             Pure::Pool(o) => o,
             Pure::GlobalAvgPool(o) => o,
             Pure::Upsample(o) => o,
-            Pure::Mean(o) => o,
+            Pure::AdaptivePool(o) => o,
+            Pure::PixelShuffle(o) => o,
+            Pure::Reduce(o) => o,
         }
     }
 }

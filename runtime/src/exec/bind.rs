@@ -546,6 +546,10 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::LayerNorm { norm: ln, weight, bias } => {
             norm::check_layernorm(x, u(ln.features)?, [weight.map(len), bias.map(len)], out)
         }
+        Kernel::GroupNorm { norm: gn, weight, bias } => {
+            let (c, g) = (u(gn.num_channels)?, u(gn.num_groups)?);
+            norm::check_groupnorm(x, c, g, [weight.map(len), bias.map(len)], out)
+        }
         Kernel::Pure(op) => match op {
             Pure::MatMul(_) => linear::check_matmul(x, input(1), out),
             Pure::Binary(_) => elementwise::check_binary(x, input(1), out),
@@ -559,7 +563,9 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             Pure::Pool(p) => pool::check(p, x, out),
             Pure::GlobalAvgPool(_) => pool::check_global_avgpool(x, out),
             Pure::Upsample(_) => resize::check(x, out),
-            Pure::Mean(m) => reduce::check_mean(x, &m.axes, out),
+            Pure::Reduce(r) => reduce::check_reduce(r.kind, x, &r.axes, out),
+            Pure::AdaptivePool(_) => pool::check_adaptive(x, out),
+            Pure::PixelShuffle(p) => resize::check_pixel_shuffle(p.inverse, u(p.factor)?, x, out),
         },
     }
 }

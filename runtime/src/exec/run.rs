@@ -152,6 +152,11 @@ pub(crate) fn run_step(
             let rows = xs[..xs.len().saturating_sub(1)].iter().product();
             norm::layernorm(x, rows, f, weight.map(|t| w.get(t)), bias.map(|t| w.get(t)), ln.eps as f32, out);
         }
+        Kernel::GroupNorm { norm: gn, weight, bias } => {
+            let (n, c, inner) = (xs[0], xs[1], xs[2..].iter().product());
+            let (wt, bs) = (weight.map(|t| w.get(t)), bias.map(|t| w.get(t)));
+            norm::groupnorm(x, n, c, inner, gn.num_groups as usize, wt, bs, gn.eps as f32, out);
+        }
         Kernel::Pure(op) => match op {
             Pure::MatMul(_) => {
                 let (y, ys) = input(1);
@@ -181,7 +186,16 @@ pub(crate) fn run_step(
                 let (nc, h, wd) = (xs[0] * xs[1], xs[2], xs[3]);
                 resize::upsample(u.mode, u.align_corners, scale, x, nc, h, wd, out, out_shape[2], out_shape[3]);
             }
-            Pure::Mean(m) => reduce::mean(x, xs, &m.axes, out),
+            Pure::Reduce(r) => reduce::reduce(r.kind, x, xs, &r.axes, out),
+            Pure::AdaptivePool(p) => {
+                let (oh, ow) = (out_shape[2], out_shape[3]);
+                pool::adaptive_pool2d(p.kind, x, xs[0] * xs[1], xs[2], xs[3], oh, ow, out);
+            }
+            Pure::PixelShuffle(p) => {
+                let small = if p.inverse { out_shape } else { xs };
+                let r = p.factor as usize;
+                resize::pixel_shuffle(p.inverse, r, x, small[0], small[1] / (r * r), small[2], small[3], out);
+            }
         },
     }
 }

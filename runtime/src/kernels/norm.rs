@@ -1,4 +1,4 @@
-//! Normalisations: inference BatchNorm, per-channel affine, LayerNorm.
+//! Normalisations: inference BatchNorm, per-channel affine, LayerNorm, GroupNorm.
 
 use pulp::Simd;
 use rayon::prelude::*;
@@ -158,6 +158,95 @@ impl pulp::WithSimd for LayerNormRows<'_> {
     }
 }
 
+/// GroupNorm over `x` viewed as `[n, c, inner]` with `c` in `groups` groups of
+/// consecutive channels: each group of each sample (`c / groups · inner` contiguous
+/// values) normalised with its mean and biased variance, then
+/// `y = x̂ · weight[ch] + bias[ch]` (missing: 1 and 0), as `nn.GroupNorm`. Two passes
+/// for the statistics as [`layernorm`]; the normalisation and affine are one multiply-add
+/// per element. Groups run in parallel when the input is large.
+#[allow(clippy::too_many_arguments)]
+pub fn groupnorm(
+    x: &[f32],
+    n: usize,
+    c: usize,
+    inner: usize,
+    groups: usize,
+    weight: Option<&[f32]>,
+    bias: Option<&[f32]>,
+    eps: f32,
+    out: &mut [f32],
+) {
+    debug_assert_eq!(
+        check_groupnorm(&[n, c, inner], c, groups, [weight.map(<[f32]>::len), bias.map(<[f32]>::len)], &[out.len()]),
+        Ok(()),
+        "groupnorm preconditions"
+    );
+    assert_eq!(x.len(), n * c * inner, "groupnorm: x is not [n, c, inner]");
+    assert_eq!(out.len(), x.len(), "groupnorm: out and x differ in length");
+    assert!(groups >= 1 && c.is_multiple_of(groups), "groupnorm: groups must divide the channels");
+    assert!(weight.is_none_or(|w| w.len() == c) && bias.is_none_or(|b| b.len() == c), "groupnorm: parameters of c");
+    let block = c / groups * inner;
+    if block == 0 {
+        return;
+    }
+    let run = |first: usize, x: &[f32], out: &mut [f32]| {
+        pulp::Arch::new().dispatch(GroupNormBlocks { x, out, first, block, groups, inner, weight, bias, eps });
+    };
+    if x.len() >= PAR_MIN && n * groups > 1 {
+        let per_task = (CHUNK / block).max(1);
+        out.par_chunks_mut(per_task * block)
+            .zip(x.par_chunks(per_task * block))
+            .enumerate()
+            .for_each(|(t, (o, x))| run(t * per_task, x, o));
+    } else {
+        run(0, x, out);
+    }
+}
+
+/// GroupNorm of consecutive groups, the first of them group `first` (over all samples),
+/// compiled for the widest SIMD the CPU has.
+struct GroupNormBlocks<'a> {
+    x: &'a [f32],
+    out: &'a mut [f32],
+    first: usize,
+    /// Values per group: `c / groups · inner`.
+    block: usize,
+    groups: usize,
+    inner: usize,
+    weight: Option<&'a [f32]>,
+    bias: Option<&'a [f32]>,
+    eps: f32,
+}
+
+impl pulp::WithSimd for GroupNormBlocks<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        let GroupNormBlocks { x, out, first, block, groups, inner, weight, bias, eps } = self;
+        let inv_n = 1.0 / block as f32;
+        for (k, (out, x)) in out.chunks_mut(block).zip(x.chunks(block)).enumerate() {
+            let g = (first + k) % groups;
+            let mean = sum_simd(simd, x) * inv_n;
+            let vmean = simd.splat_f32s(mean);
+            let sq_dev = |v| {
+                let d = simd.sub_f32s(v, vmean);
+                simd.mul_f32s(d, d)
+            };
+            let var = sum_map_simd(simd, x, sq_dev, |v| (v - mean) * (v - mean)) * inv_n;
+            let rstd = 1.0 / (var + eps).sqrt();
+            let cpg = block / inner;
+            for (ch, (o, x)) in out.chunks_mut(inner).zip(x.chunks(inner)).enumerate() {
+                let cc = g * cpg + ch;
+                let a = rstd * weight.map_or(1.0, |w| w[cc]);
+                let b = bias.map_or(0.0, |b| b[cc]) - mean * a;
+                for (o, &v) in o.iter_mut().zip(x) {
+                    *o = v * a + b;
+                }
+            }
+        }
+    }
+}
+
 /// `out = x * a + b`, then `max(·, 0)` if `relu`, over `x` and `out` cut into rows of
 /// length `inner`, with `(a, b) = coef(row)`. Rows are split where parallel chunks end;
 /// parallel when large, so both many short rows and a few long ones spread across threads.
@@ -243,6 +332,31 @@ pub fn check_layernorm(x: &[usize], features: usize, params: [Option<usize>; 2],
     }
     if x.iter().product::<usize>() != out.iter().product::<usize>() {
         return Err(format!("layernorm output {out:?} differs from its input {x:?}"));
+    }
+    Ok(())
+}
+
+/// The preconditions of [`groupnorm`] on a value of shape `x` (`[n, c, ...]`): at least
+/// two axes, `c` the norm's channels, `groups` dividing them, parameters of `c` values, an
+/// output of `x`'s length.
+pub fn check_groupnorm(
+    x: &[usize],
+    channels: usize,
+    groups: usize,
+    params: [Option<usize>; 2],
+    out: &[usize],
+) -> Result<(), String> {
+    if x.len() < 2 || x[1] != channels {
+        return Err(format!("groupnorm of {channels} channels on a value of shape {x:?}"));
+    }
+    if groups == 0 || !channels.is_multiple_of(groups) {
+        return Err(format!("groupnorm: {channels} channels in {groups} groups"));
+    }
+    if let Some(n) = params.into_iter().flatten().find(|&n| n != channels) {
+        return Err(format!("groupnorm parameter has {n} values for {channels} channels"));
+    }
+    if x.iter().product::<usize>() != out.iter().product::<usize>() {
+        return Err(format!("groupnorm output {out:?} differs from its input {x:?}"));
     }
     Ok(())
 }
@@ -357,5 +471,51 @@ mod tests {
         let mut got = vec![0.0; x.len()];
         layernorm(&x, 4, 256, None, None, 1e-5, &mut got);
         assert_close(&got, &naive_layernorm(&x, 256, None, None, 1e-5), 2e-2);
+    }
+
+    fn naive_groupnorm(
+        x: &[f32],
+        (n, c, inner, groups): (usize, usize, usize, usize),
+        w: Option<&[f32]>,
+        b: Option<&[f32]>,
+        eps: f64,
+    ) -> Vec<f32> {
+        let cpg = c / groups;
+        let mut out = vec![0f32; x.len()];
+        for s in 0..n {
+            for g in 0..groups {
+                let idx: Vec<usize> =
+                    (g * cpg..(g + 1) * cpg).flat_map(|ch| (0..inner).map(move |k| (s * c + ch) * inner + k)).collect();
+                let m = idx.iter().map(|&i| x[i] as f64).sum::<f64>() / idx.len() as f64;
+                let var = idx.iter().map(|&i| (x[i] as f64 - m).powi(2)).sum::<f64>() / idx.len() as f64;
+                for &i in &idx {
+                    let ch = i / inner % c;
+                    let y = (x[i] as f64 - m) / (var + eps).sqrt();
+                    out[i] = (y * w.map_or(1.0, |w| w[ch] as f64) + b.map_or(0.0, |b| b[ch] as f64)) as f32;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn groupnorm_matches_f64_reference() {
+        // (n, c, inner, groups): one group (a LayerNorm over C·HW), one channel per group
+        // (InstanceNorm), odd sizes, a large input (the parallel path), inner 1.
+        for (n, c, inner, groups) in
+            [(2, 6, 5, 3), (1, 4, 7, 1), (3, 5, 9, 5), (2, 8, 1, 4), (2, 64, 300, 32), (1, 6, 20000, 2)]
+        {
+            let x: Vec<f32> = data(n * c * inner, 13).iter().map(|v| 3.0 + 2.0 * v).collect();
+            let (w, b) = (data(c, 14), data(c, 15));
+            for (wo, bo) in [(Some(&w[..]), Some(&b[..])), (None, None), (Some(&w[..]), None)] {
+                let mut got = vec![f32::NAN; x.len()];
+                groupnorm(&x, n, c, inner, groups, wo, bo, 1e-5, &mut got);
+                assert_close(&got, &naive_groupnorm(&x, (n, c, inner, groups), wo, bo, 1e-5), 1e-4);
+            }
+        }
+        assert_eq!(check_groupnorm(&[2, 6, 5], 6, 3, [Some(6), Some(6)], &[60]), Ok(()));
+        assert!(check_groupnorm(&[2, 6, 5], 6, 4, [None, None], &[60]).is_err());
+        assert!(check_groupnorm(&[2, 6, 5], 6, 3, [Some(5), Some(6)], &[60]).is_err());
+        assert!(check_groupnorm(&[2, 6, 5], 8, 4, [None, None], &[60]).is_err());
     }
 }

@@ -1,11 +1,11 @@
-//! 2-D max and average pooling over `[nc, h, w]` planes, and global average pooling, with
-//! PyTorch's window and divisor rules.
+//! 2-D max and average pooling over `[nc, h, w]` planes, adaptive pooling, and global
+//! average pooling, with PyTorch's window, bin and divisor rules.
 
 use rayon::prelude::*;
 
-use readi_plan::ops::{Pool2d, window_out};
+use readi_plan::ops::{Pool2d, adaptive_bin, window_out};
 
-use super::reduce::sum_simd;
+use super::reduce::{max_nan, max_simd, sum_simd};
 
 /// Below this much work (window reads) a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;
@@ -331,6 +331,92 @@ fn combine_into<'a, R: Reduction>(dst: &mut [f32], k: usize, src: impl Fn(usize)
     }
 }
 
+/// Adaptive pooling of `x` (`[nc, h, w]`) into `out` (`[nc, oh, ow]`), as PyTorch's
+/// `adaptive_max_pool2d` / `adaptive_avg_pool2d`: output `(i, j)` reduces the input rows
+/// and columns of [`adaptive_bin`]`(i, h, oh)` and `(j, w, ow)`, the maximum with NaN
+/// propagating or the mean. Bins that span whole rows are read as one contiguous run.
+#[allow(clippy::too_many_arguments)]
+pub fn adaptive_pool2d(
+    kind: PoolKind,
+    x: &[f32],
+    nc: usize,
+    h: usize,
+    w: usize,
+    oh: usize,
+    ow: usize,
+    out: &mut [f32],
+) {
+    assert_eq!(x.len(), nc * h * w, "adaptive_pool2d: x is not [nc, h, w]");
+    assert_eq!(out.len(), nc * oh * ow, "adaptive_pool2d: out is not [nc, oh, ow]");
+    assert!(h >= 1 && w >= 1 && oh >= 1 && ow >= 1, "adaptive_pool2d: an empty axis");
+    if out.is_empty() {
+        return;
+    }
+    // Reads per output row: every bin's rows over the whole width, bins overlapping by one.
+    let row_work = (h.div_ceil(oh) + 1) * (w + ow);
+    let rows_per_task = (TASK_WORK / row_work).max(1);
+    let run = |first: usize, out: &mut [f32]| {
+        pulp::Arch::new().dispatch(AdaptiveRows { kind, x, h, w, oh, ow, first, out });
+    };
+    if nc * oh * row_work >= PAR_MIN && nc * oh > rows_per_task {
+        out.par_chunks_mut(rows_per_task * ow).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
+    } else {
+        run(0, out);
+    }
+}
+
+/// Output rows `first..` (over all planes) of an adaptive pooling; compiled for the
+/// widest SIMD the CPU has.
+struct AdaptiveRows<'a> {
+    kind: PoolKind,
+    x: &'a [f32],
+    h: usize,
+    w: usize,
+    oh: usize,
+    ow: usize,
+    first: usize,
+    out: &'a mut [f32],
+}
+
+impl pulp::WithSimd for AdaptiveRows<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let AdaptiveRows { kind, x, h, w, oh, ow, first, out } = self;
+        for (k, row) in out.chunks_mut(ow).enumerate() {
+            let (plane, i) = ((first + k) / oh, (first + k) % oh);
+            let (hs, he) = adaptive_bin(i, h, oh);
+            let base = plane * h * w;
+            for (j, o) in row.iter_mut().enumerate() {
+                let (ws, we) = adaptive_bin(j, w, ow);
+                // Rows `hs..he` of columns `ws..we`: one run when the bin spans the width.
+                let runs = if ws == 0 && we == w { 1 } else { he - hs };
+                let len = if runs == 1 { (he - hs) * w - ws - (w - we) } else { we - ws };
+                let at = |r: usize| {
+                    let b = base + (hs + r) * w + ws;
+                    &x[b..b + len]
+                };
+                *o = match kind {
+                    PoolKind::Avg => {
+                        let sum: f32 = (0..runs).map(|r| sum_simd(simd, at(r))).sum();
+                        sum / ((he - hs) * (we - ws)) as f32
+                    }
+                    PoolKind::Max => (0..runs).fold(f32::NEG_INFINITY, |m, r| max_nan(m, max_simd(simd, at(r)))),
+                };
+            }
+        }
+    }
+}
+
+/// The preconditions of [`adaptive_pool2d`]: a 4-D input `[n, c, h, w]` with `h, w >= 1`,
+/// an output `[n, c, oh, ow]` with `oh, ow >= 1`.
+pub fn check_adaptive(x: &[usize], out: &[usize]) -> Result<(), String> {
+    match (x, out) {
+        (&[n, c, h, w], &[n2, c2, oh, ow]) if n == n2 && c == c2 && h * w * oh * ow >= 1 => Ok(()),
+        _ => Err(format!("adaptive pooling of {x:?} cannot give {out:?}")),
+    }
+}
+
 /// Mean of each of the `nc` rows of `x` (`[nc, hw]`), into `out` (`[nc]`).
 pub fn global_avgpool(x: &[f32], nc: usize, hw: usize, out: &mut [f32]) {
     debug_assert_eq!(
@@ -606,5 +692,69 @@ mod tests {
                 x.chunks(hw).map(|r| (r.iter().map(|&v| v as f64).sum::<f64>() / hw as f64) as f32).collect();
             assert_close(&got, &want, 1e-6);
         }
+    }
+
+    /// Plain reference: each bin's values by PyTorch's formula, in f64.
+    fn naive_adaptive(kind: PoolKind, x: &[f32], nc: usize, h: usize, w: usize, oh: usize, ow: usize) -> Vec<f32> {
+        let mut out = Vec::new();
+        for p in 0..nc {
+            for i in 0..oh {
+                let bin = |i: usize, len: usize, out: usize| {
+                    let (a, b) = ((i * len) as f64 / out as f64, ((i + 1) * len) as f64 / out as f64);
+                    (a.floor() as usize, b.ceil() as usize)
+                };
+                let (hs, he) = bin(i, h, oh);
+                for j in 0..ow {
+                    let (ws, we) = bin(j, w, ow);
+                    let vals: Vec<f64> =
+                        (hs..he).flat_map(|y| (ws..we).map(move |xx| x[(p * h + y) * w + xx] as f64)).collect();
+                    out.push(match kind {
+                        PoolKind::Avg => vals.iter().sum::<f64>() / vals.len() as f64,
+                        PoolKind::Max => {
+                            vals.iter().fold(f64::NEG_INFINITY, |a, &v| if v > a || v.is_nan() { v } else { a })
+                        }
+                    } as f32);
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn adaptive_pooling_matches_pytorchs_bins() {
+        // Divisible, non-divisible, output larger than input, 1x1, whole-width bins,
+        // wide rows and many planes (the parallel path).
+        let cases = [
+            (2, 7, 5, 3, 2),
+            (3, 14, 14, 7, 7),
+            (1, 10, 9, 4, 5),
+            (2, 3, 2, 5, 4),
+            (4, 6, 6, 1, 1),
+            (1, 5, 11, 3, 1),
+            (1, 1, 1, 2, 3),
+            (64, 33, 35, 6, 7),
+            (2, 300, 301, 2, 2),
+        ];
+        for (nc, h, w, oh, ow) in cases {
+            let x = data(nc * h * w, (h * w) as u64);
+            for kind in [PoolKind::Avg, PoolKind::Max] {
+                let mut got = vec![f32::NAN; nc * oh * ow];
+                adaptive_pool2d(kind, &x, nc, h, w, oh, ow, &mut got);
+                assert_close(&got, &naive_adaptive(kind, &x, nc, h, w, oh, ow), 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn adaptive_maxpool_propagates_nan() {
+        let mut x = data(2 * 5 * 5, 4);
+        x[5 * 5 + 2 * 5 + 2] = f32::NAN; // plane 1, (2, 2): 5 -> 3 bins [0, 2), [1, 4), [3, 5), so only in bin (1, 1).
+        let mut got = vec![0.0; 2 * 3 * 3];
+        adaptive_pool2d(PoolKind::Max, &x, 2, 5, 5, 3, 3, &mut got);
+        let nan: Vec<usize> = (0..got.len()).filter(|&i| got[i].is_nan()).collect();
+        assert_eq!(nan, [9 + 4]);
+        assert_eq!(check_adaptive(&[1, 2, 5, 5], &[1, 2, 3, 3]), Ok(()));
+        assert!(check_adaptive(&[1, 2, 0, 5], &[1, 2, 3, 3]).is_err());
+        assert!(check_adaptive(&[1, 2, 5, 5], &[1, 3, 3, 3]).is_err());
     }
 }

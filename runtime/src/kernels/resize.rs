@@ -224,6 +224,72 @@ pub fn check(x: &[usize], out: &[usize]) -> Result<(), String> {
     Ok(())
 }
 
+/// `pixel_shuffle` by `r` of `x` (`[n, c·r², h, w]`) into `out` (`[n, c, h·r, w·r]`),
+/// `out[n, c, y·r + i, x·r + j] = x[n, c·r² + i·r + j, y, x]`, or with `inverse` its
+/// inverse `pixel_unshuffle` of `x` (`[n, c, h·r, w·r]`) into `out` (`[n, c·r², h, w]`),
+/// as PyTorch's: `c`, `h` and `w` are those of the two shapes as written here. A copy, one
+/// output row at a time, in parallel when large.
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_shuffle(inverse: bool, r: usize, x: &[f32], n: usize, c: usize, h: usize, w: usize, out: &mut [f32]) {
+    assert!(r >= 1, "pixel_shuffle: factor 0");
+    let len = n * c * r * r * h * w;
+    assert!(x.len() == len && out.len() == len, "pixel_shuffle: x or out is not [n, c·r², h, w]");
+    if len == 0 {
+        return;
+    }
+    // Output rows: `[n, c, h·r]` of `w·r` (shuffle) or `[n, c·r², h]` of `w` (unshuffle).
+    let row = if inverse { w } else { w * r };
+    let rows = |first: usize, out: &mut [f32]| {
+        for (k, o) in out.chunks_mut(row).enumerate() {
+            let g = first + k;
+            if inverse {
+                // Row (s, cc·r² + i·r + j, y) reads row y·r + i of (s, cc) at stride r from j.
+                let (y, ch) = (g % h, g / h);
+                let (sc, ij) = (ch / (r * r), ch % (r * r));
+                let (i, j) = (ij / r, ij % r);
+                let src = &x[(sc * h * r + y * r + i) * w * r..][..w * r];
+                for (o, &v) in o.iter_mut().zip(src.iter().skip(j).step_by(r)) {
+                    *o = v;
+                }
+            } else {
+                // Row (s, cc, y·r + i) interleaves rows y of channels (s, cc·r² + i·r + j).
+                let (yi, sc) = (g % (h * r), g / (h * r));
+                let (y, i) = (yi / r, yi % r);
+                for j in 0..r {
+                    let src = &x[((sc * r * r + i * r + j) * h + y) * w..][..w];
+                    for (o, &v) in o.iter_mut().skip(j).step_by(r).zip(src) {
+                        *o = v;
+                    }
+                }
+            }
+        }
+    };
+    if len >= PAR_MIN && len / row > 1 {
+        let per_task = (CHUNK / row).max(1);
+        out.par_chunks_mut(per_task * row).enumerate().for_each(|(t, o)| rows(t * per_task, o));
+    } else {
+        rows(0, out);
+    }
+}
+
+/// The preconditions of [`pixel_shuffle`] by `r` (or its inverse) from `x` to `out`, both
+/// 4-D: the element counts agree and the sizes are those of the shape rule.
+pub fn check_pixel_shuffle(inverse: bool, r: usize, x: &[usize], out: &[usize]) -> Result<(), String> {
+    let (small, big) = if inverse { (out, x) } else { (x, out) };
+    match (small, big) {
+        (&[n, crr, h, w], &[n2, c, hr, wr])
+            if r >= 1
+                && n == n2
+                && Some(crr) == c.checked_mul(r * r)
+                && Some(hr) == h.checked_mul(r)
+                && Some(wr) == w.checked_mul(r) =>
+        {
+            Ok(())
+        }
+        _ => Err(format!("pixel shuffle by {r} of {x:?} cannot give {out:?}")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -444,5 +510,38 @@ mod tests {
         let x: Vec<f32> = (0..15).map(|v| v as f32).collect();
         assert_eq!(run(ResizeMode::Bilinear, true, None, &x, 1, (3, 5), (1, 1)), [0.0]);
         assert_eq!(run(ResizeMode::Bilinear, false, None, &x, 1, (3, 5), (1, 1)), [7.0]);
+    }
+
+    #[test]
+    fn pixel_shuffle_and_unshuffle_match_the_index_formula() {
+        for (n, c, h, w, r) in [(1, 1, 1, 1, 1), (2, 3, 4, 5, 2), (1, 2, 3, 2, 3), (1, 4, 64, 70, 2)] {
+            let x = data(n * c * r * r * h * w, 21);
+            let mut got = vec![f32::NAN; x.len()];
+            pixel_shuffle(false, r, &x, n, c, h, w, &mut got);
+            // torch: out[s, cc, y*r + i, xx*r + j] = x[s, cc*r*r + i*r + j, y, xx].
+            let mut want = vec![0f32; x.len()];
+            for s in 0..n {
+                for cc in 0..c {
+                    for y in 0..h {
+                        for i in 0..r {
+                            for xx in 0..w {
+                                for j in 0..r {
+                                    let o = ((s * c + cc) * h * r + y * r + i) * w * r + xx * r + j;
+                                    want[o] = x[((s * c * r * r + cc * r * r + i * r + j) * h + y) * w + xx];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            assert_eq!(got, want, "shuffle {n} {c} {h} {w} by {r}");
+            let mut back = vec![f32::NAN; x.len()];
+            pixel_shuffle(true, r, &got, n, c, h, w, &mut back);
+            assert_eq!(back, x, "unshuffle {n} {c} {h} {w} by {r}");
+            assert_eq!(check_pixel_shuffle(false, r, &[n, c * r * r, h, w], &[n, c, h * r, w * r]), Ok(()));
+            assert_eq!(check_pixel_shuffle(true, r, &[n, c, h * r, w * r], &[n, c * r * r, h, w]), Ok(()));
+        }
+        assert!(check_pixel_shuffle(false, 2, &[1, 4, 3, 3], &[1, 1, 6, 7]).is_err());
+        assert!(check_pixel_shuffle(true, 2, &[1, 4, 3, 3], &[1, 16, 1, 1]).is_err());
     }
 }
