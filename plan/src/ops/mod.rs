@@ -19,6 +19,7 @@
 //! | `layout.rs`     | `concat`, `reshape`, `permute`                                   |
 //! | `reduce.rs`     | `mean`, `softmax`                                                |
 //! | `resize.rs`     | `upsample`                                                       |
+//! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`) |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -29,6 +30,7 @@ mod conv;
 mod elementwise;
 mod layout;
 mod linear;
+mod movement;
 mod norm;
 mod pool;
 mod reduce;
@@ -44,6 +46,7 @@ pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};
+pub use movement::{Pad, PadMode, Resolved, Roll, Slice, SliceAxis};
 pub use norm::{BatchNorm, ChannelAffine, LayerNorm, batchnorm_affine, batchnorm_channel};
 pub use pool::{GlobalAvgPool, Pool2d, PoolKind};
 pub use reduce::{Mean, Softmax};
@@ -206,6 +209,9 @@ pub enum Pure {
     GlobalAvgPool(GlobalAvgPool),
     Upsample(Upsample),
     Mean(Mean),
+    Pad(Pad),
+    Roll(Roll),
+    Slice(Slice),
 }
 
 impl Pure {
@@ -224,6 +230,9 @@ impl Pure {
             Pure::GlobalAvgPool(o) => o,
             Pure::Upsample(o) => o,
             Pure::Mean(o) => o,
+            Pure::Pad(o) => o,
+            Pure::Roll(o) => o,
+            Pure::Slice(o) => o,
         }
     }
 }

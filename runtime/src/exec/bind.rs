@@ -6,7 +6,7 @@
 use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
-use crate::kernels::{self, elementwise, layout as layout_k, linear, merge, norm, pool, reduce, resize, softmax};
+use crate::kernels::{self, elementwise, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax};
 use readi_plan::ops::Pure;
 
 use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
@@ -535,6 +535,9 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             Pure::GlobalAvgPool(_) => pool::check_global_avgpool(x, out),
             Pure::Upsample(_) => resize::check(x, out),
             Pure::Mean(m) => reduce::check_mean(x, &m.axes, out),
+            Pure::Pad(p) => movement::check_pad(p, x, out),
+            Pure::Roll(r) => movement::check_roll(r, x, out),
+            Pure::Slice(s) => movement::check_slice(s, x, out),
         },
     }
 }

@@ -8,7 +8,7 @@ use readi_plan::ops::Pure;
 use crate::kernels::conv;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
-use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
+use crate::kernels::{Epilogue, elementwise, layout, linear, movement, norm, reduce, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
@@ -177,6 +177,9 @@ pub(crate) fn run_step(
                 resize::upsample(u.mode, u.align_corners, scale, x, nc, h, wd, out, out_shape[2], out_shape[3]);
             }
             Pure::Mean(m) => reduce::mean(x, xs, &m.axes, out),
+            Pure::Pad(p) => movement::pad(p, x, xs, out),
+            Pure::Roll(r) => movement::roll(r, x, xs, out),
+            Pure::Slice(s) => movement::slice(s, x, xs, out),
         },
     }
 }
