@@ -128,11 +128,7 @@ impl Operator for Roll {
                 return Err(ShapeError::new(format!("roll without dims takes one shift, got {}", list(&self.shifts))));
             }
         } else if self.shifts.len() != self.axes.len() {
-            return Err(ShapeError::new(format!(
-                "roll has {} shifts for {} dims",
-                self.shifts.len(),
-                self.axes.len()
-            )));
+            return Err(ShapeError::new(format!("roll has {} shifts for {} dims", self.shifts.len(), self.axes.len())));
         }
         for &a in &self.axes {
             super::axis_in_range(a, x)?;
@@ -337,8 +333,8 @@ mod tests {
         // Hand-derived from Python: len(range(10)[a:b:s]).
         let cases = [
             (r(Some(2), Some(7), 1), 2, 5),
-            (r(None, None, 3), 0, 4),      // 0 3 6 9
-            (r(Some(-3), None, 1), 7, 3),  // 7 8 9
+            (r(None, None, 3), 0, 4),     // 0 3 6 9
+            (r(Some(-3), None, 1), 7, 3), // 7 8 9
             (r(Some(-20), Some(3), 1), 0, 3),
             (r(Some(4), Some(100), 4), 4, 2), // 4 8
             (r(Some(8), Some(2), 1), 8, 0),

@@ -6,7 +6,9 @@
 use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
-use crate::kernels::{self, elementwise, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax};
+use crate::kernels::{
+    self, elementwise, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax,
+};
 use readi_plan::ops::Pure;
 
 use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
