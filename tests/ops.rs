@@ -1,4 +1,5 @@
-//! Activations and unary functions against PyTorch: tests/fixtures/ops/activations.readi
+//! Activations and unary functions, and data movement (pad, roll, slicing; movement.readi
+//! and make_movement_fixtures.py), against PyTorch. Activations: tests/fixtures/ops/activations.readi
 //! run on the inputs and weights tests/fixtures/ops/make_activation_fixtures.py wrote,
 //! against the outputs torch computed, to 1e-5 (absolute, or relative to values above 1);
 //! NaN and infinities where torch has them. Its conv + batchnorm + act and linear + act
@@ -78,5 +79,32 @@ fn conv_and_linear_activations_run_in_the_epilogue() {
         if matches!(s.kernel, Kernel::Pure(readi_plan::ops::Pure::Activation(_))) {
             assert!(!fusable(s.inputs[0]), "{} was not fused", s.path);
         }
+    }
+}
+
+/// pad (three modes, cropping), roll and every way of slicing against PyTorch:
+/// tests/fixtures/ops/movement.readi on the inputs make_movement_fixtures.py wrote. Data
+/// movement copies values, so they must be exactly torch's.
+#[test]
+fn movement_matches_pytorch() {
+    let spec = "tests/fixtures/ops/movement.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let none = WeightSet { tensors: Default::default() };
+    let (plan, _) = backend::compile(&module, &none, "none", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let io = fixture("movement.io.safetensors");
+    let inputs: Vec<Input<'_>> = io
+        .tensors
+        .iter()
+        .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
+        .collect();
+    let outputs = Session::new(Arc::new(plan), 2).expect("session").run(&inputs).expect("runs");
+    assert_eq!(outputs.len(), io.tensors.keys().filter(|k| k.starts_with("output.")).count());
+    for (name, t) in &outputs {
+        let (shape, want) = &io.tensors[&format!("output.{name}")];
+        assert_eq!(&t.shape, shape, "shape of {name}");
+        assert_eq!(&t.data, want, "{name}");
     }
 }
