@@ -21,7 +21,7 @@
 //! | `layout.rs`      | `concat`, `reshape`, `flatten`, `transpose`, `permute`      |
 //! | `reduce.rs`      | `mean`, `softmax`                                           |
 //! | `resize.rs`      | `upsample`                                                  |
-//! | `movement.rs`    | `pad`, `roll`, `slice`, `narrow`, `select`, `chunk`, `split`, `squeeze`, `unsqueeze` |
+//! | `movement.rs`    | `pad`, `roll`, `slice`, `narrow`, `select`, `chunk`, `split`, `squeeze`, `unsqueeze`, `expand` |
 //! | `parameter.rs`   | `parameter`                                                 |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!

@@ -1,12 +1,13 @@
 //! `pad(x, pad, mode="constant", value=0.0)`, `roll(x, shifts, dims)`,
 //! `slice(x, dim=0, start, end, step=1)`, `narrow(x, dim, start, length)`, `select(x, dim, index)`, `chunk(x, chunks, dim=0)`,
-//! `split(x, split_size_or_sections, dim=0)`, `squeeze(x, dim)` and `unsqueeze(x, dim)`,
+//! `split(x, split_size_or_sections, dim=0)`, `squeeze(x, dim)`, `unsqueeze(x, dim)` and
+//! `expand(x, sizes)`,
 //! with PyTorch's names and semantics.
 //!
 //! `narrow` and `select` make a `slice` (as does `x[...]`, in the elaborator), `chunk` and
 //! `split` a list of them, one per piece; `squeeze` and `unsqueeze` make a `reshape`.
 
-use readi_plan::ops::{Pad, PadMode, Pure, Reshape, Roll, Slice, SliceAxis};
+use readi_plan::ops::{Expand, Pad, PadMode, Pure, Reshape, Roll, Slice, SliceAxis};
 
 use super::{Args, Builtin, P, R, absent, flt, int, req};
 use crate::ir::{Dim, Op, TensorType, ValueRef};
@@ -21,6 +22,7 @@ const CHUNK: &[P] = &[req("x"), req("chunks"), int("dim", 0)];
 const SPLIT: &[P] = &[req("x"), req("split_size_or_sections"), int("dim", 0)];
 const SQUEEZE: &[P] = &[req("x"), absent("dim")];
 const UNSQUEEZE: &[P] = &[req("x"), req("dim")];
+const EXPAND: &[P] = &[req("x"), req("sizes")];
 
 pub(super) fn builtins() -> Vec<Builtin> {
     vec![
@@ -33,6 +35,7 @@ pub(super) fn builtins() -> Vec<Builtin> {
         Builtin::many("split", SPLIT, split),
         Builtin::new("squeeze", SQUEEZE, squeeze).alias(),
         Builtin::new("unsqueeze", UNSQUEEZE, unsqueeze).alias(),
+        Builtin::new("expand", EXPAND, expand),
     ]
 }
 
@@ -208,4 +211,36 @@ fn unsqueeze(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
     let mut shape = t.shape.clone();
     shape.insert(axis, Dim::known(1));
     Ok((Op::Pure(Pure::Reshape(Reshape { shape })), vec![args.tensor("x")?]))
+}
+
+/// `Tensor.expand`: `-1` keeps an axis; new axes go in front; an axis of size 1 may take
+/// any size (a symbolic one too).
+fn expand(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    let t = args.ttype("x")?;
+    let list = match args.value("sizes") {
+        Some(Value::List(l)) => l.clone(),
+        Some(v) => return Err(args.mismatch("sizes", "a list of sizes", v)),
+        None => return Err(args.bad_value("sizes", "missing".into())),
+    };
+    if list.len() < t.rank() {
+        return Err(args.bad_value("sizes", format!("{} sizes for {t}: at least {} needed", list.len(), t.rank())));
+    }
+    let lead = list.len() - t.rank();
+    let mut shape = Vec::with_capacity(list.len());
+    for (i, v) in list.iter().enumerate() {
+        let d = match v {
+            Value::Int(-1) if i >= lead => t.shape[i - lead].clone(),
+            Value::Int(n) if *n >= 0 => Dim::known(*n),
+            Value::Dim(d) => d.clone(),
+            Value::Int(n) => {
+                return Err(args.bad_value(
+                    "sizes",
+                    format!("size {n} at position {i} is not allowed (-1 keeps an existing axis)"),
+                ));
+            }
+            other => return Err(args.mismatch("sizes", "a list of sizes", other)),
+        };
+        shape.push(d);
+    }
+    Ok((Op::Pure(Pure::Expand(Expand { shape })), vec![args.tensor("x")?]))
 }

@@ -95,7 +95,6 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("conv_transpose2d", Unsupported),
     ("conv1d", Unsupported),
     ("conv3d", Unsupported),
-    ("expand", Unsupported),
     ("gather", Unsupported),
     ("index_select", Unsupported),
     ("embedding", Unsupported),

@@ -19,7 +19,7 @@
 //! | `layout.rs`     | `concat`, `reshape`, `permute`                                   |
 //! | `reduce.rs`     | `mean`, `softmax`                                                |
 //! | `resize.rs`     | `upsample`                                                       |
-//! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`) |
+//! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`), `expand` |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -46,7 +46,7 @@ pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};
-pub use movement::{Pad, PadMode, Resolved, Roll, Slice, SliceAxis};
+pub use movement::{Expand, Pad, PadMode, Resolved, Roll, Slice, SliceAxis};
 pub use norm::{BatchNorm, ChannelAffine, LayerNorm, batchnorm_affine, batchnorm_channel};
 pub use pool::{GlobalAvgPool, Pool2d, PoolKind};
 pub use reduce::{Mean, Softmax};
@@ -212,6 +212,7 @@ pub enum Pure {
     Pad(Pad),
     Roll(Roll),
     Slice(Slice),
+    Expand(Expand),
 }
 
 impl Pure {
@@ -233,6 +234,7 @@ impl Pure {
             Pure::Pad(o) => o,
             Pure::Roll(o) => o,
             Pure::Slice(o) => o,
+            Pure::Expand(o) => o,
         }
     }
 }

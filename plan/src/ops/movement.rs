@@ -1,6 +1,7 @@
 //! Data movement without arithmetic, with PyTorch's semantics: `pad` (constant, reflect,
 //! replicate; `torch.nn.functional.pad`), `roll` (`torch.roll`) and `slice` (Python's
-//! `x[a:b:s, i, ...]`, which also writes `narrow`, `select`, `chunk` and `split`).
+//! `x[a:b:s, i, ...]`, which also writes `narrow`, `select`, `chunk` and `split`) and
+//! `expand` (`Tensor.expand`).
 //!
 //! Bounds are kept as the source wrote them (negative counts from the end) and resolved
 //! against the real sizes by [`SliceAxis::resolve`], so a slice of a symbolic batch axis
@@ -280,6 +281,41 @@ impl Operator for Slice {
     }
 }
 
+/// `x.expand(sizes)` with the sizes resolved: `x` broadcast to `shape` (axes of size 1
+/// repeated, new leading axes added), each output element a copy of its source.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Expand {
+    pub shape: Vec<Dim>,
+}
+
+impl Operator for Expand {
+    fn kind_name(&self) -> &'static str {
+        "expand"
+    }
+
+    fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        let x = inputs[0];
+        let to = crate::dim::show_shape(&self.shape);
+        if self.shape.len() < x.rank() {
+            return Err(ShapeError::new(format!("cannot expand {x} to {to}, which has fewer axes")));
+        }
+        let lead = self.shape.len() - x.rank();
+        for (i, d) in x.shape.iter().enumerate() {
+            let want = &self.shape[lead + i];
+            if d != want && d.as_known() != Some(1) {
+                return Err(ShapeError::new(format!(
+                    "cannot expand {x} to {to}: axis {i} has size {d}, neither 1 nor {want}"
+                )));
+            }
+        }
+        Ok(TensorType::new(x.dtype, self.shape.clone()))
+    }
+
+    fn attrs(&self) -> Vec<(&'static str, String)> {
+        vec![("shape", list(&self.shape))]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::testutil::{run, t};
@@ -349,6 +385,16 @@ mod tests {
         assert!(SliceAxis::Index(10).resolve(10).is_err());
         assert!(SliceAxis::Index(-11).resolve(10).is_err());
         assert!(r(None, None, 0).resolve(10).is_err());
+    }
+
+    #[test]
+    fn expand_repeats_axes_of_one() {
+        let e = |s: &[i64]| Expand { shape: s.iter().map(|&d| Dim::known(d)).collect() };
+        assert_eq!(run(&e(&[2, 3, 4]), &[t(&[3, 1])]), Ok(t(&[2, 3, 4])));
+        assert_eq!(run(&e(&[3, 4]), &[t(&[1, 4])]), Ok(t(&[3, 4])));
+        let err = run(&e(&[3, 4]), &[t(&[2, 4])]).expect_err("2 is not 1");
+        assert!(err.message.contains("f32[2, 4]") && err.message.contains("[3, 4]"), "{err}");
+        assert!(run(&e(&[4]), &[t(&[1, 4])]).is_err());
     }
 
     #[test]

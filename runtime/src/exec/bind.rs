@@ -540,6 +540,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             Pure::Pad(p) => movement::check_pad(p, x, out),
             Pure::Roll(r) => movement::check_roll(r, x, out),
             Pure::Slice(s) => movement::check_slice(s, x, out),
+            Pure::Expand(_) => movement::check_expand(x, out),
         },
     }
 }

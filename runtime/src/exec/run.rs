@@ -180,6 +180,7 @@ pub(crate) fn run_step(
             Pure::Pad(p) => movement::pad(p, x, xs, out),
             Pure::Roll(r) => movement::roll(r, x, xs, out),
             Pure::Slice(s) => movement::slice(s, x, xs, out),
+            Pure::Expand(_) => movement::expand(x, xs, out, out_shape),
         },
     }
 }

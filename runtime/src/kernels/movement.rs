@@ -1,5 +1,6 @@
 //! Data movement without arithmetic, row-major: `pad` (constant, reflect, replicate),
-//! `roll` and `slice` (strided, with axes removed by an index).
+//! `roll`, `slice` (strided, with axes removed by an index) and `expand` (a broadcast
+//! copy).
 //!
 //! Each kernel walks the output a last-axis row at a time and copies whole runs with
 //! `copy_from_slice` (a memcpy) wherever the source is contiguous: a padded row is a fill,
@@ -233,6 +234,47 @@ pub fn slice(s: &Slice, x: &[f32], xs: &[usize], out: &mut [f32]) {
     }
 }
 
+/// Checks `out` is a broadcast of `x` (trailing axes aligned, each 1 or equal).
+pub fn check_expand(x: &[usize], out: &[usize]) -> Result<(), String> {
+    let ok = out.len() >= x.len() && x.iter().zip(&out[out.len() - x.len()..]).all(|(&d, &o)| d == o || d == 1);
+    if !ok {
+        return Err(format!("cannot expand {x:?} to {out:?}"));
+    }
+    Ok(())
+}
+
+/// `x.expand(out_shape)`: each output last-axis row is a copy of its source row, or its
+/// source element repeated when the last axis is broadcast.
+pub fn expand(x: &[f32], xs: &[usize], out: &mut [f32], os: &[usize]) {
+    assert_eq!(out.len(), os.iter().product::<usize>(), "expand: out does not match its shape");
+    if out.is_empty() {
+        return;
+    }
+    let r = os.len();
+    // The input's shape and strides aligned to the output's axes; stride 0 repeats.
+    let mut xd = vec![1usize; r];
+    xd[r - xs.len()..].copy_from_slice(xs);
+    let st = strides(&xd);
+    let st: Vec<usize> = st.iter().zip(&xd).map(|(&s, &d)| if d == 1 { 0 } else { s }).collect();
+    let w = os[r - 1];
+    let mut idx = vec![0usize; r - 1];
+    for row in out.chunks_mut(w) {
+        let b: usize = (0..r - 1).map(|a| idx[a] * st[a]).sum();
+        if xd[r - 1] == 1 {
+            row.fill(x[b]);
+        } else {
+            row.copy_from_slice(&x[b..b + w]);
+        }
+        for a in (0..r - 1).rev() {
+            idx[a] += 1;
+            if idx[a] < os[a] {
+                break;
+            }
+            idx[a] = 0;
+        }
+    }
+}
+
 /// Advances a row-major multi-index over the resolved lengths.
 fn odometer(idx: &mut [usize], rs: &[Resolved]) {
     for a in (0..idx.len()).rev() {
@@ -370,6 +412,31 @@ mod tests {
         let mut o = vec![0.0; 5];
         roll(&Roll { shifts: vec![2], axes: vec![] }, &iota(5), &[5], &mut o);
         assert_eq!(o, [4.0, 5.0, 1.0, 2.0, 3.0]);
+    }
+
+    #[test]
+    fn expand_matches_the_definition() {
+        let cases: &[(&[usize], &[usize])] =
+            &[(&[3, 1], &[2, 3, 4]), (&[1, 4], &[3, 4]), (&[2, 1, 3], &[2, 5, 3]), (&[1], &[7]), (&[2, 3], &[2, 3])];
+        for (xs, os) in cases {
+            check_expand(xs, os).expect("valid");
+            let x = iota(xs.iter().product());
+            let n = os.iter().product();
+            let lead = os.len() - xs.len();
+            let want: Vec<f32> = (0..n)
+                .map(|o| {
+                    let i = unravel(o, os);
+                    let src: Vec<usize> =
+                        xs.iter().enumerate().map(|(a, &d)| if d == 1 { 0 } else { i[lead + a] }).collect();
+                    x[ravel(&src, xs)]
+                })
+                .collect();
+            let mut got = vec![f32::NAN; n];
+            expand(&x, xs, &mut got, os);
+            assert_eq!(got, want, "{xs:?} -> {os:?}");
+        }
+        assert!(check_expand(&[2, 4], &[3, 4]).is_err());
+        assert!(check_expand(&[1, 4], &[4]).is_err());
     }
 
     fn naive_slice(s: &Slice, x: &[f32], xs: &[usize]) -> Vec<f32> {
