@@ -10,6 +10,8 @@
 //! - `reductions.readi` (`make_reduction_fixtures.py`): sum, mean, max, min, var
 //!   (corrections 0 and 1), std; adaptive pooling to divisible, non-divisible and larger
 //!   sizes; groupnorm with affine weights, without, and in one group; pixel (un)shuffle.
+//! - `movement.readi` (`make_movement_fixtures.py`): pad, roll and slicing, which must
+//!   equal torch's values exactly.
 
 mod common;
 
@@ -165,5 +167,32 @@ fn conv_weights_of_the_wrong_layout_are_refused() {
         let got = format!("{shape:?}");
         assert!(text.contains(name) && text.contains(want) && text.contains(&got), "{text}");
         assert!(text.contains(&format!("convs.readi{line}")), "{text}");
+    }
+}
+
+/// pad (three modes, cropping), roll and every way of slicing against PyTorch:
+/// tests/fixtures/ops/movement.readi on the inputs make_movement_fixtures.py wrote. Data
+/// movement copies values, so they must be exactly torch's.
+#[test]
+fn movement_matches_pytorch() {
+    let spec = "tests/fixtures/ops/movement.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let none = WeightSet { tensors: Default::default() };
+    let (plan, _) = backend::compile(&module, &none, "none", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let io = fixture("movement.io.safetensors");
+    let inputs: Vec<Input<'_>> = io
+        .tensors
+        .iter()
+        .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
+        .collect();
+    let outputs = Session::new(Arc::new(plan), 2).expect("session").run(&inputs).expect("runs");
+    assert_eq!(outputs.len(), io.tensors.keys().filter(|k| k.starts_with("output.")).count());
+    for (name, t) in &outputs {
+        let (shape, want) = &io.tensors[&format!("output.{name}")];
+        assert_eq!(&t.shape, shape, "shape of {name}");
+        assert_eq!(&t.data, want, "{name}");
     }
 }

@@ -201,6 +201,26 @@ pub struct Expr {
     pub span: Span,
 }
 
+/// One entry of a tensor subscript `x[...]`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Subscript {
+    /// An index: removes its axis.
+    Index(Expr),
+    /// `start:stop:step`, each part optional.
+    Range { start: Option<Expr>, stop: Option<Expr>, step: Option<Expr>, span: Span },
+    /// `...`.
+    Ellipsis(Span),
+}
+
+impl Subscript {
+    pub fn span(&self) -> Span {
+        match self {
+            Subscript::Index(e) => e.span,
+            Subscript::Range { span, .. } | Subscript::Ellipsis(span) => *span,
+        }
+    }
+}
+
 /// Expression forms.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ExprKind {
@@ -221,6 +241,8 @@ pub enum ExprKind {
     Member(Box<Expr>, LayerName),
     /// `base[index]`.
     Index(Box<Expr>, Box<Expr>),
+    /// `base[a:b:s, ..., i]`: a tensor slice (any index with a `:`, `...`, a comma).
+    Subscript(Box<Expr>, Vec<Subscript>),
     /// `[a, b, c]`.
     List(Vec<Expr>),
     /// `[elem for var in start..end]`.

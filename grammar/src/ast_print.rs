@@ -278,6 +278,25 @@ impl Printer {
                 self.expr(idx, false);
                 self.out.push(']');
             }
+            ExprKind::Subscript(base, subs) => {
+                self.expr(base, true);
+                let parts: Vec<String> = subs
+                    .iter()
+                    .map(|s| match s {
+                        Subscript::Index(e) => expr_to_source(e),
+                        Subscript::Ellipsis(_) => "...".to_string(),
+                        Subscript::Range { start, stop, step, .. } => {
+                            let part = |e: &Option<Expr>| e.as_ref().map(expr_to_source).unwrap_or_default();
+                            match step {
+                                Some(st) => format!("{}:{}:{}", part(start), part(stop), expr_to_source(st)),
+                                None => format!("{}:{}", part(start), part(stop)),
+                            }
+                        }
+                    })
+                    .collect();
+                let comma = if subs.len() == 1 && matches!(subs[0], Subscript::Index(_)) { "," } else { "" };
+                let _ = write!(self.out, "[{}{comma}]", parts.join(", "));
+            }
             ExprKind::List(items) => {
                 let parts: Vec<String> = items.iter().map(expr_to_source).collect();
                 let _ = write!(self.out, "[{}]", parts.join(", "));

@@ -50,7 +50,14 @@ impl<'a> Elab<'a> {
                 return Value::Poison;
             }
             let Some(op) = op else { return self.call_function(name, &values, span) };
-            let built = (op.build)(&Args { sig, values, call_span: span, graph: &self.graph });
+            let args = Args { sig, values, call_span: span, graph: &self.graph };
+            if let Some(many) = op.many {
+                return match many(&args) {
+                    Ok(pieces) => self.add_nodes_as_list(pieces, hint, span, frame.scope),
+                    Err(d) => self.error(d),
+                };
+            }
+            let built = (op.build)(&args);
             return match built {
                 Ok((op, inputs)) => self.add_node_in(op, inputs, hint, span, frame.scope),
                 Err(d) => self.error(d),
@@ -80,6 +87,28 @@ impl<'a> Elab<'a> {
             d = d.with_note(format!("did you mean `{s}`?"));
         }
         self.error(d)
+    }
+
+    /// The nodes of a list-valued builtin (`chunk`, `split`): named `0`, `1`, ... in a
+    /// list scope when the call is named, like a list literal's elements.
+    fn add_nodes_as_list(
+        &mut self,
+        pieces: Vec<(Op, Vec<ValueRef>)>,
+        hint: Option<Hint>,
+        span: Span,
+        scope: ScopeId,
+    ) -> Value {
+        let list_scope = hint.map(|h| self.new_scope(&h, ScopeKind::List, span));
+        let mut out = Vec::with_capacity(pieces.len());
+        for (k, (op, inputs)) in pieces.into_iter().enumerate() {
+            let h = list_scope.map(|s| Hint { scope: s, name: k.to_string() });
+            let v = self.add_node_in(op, inputs, h, span, scope);
+            if let Some(s) = list_scope {
+                self.tables[s.0 as usize].names.insert(k.to_string(), (v.clone(), span));
+            }
+            out.push(v);
+        }
+        Value::List(Rc::new(out))
     }
 
     /// Matches call arguments to parameters `(name, optional)`: positional first, then by

@@ -83,8 +83,9 @@ impl<'a> Elab<'a> {
             ExprKind::Index(base, idx) => {
                 let b = self.eval(base, frame, None);
                 let i = self.eval(idx, frame, None);
-                self.index(b, i, idx.span, base.span)
+                self.index(b, i, idx.span, base.span, hint, frame.scope)
             }
+            ExprKind::Subscript(base, subs) => self.subscript(base, subs, e.span, hint, frame),
             ExprKind::List(items) => {
                 let list_scope = hint.map(|h| self.new_scope(&h, ScopeKind::List, e.span));
                 let mut out = Vec::with_capacity(items.len());
@@ -417,7 +418,15 @@ impl<'a> Elab<'a> {
         self.error(d)
     }
 
-    fn index(&mut self, base: Value, idx: Value, idx_span: Span, base_span: Span) -> Value {
+    fn index(
+        &mut self,
+        base: Value,
+        idx: Value,
+        idx_span: Span,
+        base_span: Span,
+        hint: Option<Hint>,
+        scope: ScopeId,
+    ) -> Value {
         match (&base, &idx) {
             (Value::Poison, _) | (_, Value::Poison) => Value::Poison,
             (Value::List(items), Value::Int(i)) => {
@@ -434,9 +443,12 @@ impl<'a> Elab<'a> {
             (Value::Tensor { scope: Some(_), .. } | Value::Scope(_), Value::Int(i)) => {
                 self.member(base.clone(), &i.to_string(), idx_span, base_span)
             }
+            (Value::Tensor { .. }, Value::Int(i)) => {
+                self.index_tensor(base.clone(), *i, idx_span, base_span, hint, scope)
+            }
             (_, Value::Int(_)) => self.error(
                 Diagnostic::error(Code::TypeMismatch, format!("cannot index {}", base.kind()))
-                    .with_primary(base_span, "not a list or sequence"),
+                    .with_primary(base_span, "not a list, sequence or tensor"),
             ),
             _ => self.error(
                 Diagnostic::error(Code::TypeMismatch, format!("an index must be an int, found {}", idx.kind()))

@@ -23,6 +23,7 @@ mod builtins;
 mod call;
 mod eval;
 mod stmt;
+mod subscript;
 
 use std::collections::{HashMap, HashSet};
 use std::rc::Rc;

@@ -22,6 +22,7 @@
 //! | `layout.rs`      | `concat`, `reshape`, `flatten`, `transpose`, `permute`      |
 //! | `reduce.rs`      | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`        |
 //! | `resize.rs`      | `upsample`, `pixel_shuffle`, `pixel_unshuffle`              |
+//! | `movement.rs`    | `pad`, `roll`, `slice`, `narrow`, `select`, `chunk`, `split`, `squeeze`, `unsqueeze`, `expand` |
 //! | `parameter.rs`   | `parameter`                                                 |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
@@ -36,6 +37,7 @@ mod elementwise;
 mod epilogue;
 mod layout;
 mod linear;
+mod movement;
 mod norm;
 mod parameter;
 mod pool;
@@ -59,6 +61,10 @@ use crate::ir::{Op, ValueRef};
 /// in port order.
 pub type Build = fn(&Args<'_>) -> R<(Op, Vec<ValueRef>)>;
 
+/// A builder of a builtin whose value is a list of tensors (`chunk`, `split`): one op and
+/// its inputs per element.
+pub type BuildMany = fn(&Args<'_>) -> R<Vec<(Op, Vec<ValueRef>)>>;
+
 /// A builtin op of the language.
 pub struct Builtin {
     pub sig: Sig,
@@ -66,15 +72,25 @@ pub struct Builtin {
     /// The builtin writes an op of another kind (`transpose` and `flatten` make a
     /// `permute` and a `reshape`), so selectors do not know it as a kind.
     pub alias: bool,
+    /// Set for a builtin whose value is a list of tensors; `build` is then unused.
+    pub many: Option<BuildMany>,
 }
 
 impl Builtin {
     pub(crate) const fn new(name: &'static str, params: &'static [P], build: Build) -> Builtin {
-        Builtin { sig: Sig { name, params }, build, alias: false }
+        Builtin { sig: Sig { name, params }, build, alias: false, many: None }
+    }
+    /// A builtin whose value is a list of tensors, each made by an op of another kind.
+    pub(crate) const fn many(name: &'static str, params: &'static [P], many: BuildMany) -> Builtin {
+        Builtin { sig: Sig { name, params }, build: unused_build, alias: true, many: Some(many) }
     }
     pub(crate) const fn alias(self) -> Builtin {
         Builtin { alias: true, ..self }
     }
+}
+
+fn unused_build(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
+    Err(args.bad_value("x", "makes a list of tensors".into()))
 }
 
 static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
@@ -86,6 +102,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         elementwise::builtins(),
         reduce::builtins(),
         layout::builtins(),
+        movement::builtins(),
         pool::builtins(),
         resize::builtins(),
         parameter::builtins(),

@@ -140,12 +140,43 @@ impl<'s> Builder<'s> {
                     Expr { kind: ExprKind::Member(Box::new(e), name), span }
                 }
                 _ => {
-                    let idx = self.parse_expr(p.into_inner().next()?)?;
-                    Expr { kind: ExprKind::Index(Box::new(e), Box::new(idx)), span }
+                    let parts: Vec<Pair<'_, Rule>> = p.into_inner().collect();
+                    if let [one] = parts.as_slice()
+                        && one.as_rule() == Rule::expr
+                    {
+                        let idx = self.parse_expr(one.clone())?;
+                        Expr { kind: ExprKind::Index(Box::new(e), Box::new(idx)), span }
+                    } else {
+                        let mut subs = Vec::new();
+                        for q in parts {
+                            match q.as_rule() {
+                                Rule::expr => subs.push(Subscript::Index(self.parse_expr(q)?)),
+                                Rule::ellipsis => subs.push(Subscript::Ellipsis(self.span(&q))),
+                                Rule::slice_range => subs.push(self.parse_slice_range(q)?),
+                                _ => {}
+                            }
+                        }
+                        Expr { kind: ExprKind::Subscript(Box::new(e), subs), span }
+                    }
                 }
             };
         }
         Some(e)
+    }
+
+    fn parse_slice_range(&mut self, pair: Pair<'_, Rule>) -> Option<Subscript> {
+        let span = self.span(&pair);
+        let (mut start, mut stop, mut step) = (None, None, None);
+        for q in pair.into_inner() {
+            let rule = q.as_rule();
+            let e = self.parse_expr(q.into_inner().next()?)?;
+            match rule {
+                Rule::slice_start => start = Some(e),
+                Rule::slice_stop => stop = Some(e),
+                _ => step = Some(e),
+            }
+        }
+        Some(Subscript::Range { start, stop, step, span })
     }
 
     fn parse_primary(&mut self, p: Pair<'_, Rule>) -> Option<Expr> {

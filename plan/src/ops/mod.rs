@@ -20,6 +20,7 @@
 //! | `layout.rs`     | `concat`, `reshape`, `permute`                                   |
 //! | `reduce.rs`     | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`             |
 //! | `resize.rs`     | `upsample`, `pixel_shuffle`, `pixel_unshuffle`                   |
+//! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`), `expand` |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -31,6 +32,7 @@ mod conv_transpose;
 mod elementwise;
 mod layout;
 mod linear;
+mod movement;
 mod norm;
 mod pool;
 mod reduce;
@@ -47,6 +49,7 @@ pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};
+pub use movement::{Expand, Pad, PadMode, Resolved, Roll, Slice, SliceAxis};
 pub use norm::{BatchNorm, ChannelAffine, GroupNorm, LayerNorm, batchnorm_affine, batchnorm_channel};
 pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
 pub use reduce::{Reduce, ReduceKind, Softmax};
@@ -213,6 +216,10 @@ pub enum Pure {
     /// Plans of format version 3 and before call it `Mean` (it was the only kind).
     #[serde(alias = "Mean")]
     Reduce(Reduce),
+    Pad(Pad),
+    Roll(Roll),
+    Slice(Slice),
+    Expand(Expand),
 }
 
 impl Pure {
@@ -233,6 +240,10 @@ impl Pure {
             Pure::AdaptivePool(o) => o,
             Pure::PixelShuffle(o) => o,
             Pure::Reduce(o) => o,
+            Pure::Pad(o) => o,
+            Pure::Roll(o) => o,
+            Pure::Slice(o) => o,
+            Pure::Expand(o) => o,
         }
     }
 }

@@ -7,7 +7,9 @@ use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
-use crate::kernels::{self, elementwise, layout as layout_k, linear, merge, norm, pool, reduce, resize, softmax};
+use crate::kernels::{
+    self, elementwise, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax,
+};
 use readi_plan::ops::Pure;
 
 use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
@@ -566,6 +568,10 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             Pure::Reduce(r) => reduce::check_reduce(r.kind, x, &r.axes, out),
             Pure::AdaptivePool(_) => pool::check_adaptive(x, out),
             Pure::PixelShuffle(p) => resize::check_pixel_shuffle(p.inverse, u(p.factor)?, x, out),
+            Pure::Pad(p) => movement::check_pad(p, x, out),
+            Pure::Roll(r) => movement::check_roll(r, x, out),
+            Pure::Slice(s) => movement::check_slice(s, x, out),
+            Pure::Expand(_) => movement::check_expand(x, out),
         },
     }
 }

@@ -9,7 +9,7 @@ use crate::kernels::conv;
 use crate::kernels::conv_transpose;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
-use crate::kernels::{Epilogue, elementwise, layout, linear, norm, reduce, softmax};
+use crate::kernels::{Epilogue, elementwise, layout, linear, movement, norm, reduce, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
@@ -196,6 +196,10 @@ pub(crate) fn run_step(
                 let r = p.factor as usize;
                 resize::pixel_shuffle(p.inverse, r, x, small[0], small[1] / (r * r), small[2], small[3], out);
             }
+            Pure::Pad(p) => movement::pad(p, x, xs, out),
+            Pure::Roll(r) => movement::roll(r, x, xs, out),
+            Pure::Slice(s) => movement::slice(s, x, xs, out),
+            Pure::Expand(_) => movement::expand(x, xs, out, out_shape),
         },
     }
 }

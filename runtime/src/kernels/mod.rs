@@ -88,6 +88,7 @@ pub mod gemm;
 pub mod layout;
 pub mod linear;
 pub mod merge;
+pub mod movement;
 pub mod norm;
 pub mod pool;
 pub mod reduce;
