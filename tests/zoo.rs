@@ -135,3 +135,13 @@ fn resnet50_state_dict_matches_torchvision() {
 fn resnet50_matches_torchvision() {
     check_parity("resnet50");
 }
+
+#[test]
+fn mobilenet_v2_state_dict_matches_torchvision() {
+    check_table("mobilenet_v2");
+}
+
+#[test]
+fn mobilenet_v2_matches_torchvision() {
+    check_parity("mobilenet_v2");
+}
