@@ -145,3 +145,13 @@ fn mobilenet_v2_state_dict_matches_torchvision() {
 fn mobilenet_v2_matches_torchvision() {
     check_parity("mobilenet_v2");
 }
+
+#[test]
+fn mobilenet_v3_large_state_dict_matches_torchvision() {
+    check_table("mobilenet_v3_large");
+}
+
+#[test]
+fn mobilenet_v3_large_matches_torchvision() {
+    check_parity("mobilenet_v3_large");
+}
