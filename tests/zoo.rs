@@ -155,3 +155,13 @@ fn mobilenet_v3_large_state_dict_matches_torchvision() {
 fn mobilenet_v3_large_matches_torchvision() {
     check_parity("mobilenet_v3_large");
 }
+
+#[test]
+fn efficientnet_b0_state_dict_matches_torchvision() {
+    check_table("efficientnet_b0");
+}
+
+#[test]
+fn efficientnet_b0_matches_torchvision() {
+    check_parity("efficientnet_b0");
+}
