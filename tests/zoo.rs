@@ -165,3 +165,13 @@ fn efficientnet_b0_state_dict_matches_torchvision() {
 fn efficientnet_b0_matches_torchvision() {
     check_parity("efficientnet_b0");
 }
+
+#[test]
+fn convnext_tiny_state_dict_matches_torchvision() {
+    check_table("convnext_tiny");
+}
+
+#[test]
+fn convnext_tiny_matches_torchvision() {
+    check_parity("convnext_tiny");
+}
