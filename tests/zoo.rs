@@ -126,6 +126,29 @@ fn check_parity(name: &str) {
     }
 }
 
+/// The zoo, in the order of the README's table.
+const ZOO: [&str; 5] = ["resnet50", "mobilenet_v2", "mobilenet_v3_large", "efficientnet_b0", "convnext_tiny"];
+
+/// `readi params` reports torchvision's parameter count for each model, with 1000 classes.
+#[test]
+fn readi_params_counts_torchvisions_parameters() {
+    for name in ZOO {
+        let rel = format!("models/{name}.readi");
+        let o = common::readi(&["params", &rel]);
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(o.status.success(), "readi params {rel}: {}", String::from_utf8_lossy(&o.stderr));
+        let (_, count, _) = torchvision_table(name);
+        let total = stdout.lines().find(|l| l.starts_with("total: ")).expect("a total line");
+        let shown: u64 = total["total: ".len()..]
+            .split_whitespace()
+            .next()
+            .map(|n| n.replace(',', ""))
+            .and_then(|n| n.parse().ok())
+            .expect("a count");
+        assert_eq!(shown, count, "readi params {rel}: {total}");
+    }
+}
+
 #[test]
 fn resnet50_state_dict_matches_torchvision() {
     check_table("resnet50");
