@@ -22,9 +22,14 @@ fn check_accepts_every_bundled_model() {
         "models/vit_encoder.readi",
         "models/pointpillars_bev.readi",
         "models/bevfusion_tiny.readi",
+        "models/resnet50.readi",
+        "models/mobilenet_v2.readi",
+        "models/mobilenet_v3_large.readi",
+        "models/efficientnet_b0.readi",
+        "models/convnext_tiny.readi",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("ok  ")).count(), 4, "{}", stdout(&o));
+    assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("ok  ")).count(), 9, "{}", stdout(&o));
 }
 
 #[test]
