@@ -1,6 +1,7 @@
 //! Criterion benchmarks of the GEMM-based kernels at 2 threads: sgemm 512³, conv2d on
 //! ResNet-18's layer shapes (batch 1) with the algorithm `conv::choose` picks, and a
-//! transformer-sized linear; and the polynomial unary kernels against naive libm loops. Throughput is reported in FLOP/s (criterion's "elem/s").
+//! transformer-sized linear; conv_transpose2d on SECOND's FPN deblocks against the naive
+//! scatter loop; and the polynomial unary kernels against naive libm loops. Throughput is reported in FLOP/s (criterion's "elem/s").
 //!
 //! `cargo bench -p readi-runtime --bench kernels` runs all; a filter such as `conv2d`
 //! selects. With `READI_BENCH_ALL_ALGOS=1` every other algorithm that supports a conv
@@ -181,6 +182,59 @@ fn alternate(mut run: impl FnMut(bool)) -> String {
     )
 }
 
+/// `conv_transpose2d` on SECOND's FPN deblock shapes (batch 1, bias and ReLU fused)
+/// against the naive scatter loop (`conv_transpose::reference`, timed on its own: three
+/// calls, the fastest printed with the ratio). `cargo bench -p readi-runtime --bench
+/// kernels conv_transpose2d`.
+fn bench_conv_transpose(c: &mut Criterion) {
+    use readi_plan::ops::{ConvTranspose2d, Window2};
+    use readi_runtime::kernels::conv_transpose;
+    let pool = pool();
+    let mut g = c.benchmark_group("conv_transpose2d");
+    g.sample_size(10).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    // (name, cin, cout, k = stride, h, w)
+    let shapes = [("k2s2_128_128_124x108", 128, 128, 2, 124, 108), ("k4s4_256_256_50x44", 256, 256, 4, 50, 44)];
+    for (name, cin, cout, k, h, w) in shapes {
+        let window = Window2 { kernel: [k, k], stride: [k, k], padding: [0, 0], dilation: [1, 1] };
+        let op = ConvTranspose2d { in_channels: cin, out_channels: cout, window, output_padding: [0, 0], groups: 1 };
+        let s = op.shape(1, h, w);
+        let x = data(s.cin * h * w, 3);
+        let wt = data(s.weight_len(), 4);
+        let bias = data(s.cout, 5);
+        let ep = Epilogue { scale: None, shift: Some(&bias), act: Some(readi_plan::ops::Activation::Relu) };
+        let mut out = vec![0.0; s.cout * s.oh * s.ow];
+        let mut scratch = vec![0.0; conv_transpose::scratch_len(&s, THREADS).expect("fits")];
+        g.throughput(Throughput::Elements(2 * (s.weight_len() * h * w) as u64));
+        let mut fastest = f64::INFINITY;
+        g.bench_function(name, |bench| {
+            pool.install(|| {
+                bench.iter(|| {
+                    let t = std::time::Instant::now();
+                    conv_transpose::conv_transpose2d(&s, &wt, &ep, &x, &mut out, &mut scratch, THREADS);
+                    fastest = fastest.min(t.elapsed().as_secs_f64());
+                    black_box(&out);
+                })
+            })
+        });
+        let mut naive = f64::INFINITY;
+        let mut want = vec![0.0; out.len()];
+        for _ in 0..3 {
+            let t = std::time::Instant::now();
+            conv_transpose::reference(&s, &wt, &ep, &x, &mut want);
+            naive = naive.min(t.elapsed().as_secs_f64());
+            black_box(&want);
+        }
+        eprintln!(
+            "conv_transpose2d/{name}: kernel {:.2} ms (fastest call, {THREADS} threads), naive loop {:.1} ms (1 thread): \
+             {:.0}x",
+            fastest * 1e3,
+            naive * 1e3,
+            naive / fastest
+        );
+    }
+    g.finish();
+}
+
 fn bench_linear(c: &mut Criterion) {
     let pool = pool();
     let (rows, fin, fout) = (196, 384, 1536);
@@ -256,5 +310,5 @@ fn bench_unary(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_sgemm, bench_conv, bench_conv_lora, bench_linear, bench_unary);
+criterion_group!(benches, bench_sgemm, bench_conv, bench_conv_lora, bench_conv_transpose, bench_linear, bench_unary);
 criterion_main!(benches);

@@ -2,9 +2,10 @@
 //! stored tensors and its variant tables.
 //!
 //! A one-to-one map: an input becomes an input value, a `parameter` a stored-tensor
-//! value, a conv, transposed conv, linear, channel affine, layernorm or groupnorm a kernel reading the tensors its
-//! slots name (the epilogue's scale, shift and BatchNorm record included), and every other
-//! op the same [`Pure`](readi_plan::ops::Pure) operator as a kernel. The rewrites happened
+//! value, a conv, transposed conv, linear, channel affine, layernorm or groupnorm a
+//! kernel reading the tensors its slots name (the epilogue's scale, shift and BatchNorm
+//! record included), and every other op the same [`Pure`](readi_plan::ops::Pure)
+//! operator as a kernel. The rewrites happened
 //! before (fold, fuse, pack); a node they should have changed (an unfolded BatchNorm, an
 //! unpacked weight) is a compiler bug. A step's path lists the nodes fused into it
 //! (`conv1 (+bn1, relu#0)`). A `conv1d` is its conv2d step between two reshapes to and
