@@ -1,7 +1,8 @@
 //! Criterion benchmarks of the GEMM-based kernels at 2 threads: sgemm 512³, conv2d on
 //! ResNet-18's layer shapes (batch 1) with the algorithm `conv::choose` picks, and a
 //! transformer-sized linear; conv_transpose2d on SECOND's FPN deblocks against the naive
-//! scatter loop; and the polynomial unary kernels against naive libm loops. Throughput is reported in FLOP/s (criterion's "elem/s").
+//! scatter loop; the polynomial unary kernels against naive libm loops; and pad, roll and
+//! slice against naive index loops. Throughput is reported in FLOP/s (criterion's "elem/s").
 //!
 //! `cargo bench -p readi-runtime --bench kernels` runs all; a filter such as `conv2d`
 //! selects. With `READI_BENCH_ALL_ALGOS=1` every other algorithm that supports a conv
@@ -310,5 +311,89 @@ fn bench_unary(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_sgemm, bench_conv, bench_conv_lora, bench_conv_transpose, bench_linear, bench_unary);
+/// The data-movement kernels on a 64x56x56 feature map (a ResNet stage) against naive
+/// loops that compute each output element's source index.
+fn bench_movement(c: &mut Criterion) {
+    use readi_plan::ops::{Pad, PadMode, Roll, Slice, SliceAxis};
+    use readi_runtime::kernels::movement::{pad, roll, slice};
+    let (ch, h, w) = (64usize, 56usize, 56usize);
+    let x = data(ch * h * w, 11);
+    let mut g = c.benchmark_group("movement");
+    g.throughput(Throughput::Elements(x.len() as u64));
+    let p = Pad { pads: vec![1, 1, 1, 1], mode: PadMode::Reflect, value: 0.0 };
+    let mut out = vec![0.0; ch * (h + 2) * (w + 2)];
+    g.bench_function(BenchmarkId::new("readi", "pad_reflect"), |b| {
+        b.iter(|| pad(&p, black_box(&x), &[1, ch, h, w], &mut out))
+    });
+    g.bench_function(BenchmarkId::new("naive", "pad_reflect"), |b| {
+        b.iter(|| {
+            let xb = black_box(&x);
+            let refl = |i: i64, d: i64| if i < 0 { -i } else if i >= d { 2 * (d - 1) - i } else { i } as usize;
+            let (oh, ow) = (h + 2, w + 2);
+            for (o, v) in out.iter_mut().enumerate() {
+                let (c0, r, q) = (o / (oh * ow), o / ow % oh, o % ow);
+                let (sr, sq) = (refl(r as i64 - 1, h as i64), refl(q as i64 - 1, w as i64));
+                *v = xb[(c0 * h + sr) * w + sq];
+            }
+        })
+    });
+    let r = Roll { shifts: vec![3, 3], axes: vec![2, 3] };
+    let mut out = vec![0.0; x.len()];
+    g.bench_function(BenchmarkId::new("readi", "roll_hw"), |b| {
+        b.iter(|| roll(&r, black_box(&x), &[1, ch, h, w], &mut out))
+    });
+    g.bench_function(BenchmarkId::new("naive", "roll_hw"), |b| {
+        b.iter(|| {
+            let xb = black_box(&x);
+            for (o, v) in out.iter_mut().enumerate() {
+                let (c0, i, j) = (o / (h * w), o / w % h, o % w);
+                *v = xb[(c0 * h + (i + h - 3) % h) * w + (j + w - 3) % w];
+            }
+        })
+    });
+    let full = SliceAxis::FULL;
+    let cases = [
+        ("slice_channels", vec![full, SliceAxis::Range { start: Some(0), stop: Some(32), step: 1 }, full, full]),
+        (
+            "slice_stride2",
+            vec![
+                full,
+                full,
+                SliceAxis::Range { start: None, stop: None, step: 2 },
+                SliceAxis::Range { start: Some(1), stop: None, step: 2 },
+            ],
+        ),
+    ];
+    for (name, axes) in cases {
+        let s = Slice { axes };
+        let shape = [1, ch, h, w];
+        let rs = s.resolve(&shape).expect("resolves");
+        let mut out = vec![0.0; rs.iter().map(|r| r.len).product()];
+        g.bench_function(BenchmarkId::new("readi", name), |b| b.iter(|| slice(&s, black_box(&x), &shape, &mut out)));
+        g.bench_function(BenchmarkId::new("naive", name), |b| {
+            b.iter(|| {
+                let xb = black_box(&x);
+                let (lh, lw) = (rs[2].len, rs[3].len);
+                for (o, v) in out.iter_mut().enumerate() {
+                    let (c0, i, j) = (o / (lh * lw), o / lw % lh, o % lw);
+                    let (c0, i, j) =
+                        (rs[1].start + c0 * rs[1].step, rs[2].start + i * rs[2].step, rs[3].start + j * rs[3].step);
+                    *v = xb[(c0 * h + i) * w + j];
+                }
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(
+    benches,
+    bench_sgemm,
+    bench_conv,
+    bench_conv_lora,
+    bench_conv_transpose,
+    bench_linear,
+    bench_unary,
+    bench_movement
+);
 criterion_main!(benches);

@@ -56,7 +56,7 @@ fn pad(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         return Err(args.bad_value("value", format!("must be finite, got {value}")));
     }
     let rank = args.ttype("x")?.rank();
-    if pads.len() % 2 != 0 || pads.len() > 2 * rank {
+    if !pads.len().is_multiple_of(2) || pads.len() > 2 * rank {
         return Err(args.bad_value(
             "pad",
             format!("needs (before, after) pairs for at most the {rank} axes of `x`, got {} amounts", pads.len()),

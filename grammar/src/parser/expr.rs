@@ -426,6 +426,25 @@ mod tests {
     }
 
     #[test]
+    fn subscripts_parse_and_print_back() {
+        let f = parse_ok("model m { let a = x[:, 0:64, ::2, ..., -1:, 1::3] }");
+        let StmtKind::Let { value, .. } = &model_stmts(&f)[0].kind else { panic!() };
+        let ExprKind::Subscript(_, subs) = &value.kind else { panic!("{value:?}") };
+        assert_eq!(subs.len(), 6);
+        assert!(matches!(&subs[0], Subscript::Range { start: None, stop: None, step: None, .. }));
+        assert!(matches!(&subs[2], Subscript::Range { start: None, stop: None, step: Some(_), .. }));
+        assert!(matches!(&subs[3], Subscript::Ellipsis(_)));
+        assert!(matches!(&subs[4], Subscript::Range { start: Some(_), stop: None, step: None, .. }));
+        assert_eq!(crate::ast_print::expr_to_source(value), "x[:, 0:64, ::2, ..., -1:, 1::3]");
+        // One plain index stays a list/sequence index; a trailing comma makes a subscript.
+        let f = parse_ok("model m { let a = xs[i]\n let b = x[0,] }");
+        assert!(matches!(model_stmts(&f)[0].kind, StmtKind::Let { value: Expr { kind: ExprKind::Index(..), .. }, .. }));
+        let StmtKind::Let { value, .. } = &model_stmts(&f)[1].kind else { panic!() };
+        assert!(matches!(&value.kind, ExprKind::Subscript(_, s) if s.len() == 1));
+        assert_eq!(crate::ast_print::expr_to_source(value), "x[0,]");
+    }
+
+    #[test]
     fn negative_literals_fold() {
         let f = parse_ok("model m { let a = -3 }");
         let StmtKind::Let { value, .. } = &model_stmts(&f)[0].kind else { panic!() };

@@ -67,7 +67,7 @@ impl Operator for Pad {
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = inputs[0];
         let n = self.pads.len();
-        if n % 2 != 0 || n > 2 * x.rank() {
+        if !n.is_multiple_of(2) || n > 2 * x.rank() {
             return Err(ShapeError::new(format!(
                 "pad needs pairs for at most the {} axes of {x}, got {n} amounts {}",
                 x.rank(),

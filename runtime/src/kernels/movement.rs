@@ -44,7 +44,7 @@ pub fn check_pad(p: &Pad, x: &[usize], out: &[usize]) -> Result<(), String> {
 }
 
 fn pad_shape(p: &Pad, x: &[usize]) -> Result<Vec<usize>, String> {
-    if p.pads.len() % 2 != 0 || p.pads.len() > 2 * x.len() {
+    if !p.pads.len().is_multiple_of(2) || p.pads.len() > 2 * x.len() {
         return Err(format!("pad {:?} does not fit a rank-{} input", p.pads, x.len()));
     }
     x.iter()
