@@ -213,7 +213,7 @@ pub enum Pure {
     Upsample(Upsample),
     AdaptivePool(AdaptivePool2d),
     PixelShuffle(PixelShuffle),
-    /// Plans of format version 3 and before call it `Mean` (it was the only kind).
+    /// Plans of format versions 2 and 3 call it `Mean` (it was the only kind).
     #[serde(alias = "Mean")]
     Reduce(Reduce),
     Pad(Pad),
