@@ -253,6 +253,21 @@ pub(crate) fn max_nan(acc: f32, v: f32) -> f32 {
     if v.is_nan() { v } else { Max::one(acc, v) }
 }
 
+/// `sq[i] += (x[i] - mean[i])²` over three slices of one length, in SIMD vectors.
+#[inline(always)]
+fn sq_dev_rows<S: Simd>(simd: S, sq: &mut [f32], mean: &[f32], x: &[f32]) {
+    let (qh, qt) = S::as_mut_simd_f32s(sq);
+    let (mh, mt) = S::as_simd_f32s(mean);
+    let (xh, xt) = S::as_simd_f32s(x);
+    for ((q, &m), &v) in qh.iter_mut().zip(mh).zip(xh) {
+        let d = simd.sub_f32s(v, m);
+        *q = simd.mul_add_f32s(d, d, *q);
+    }
+    for ((q, &m), &v) in qt.iter_mut().zip(mt).zip(xt) {
+        *q += (v - m) * (v - m);
+    }
+}
+
 /// `out[i] += x[i]` over two slices of one length, in SIMD vectors.
 #[inline(always)]
 pub(crate) fn add_rows<S: Simd>(simd: S, out: &mut [f32], x: &[f32]) {
@@ -353,13 +368,19 @@ impl View {
                 });
             }
         } else {
-            self.tiles(out, start, |seg, base| {
+            // Tiles of the output (see `tile_at`), written without a closure, which was
+            // left out of line (and so out of the SIMD dispatch).
+            let mut pos = 0;
+            while pos < out.len() {
+                let (base, tn) = self.tile_at(start + pos, out.len() - pos);
+                let seg = &mut out[pos..pos + tn];
                 seg.fill(F::INIT);
                 for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    fold_rows::<S, F>(simd, seg, &x[b..b + seg.len()]);
+                    fold_rows::<S, F>(simd, seg, &x[b..b + tn]);
                 }
-            });
+                pos += tn;
+            }
         }
     }
 
@@ -392,47 +413,39 @@ impl View {
                 *o = sq / div;
             }
         } else {
-            self.tiles(out, start, |seg, base| {
+            let mut pos = 0;
+            let mut sq = [0f32; TILE];
+            while pos < out.len() {
+                let (base, tn) = self.tile_at(start + pos, out.len() - pos);
+                let seg = &mut out[pos..pos + tn];
                 seg.fill(0.0);
                 for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    fold_rows::<S, Add>(simd, seg, &x[b..b + seg.len()]);
+                    fold_rows::<S, Add>(simd, seg, &x[b..b + tn]);
                 }
                 seg.iter_mut().for_each(|m| *m *= inv);
-                let mut sq = [0f32; TILE];
-                let sq = &mut sq[..seg.len()];
+                let sq = &mut sq[..tn];
+                sq.fill(0.0);
                 for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    for ((q, &m), &v) in sq.iter_mut().zip(seg.iter()).zip(&x[b..b + seg.len()]) {
-                        let d = v - m;
-                        *q += d * d;
-                    }
+                    sq_dev_rows(simd, sq, seg, &x[b..b + tn]);
                 }
                 for (o, &q) in seg.iter_mut().zip(sq.iter()) {
                     *o = q / div;
                 }
-            });
+                pos += tn;
+            }
         }
     }
 
-    /// With the last axis kept: calls `f(segment, base)` on `out` cut into segments of
-    /// at most [`TILE`] output elements within one row of `run`, `base` the offset in x
-    /// of the segment's first element at reduced index 0. A tile stays in L1 while every
-    /// reduced row is added in.
+    /// With the last axis kept: the tile of output elements starting at `g` (global),
+    /// at most `left` long, within one row of `run` and at most [`TILE`] long (it stays in
+    /// L1 while every reduced row is added in): `(offset in x at reduced index 0, length)`.
     #[inline(always)]
-    fn tiles(&self, out: &mut [f32], start: usize, mut f: impl FnMut(&mut [f32], usize)) {
-        let mut pos = 0;
-        while pos < out.len() {
-            let g = start + pos;
-            let (row, col) = (g / self.run, g % self.run);
-            let n = (self.run - col).min(out.len() - pos);
-            let base = self.kept_offset(row) + col;
-            for t in (0..n).step_by(TILE) {
-                let tn = TILE.min(n - t);
-                f(&mut out[pos + t..pos + t + tn], base + t);
-            }
-            pos += n;
-        }
+    fn tile_at(&self, g: usize, left: usize) -> (usize, usize) {
+        let (row, col) = (g / self.run, g % self.run);
+        let n = (self.run - col).min(left).min(TILE);
+        (self.kept_offset(row) + col, n)
     }
 }
 
