@@ -74,6 +74,10 @@ impl Operator for Reduce {
         if axes.windows(2).any(|w| w[0] >= w[1]) {
             return Err(ShapeError::new(format!("{name} axes {axes:?} are not sorted")));
         }
+        let extremum = matches!(self.kind, ReduceKind::Max | ReduceKind::Min);
+        if let Some(&a) = axes.iter().find(|&&a| extremum && x.known_dim(a) == Some(0)) {
+            return Err(ShapeError::new(format!("{name} over the empty axis {a} of {x} has no value")));
+        }
         if let Some(c) = self.kind.correction().filter(|&c| c < 0) {
             return Err(ShapeError::new(format!("{name} correction {c} is negative")));
         }
@@ -150,6 +154,9 @@ mod tests {
         assert!(e.message.starts_with("min axes [1, 1] are out of range or repeated"), "{e}");
         let e = run(&r(ReduceKind::Var { correction: -1 }, &[1], true), &[t(&[2, 3])]).expect_err("negative");
         assert_eq!(e.message, "var correction -1 is negative");
+        let e = run(&r(ReduceKind::Max, &[1], false), &[t(&[2, 0, 3])]).expect_err("empty");
+        assert_eq!(e.message, "max over the empty axis 1 of f32[2, 0, 3] has no value");
+        assert_eq!(run(&r(ReduceKind::Sum, &[1], false), &[t(&[2, 0, 3])]), Ok(t(&[2, 3])));
         assert!(run(&Softmax { axis: 3 }, &[t(&[2, 3, 4])]).is_err());
     }
 

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 
 use readi_plan::ops::{Pool2d, adaptive_bin, window_out};
 
-use super::reduce::{max_nan, max_simd, sum_simd};
+use super::reduce::{add_rows, max_nan, max_rows, max_simd, sum_simd};
 
 /// Below this much work (window reads) a kernel runs on the calling thread.
 const PAR_MIN: usize = 1 << 15;
@@ -334,7 +334,8 @@ fn combine_into<'a, R: Reduction>(dst: &mut [f32], k: usize, src: impl Fn(usize)
 /// Adaptive pooling of `x` (`[nc, h, w]`) into `out` (`[nc, oh, ow]`), as PyTorch's
 /// `adaptive_max_pool2d` / `adaptive_avg_pool2d`: output `(i, j)` reduces the input rows
 /// and columns of [`adaptive_bin`]`(i, h, oh)` and `(j, w, ow)`, the maximum with NaN
-/// propagating or the mean. Bins that span whole rows are read as one contiguous run.
+/// propagating or the mean. A bin's input rows are folded column-wise first (rows up to
+/// [`BUF`] wide; wider ones per bin, a bin spanning whole rows as one contiguous run).
 #[allow(clippy::too_many_arguments)]
 pub fn adaptive_pool2d(
     kind: PoolKind,
@@ -383,6 +384,34 @@ impl pulp::WithSimd for AdaptiveRows<'_> {
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, simd: S) {
         let AdaptiveRows { kind, x, h, w, oh, ow, first, out } = self;
+        if w <= BUF {
+            // Each output row: its bin's input rows folded column-wise into `acc` (whole
+            // rows in SIMD vectors), then each bin's columns of `acc`.
+            let mut acc = [0f32; BUF];
+            let acc = &mut acc[..w];
+            for (k, row) in out.chunks_mut(ow).enumerate() {
+                let (plane, i) = ((first + k) / oh, (first + k) % oh);
+                let (hs, he) = adaptive_bin(i, h, oh);
+                let rows = &x[(plane * h + hs) * w..(plane * h + he) * w];
+                let init = if kind == PoolKind::Max { f32::NEG_INFINITY } else { 0.0 };
+                acc.fill(init);
+                for r in rows.chunks(w) {
+                    match kind {
+                        PoolKind::Avg => add_rows(simd, acc, r),
+                        PoolKind::Max => max_rows(simd, acc, r),
+                    }
+                }
+                for (j, o) in row.iter_mut().enumerate() {
+                    let (ws, we) = adaptive_bin(j, w, ow);
+                    let cols = &acc[ws..we];
+                    *o = match kind {
+                        PoolKind::Avg => cols.iter().sum::<f32>() / ((he - hs) * (we - ws)) as f32,
+                        PoolKind::Max => cols.iter().fold(init, |m, &v| max_nan(m, v)),
+                    };
+                }
+            }
+            return;
+        }
         for (k, row) in out.chunks_mut(ow).enumerate() {
             let (plane, i) = ((first + k) / oh, (first + k) % oh);
             let (hs, he) = adaptive_bin(i, h, oh);

@@ -72,8 +72,15 @@ pub fn reduce(kind: ReduceKind, x: &[f32], shape: &[usize], axes: &[usize], out:
         return;
     }
     let v = View::new(shape, axes);
+    // Variances in a dispatch of their own: compiled into one function with the other
+    // kinds, their closures were left out of line (measured 8x slower than a plain loop).
     let run = |start: usize, out: &mut [f32]| {
-        pulp::Arch::new().dispatch(ReducePart { kind, view: &v, x, start, out, count });
+        let part = ReducePart { kind, view: &v, x, start, out, count };
+        if kind.correction().is_some() {
+            pulp::Arch::new().dispatch(VarPart(part));
+        } else {
+            pulp::Arch::new().dispatch(part);
+        }
     };
     // Each output element costs `count` input reads (twice that for a variance); give
     // every task enough of them.
@@ -116,13 +123,26 @@ impl pulp::WithSimd for ReducePart<'_> {
             }
             ReduceKind::Max => view.fold_into::<S, Max>(simd, x, start, out),
             ReduceKind::Min => view.fold_into::<S, Min>(simd, x, start, out),
-            ReduceKind::Var { correction } | ReduceKind::Std { correction } => {
-                let div = (count as i64).saturating_sub(correction).max(0) as f32;
-                view.var_into(simd, x, start, out, count, div);
-                if matches!(kind, ReduceKind::Std { .. }) {
-                    out.iter_mut().for_each(|o| *o = o.sqrt());
-                }
+            ReduceKind::Var { .. } | ReduceKind::Std { .. } => {
+                VarPart(ReducePart { kind, view, x, start, out, count }).with_simd(simd)
             }
+        }
+    }
+}
+
+/// A [`ReducePart`] of a variance or standard deviation.
+struct VarPart<'a>(ReducePart<'a>);
+
+impl pulp::WithSimd for VarPart<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        let ReducePart { kind, view, x, start, out, count } = self.0;
+        let correction = kind.correction().unwrap_or(0);
+        let div = (count as i64).saturating_sub(correction).max(0) as f32;
+        view.var_into(simd, x, start, out, count, div);
+        if matches!(kind, ReduceKind::Std { .. }) {
+            out.iter_mut().for_each(|o| *o = o.sqrt());
         }
     }
 }
@@ -233,6 +253,33 @@ pub(crate) fn max_nan(acc: f32, v: f32) -> f32 {
     if v.is_nan() { v } else { Max::one(acc, v) }
 }
 
+/// `sq[i] += (x[i] - mean[i])²` over three slices of one length, in SIMD vectors.
+#[inline(always)]
+fn sq_dev_rows<S: Simd>(simd: S, sq: &mut [f32], mean: &[f32], x: &[f32]) {
+    let (qh, qt) = S::as_mut_simd_f32s(sq);
+    let (mh, mt) = S::as_simd_f32s(mean);
+    let (xh, xt) = S::as_simd_f32s(x);
+    for ((q, &m), &v) in qh.iter_mut().zip(mh).zip(xh) {
+        let d = simd.sub_f32s(v, m);
+        *q = simd.mul_add_f32s(d, d, *q);
+    }
+    for ((q, &m), &v) in qt.iter_mut().zip(mt).zip(xt) {
+        *q += (v - m) * (v - m);
+    }
+}
+
+/// `out[i] += x[i]` over two slices of one length, in SIMD vectors.
+#[inline(always)]
+pub(crate) fn add_rows<S: Simd>(simd: S, out: &mut [f32], x: &[f32]) {
+    fold_rows::<S, Add>(simd, out, x)
+}
+
+/// `out[i] = max(out[i], x[i])`, NaN propagating, over two slices of one length.
+#[inline(always)]
+pub(crate) fn max_rows<S: Simd>(simd: S, out: &mut [f32], x: &[f32]) {
+    fold_rows::<S, Max>(simd, out, x)
+}
+
 /// `out[i] = F(out[i], x[i])` over two slices of one length, in SIMD vectors.
 #[inline(always)]
 fn fold_rows<S: Simd, F: Fold>(simd: S, out: &mut [f32], x: &[f32]) {
@@ -321,13 +368,19 @@ impl View {
                 });
             }
         } else {
-            self.tiles(out, start, |seg, base| {
+            // Tiles of the output (see `tile_at`), written without a closure, which was
+            // left out of line (and so out of the SIMD dispatch).
+            let mut pos = 0;
+            while pos < out.len() {
+                let (base, tn) = self.tile_at(start + pos, out.len() - pos);
+                let seg = &mut out[pos..pos + tn];
                 seg.fill(F::INIT);
                 for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    fold_rows::<S, F>(simd, seg, &x[b..b + seg.len()]);
+                    fold_rows::<S, F>(simd, seg, &x[b..b + tn]);
                 }
-            });
+                pos += tn;
+            }
         }
     }
 
@@ -338,64 +391,61 @@ impl View {
         let combos: usize = self.reduced.iter().map(|d| d.0).product();
         let inv = 1.0 / count as f32;
         if self.run_reduced {
+            let run = self.run;
             for (i, o) in out.iter_mut().enumerate() {
                 let base = self.kept_offset(start + i);
-                let row = |r: usize| {
+                let mut sum = 0.0;
+                for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    &x[b..b + self.run]
-                };
-                let mean = (0..combos).map(|r| sum_simd(simd, row(r))).sum::<f32>() * inv;
+                    sum += sum_simd(simd, &x[b..b + run]);
+                }
+                let mean = sum * inv;
                 let vmean = simd.splat_f32s(mean);
-                let sq_dev = |v| {
-                    let d = simd.sub_f32s(v, vmean);
-                    simd.mul_f32s(d, d)
-                };
-                let sq: f32 =
-                    (0..combos).map(|r| sum_map_simd(simd, row(r), sq_dev, |v| (v - mean) * (v - mean))).sum();
+                let mut sq = 0.0;
+                for r in 0..combos {
+                    let b = base + self.reduced_offset(r);
+                    let sq_dev = |v| {
+                        let d = simd.sub_f32s(v, vmean);
+                        simd.mul_f32s(d, d)
+                    };
+                    sq += sum_map_simd(simd, &x[b..b + run], sq_dev, |v| (v - mean) * (v - mean));
+                }
                 *o = sq / div;
             }
         } else {
-            self.tiles(out, start, |seg, base| {
+            let mut pos = 0;
+            let mut sq = [0f32; TILE];
+            while pos < out.len() {
+                let (base, tn) = self.tile_at(start + pos, out.len() - pos);
+                let seg = &mut out[pos..pos + tn];
                 seg.fill(0.0);
                 for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    fold_rows::<S, Add>(simd, seg, &x[b..b + seg.len()]);
+                    fold_rows::<S, Add>(simd, seg, &x[b..b + tn]);
                 }
                 seg.iter_mut().for_each(|m| *m *= inv);
-                let mut sq = [0f32; TILE];
-                let sq = &mut sq[..seg.len()];
+                let sq = &mut sq[..tn];
+                sq.fill(0.0);
                 for r in 0..combos {
                     let b = base + self.reduced_offset(r);
-                    for ((q, &m), &v) in sq.iter_mut().zip(seg.iter()).zip(&x[b..b + seg.len()]) {
-                        let d = v - m;
-                        *q += d * d;
-                    }
+                    sq_dev_rows(simd, sq, seg, &x[b..b + tn]);
                 }
                 for (o, &q) in seg.iter_mut().zip(sq.iter()) {
                     *o = q / div;
                 }
-            });
+                pos += tn;
+            }
         }
     }
 
-    /// With the last axis kept: calls `f(segment, base)` on `out` cut into segments of
-    /// at most [`TILE`] output elements within one row of `run`, `base` the offset in x
-    /// of the segment's first element at reduced index 0. A tile stays in L1 while every
-    /// reduced row is added in.
+    /// With the last axis kept: the tile of output elements starting at `g` (global),
+    /// at most `left` long, within one row of `run` and at most [`TILE`] long (it stays in
+    /// L1 while every reduced row is added in): `(offset in x at reduced index 0, length)`.
     #[inline(always)]
-    fn tiles(&self, out: &mut [f32], start: usize, mut f: impl FnMut(&mut [f32], usize)) {
-        let mut pos = 0;
-        while pos < out.len() {
-            let g = start + pos;
-            let (row, col) = (g / self.run, g % self.run);
-            let n = (self.run - col).min(out.len() - pos);
-            let base = self.kept_offset(row) + col;
-            for t in (0..n).step_by(TILE) {
-                let tn = TILE.min(n - t);
-                f(&mut out[pos + t..pos + t + tn], base + t);
-            }
-            pos += n;
-        }
+    fn tile_at(&self, g: usize, left: usize) -> (usize, usize) {
+        let (row, col) = (g / self.run, g % self.run);
+        let n = (self.run - col).min(left).min(TILE);
+        (self.kept_offset(row) + col, n)
     }
 }
 

@@ -257,8 +257,8 @@ pub fn pixel_shuffle(inverse: bool, r: usize, x: &[f32], n: usize, c: usize, h: 
                 let (y, i) = (yi / r, yi % r);
                 for j in 0..r {
                     let src = &x[((sc * r * r + i * r + j) * h + y) * w..][..w];
-                    for (o, &v) in o.iter_mut().skip(j).step_by(r).zip(src) {
-                        *o = v;
+                    for (xx, &v) in src.iter().enumerate() {
+                        o[xx * r + j] = v;
                     }
                 }
             }
