@@ -27,9 +27,10 @@ fn check_accepts_every_bundled_model() {
         "models/mobilenet_v3_large.readi",
         "models/efficientnet_b0.readi",
         "models/convnext_tiny.readi",
+        "models/vit_b_16.readi",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("ok  ")).count(), 9, "{}", stdout(&o));
+    assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("ok  ")).count(), 10, "{}", stdout(&o));
 }
 
 #[test]

@@ -127,7 +127,8 @@ fn check_parity(name: &str) {
 }
 
 /// The zoo, in the order of the README's table.
-const ZOO: [&str; 5] = ["resnet50", "mobilenet_v2", "mobilenet_v3_large", "efficientnet_b0", "convnext_tiny"];
+const ZOO: [&str; 6] =
+    ["resnet50", "mobilenet_v2", "mobilenet_v3_large", "efficientnet_b0", "convnext_tiny", "vit_b_16"];
 
 /// `readi params` reports torchvision's parameter count for each model, with 1000 classes.
 #[test]
@@ -197,4 +198,15 @@ fn convnext_tiny_state_dict_matches_torchvision() {
 #[test]
 fn convnext_tiny_matches_torchvision() {
     check_parity("convnext_tiny");
+}
+
+#[test]
+fn vit_b_16_state_dict_matches_torchvision() {
+    check_table("vit_b_16");
+}
+
+/// At 32x32 (torchvision's `image_size=32`: 4 patches and the class token), batch 2.
+#[test]
+fn vit_b_16_matches_torchvision() {
+    check_parity("vit_b_16");
 }
