@@ -100,12 +100,14 @@ fn other_format_versions_are_refused() {
 
 #[test]
 fn version_2_plans_still_load() {
-    // Version 2 wrote an epilogue's activation as `"relu": bool`; version 3 as `"act"`.
+    // Version 2 wrote an epilogue's activation as `"relu": bool`; version 3 and later as
+    // `"act"`.
     let p = plan();
     let json = serde_json::to_string(&p.manifest).expect("manifest");
     assert!(json.contains(r#""act":"Relu""#), "the case fuses a ReLU");
-    let v2 =
-        json.replace(r#""act":"Relu""#, r#""relu":true"#).replace(r#""format_version":3"#, r#""format_version":2"#);
+    let current = format!(r#""format_version":{}"#, readi_plan::format::FORMAT_VERSION);
+    assert!(json.contains(&current), "{json}");
+    let v2 = json.replace(r#""act":"Relu""#, r#""relu":true"#).replace(&current, r#""format_version":2"#);
     let tensors: Vec<(String, Vec<usize>, Vec<u8>)> = (0..p.manifest.tensors.len())
         .map(|i| {
             let t = &p.manifest.tensors[i];
