@@ -51,16 +51,15 @@ impl<'a> Elab<'a> {
             }
             let Some(op) = op else { return self.call_function(name, &values, span) };
             let args = Args { sig, values, call_span: span, graph: &self.graph };
-            if let Some(many) = op.many {
-                return match many(&args) {
+            return match op.make {
+                crate::ops::Make::One(build) => match build(&args) {
+                    Ok((op, inputs)) => self.add_node_in(op, inputs, hint, span, frame.scope),
+                    Err(d) => self.error(d),
+                },
+                crate::ops::Make::Many(many) => match many(&args) {
                     Ok(pieces) => self.add_nodes_as_list(pieces, hint, span, frame.scope),
                     Err(d) => self.error(d),
-                };
-            }
-            let built = (op.build)(&args);
-            return match built {
-                Ok((op, inputs)) => self.add_node_in(op, inputs, hint, span, frame.scope),
-                Err(d) => self.error(d),
+                },
             };
         }
         if let Some(&def) = self.blocks.get(name) {

@@ -65,32 +65,33 @@ pub type Build = fn(&Args<'_>) -> R<(Op, Vec<ValueRef>)>;
 /// its inputs per element.
 pub type BuildMany = fn(&Args<'_>) -> R<Vec<(Op, Vec<ValueRef>)>>;
 
+/// How a builtin makes its value: one tensor, or a list of them.
+#[derive(Clone, Copy)]
+pub enum Make {
+    One(Build),
+    Many(BuildMany),
+}
+
 /// A builtin op of the language.
 pub struct Builtin {
     pub sig: Sig,
-    pub build: Build,
+    pub make: Make,
     /// The builtin writes an op of another kind (`transpose` and `flatten` make a
     /// `permute` and a `reshape`), so selectors do not know it as a kind.
     pub alias: bool,
-    /// Set for a builtin whose value is a list of tensors; `build` is then unused.
-    pub many: Option<BuildMany>,
 }
 
 impl Builtin {
     pub(crate) const fn new(name: &'static str, params: &'static [P], build: Build) -> Builtin {
-        Builtin { sig: Sig { name, params }, build, alias: false, many: None }
+        Builtin { sig: Sig { name, params }, make: Make::One(build), alias: false }
     }
     /// A builtin whose value is a list of tensors, each made by an op of another kind.
     pub(crate) const fn many(name: &'static str, params: &'static [P], many: BuildMany) -> Builtin {
-        Builtin { sig: Sig { name, params }, build: unused_build, alias: true, many: Some(many) }
+        Builtin { sig: Sig { name, params }, make: Make::Many(many), alias: true }
     }
     pub(crate) const fn alias(self) -> Builtin {
         Builtin { alias: true, ..self }
     }
-}
-
-fn unused_build(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
-    Err(args.bad_value("x", "makes a list of tensors".into()))
 }
 
 static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
