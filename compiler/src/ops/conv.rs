@@ -197,22 +197,31 @@ fn conv1d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         window,
         groups: args.int_at_least("groups", 1)?,
     };
-    check_groups(args, &conv)?;
+    check_groups(args, conv.in_channels, conv.out_channels, conv.groups)?;
     let op = ConvOp { one_d: true, ..ConvOp::new(conv, args.boolean("bias")?) };
     Ok((Op::Conv2d(op), vec![args.tensor("x")?]))
 }
 
-fn check_groups(args: &Args<'_>, conv: &Conv2d) -> R<()> {
-    if conv.in_channels % conv.groups != 0 || conv.out_channels % conv.groups != 0 {
+/// `groups` divides both channel counts (conv2d, conv1d and conv_transpose2d).
+pub(super) fn check_groups(args: &Args<'_>, in_channels: i64, out_channels: i64, groups: i64) -> R<()> {
+    if in_channels % groups != 0 || out_channels % groups != 0 {
         return Err(args.bad_value(
             "groups",
-            format!(
-                "groups={} must divide both the {} input and {} output channels",
-                conv.groups, conv.in_channels, conv.out_channels
-            ),
+            format!("groups={groups} must divide both the {in_channels} input and {out_channels} output channels"),
         ));
     }
     Ok(())
+}
+
+/// The `kernel`, `stride`, `padding` and `dilation` arguments of a 2-D conv, each an int
+/// or a pair.
+pub(super) fn window2(args: &Args<'_>) -> R<Window2> {
+    Ok(Window2 {
+        kernel: args.pair("kernel", 1)?,
+        stride: args.pair("stride", 1)?,
+        padding: args.pair("padding", 0)?,
+        dilation: args.pair("dilation", 1)?,
+    })
 }
 
 fn conv2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
@@ -220,18 +229,13 @@ fn conv2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
     let in_channels = t.known_dim(1).filter(|_| t.rank() == 4).ok_or_else(|| {
         args.bad_value("x", format!("conv2d needs an NCHW tensor with a known channel count, got {t}"))
     })?;
-    let window = Window2 {
-        kernel: args.pair("kernel", 1)?,
-        stride: args.pair("stride", 1)?,
-        padding: args.pair("padding", 0)?,
-        dilation: args.pair("dilation", 1)?,
-    };
+    let window = window2(args)?;
     let conv = Conv2d {
         in_channels,
         out_channels: args.int_at_least("out", 1)?,
         window,
         groups: args.int_at_least("groups", 1)?,
     };
-    check_groups(args, &conv)?;
+    check_groups(args, conv.in_channels, conv.out_channels, conv.groups)?;
     Ok((Op::Conv2d(ConvOp::new(conv, args.boolean("bias")?)), vec![args.tensor("x")?]))
 }

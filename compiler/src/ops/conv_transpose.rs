@@ -1,7 +1,7 @@
 //! `conv_transpose2d(x, out, kernel, stride=1, padding=0, output_padding=0, groups=1,
 //! bias=true, dilation=1)`: PyTorch's `nn.ConvTranspose2d`, its arguments in its order.
 
-use readi_plan::ops::{ConvTranspose2d, Operator, ShapeResult, TensorType, Window2};
+use readi_plan::ops::{ConvTranspose2d, Operator, ShapeResult, TensorType};
 
 use super::{Args, Builtin, Epilogue, P, R, boolean, int, req};
 use crate::ir::{Op, ParamSlot, ValueRef};
@@ -66,12 +66,7 @@ fn conv_transpose2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
     let in_channels = t.known_dim(1).filter(|_| t.rank() == 4).ok_or_else(|| {
         args.bad_value("x", format!("conv_transpose2d needs an NCHW tensor with a known channel count, got {t}"))
     })?;
-    let window = Window2 {
-        kernel: args.pair("kernel", 1)?,
-        stride: args.pair("stride", 1)?,
-        padding: args.pair("padding", 0)?,
-        dilation: args.pair("dilation", 1)?,
-    };
+    let window = super::conv::window2(args)?;
     let output_padding = args.pair("output_padding", 0)?;
     for ((&op, &stride), &dilation) in output_padding.iter().zip(&window.stride).zip(&window.dilation) {
         if op >= stride && op >= dilation {
@@ -90,15 +85,7 @@ fn conv_transpose2d(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         output_padding,
         groups: args.int_at_least("groups", 1)?,
     };
-    if in_channels % conv.groups != 0 || conv.out_channels % conv.groups != 0 {
-        return Err(args.bad_value(
-            "groups",
-            format!(
-                "groups={} must divide both the {in_channels} input and {} output channels",
-                conv.groups, conv.out_channels
-            ),
-        ));
-    }
+    super::conv::check_groups(args, in_channels, conv.out_channels, conv.groups)?;
     let op = ConvTransposeOp { conv, bias: args.boolean("bias")?, epilogue: Epilogue::default() };
     Ok((Op::ConvTranspose2d(op), vec![args.tensor("x")?]))
 }
