@@ -108,6 +108,20 @@ pub fn layernorm(
     }
 }
 
+/// The mean of `x` and `1 / sqrt(var + eps)`, its biased variance taken in a second pass
+/// over the deviations (`inv_n = 1 / x.len()`): the statistics of layernorm and groupnorm.
+#[inline(always)]
+fn mean_rstd<S: Simd>(simd: S, x: &[f32], inv_n: f32, eps: f32) -> (f32, f32) {
+    let mean = sum_simd(simd, x) * inv_n;
+    let vmean = simd.splat_f32s(mean);
+    let sq_dev = |v| {
+        let d = simd.sub_f32s(v, vmean);
+        simd.mul_f32s(d, d)
+    };
+    let var = sum_map_simd(simd, x, sq_dev, |v| (v - mean) * (v - mean)) * inv_n;
+    (mean, 1.0 / (var + eps).sqrt())
+}
+
 /// LayerNorm of consecutive rows, compiled for the widest SIMD the CPU has.
 struct LayerNormRows<'a> {
     x: &'a [f32],
@@ -124,14 +138,7 @@ impl pulp::WithSimd for LayerNormRows<'_> {
     fn with_simd<S: Simd>(self, simd: S) {
         let inv_n = 1.0 / self.features as f32;
         for (out, x) in self.out.chunks_mut(self.features).zip(self.x.chunks(self.features)) {
-            let mean = sum_simd(simd, x) * inv_n;
-            let vmean = simd.splat_f32s(mean);
-            let sq_dev = |v| {
-                let d = simd.sub_f32s(v, vmean);
-                simd.mul_f32s(d, d)
-            };
-            let var = sum_map_simd(simd, x, sq_dev, |v| (v - mean) * (v - mean)) * inv_n;
-            let rstd = 1.0 / (var + self.eps).sqrt();
+            let (mean, rstd) = mean_rstd(simd, x, inv_n, self.eps);
             match (self.weight, self.bias) {
                 (Some(w), Some(b)) => {
                     for (((o, &v), &w), &b) in out.iter_mut().zip(x).zip(w).zip(b) {
@@ -226,14 +233,7 @@ impl pulp::WithSimd for GroupNormBlocks<'_> {
         let inv_n = 1.0 / block as f32;
         for (k, (out, x)) in out.chunks_mut(block).zip(x.chunks(block)).enumerate() {
             let g = (first + k) % groups;
-            let mean = sum_simd(simd, x) * inv_n;
-            let vmean = simd.splat_f32s(mean);
-            let sq_dev = |v| {
-                let d = simd.sub_f32s(v, vmean);
-                simd.mul_f32s(d, d)
-            };
-            let var = sum_map_simd(simd, x, sq_dev, |v| (v - mean) * (v - mean)) * inv_n;
-            let rstd = 1.0 / (var + eps).sqrt();
+            let (mean, rstd) = mean_rstd(simd, x, inv_n, eps);
             let cpg = block / inner;
             for (ch, (o, x)) in out.chunks_mut(inner).zip(x.chunks(inner)).enumerate() {
                 let cc = g * cpg + ch;
