@@ -168,6 +168,11 @@ fn winograd_edges() {
         shape(1, 16, (9, 7), 16, (3, 3), (1, 1), (0, 0), (1, 1), 1),
         shape(3, 16, (5, 6), 20, (3, 3), (1, 1), (2, 2), (1, 1), 1),
         shape(1, 18, (6, 30), 16, (3, 3), (1, 1), (1, 0), (1, 1), 1),
+        // Rows narrower than a tile: no tile lies wholly inside a row (plan_fuzz found
+        // the input transform slicing past such a row).
+        shape(1, 32, (12, 2), 32, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        shape(2, 16, (5, 1), 16, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        shape(1, 16, (7, 3), 16, (3, 3), (1, 1), (2, 2), (1, 1), 1),
     ] {
         assert_eq!(check_all(&s), 3);
     }

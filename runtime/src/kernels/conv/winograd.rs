@@ -492,7 +492,11 @@ fn input_row<T: WinoTf<A, M>, const A: usize, const M: usize, const L: usize>(
             deinterleave::<M>(&xc[start..start + L * M], phj, plen, u);
             u += L;
         }
-        deinterleave::<M>(&src[u.min(ub) * M - s.pad_w..ub * M - s.pad_w], phj, plen, u.min(ub));
+        // The inside tiles the groups left (none when a row is narrower than a tile, where
+        // `ub · M − pad` may lie past the row).
+        if u < ub {
+            deinterleave::<M>(&src[u * M - s.pad_w..ub * M - s.pad_w], phj, plen, u);
+        }
         // The edges. Phase columns past `tx` only feed lanes past the last tile, whose
         // results are overwritten or never read: left as they are.
         for u in (0..ua).chain(ub..(wz.tx + 1).min(plen)) {
