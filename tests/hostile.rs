@@ -826,3 +826,30 @@ fn a_crafted_groupnorm_is_refused() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_crafted_index_out_of_range_is_refused() {
+    use readi_plan::DType;
+    use readi_plan::ops::{Fill, IndexSelect, Pure};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("index");
+    let take = |index: Vec<i64>| {
+        Kernel::Pure(Pure::IndexSelect(IndexSelect { axis: 1, index_shape: vec![index.len()], index }))
+    };
+    // x: [N, 4]; an index of 4 (or -1) would read outside the axis.
+    let plan = one_step(&[None, Some(4)], take(vec![0, 4]), &[None, Some(2)], &[]);
+    let err = run_refused(&dir, "index.plan", plan, &[1, 4]);
+    assert!(err.contains("index 4 (at flat position 1) is out of range for axis 1"), "{err}");
+    let plan = one_step(&[None, Some(4)], take(vec![-1]), &[None, Some(1)], &[]);
+    let err = run_refused(&dir, "negative.plan", plan, &[1, 4]);
+    assert!(err.contains("index -1 (at flat position 0) is out of range"), "{err}");
+    // The indices and the index shape disagree.
+    let k = Kernel::Pure(Pure::IndexSelect(IndexSelect { axis: 1, index: vec![0, 1], index_shape: vec![3] }));
+    let err = run_refused(&dir, "count.plan", one_step(&[None, Some(4)], k, &[None, Some(3)], &[]), &[1, 4]);
+    assert!(err.contains("index_select has 2 indices for an index of shape [3]"), "{err}");
+    // A constant generator is the compiler's: a plan step of one is refused.
+    let fill = Kernel::Pure(Pure::Fill(Fill { shape: vec![1, 4], start: 0.0, step: 1.0, dtype: DType::F32 }));
+    let err = run_refused(&dir, "fill.plan", one_step(&[None, Some(4)], fill, &[Some(1), Some(4)], &[]), &[1, 4]);
+    assert!(err.contains("takes 0 tensor input(s), got 1"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Operator, ShapeError, ShapeResult, TensorType, float};
+use super::{DType, Operator, ShapeError, ShapeResult, TensorType, float};
 use crate::dim::Dim;
 
 /// Element-wise binary operations.
@@ -21,9 +21,22 @@ pub enum BinaryOp {
     /// `a ** b`, C's `powf` (PyTorch's `pow`; with a constant exponent 2, 3, 0.5, -0.5, -1
     /// or -2 it is the product, root or reciprocal, as in PyTorch's kernel).
     Pow,
+    /// Comparisons (`==`, `!=`, `<`, `<=`, `>`, `>=`): a bool tensor, 1 where true and 0
+    /// where false as values.
+    Eq,
+    Ne,
+    Lt,
+    Le,
+    Gt,
+    Ge,
 }
 
 impl BinaryOp {
+    /// Whether the operation is a comparison (its result is bool; it takes any types).
+    pub fn is_comparison(self) -> bool {
+        matches!(self, BinaryOp::Eq | BinaryOp::Ne | BinaryOp::Lt | BinaryOp::Le | BinaryOp::Gt | BinaryOp::Ge)
+    }
+
     /// The operations with a builtin `name(a, b)` (`pow` has its own, `pow(x, exponent)`).
     pub const ALL: [BinaryOp; 4] = [BinaryOp::Add, BinaryOp::Sub, BinaryOp::Mul, BinaryOp::Div];
 
@@ -34,6 +47,12 @@ impl BinaryOp {
             BinaryOp::Mul => "mul",
             BinaryOp::Div => "div",
             BinaryOp::Pow => "pow",
+            BinaryOp::Eq => "eq",
+            BinaryOp::Ne => "ne",
+            BinaryOp::Lt => "lt",
+            BinaryOp::Le => "le",
+            BinaryOp::Gt => "gt",
+            BinaryOp::Ge => "ge",
         }
     }
 
@@ -46,6 +65,12 @@ impl BinaryOp {
             BinaryOp::Mul => a * b,
             BinaryOp::Div => a / b,
             BinaryOp::Pow => a.powf(b),
+            BinaryOp::Eq => (a == b) as u8 as f32,
+            BinaryOp::Ne => (a != b) as u8 as f32,
+            BinaryOp::Lt => (a < b) as u8 as f32,
+            BinaryOp::Le => (a <= b) as u8 as f32,
+            BinaryOp::Gt => (a > b) as u8 as f32,
+            BinaryOp::Ge => (a >= b) as u8 as f32,
         }
     }
 }
@@ -59,8 +84,17 @@ impl Operator for BinaryOp {
         Some(2)
     }
 
+    fn any_dtype(&self) -> bool {
+        self.is_comparison()
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let (a, b) = (inputs[0], inputs[1]);
+        if self.is_comparison() {
+            let shape = broadcast(&a.shape, &b.shape)
+                .map_err(|e| ShapeError::new(format!("cannot broadcast {a} with {b}")).note(e))?;
+            return Ok(TensorType::new(DType::Bool, shape));
+        }
         if a.dtype != b.dtype {
             return Err(ShapeError::new(format!("{} of different element types: {a} and {b}", self.name())));
         }
@@ -111,7 +145,14 @@ impl Operator for Scalar {
                 self.value
             )));
         }
+        if self.op.is_comparison() {
+            return Ok(TensorType::new(DType::Bool, inputs[0].shape.clone()));
+        }
         Ok(inputs[0].clone())
+    }
+
+    fn any_dtype(&self) -> bool {
+        self.op.is_comparison()
     }
 
     fn attrs(&self) -> Vec<(&'static str, String)> {

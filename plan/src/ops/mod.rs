@@ -21,6 +21,7 @@
 //! | `reduce.rs`     | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`             |
 //! | `resize.rs`     | `upsample`, `pixel_shuffle`, `pixel_unshuffle`                   |
 //! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`), `expand` |
+//! | `index.rs`      | `index_select` (also `embedding`), `where`, casts, `arange` / `full` constants |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -30,6 +31,7 @@
 mod conv;
 mod conv_transpose;
 mod elementwise;
+mod index;
 mod layout;
 mod linear;
 mod movement;
@@ -47,6 +49,7 @@ use crate::dim::Dim;
 pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
+pub use index::{Cast, Fill, IndexSelect, Where};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul};
 pub use movement::{Expand, Pad, PadMode, Resolved, Roll, Slice, SliceAxis};
@@ -175,10 +178,15 @@ pub trait Operator {
     fn attrs(&self) -> Vec<(&'static str, String)> {
         Vec::new()
     }
+    /// Whether the operator takes integer and bool inputs too (comparisons, `where`,
+    /// casts, indexing); every other one works on floating-point tensors only.
+    fn any_dtype(&self) -> bool {
+        false
+    }
 }
 
 /// The output type of `op` on inputs of the given types: the operator's own rule after
-/// the checks every operator shares (arity, floating-point inputs).
+/// the checks every operator shares (arity, floating-point inputs unless it takes any).
 pub fn infer(op: &dyn Operator, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
     let name = op.kind_name();
     match op.arity() {
@@ -188,7 +196,7 @@ pub fn infer(op: &dyn Operator, inputs: &[&TensorType]) -> ShapeResult<TensorTyp
         None if inputs.is_empty() => return Err(ShapeError::new(format!("{name} needs at least one input"))),
         _ => {}
     }
-    for t in inputs {
+    for t in inputs.iter().filter(|_| !op.any_dtype()) {
         if !t.dtype.is_float() {
             return Err(ShapeError::new(format!("{name} works on floating-point tensors, got {t}")));
         }
@@ -220,6 +228,11 @@ pub enum Pure {
     Roll(Roll),
     Slice(Slice),
     Expand(Expand),
+    IndexSelect(IndexSelect),
+    Where(Where),
+    Cast(Cast),
+    /// A constant; the compiler folds it, a plan never runs it.
+    Fill(Fill),
 }
 
 impl Pure {
@@ -244,6 +257,10 @@ impl Pure {
             Pure::Roll(o) => o,
             Pure::Slice(o) => o,
             Pure::Expand(o) => o,
+            Pure::IndexSelect(o) => o,
+            Pure::Where(o) => o,
+            Pure::Cast(o) => o,
+            Pure::Fill(o) => o,
         }
     }
 }

@@ -8,7 +8,7 @@ use std::collections::HashMap;
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::{
-    self, elementwise, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax,
+    self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax,
 };
 use readi_plan::ops::Pure;
 
@@ -470,6 +470,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let lora = |l: &Option<LoraSpec>| l.map(|l| (l.rank, len(l.a), len(l.b)));
     let arity = match &step.kernel {
         Kernel::Pure(Pure::MatMul(_) | Pure::Binary(_)) => Some(2),
+        Kernel::Pure(Pure::Where(_)) => Some(3),
         Kernel::Pure(Pure::Concat(_)) => None,
         _ => Some(1),
     };
@@ -552,27 +553,54 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             let (c, g) = (u(gn.num_channels)?, u(gn.num_groups)?);
             norm::check_groupnorm(x, c, g, [weight.map(len), bias.map(len)], out)
         }
-        Kernel::Pure(op) => match op {
-            Pure::MatMul(_) => linear::check_matmul(x, input(1), out),
-            Pure::Binary(_) => elementwise::check_binary(x, input(1), out),
-            Pure::Scalar(_) | Pure::Activation(_) | Pure::Reshape(_) => elementwise::check_same_length(x, out),
-            Pure::Softmax(sm) => softmax::check(x, sm.axis, out),
-            Pure::Concat(c) => {
-                let parts: Vec<&[usize]> = (0..step.inputs.len()).map(input).collect();
-                layout_k::check_concat(&parts, c.axis, out)
-            }
-            Pure::Permute(p) => layout_k::check_permute(x, &p.perm, out),
-            Pure::Pool(p) => pool::check(p, x, out),
-            Pure::GlobalAvgPool(_) => pool::check_global_avgpool(x, out),
-            Pure::Upsample(_) => resize::check(x, out),
-            Pure::Reduce(r) => reduce::check_reduce(r.kind, x, &r.axes, out),
-            Pure::AdaptivePool(_) => pool::check_adaptive(x, out),
-            Pure::PixelShuffle(p) => resize::check_pixel_shuffle(p.inverse, u(p.factor)?, x, out),
-            Pure::Pad(p) => movement::check_pad(p, x, out),
-            Pure::Roll(r) => movement::check_roll(r, x, out),
-            Pure::Slice(s) => movement::check_slice(s, x, out),
-            Pure::Expand(_) => movement::check_expand(x, out),
-        },
+        Kernel::Pure(op) => {
+            let parts: Vec<&[usize]> = (0..step.inputs.len()).map(input).collect();
+            check_pure(op, &parts, out)
+        }
+    }
+}
+
+/// Checks the pure operator `op` on inputs and an output of these shapes against its
+/// kernel's preconditions: what [`run_pure`](super::run_pure) needs, for a plan's step at
+/// bind time and for the compiler before it folds a constant.
+pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), String> {
+    let arity = match op {
+        Pure::MatMul(_) | Pure::Binary(_) => Some(2),
+        Pure::Where(_) => Some(3),
+        Pure::Fill(_) => Some(0),
+        Pure::Concat(_) => None,
+        _ => Some(1),
+    };
+    if (arity.is_none() && inputs.is_empty()) || arity.is_some_and(|n| inputs.len() != n) {
+        return Err(format!("{} inputs for a `{}` kernel", inputs.len(), op.op().kind_name()));
+    }
+    if let Pure::Fill(f) = op {
+        let n: i64 = f.shape.iter().product();
+        return if usize::try_from(n).ok() == numel(out) { Ok(()) } else { Err(format!("a fill of {n} into {out:?}")) };
+    }
+    let x = inputs[0];
+    let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
+    match op {
+        Pure::MatMul(_) => linear::check_matmul(x, inputs[1], out),
+        Pure::Binary(_) => elementwise::check_binary(x, inputs[1], out),
+        Pure::Scalar(_) | Pure::Activation(_) | Pure::Reshape(_) => elementwise::check_same_length(x, out),
+        Pure::Softmax(sm) => softmax::check(x, sm.axis, out),
+        Pure::Concat(c) => layout_k::check_concat(inputs, c.axis, out),
+        Pure::Permute(p) => layout_k::check_permute(x, &p.perm, out),
+        Pure::Pool(p) => pool::check(p, x, out),
+        Pure::GlobalAvgPool(_) => pool::check_global_avgpool(x, out),
+        Pure::Upsample(_) => resize::check(x, out),
+        Pure::Reduce(r) => reduce::check_reduce(r.kind, x, &r.axes, out),
+        Pure::AdaptivePool(_) => pool::check_adaptive(x, out),
+        Pure::PixelShuffle(p) => resize::check_pixel_shuffle(p.inverse, u(p.factor)?, x, out),
+        Pure::Pad(p) => movement::check_pad(p, x, out),
+        Pure::Roll(r) => movement::check_roll(r, x, out),
+        Pure::Slice(s) => movement::check_slice(s, x, out),
+        Pure::Expand(_) => movement::check_expand(x, out),
+        Pure::IndexSelect(s) => index::check_index_select(x, s.axis, &s.index, &s.index_shape, out),
+        Pure::Where(_) => index::check_where(x, inputs[1], inputs[2], out),
+        Pure::Cast(_) => elementwise::check_same_length(x, out),
+        Pure::Fill(_) => Ok(()),
     }
 }
 

@@ -46,6 +46,8 @@ use crate::plan::{Plan, escaped};
 
 pub(crate) use bind::Bound;
 pub use bind::Footprint;
+pub use bind::check_pure;
+pub use run::run_pure;
 pub(crate) use run::{Run, adapter_of, run_step};
 pub use switch::VariantSwitch;
 

@@ -9,7 +9,7 @@ use crate::kernels::conv;
 use crate::kernels::conv_transpose;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
-use crate::kernels::{Epilogue, elementwise, layout, linear, movement, norm, reduce, softmax};
+use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
@@ -157,50 +157,73 @@ pub(crate) fn run_step(
             let (wt, bs) = (weight.map(|t| w.get(t)), bias.map(|t| w.get(t)));
             norm::groupnorm(x, n, c, inner, gn.num_groups as usize, wt, bs, gn.eps as f32, out);
         }
-        Kernel::Pure(op) => match op {
-            Pure::MatMul(_) => {
-                let (y, ys) = input(1);
-                linear::matmul(x, xs, y, ys, out, out_shape, threads);
-            }
-            Pure::Binary(op) => {
-                let (y, ys) = input(1);
-                elementwise::binary(*op, x, xs, y, ys, out, out_shape);
-            }
-            Pure::Scalar(s) => elementwise::scalar(s.op, x, s.value as f32, s.scalar_first, out),
-            Pure::Activation(act) => elementwise::activation(*act, x, out),
-            Pure::Softmax(s) => {
-                let outer: usize = xs[..s.axis].iter().product();
-                let inner: usize = xs[s.axis + 1..].iter().product();
-                softmax::softmax(x, outer, xs[s.axis], inner, out);
-            }
-            Pure::Concat(c) => concat(step.inputs.len(), input, c.axis, out, out_shape),
-            Pure::Reshape(_) => out.copy_from_slice(x),
-            Pure::Permute(p) => layout::permute(x, xs, &p.perm, out),
-            Pure::Pool(p) => {
-                let s = Pool2dShape::of(p, xs[0] * xs[1], xs[2], xs[3]);
-                pool::pool2d(p.kind, &s, x, out);
-            }
-            Pure::GlobalAvgPool(_) => pool::global_avgpool(x, xs[0] * xs[1], xs[2] * xs[3], out),
-            Pure::Upsample(u) => {
-                let scale = u.scale.map(|s| (s[0], s[1]));
-                let (nc, h, wd) = (xs[0] * xs[1], xs[2], xs[3]);
-                resize::upsample(u.mode, u.align_corners, scale, x, nc, h, wd, out, out_shape[2], out_shape[3]);
-            }
-            Pure::Reduce(r) => reduce::reduce(r.kind, x, xs, &r.axes, out),
-            Pure::AdaptivePool(p) => {
-                let (oh, ow) = (out_shape[2], out_shape[3]);
-                pool::adaptive_pool2d(p.kind, x, xs[0] * xs[1], xs[2], xs[3], oh, ow, out);
-            }
-            Pure::PixelShuffle(p) => {
-                let small = if p.inverse { out_shape } else { xs };
-                let r = p.factor as usize;
-                resize::pixel_shuffle(p.inverse, r, x, small[0], small[1] / (r * r), small[2], small[3], out);
-            }
-            Pure::Pad(p) => movement::pad(p, x, xs, out),
-            Pure::Roll(r) => movement::roll(r, x, xs, out),
-            Pure::Slice(s) => movement::slice(s, x, xs, out),
-            Pure::Expand(_) => movement::expand(x, xs, out, out_shape),
-        },
+        Kernel::Pure(op) => run_pure(op, step.inputs.len(), input, out, out_shape, threads),
+    }
+}
+
+/// Runs the pure operator `op` on `count` inputs (`input(j)`: the data and shape of input
+/// `j`) into `out` of shape `out_shape`, its shapes checked ([`check_pure`](super::check_pure)):
+/// what every step of a pure kernel calls, and what the compiler folds constants with,
+/// so a folded tensor is the value the step would have computed.
+pub fn run_pure<'a>(
+    op: &Pure,
+    count: usize,
+    input: impl Fn(usize) -> (&'a [f32], &'a [usize]),
+    out: &mut [f32],
+    out_shape: &[usize],
+    threads: usize,
+) {
+    if let Pure::Fill(f) = op {
+        return index::fill(f.start, f.step, out);
+    }
+    let (x, xs) = input(0);
+    match op {
+        Pure::MatMul(_) => {
+            let (y, ys) = input(1);
+            linear::matmul(x, xs, y, ys, out, out_shape, threads);
+        }
+        Pure::Binary(op) => {
+            let (y, ys) = input(1);
+            elementwise::binary(*op, x, xs, y, ys, out, out_shape);
+        }
+        Pure::Scalar(s) => elementwise::scalar(s.op, x, s.value as f32, s.scalar_first, out),
+        Pure::Activation(act) => elementwise::activation(*act, x, out),
+        Pure::Softmax(s) => {
+            let outer: usize = xs[..s.axis].iter().product();
+            let inner: usize = xs[s.axis + 1..].iter().product();
+            softmax::softmax(x, outer, xs[s.axis], inner, out);
+        }
+        Pure::Concat(c) => concat(count, &input, c.axis, out, out_shape),
+        Pure::Reshape(_) => out.copy_from_slice(x),
+        Pure::Permute(p) => layout::permute(x, xs, &p.perm, out),
+        Pure::Pool(p) => {
+            let s = Pool2dShape::of(p, xs[0] * xs[1], xs[2], xs[3]);
+            pool::pool2d(p.kind, &s, x, out);
+        }
+        Pure::GlobalAvgPool(_) => pool::global_avgpool(x, xs[0] * xs[1], xs[2] * xs[3], out),
+        Pure::Upsample(u) => {
+            let scale = u.scale.map(|s| (s[0], s[1]));
+            let (nc, h, wd) = (xs[0] * xs[1], xs[2], xs[3]);
+            resize::upsample(u.mode, u.align_corners, scale, x, nc, h, wd, out, out_shape[2], out_shape[3]);
+        }
+        Pure::Reduce(r) => reduce::reduce(r.kind, x, xs, &r.axes, out),
+        Pure::AdaptivePool(p) => {
+            let (oh, ow) = (out_shape[2], out_shape[3]);
+            pool::adaptive_pool2d(p.kind, x, xs[0] * xs[1], xs[2], xs[3], oh, ow, out);
+        }
+        Pure::PixelShuffle(p) => {
+            let small = if p.inverse { out_shape } else { xs };
+            let r = p.factor as usize;
+            resize::pixel_shuffle(p.inverse, r, x, small[0], small[1] / (r * r), small[2], small[3], out);
+        }
+        Pure::Pad(p) => movement::pad(p, x, xs, out),
+        Pure::Roll(r) => movement::roll(r, x, xs, out),
+        Pure::Slice(s) => movement::slice(s, x, xs, out),
+        Pure::Expand(_) => movement::expand(x, xs, out, out_shape),
+        Pure::IndexSelect(s) => index::index_select(x, xs, s.axis, &s.index, out),
+        Pure::Where(_) => index::where_select((x, xs), input(1), input(2), out, out_shape),
+        Pure::Cast(c) => index::cast(c.to, x, out),
+        Pure::Fill(_) => {}
     }
 }
 

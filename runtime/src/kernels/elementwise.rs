@@ -474,9 +474,49 @@ macro_rules! per_op {
                 let $f = f32::powf;
                 $body
             }
+            BinaryOp::Eq => {
+                let $f = eq;
+                $body
+            }
+            BinaryOp::Ne => {
+                let $f = ne;
+                $body
+            }
+            BinaryOp::Lt => {
+                let $f = lt;
+                $body
+            }
+            BinaryOp::Le => {
+                let $f = le;
+                $body
+            }
+            BinaryOp::Gt => {
+                let $f = gt;
+                $body
+            }
+            BinaryOp::Ge => {
+                let $f = ge;
+                $body
+            }
         }
     };
 }
+
+/// A comparison's value: 1 where it holds, 0 where not (a select, which vectorises).
+macro_rules! comparison {
+    ($name:ident, $op:tt) => {
+        #[inline(always)]
+        fn $name(x: f32, y: f32) -> f32 {
+            if x $op y { 1.0 } else { 0.0 }
+        }
+    };
+}
+comparison!(eq, ==);
+comparison!(ne, !=);
+comparison!(lt, <);
+comparison!(le, <=);
+comparison!(gt, >);
+comparison!(ge, >=);
 
 #[inline(always)]
 fn add(x: f32, y: f32) -> f32 {
@@ -690,6 +730,13 @@ mod tests {
             BinaryOp::Mul => x * y,
             BinaryOp::Div => x / y,
             BinaryOp::Pow => x.powf(y),
+            // Written independently of the kernel's select.
+            BinaryOp::Eq => f32::from(u8::from(x == y)),
+            BinaryOp::Ne => f32::from(u8::from(x != y)),
+            BinaryOp::Lt => f32::from(u8::from(x < y)),
+            BinaryOp::Le => f32::from(u8::from(x <= y)),
+            BinaryOp::Gt => f32::from(u8::from(x > y)),
+            BinaryOp::Ge => f32::from(u8::from(x >= y)),
         }
     }
 

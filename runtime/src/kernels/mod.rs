@@ -85,6 +85,7 @@ pub mod conv;
 pub mod conv_transpose;
 pub mod elementwise;
 pub mod gemm;
+pub mod index;
 pub mod layout;
 pub mod linear;
 pub mod merge;
