@@ -136,6 +136,7 @@ fn passes_lists_the_pipeline_in_order() {
         "bind_variants",
         "meld",
         "prune",
+        "fold_constants",
         "drop_inactive",
         "choose_strategy",
         "commute_adapters",
@@ -602,7 +603,10 @@ fn a_common_name_prefix_is_named_and_stripped() {
     let (dir, plain) = seeded_weights_file("models/resnet18.readi", &set, "prefix");
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
     let base = WeightSet::from_safetensors("plain", &std::fs::read(&plain).expect("read")).expect("parses");
-    let wrapped = WeightSet { tensors: base.tensors.iter().map(|(k, v)| (format!("module.{k}"), v.clone())).collect() };
+    let wrapped = WeightSet {
+        tensors: base.tensors.iter().map(|(k, v)| (format!("module.{k}"), v.clone())).collect(),
+        ..WeightSet::default()
+    };
     let prefixed = dir.join("wrapped.safetensors");
     std::fs::write(&prefixed, wrapped.to_safetensors().expect("serialises")).expect("write");
     let compile = |weights: &std::path::Path, plan: &str, extra: &[&str]| {

@@ -127,3 +127,84 @@ fn half_precision_is_converted_and_counters_are_understood() {
     let (ok, text) = attempt(&set, false);
     assert!(ok, "{text}");
 }
+
+/// A model reading an int64 buffer (`buffer(..., dtype=i64)`) as an index.
+const INDEX_SPEC: &str = "model m {
+  input x: f32[N, 3, 4]
+  table = parameter([5, 4])
+  idx = buffer([3], dtype=i64)
+  output y = x + index_select(table, 0, idx)
+}
+";
+
+fn ints(v: &[i64]) -> Vec<u8> {
+    v.iter().flat_map(|i| i.to_le_bytes()).collect()
+}
+
+fn floats(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Compiles INDEX_SPEC with a weights file of these entries: the plan, or the rendered
+/// errors.
+fn index_compile(entries: &[(&str, Dtype, Vec<usize>, Vec<u8>)]) -> Result<readi_runtime::plan::Plan, String> {
+    let (sources, out) = common::compile_text("index.readi", INDEX_SPEC, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let set = WeightSet::from_safetensors("index.safetensors", &file(entries))
+        .map_err(|d| SourceMap::new().render_all(&d, false))?;
+    backend::compile(&module, &set, "index.safetensors", &CompileOptions::default())
+        .map(|(p, _)| p)
+        .map_err(|d| sources.render_all(&d, false))
+}
+
+fn table() -> (&'static str, Dtype, Vec<usize>, Vec<u8>) {
+    ("table", Dtype::F32, vec![5, 4], floats(&(0..20).map(|i| i as f32).collect::<Vec<_>>()))
+}
+
+#[test]
+fn an_int64_buffer_binds_by_name_and_indexes() {
+    use readi_runtime::exec::{Input, Session};
+    let plan = index_compile(&[table(), ("idx", Dtype::I64, vec![3], ints(&[4, 0, 2]))]).expect("compiles");
+    // The lookup is folded: the plan only adds it to the input.
+    assert_eq!(plan.manifest.steps.len(), 1, "{:?}", plan.manifest.steps);
+    let x = vec![0.0f32; 12];
+    let mut s = Session::new(std::sync::Arc::new(plan), 1).expect("session");
+    let out = s.run(&[Input { name: "x", data: &x, shape: &[1, 3, 4] }]).expect("runs");
+    let want: Vec<f32> = [4, 0, 2].iter().flat_map(|&r| (0..4).map(move |c| (r * 4 + c) as f32)).collect();
+    assert_eq!(out[0].1.data, want);
+}
+
+#[test]
+fn int64_buffers_are_checked_for_type_shape_and_range() {
+    let float_idx = index_compile(&[table(), ("idx", Dtype::F32, vec![3], floats(&[0.0, 1.0, 2.0]))]);
+    let e = float_idx.expect_err("a float tensor for an i64 buffer");
+    assert!(e.contains("tensor `idx` in `index.safetensors` is float, but buffer `idx` needs int64"), "{e}");
+    assert!(e.contains("index.readi:4:"), "{e}");
+    let int_table = index_compile(&[
+        ("table", Dtype::I64, vec![5, 4], ints(&[0; 20])),
+        ("idx", Dtype::I64, vec![3], ints(&[0; 3])),
+    ]);
+    let e = int_table.expect_err("an int64 tensor for an f32 parameter");
+    assert!(e.contains("tensor `table` in `index.safetensors` is int64, but parameter `table` needs f32"), "{e}");
+    let e = index_compile(&[table(), ("idx", Dtype::I64, vec![4], ints(&[0; 4]))]).expect_err("a wrong shape");
+    assert!(e.contains("tensor `idx` in `index.safetensors` has shape [4], but buffer `idx` needs [3]"), "{e}");
+    let e = index_compile(&[table(), ("idx", Dtype::I64, vec![3], ints(&[0, 5, 1]))]).expect_err("out of range");
+    assert!(e.contains("index 5 (at flat position 1) is out of range for axis 0 of f32[5, 4]"), "{e}");
+    assert!(e.contains("index.readi:5:"), "the error points at the index_select: {e}");
+    let e = index_compile(&[table(), ("idx", Dtype::I64, vec![3], ints(&[0, 1 << 40, 1]))]).expect_err("too large");
+    assert!(e.contains("int64 tensor `idx` holds 1099511627776 at flat index 1"), "{e}");
+}
+
+#[test]
+fn an_index_computed_at_run_time_is_refused() {
+    let text = "model m {\n  input x: f32[2, 4]\n  table = parameter([10, 3])\n  output y = index_select(table, 0, to(x[0], i64))\n}\n";
+    let (sources, out) = common::compile_text("runtime_index.readi", text, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = backend::seeded_weights(&module.graph, 1);
+    let d = backend::compile(&module, &weights, "seeded", &CompileOptions::default()).expect_err("refused");
+    let e = sources.render_all(&d, false);
+    assert!(e.contains("index_select with an index computed at run time is not supported"), "{e}");
+    assert!(e.contains("runtime_index.readi:4:"), "{e}");
+}

@@ -210,3 +210,34 @@ fn vit_b_16_state_dict_matches_torchvision() {
 fn vit_b_16_matches_torchvision() {
     check_parity("vit_b_16");
 }
+
+/// ViT's attention reads `in_proj_weight` transposed; `fold_constants` transposes it once,
+/// at compile time: no step of the plan reads only stored tensors (a permute of a weight,
+/// 7 MB per layer per run at 224), the plan's parameter table still lists the state_dict's
+/// names, and says where the weight went.
+#[test]
+fn vit_b_16_transposes_no_weight_at_run_time() {
+    use readi_plan::format::{Kernel, Storage};
+    use readi_plan::ops::Pure;
+    let fx = fixture("vit_b_16");
+    let overrides: Vec<(&str, &str)> = fx.overrides.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
+    let (sources, out) = common::compile("models/vit_b_16.readi", &overrides, None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = backend::seeded_weights(&module.graph, fx.seed);
+    let (plan, _) = backend::compile(&module, &weights, "seeded", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let m = &plan.manifest;
+    let stored = |v: usize| matches!(m.values[v].storage, Storage::Tensor(_));
+    for step in &m.steps {
+        assert!(!step.inputs.iter().all(|&v| stored(v)), "step `{}` reads only stored tensors", step.path);
+        if matches!(step.kernel, Kernel::Pure(Pure::Permute(_))) {
+            assert!(!step.inputs.iter().any(|&v| stored(v)), "step `{}` permutes a stored tensor", step.path);
+        }
+    }
+    let name = "encoder.layers.encoder_layer_0.self_attention.in_proj_weight";
+    let p = m.params.iter().find(|p| p.name == name).expect("the state_dict's name in the parameter table");
+    assert!(p.stored_as.starts_with("constant-folded into"), "{name}: {}", p.stored_as);
+    assert!(!m.tensors.iter().any(|t| t.name == name), "the raw weight is stored too");
+    assert_eq!(m.params.len(), module.graph.param_table().len(), "the parameter table lists the spec's parameters");
+}

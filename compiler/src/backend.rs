@@ -184,7 +184,15 @@ pub fn output_difference(
 /// Deterministic weights for every parameter of the base model: see [`seeded_tensor`].
 pub fn seeded_weights(graph: &Graph, seed: u64) -> WeightSet {
     let mut set = WeightSet::default();
-    for (name, _, slot) in graph.param_table() {
+    for (name, id, slot) in graph.param_table() {
+        if slot.dtype == readi_grammar::ast::DType::I64 && matches!(graph.node(id).op, crate::ir::Op::Buffer(_)) {
+            // An index buffer: zeros, an index valid for any table.
+            let shape: Vec<usize> = slot.shape.iter().map(|&d| d as usize).collect();
+            let zeros = vec![0.0; shape.iter().product()];
+            set.integer.insert(name.clone());
+            set.tensors.insert(name, (shape, zeros));
+            continue;
+        }
         if slot.dtype != readi_grammar::ast::DType::F32 || slot.kind == crate::ir::SlotKind::Added {
             continue;
         }

@@ -20,6 +20,10 @@ impl<'a> Elab<'a> {
         if let Some(v) = frame.vars.get(name) {
             return v.clone();
         }
+        // Element types name themselves, for `buffer([2401], dtype=i64)`.
+        if matches!(name, "f32" | "i64" | "bool") {
+            return Value::Str(Rc::from(name));
+        }
         if self.symbols_allowed {
             if let Some(s) = suggest(name, frame.vars.keys().map(String::as_str)) {
                 self.diags.push(
@@ -478,6 +482,12 @@ fn tensor_kind(op: BinaryOp) -> Option<TensorOp> {
         BinaryOp::Mul => Some(TensorOp::Mul),
         BinaryOp::Div => Some(TensorOp::Div),
         BinaryOp::Pow => Some(TensorOp::Pow),
+        BinaryOp::Eq => Some(TensorOp::Eq),
+        BinaryOp::Ne => Some(TensorOp::Ne),
+        BinaryOp::Lt => Some(TensorOp::Lt),
+        BinaryOp::Le => Some(TensorOp::Le),
+        BinaryOp::Gt => Some(TensorOp::Gt),
+        BinaryOp::Ge => Some(TensorOp::Ge),
         _ => None,
     }
 }

@@ -245,6 +245,14 @@ impl Graph {
         }
     }
 
+    /// Removes every incoming edge of `node`: a node that became a constant reads nothing.
+    pub fn detach_inputs(&mut self, node: NodeId) {
+        let old: Vec<_> = self.graph.edges_directed(node.0, Direction::Incoming).map(|e| e.id()).collect();
+        for e in old {
+            self.graph.remove_edge(e);
+        }
+    }
+
     /// Makes input port `port` of `node` read `value` instead of what it read.
     pub fn set_input(&mut self, node: NodeId, port: u16, value: ValueRef) {
         let old: Vec<_> = self

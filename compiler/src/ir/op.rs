@@ -10,7 +10,8 @@ use readi_plan::ops::{self, BatchNorm, GroupNorm, LayerNorm, Operator, Pure, Sha
 
 use super::{DType, TensorType};
 use crate::ops::{
-    AffineOp, ConvOp, ConvTransposeOp, LinearOp, ParameterOp, batchnorm_slots, groupnorm_slots, layernorm_slots,
+    AffineOp, BufferOp, ConstantOp, ConvOp, ConvTransposeOp, IndexSelectOp, LinearOp, ParameterOp, batchnorm_slots,
+    groupnorm_slots, layernorm_slots,
 };
 
 /// An operation of the graph. The tensor inputs are the node's incoming edges; everything
@@ -21,6 +22,13 @@ pub enum Op {
     Input(InputAttrs),
     /// A learned tensor used directly (a position embedding, a query table).
     Parameter(ParameterOp),
+    /// A `state_dict` buffer used directly (an int64 index table).
+    Buffer(BufferOp),
+    /// A tensor computed at compile time from stored tensors (`fold_constants`).
+    Constant(ConstantOp),
+    /// `index_select` / `embedding` with its index as an input, until the back end folds
+    /// the index's values into the op (a `Pure::IndexSelect`).
+    IndexSelect(IndexSelectOp),
     /// 2-D convolution over NCHW, weight `[out, in/groups, kh, kw]`, optional bias `[out]`.
     Conv2d(ConvOp),
     /// Transposed 2-D convolution over NCHW, weight `[in, out/groups, kh, kw]`, optional
@@ -123,6 +131,9 @@ impl Op {
         match self {
             Op::Input(o) => o,
             Op::Parameter(o) => o,
+            Op::Buffer(o) => o,
+            Op::Constant(o) => o,
+            Op::IndexSelect(o) => o,
             Op::Conv2d(o) => o,
             Op::ConvTranspose2d(o) => o,
             Op::BatchNorm(o) => o,
@@ -159,6 +170,8 @@ impl Op {
     pub fn param_slots(&self) -> Vec<ParamSlot> {
         match self {
             Op::Parameter(p) => p.param_slots(),
+            Op::Buffer(b) => b.param_slots(),
+            Op::Constant(c) => c.param_slots(),
             Op::Conv2d(c) => c.param_slots(),
             Op::ConvTranspose2d(c) => c.param_slots(),
             Op::BatchNorm(bn) => batchnorm_slots(bn),
@@ -166,7 +179,7 @@ impl Op {
             Op::GroupNorm(gn) => groupnorm_slots(gn),
             Op::Linear(l) => l.param_slots(),
             Op::ChannelAffine(a) => a.param_slots(),
-            Op::Input(_) | Op::Pure(_) => Vec::new(),
+            Op::Input(_) | Op::Pure(_) | Op::IndexSelect(_) => Vec::new(),
         }
     }
 

@@ -23,7 +23,8 @@
 //! | `reduce.rs`      | `sum`, `mean`, `max`, `min`, `var`, `std`, `softmax`        |
 //! | `resize.rs`      | `upsample`, `pixel_shuffle`, `pixel_unshuffle`              |
 //! | `movement.rs`    | `pad`, `roll`, `slice`, `narrow`, `select`, `chunk`, `split`, `squeeze`, `unsqueeze`, `expand` |
-//! | `parameter.rs`   | `parameter`                                                 |
+//! | `parameter.rs`   | `parameter`, `buffer`                                       |
+//! | `index.rs`       | `arange`, `zeros`, `ones`, `full`, `where`, `float`, `to`, `index_select`, `embedding` |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -35,6 +36,7 @@ mod conv;
 mod conv_transpose;
 mod elementwise;
 mod epilogue;
+mod index;
 mod layout;
 mod linear;
 mod movement;
@@ -51,9 +53,10 @@ pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, 
 pub use conv::{AdapterOp, ConvOp};
 pub use conv_transpose::ConvTransposeOp;
 pub use epilogue::{BnFold, Epilogue};
+pub use index::IndexSelectOp;
 pub use linear::LinearOp;
 pub use norm::{AffineOp, batchnorm_slots, groupnorm_slots, layernorm_slots};
-pub use parameter::ParameterOp;
+pub use parameter::{BufferOp, ConstantOp, ParameterOp};
 
 use crate::ir::{Op, ValueRef};
 
@@ -107,6 +110,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         pool::builtins(),
         resize::builtins(),
         parameter::builtins(),
+        index::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

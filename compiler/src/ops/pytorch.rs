@@ -96,12 +96,9 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("sign", Unsupported),
     ("maximum", Unsupported),
     ("minimum", Unsupported),
-    ("where", Unsupported),
     // Operators of issue 12 not written yet.
     ("conv3d", Unsupported),
     ("gather", Unsupported),
-    ("index_select", Unsupported),
-    ("embedding", Unsupported),
     // Indices need integer tensors, which readi does not compute (`max` and `min` are
     // torch.amax and torch.amin: the values).
     ("argmax", Unsupported),

@@ -6,7 +6,9 @@
 //! slot claims is an error too, or a warning when unused tensors are allowed. f16 and bf16
 //! tensors are converted to f32 when the file is read. `num_batches_tracked` (a counter
 //! PyTorch keeps for every BatchNorm) is understood: it may be present or absent and is
-//! not used. The slots an adaptation rule added (LoRA matrices, adapter convs) are zero in
+//! not used. An int64 `buffer` (an index table) binds an int64 tensor of the file, kept as
+//! exact f32 values; an int64 tensor for a float slot, or a float one for an int64
+//! buffer, is an error. The slots an adaptation rule added (LoRA matrices, adapter convs) are zero in
 //! the base model; a base file that gives one is an error.
 //!
 //! Produces: the tensor table ([`TensorTable`]) with every f32 slot's base value, the
@@ -20,7 +22,7 @@ use readi_grammar::ast::DType;
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics, suggest};
 
 use super::{BackendInputs, Output};
-use crate::ir::{Graph, NodeId, SlotKind};
+use crate::ir::{Graph, NodeId, Op, ParamSlot, SlotKind};
 use crate::module::Module;
 use crate::weights::WeightSet;
 use crate::weights::tensors::{Data, SpecParam, Tensor, TensorTable};
@@ -32,8 +34,8 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
     warnings.extend(w);
     let owned = owned_params(module);
     let mut table = TensorTable::default();
-    for (name, _, slot) in g.param_table() {
-        if slot.dtype != DType::F32 {
+    for (name, id, slot) in g.param_table() {
+        if !binds(g, id, slot) {
             continue;
         }
         let shape: Vec<usize> = slot.shape.iter().map(|&d| d.max(0) as usize).collect();
@@ -94,7 +96,7 @@ fn bind<'w>(
         let node = graph.node(id);
         for slot in &node.params {
             let name = node.param_name(slot);
-            if slot.dtype == DType::I64 || slot.kind == SlotKind::Added {
+            if !binds(graph, id, slot) || slot.kind == SlotKind::Added {
                 // num_batches_tracked: bookkeeping of PyTorch's training, not used here.
                 // Added slots (LoRA, adapters) are zero in the base; variants provide them.
                 continue;
@@ -110,6 +112,18 @@ fn bind<'w>(
                 continue;
             };
             let want: Vec<usize> = slot.shape.iter().map(|&d| d as usize).collect();
+            let integer = weights.integer.contains(&name);
+            if integer != (slot.dtype == DType::I64) {
+                let (has, needs) = if integer { ("int64", "f32") } else { ("float", "int64") };
+                diags.push(
+                    Diagnostic::error(
+                        Code::Weights,
+                        format!("tensor `{name}` in `{weights_name}` is {has}, but {layer} needs {needs}"),
+                    )
+                    .with_primary(node.span, format!("expects {needs} {want:?}")),
+                );
+                continue;
+            }
             if *shape != want {
                 diags.push(
                     Diagnostic::error(
@@ -162,6 +176,12 @@ fn bind<'w>(
         diags.push(d);
     }
     if diags.has_errors() { Err(diags) } else { Ok((bound, diags)) }
+}
+
+/// Whether a slot reads a tensor of the weights file: every f32 slot, and an integer
+/// `buffer`'s (not BatchNorm's `num_batches_tracked`, which is not used).
+fn binds(g: &Graph, id: NodeId, slot: &ParamSlot) -> bool {
+    slot.dtype == DType::F32 || (slot.dtype == DType::I64 && matches!(g.node(id).op, Op::Buffer(_)))
 }
 
 /// The dotted prefix (`module.`, `model.backbone.`) that, dropped from the most names

@@ -254,10 +254,23 @@ impl<'m> Lowering<'m> {
         let inputs: Vec<usize> = g.inputs(id).into_iter().map(|v| self.value(v)).collect::<Result<_, _>>()?;
         let kernel = match &node.op {
             Op::Input(_) => return Ok(()),
-            Op::Parameter(_) => {
+            Op::Parameter(_)
+            | Op::Constant(_)
+            | Op::Buffer(crate::ops::BufferOp { dtype: crate::ir::DType::F32, .. }) => {
                 let t = self.tensor(node, "")?;
                 self.new_value(ValueRef { node: id, port: 0 }, Storage::Tensor(t));
                 return Ok(());
+            }
+            Op::Buffer(_) => return Err(ice(format!("integer buffer `{}` was not folded", node.path))),
+            Op::IndexSelect(_) => {
+                use readi_grammar::diag::{Code, Diagnostic};
+                let d = Diagnostic::error(
+                    Code::BadValue,
+                    format!("`{}`: index_select with an index computed at run time is not supported", node.path),
+                )
+                .with_primary(node.span, "the index must be a constant")
+                .with_note("an index is a constant when it is computed only from buffers and constants (`buffer(..., dtype=i64)`, `arange`)");
+                return Err(Diagnostics(vec![d]));
             }
             Op::Conv2d(c) => {
                 let algo =

@@ -12,6 +12,7 @@
 //! | `bind_variants`    | each variant's tensors into the table                          | base weights bound       |
 //! | `meld`             | melded variants from their parts                               | variants bound           |
 //! | `prune`            | zeroes small values of the shared weights (`prune` rules)     | melds built              |
+//! | `fold_constants`   | pure nodes of stored tensors no variant changes computed now  | tensor values final      |
 //! | `drop_inactive`    | removes LoRA branches and adapters no variant uses             | variants bound           |
 //! | `choose_strategy`  | per LoRA layer merge or branch, per variant-owned conv its algorithm (side table) | inactive ones dropped |
 //! | `commute_adapters` | moves adapters (and LoRA branches) behind their BatchNorm      | inactive ones dropped    |
@@ -45,6 +46,7 @@ pub mod commute_adapters;
 pub mod dead_code;
 pub mod drop_inactive;
 pub mod fold_batchnorm;
+pub mod fold_constants;
 pub mod fuse_adapters;
 pub mod fuse_epilogues;
 pub mod fuse_lora;
@@ -84,6 +86,7 @@ pub enum Pass {
     BindVariants,
     Meld,
     Prune,
+    FoldConstants,
     DropInactive,
     ChooseStrategy,
     CommuteAdapters,
@@ -110,6 +113,11 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
     (Pass::BindVariants, "bind_variants", "bind each variant's tensors, checked against the adaptation rules"),
     (Pass::Meld, "meld", "build melded variants: layers one part tunes taken whole, shared ones interpolated"),
     (Pass::Prune, "prune", "zero the shared conv and linear weights' values below a `prune` rule's threshold"),
+    (
+        Pass::FoldConstants,
+        "fold_constants",
+        "compute at compile time what depends only on stored tensors no variant changes",
+    ),
     (Pass::DropInactive, "drop_inactive", "remove LoRA branches and adapters that are zero in every variant"),
     (Pass::ChooseStrategy, "choose_strategy", "per LoRA layer merge or branch, per variant-owned conv its algorithm"),
     (Pass::CommuteAdapters, "commute_adapters", "move adapters and LoRA branches behind their BatchNorm"),
@@ -153,6 +161,9 @@ pub struct Patch {
     pub tensors: Vec<(String, Tensor)>,
     /// Nodes whose op and parameter slots are replaced (id, inputs and path are kept).
     pub rewrite: Vec<(NodeId, Op, Vec<ParamSlot>)>,
+    /// Nodes whose inputs are disconnected (after `rewrite`): a node that became a
+    /// constant reads nothing.
+    pub detach: Vec<NodeId>,
     /// Uses of the first value are redirected to the second.
     pub replace_uses: Vec<(ValueRef, ValueRef)>,
     /// Input port of a node set to a value.
@@ -173,6 +184,7 @@ impl Patch {
     fn touched(&self) -> HashSet<NodeId> {
         let mut t: HashSet<NodeId> = HashSet::new();
         t.extend(self.rewrite.iter().map(|r| r.0));
+        t.extend(self.detach.iter().copied());
         t.extend(self.replace_uses.iter().flat_map(|(a, b)| [a.node, b.node]));
         t.extend(self.set_inputs.iter().flat_map(|(n, _, v)| [*n, v.node]));
         t.extend(self.fuse.iter().map(|f| f.0));
@@ -211,6 +223,9 @@ pub fn apply(module: &mut Module, patch: Patch) {
         let node = g.node_mut(id);
         node.op = op;
         node.params = params;
+    }
+    for &id in &patch.detach {
+        g.detach_inputs(id);
     }
     for (old, new) in &patch.replace_uses {
         g.replace_uses(*old, *new);
@@ -557,6 +572,7 @@ fn backend_pass(pass: Pass) -> Option<BackendPass> {
         Pass::BindVariants => bind_variants::run,
         Pass::Meld => meld::run,
         Pass::Prune => prune::run,
+        Pass::FoldConstants => fold_constants::run,
         Pass::DropInactive => drop_inactive::run,
         Pass::ChooseStrategy => choose_strategy::run,
         Pass::CommuteAdapters => commute_adapters::run,

@@ -10,7 +10,7 @@ pub mod variants;
 
 pub use variants::VariantSource;
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use readi_grammar::diag::{Code, Diagnostic, Diagnostics};
 use safetensors::tensor::{Dtype, SafeTensors};
@@ -19,7 +19,15 @@ use safetensors::tensor::{Dtype, SafeTensors};
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct WeightSet {
     pub tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    /// The tensors that are int64 in the file (index buffers), their values exact in f32
+    /// (at most [`MAX_EXACT_INT`] in magnitude): only an integer `buffer` binds them.
+    pub integer: BTreeSet<String>,
 }
+
+/// The largest magnitude of an integer tensor's values: every integer up to it is exact
+/// as an f32, the type the compiler keeps every tensor in (an index into a table has far
+/// fewer entries).
+pub const MAX_EXACT_INT: i64 = 1 << 24;
 
 /// A problem with a weights file as a whole (not tied to one layer).
 fn file_error(file: &str, message: String) -> Diagnostic {
@@ -27,8 +35,9 @@ fn file_error(file: &str, message: String) -> Diagnostic {
 }
 
 impl WeightSet {
-    /// Parses safetensors bytes. Tensors of float types become f32; integer tensors are
-    /// kept only if they are `num_batches_tracked` counters (and then ignored).
+    /// Parses safetensors bytes. Tensors of float types become f32; int64 tensors other
+    /// than the `num_batches_tracked` counters (which are ignored) are kept as exact f32
+    /// values and listed in `integer`, for the spec's integer buffers.
     pub fn from_safetensors(file: &str, bytes: &[u8]) -> Result<WeightSet, Diagnostics> {
         let st = SafeTensors::deserialize(bytes).map_err(|e| {
             Diagnostics(vec![file_error(file, format!("not a valid safetensors file ({e}); is it truncated?"))])
@@ -46,6 +55,25 @@ impl WeightSet {
                 Dtype::F16 => data.chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
                 Dtype::BF16 => data.chunks_exact(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
                 Dtype::I64 if name.ends_with("num_batches_tracked") => continue,
+                Dtype::I64 => {
+                    let ints = data.chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().unwrap_or([0; 8])));
+                    let mut values = Vec::with_capacity(data.len() / 8);
+                    for (i, v) in ints.enumerate() {
+                        if v.abs() > MAX_EXACT_INT {
+                            diags.push(file_error(
+                                file,
+                                format!(
+                                    "int64 tensor `{name}` holds {v} at flat index {i}; readi reads integer \
+                                     tensors (index buffers) with values up to {MAX_EXACT_INT} in magnitude"
+                                ),
+                            ));
+                            break;
+                        }
+                        values.push(v as f32);
+                    }
+                    set.integer.insert(name.clone());
+                    values
+                }
                 other => {
                     diags.push(file_error(
                         file,
@@ -66,6 +94,7 @@ impl WeightSet {
     pub fn strip_prefix(&mut self, file: &str, prefix: &str) -> Result<usize, Diagnostics> {
         let mut out = BTreeMap::new();
         let mut stripped = 0;
+        let mut integer = BTreeSet::new();
         for (name, t) in std::mem::take(&mut self.tensors) {
             let new = match name.strip_prefix(prefix) {
                 Some(rest) if !rest.is_empty() => {
@@ -80,23 +109,36 @@ impl WeightSet {
                     format!("without the prefix `{prefix}`, tensor `{name}` has the name of another tensor, `{new}`"),
                 )]));
             }
+            if self.integer.remove(&name) {
+                integer.insert(new.clone());
+            }
             out.insert(new, t);
         }
         self.tensors = out;
+        self.integer = integer;
         Ok(stripped)
     }
 
-    /// The set as safetensors bytes (f32), as PyTorch's `save_file(state_dict)` writes.
+    /// The set as safetensors bytes (f32, the integer tensors int64), as PyTorch's
+    /// `save_file(state_dict)` writes.
     pub fn to_safetensors(&self) -> Result<Vec<u8>, String> {
         use safetensors::tensor::TensorView;
         let bytes: Vec<(&String, &Vec<usize>, Vec<u8>)> = self
             .tensors
             .iter()
-            .map(|(name, (shape, data))| (name, shape, data.iter().flat_map(|v| v.to_le_bytes()).collect()))
+            .map(|(name, (shape, data))| {
+                let b = if self.integer.contains(name) {
+                    data.iter().flat_map(|&v| (v as i64).to_le_bytes()).collect()
+                } else {
+                    data.iter().flat_map(|v| v.to_le_bytes()).collect()
+                };
+                (name, shape, b)
+            })
             .collect();
         let mut views = Vec::with_capacity(bytes.len());
         for (name, shape, b) in &bytes {
-            let view = TensorView::new(Dtype::F32, (*shape).clone(), b).map_err(|e| format!("tensor `{name}`: {e}"))?;
+            let dtype = if self.integer.contains(*name) { Dtype::I64 } else { Dtype::F32 };
+            let view = TensorView::new(dtype, (*shape).clone(), b).map_err(|e| format!("tensor `{name}`: {e}"))?;
             views.push(((*name).clone(), view));
         }
         safetensors::serialize(views, None).map_err(|e| e.to_string())
