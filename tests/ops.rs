@@ -179,7 +179,7 @@ fn movement_matches_pytorch() {
     let (sources, out) = common::compile(spec, &[], None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
-    let none = WeightSet { tensors: Default::default() };
+    let none = WeightSet::default();
     let (plan, _) = backend::compile(&module, &none, "none", &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
     let io = fixture("movement.io.safetensors");
@@ -194,5 +194,36 @@ fn movement_matches_pytorch() {
         let (shape, want) = &io.tensors[&format!("output.{name}")];
         assert_eq!(&t.shape, shape, "shape of {name}");
         assert_eq!(&t.data, want, "{name}");
+    }
+}
+
+/// torchvision Swin-T's relative position bias (the bias table at the real int64
+/// `relative_position_index` buffer) and its shifted-window attention mask (built in the
+/// spec from `arange`, comparisons and `where`) equal torch's, and both are constants: the
+/// plan only adds them, one step each; the rows of a model input picked at the index are
+/// one `index_select` step holding the index.
+#[test]
+fn swin_relative_position_bias_and_attention_mask_match_torchvision() {
+    let plan = compile("tests/fixtures/ops/swin_pieces.readi", "swin_pieces.weights.safetensors");
+    let m = &plan.manifest;
+    let kernels: Vec<&Kernel> = m.steps.iter().map(|s| &s.kernel).collect();
+    let [
+        Kernel::Pure(Pure::Binary(readi_plan::ops::BinaryOp::Add)),
+        Kernel::Pure(Pure::Binary(readi_plan::ops::BinaryOp::Add)),
+        Kernel::Pure(Pure::IndexSelect(pick)),
+    ] = &kernels[..]
+    else {
+        panic!("the constants are not folded: {:#?}", m.steps.iter().map(|s| &s.path).collect::<Vec<_>>())
+    };
+    assert_eq!((pick.axis, pick.index.len()), (1, 2401));
+    let name = "relative_position_index";
+    let p = m.params.iter().find(|p| p.name == name).expect("the buffer in the parameter table");
+    assert!(p.stored_as.contains("constant-folded into"), "{name}: {}", p.stored_as);
+    for threads in [1, 2] {
+        matches_pytorch(
+            compile("tests/fixtures/ops/swin_pieces.readi", "swin_pieces.weights.safetensors"),
+            "swin_pieces.io.safetensors",
+            threads,
+        );
     }
 }
