@@ -230,7 +230,9 @@ fn vit_b_16_transposes_no_weight_at_run_time() {
     let m = &plan.manifest;
     let stored = |v: usize| matches!(m.values[v].storage, Storage::Tensor(_));
     for step in &m.steps {
-        assert!(!step.inputs.iter().all(|&v| stored(v)), "step `{}` reads only stored tensors", step.path);
+        // (An expand of the class token to the batch, a symbolic size, stays a step.)
+        let known = m.values[step.output].shape.iter().all(|d| d.as_known().is_some());
+        assert!(!known || !step.inputs.iter().all(|&v| stored(v)), "step `{}` reads only stored tensors", step.path);
         if matches!(step.kernel, Kernel::Pure(Pure::Permute(_))) {
             assert!(!step.inputs.iter().any(|&v| stored(v)), "step `{}` permutes a stored tensor", step.path);
         }
