@@ -16,7 +16,7 @@ For each model it
   3. exports the same module to ONNX,
   4. checks that readi and ORT agree on one input (max abs error),
   5. alternates `readi bench` and ORT timing for --rounds rounds (each round: --runs
-     timed runs after warm-up) and reports the medians and readi / ORT.
+     timed runs after warm-up) and reports the median over rounds of readi / ORT.
 
 Needs torch, torchvision, onnx, onnxruntime and safetensors (pip). Builds readi in
 release mode first. Nothing here is part of the Rust build or of CI.
@@ -110,6 +110,7 @@ def main():
     ap.add_argument(
         "--models", default="resnet18", help="comma-separated (resnet18,vit_encoder), or `all`: the zoo's specs"
     )
+    ap.add_argument("--keep", action="store_true", help="keep the weights, plans and ONNX files")
     ap.add_argument("--markdown", action="store_true", help="end with the table as markdown")
     args = ap.parse_args()
     table = models()
@@ -124,7 +125,14 @@ def main():
     from safetensors.torch import save_file
 
     run(["cargo", "build", "--release", "-q", "--bin", "readi"])
-    tmp = tempfile.mkdtemp(prefix="readi-ort-")
+    # Weights, plans and ONNX files take gigabytes for the whole zoo: they go with the run
+    # unless --keep asks for them.
+    if args.keep:
+        tmp = tempfile.mkdtemp(prefix="readi-ort-")
+        print(f"keeping weights, plans and ONNX files in {tmp}", file=sys.stderr, flush=True)
+    else:
+        tmp_dir = tempfile.TemporaryDirectory(prefix="readi-ort-")
+        tmp = tmp_dir.name
     for name in names:
         spec, overrides, build, inputs = table[name]
         print(f"{name}: compiling and exporting", file=sys.stderr, flush=True)
@@ -165,13 +173,18 @@ def main():
             for _ in range(args.rounds):
                 readi_t.append(readi_median(plan, threads, args.runs))
                 ort_t.append(ort_median(sess, feeds, args.runs))
+            # Each round is a pair measured back to back, so its ratio shares the
+            # machine's state of the moment; the median of the pairs' ratios is the
+            # figure, the range shows how noisy the run was.
+            pairs = sorted(a / b for a, b in zip(readi_t, ort_t))
+            ratio = statistics.median(pairs)
+            ratios[threads] = ratio
             r, o = statistics.median(readi_t), statistics.median(ort_t)
-            ratios[threads] = r / o
             print(
                 f"{name}: {threads} threads, {args.rounds} rounds x {args.runs} runs: "
-                f"readi {r:.2f} ms, ORT {o:.2f} ms, readi/ORT = {r / o:.2f} "
-                f"(max abs error vs ORT {max(errs) if errs else float('nan'):.2e}; "
-                f"rounds readi {readi_t}, ORT {ort_t})",
+                f"readi/ORT = {ratio:.2f} (pairs {pairs[0]:.2f}..{pairs[-1]:.2f}; "
+                f"medians readi {r:.2f} ms, ORT {o:.2f} ms; "
+                f"max abs error vs ORT {max(errs) if errs else float('nan'):.2e})",
                 flush=True,
             )
         rows.append((name, ratios))

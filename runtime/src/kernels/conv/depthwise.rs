@@ -39,9 +39,112 @@ simd_fn! {
     }
 }
 
-/// The accumulation of a depthwise conv plane into `dst`.
+/// The kernel rows the register-blocked path holds at once (ConvNeXt's 7x7 needs 7).
+const MAX_TAP_ROWS: usize = 16;
+
+/// The accumulation of a depthwise conv plane into `dst`. The columns whose taps all fall
+/// inside the input row (the interior) go in blocks of 16, 8 or 4 (the widest that fits the
+/// interior: 56x56 planes take 16, 14x14 take 8, 7x7 take 4) with the sum kept in registers
+/// and each output written once, the last block overlapping the one before it instead of a
+/// scalar remainder; the border columns go one by one. Strides 1 and 2 get their own copy
+/// of the loops, so the interior's loads are contiguous (stride 1) or a fixed de-interleave
+/// (stride 2). Narrower interiors and kernels taller than [`MAX_TAP_ROWS`] add one tap at a
+/// time over the whole row.
 #[inline(always)]
 fn depthwise_acc(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32]) {
+    match s.stride_w {
+        1 => depthwise_blocks(s, xc, k, dst, 1),
+        2 => depthwise_blocks(s, xc, k, dst, 2),
+        stride => depthwise_blocks(s, xc, k, dst, stride),
+    }
+}
+
+#[inline(always)]
+fn depthwise_blocks(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32], stride: usize) {
+    let (pad, dil) = (s.pad_w, s.dil_w);
+    // Interior columns: ox * stride >= pad and ox * stride + (kw - 1) * dil - pad < w.
+    let reach = (s.kw - 1) * dil;
+    let hi = if s.w + pad > reach { ((s.w + pad - reach - 1) / stride + 1).min(s.ow) } else { 0 };
+    let lo = pad.div_ceil(stride).min(hi);
+    match hi - lo {
+        _ if s.kh > MAX_TAP_ROWS => depthwise_taps(s, xc, k, dst, stride),
+        16.. => depthwise_rows::<16>(s, xc, k, dst, stride, lo, hi),
+        8.. => depthwise_rows::<8>(s, xc, k, dst, stride, lo, hi),
+        4.. => depthwise_rows::<4>(s, xc, k, dst, stride, lo, hi),
+        _ => depthwise_taps(s, xc, k, dst, stride),
+    }
+}
+
+/// [`depthwise_acc`] with interior blocks of `L` columns over `lo..hi` (at least `L` wide).
+#[inline(always)]
+fn depthwise_rows<const L: usize>(
+    s: &Conv2dShape,
+    xc: &[f32],
+    k: &[f32],
+    dst: &mut [f32],
+    stride: usize,
+    lo: usize,
+    hi: usize,
+) {
+    let (pad, dil, kw) = (s.pad_w, s.dil_w, s.kw);
+    let span = (L - 1) * stride + 1;
+    let input_row = |iy: isize| (iy >= 0 && iy < s.h as isize).then(|| &xc[iy as usize * s.w..][..s.w]);
+    for (oy, row) in dst.chunks_mut(s.ow).enumerate() {
+        let iy0 = (oy * s.stride_h) as isize - s.pad_h as isize;
+        // The input rows of this output row's taps, with their kernel rows.
+        let mut rows: [(&[f32], usize); MAX_TAP_ROWS] = [(&[], 0); MAX_TAP_ROWS];
+        let mut taps = 0;
+        for ky in 0..s.kh {
+            if let Some(src) = input_row(iy0 + (ky * s.dil_h) as isize) {
+                rows[taps] = (src, ky * kw);
+                taps += 1;
+            }
+        }
+        let rows = &rows[..taps];
+        // A border column, its taps checked one by one.
+        let one = |ox: usize| {
+            let mut acc = 0.0f32;
+            for &(src, k0) in rows {
+                for kx in 0..kw {
+                    let ix = (ox * stride + kx * dil) as isize - pad as isize;
+                    if ix >= 0 && (ix as usize) < s.w {
+                        acc += k[k0 + kx] * src[ix as usize];
+                    }
+                }
+            }
+            acc
+        };
+        for (ox, d) in row.iter_mut().enumerate().take(lo) {
+            *d = one(ox);
+        }
+        for (ox, d) in row.iter_mut().enumerate().skip(hi) {
+            *d = one(ox);
+        }
+        let mut ox = lo;
+        loop {
+            let mut acc = [0.0f32; L];
+            let x0 = ox * stride - pad;
+            for &(src, k0) in rows {
+                for (kx, &wv) in k[k0..k0 + kw].iter().enumerate() {
+                    let seg = &src[x0 + kx * dil..][..span];
+                    for (i, a) in acc.iter_mut().enumerate() {
+                        *a += wv * seg[i * stride];
+                    }
+                }
+            }
+            row[ox..ox + L].copy_from_slice(&acc);
+            if ox + L == hi {
+                break;
+            }
+            ox = (ox + L).min(hi - L);
+        }
+    }
+}
+
+/// The accumulation one tap at a time over each output row: for planes too narrow for
+/// [`depthwise_rows`]'s blocks.
+#[inline(always)]
+fn depthwise_taps(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32], stride: usize) {
     dst.fill(0.0);
     let (h, w) = (s.h as isize, s.w as isize);
     for (oy, row) in dst.chunks_mut(s.ow).enumerate() {
@@ -54,19 +157,19 @@ fn depthwise_acc(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32]) {
             for kx in 0..s.kw {
                 let wv = k[ky * s.kw + kx];
                 let dx = (kx * s.dil_w) as isize - s.pad_w as isize;
-                let ox_lo = ((-dx).max(0) as usize).div_ceil(s.stride_w).min(s.ow);
-                let ox_hi = if w - dx <= 0 { 0 } else { ((w - dx) as usize).div_ceil(s.stride_w).min(s.ow) };
+                let ox_lo = ((-dx).max(0) as usize).div_ceil(stride).min(s.ow);
+                let ox_hi = if w - dx <= 0 { 0 } else { ((w - dx) as usize).div_ceil(stride).min(s.ow) };
                 if ox_lo >= ox_hi {
                     continue;
                 }
-                let ix0 = ((ox_lo * s.stride_w) as isize + dx) as usize;
+                let ix0 = ((ox_lo * stride) as isize + dx) as usize;
                 let body = &mut row[ox_lo..ox_hi];
-                if s.stride_w == 1 {
+                if stride == 1 {
                     for (d, &v) in body.iter_mut().zip(&src[ix0..]) {
                         *d += wv * v;
                     }
                 } else {
-                    for (d, &v) in body.iter_mut().zip(src[ix0..].iter().step_by(s.stride_w)) {
+                    for (d, &v) in body.iter_mut().zip(src[ix0..].iter().step_by(stride)) {
                         *d += wv * v;
                     }
                 }

@@ -127,6 +127,32 @@ fn depthwise() {
     check_all(&shape(1, 4, (10, 10), 4, (5, 5), (2, 2), (2, 2), (2, 2), 4));
 }
 
+/// Rows wide enough for the depthwise kernel's register-blocked interior, at each stride
+/// it has a copy for, with its remainder and borders: MobileNet's 3x3 (stride 1 and 2),
+/// EfficientNet's 5x5 stride 2, ConvNeXt's 7x7, a dilated kernel, a channel multiplier,
+/// no padding, a stride of 3, and a kernel taller than the 16 rows of taps kept at once.
+#[test]
+fn depthwise_wide_rows() {
+    check(&shape(1, 3, (5, 37), 3, (3, 3), (1, 1), (1, 1), (1, 1), 3), ConvAlgo::Depthwise);
+    check(&shape(2, 2, (6, 75), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (9, 70), 2, (5, 5), (2, 2), (2, 2), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (8, 41), 2, (7, 7), (1, 1), (3, 3), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (9, 50), 2, (3, 3), (1, 1), (2, 2), (2, 2), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (4, 33), 6, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (4, 34), 2, (3, 3), (1, 1), (0, 0), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (4, 52), 2, (3, 3), (3, 3), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 1, (20, 40), 1, (18, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Depthwise);
+    // Interiors exactly one block of 16 wide, then the 8- and 4-column blocks (14x14 and
+    // 7x7 planes, stride 1 and 2), and one too narrow for any block.
+    check(&shape(1, 2, (3, 18), 2, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (3, 17), 2, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 3, (14, 14), 3, (3, 3), (1, 1), (1, 1), (1, 1), 3), ConvAlgo::Depthwise);
+    check(&shape(1, 3, (7, 7), 3, (3, 3), (1, 1), (1, 1), (1, 1), 3), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (14, 14), 2, (5, 5), (2, 2), (2, 2), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (7, 7), 2, (7, 7), (1, 1), (3, 3), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (5, 5), 2, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+}
+
 #[test]
 fn dilation() {
     check_all(&shape(1, 5, (13, 12), 6, (3, 3), (1, 1), (2, 2), (2, 2), 1));
