@@ -228,20 +228,34 @@ pub fn variant_tables(m: &Manifest) -> String {
     })
 }
 
-/// A kernel's choices for listings: `[winograd4 scale shift relu]` for a conv (its
-/// algorithm and what its epilogue applies), `[shift relu]` for a linear or channel
-/// affine; nothing for other kernels.
+/// A kernel's choices for listings, in the order it applies them: `[winograd4 scale shift
+/// relu]` for a conv (its algorithm and what its epilogue applies), `[shift relu]` for a
+/// linear or channel affine; nothing for other kernels. A fused LoRA branch shows as
+/// `lora(rank=4)` (added before the epilogue), a fused residual adapter as
+/// `adapter(mid=16, act=relu)` (between the shift and the activation). A conv merged on
+/// switch (its variant's weight packed into a working copy when the variant changes) says
+/// `switch` after its algorithm, `switch(lora_rank=4)` when the copy merges a LoRA update
+/// (then there is no branch at run time).
 pub fn kernel_detail(k: &Kernel) -> String {
     let Some(ep) = k.epilogue() else { return String::new() };
     let mut parts: Vec<String> = Vec::new();
-    if let Kernel::Conv2d { algo, .. } = k {
+    let mut switch = false;
+    if let Kernel::Conv2d { algo, switch: s, .. } = k {
         parts.push(algo.to_string());
+        switch = *s;
+    }
+    match (switch, k.lora()) {
+        (true, Some(l)) => parts.push(format!("switch(lora_rank={})", l.rank)),
+        (true, None) => parts.push("switch".into()),
+        (false, Some(l)) => parts.push(format!("lora(rank={})", l.rank)),
+        (false, None) => {}
     }
     for (on, name) in [(ep.scale.is_some(), "scale"), (ep.shift.is_some(), "shift")] {
         if on {
             parts.push(name.into());
         }
     }
+    parts.extend(k.adapter().map(|a| format!("adapter(mid={}, act={})", a.mid, a.act.label())));
     parts.extend(ep.act.map(|a| a.label()));
     format!("[{}]", parts.join(" "))
 }

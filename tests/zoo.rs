@@ -14,8 +14,10 @@ mod common;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_compiler::Module;
+use readi_compiler::backend::{self, CompileOptions, LoraMode, VariantSource, WeightSet, peft};
 use readi_compiler::ir::SlotKind;
+use readi_grammar::diag::SourceMap;
 use readi_runtime::exec::{Input, Session};
 
 /// The metadata of a fixture: the seed, the `--set` overrides and the conv weights' gain.
@@ -92,9 +94,10 @@ fn max_abs_error(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
 }
 
-fn check_parity(name: &str) {
+/// The model the fixture was made with (its overrides) and its seeded weights, every conv
+/// weight scaled by the fixture's gain, through a safetensors file.
+fn seeded_model(name: &str, fx: &Fixture) -> (SourceMap, Module, WeightSet) {
     let rel = format!("models/{name}.readi");
-    let fx = fixture(name);
     let overrides: Vec<(&str, &str)> = fx.overrides.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
     let (sources, out) = common::compile(&rel, &overrides, None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
@@ -107,6 +110,12 @@ fn check_parity(name: &str) {
     }
     let bytes = weights.to_safetensors().expect("serialises");
     let weights = WeightSet::from_safetensors("seeded.safetensors", &bytes).expect("valid safetensors");
+    (sources, module, weights)
+}
+
+fn check_parity(name: &str) {
+    let fx = fixture(name);
+    let (sources, module, weights) = seeded_model(name, &fx);
     let (plan, warnings) = backend::compile(&module, &weights, "seeded.safetensors", &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
     assert!(warnings.is_empty(), "{}", sources.render_all(&warnings, false));
@@ -242,4 +251,81 @@ fn vit_b_16_transposes_no_weight_at_run_time() {
     assert!(p.stored_as.starts_with("constant-folded into"), "{name}: {}", p.stored_as);
     assert!(!m.tensors.iter().any(|t| t.name == name), "the raw weight is stored too");
     assert_eq!(m.params.len(), module.graph.param_table().len(), "the parameter table lists the spec's parameters");
+}
+
+/// PEFT's LoRA on vit_b_16 (tests/fixtures/zoo/make_zoo_peft_fixtures.py): r=4,
+/// lora_alpha=8 on `self_attention.out_proj`, `mlp.0` and `mlp.3` of two encoder layers,
+/// with non-zero B, saved by `save_pretrained`. The directory is read as PEFT wrote it and
+/// compiled as a LoRA-only variant over the seeded base of `vit_b_16_matches_torchvision`,
+/// with LoRA merged and as a branch, and run at 1 and 2 threads: the base, the variant
+/// against PEFT's merged model (torch's MultiheadAttention never calls `out_proj`'s
+/// forward, so only `merge_and_unload` applies that adapter: W + (alpha / r) B A, which
+/// is what readi computes), then the base again, bit for bit.
+#[test]
+fn vit_b_16_peft_lora_matches_peft() {
+    let name = "vit_b_16";
+    let fx = fixture(name);
+    let (sources, module, weights) = seeded_model(name, &fx);
+    let path = common::root().join(format!("tests/fixtures/zoo/peft/{name}.safetensors"));
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).expect("fixture header");
+    let key = header.metadata().as_ref().expect("fixture metadata")["variant"].clone();
+    let peft_fx = WeightSet::from_safetensors("peft fixture", &bytes).expect("fixture");
+
+    let dir = common::root().join(format!("tests/fixtures/zoo/peft/{name}/{key}"));
+    let config = std::fs::read_to_string(dir.join(peft::CONFIG_FILE)).expect("adapter config");
+    let adapter = std::fs::read(dir.join(peft::WEIGHTS_FILE)).expect("adapter weights");
+    let lora = peft::read_adapter(&dir.display().to_string(), &config, &adapter, &module)
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let mut layers: Vec<String> =
+        lora.tensors.keys().filter_map(|k| k.strip_suffix(".lora_A.weight")).map(str::to_string).collect();
+    layers.sort();
+    let kinds = ["mlp.0", "mlp.3", "self_attention.out_proj"];
+    let want_layers: Vec<String> =
+        [0, 11].iter().flat_map(|i| kinds.map(|k| format!("encoder.layers.encoder_layer_{i}.{k}"))).collect();
+    assert_eq!(layers, want_layers, "the adapter's LoRA layers");
+    assert_eq!(lora.tensors.len(), 2 * layers.len(), "A and B of each layer, nothing else");
+    let source = VariantSource { key: key.clone(), weights: lora, origin: dir.display().to_string() };
+
+    let image = &fx.tensors.tensors["input.image"];
+    let (logits_shape, base_want) = &fx.tensors.tensors["output.logits"];
+    let (variant_shape, variant_want) = &peft_fx.tensors[&format!("{key}.logits")];
+    assert_eq!(variant_shape, logits_shape);
+    assert!(max_abs_error(base_want, variant_want) > 1e-2, "the adapter should change the logits");
+    for mode in [LoraMode::Merge, LoraMode::Branch] {
+        let opts = CompileOptions { lora: mode, ..Default::default() };
+        let (plan, warnings) =
+            backend::compile_variants(&module, &weights, "seeded.safetensors", std::slice::from_ref(&source), &opts)
+                .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+        // The variant gives only its LoRA matrices: the tuned norms and head, and the LoRA
+        // of the other layers, keep the base value (zero for LoRA), in one warning.
+        let text = sources.render_all(&warnings, false);
+        assert_eq!(warnings.0.len(), 1, "{text}");
+        assert!(text.contains(&format!("{key} gives 12 of ")) && text.contains("keeps the base value"), "{text}");
+        let fused = plan.manifest.steps.iter().filter(|s| s.kernel.lora().is_some()).count();
+        assert_eq!(fused, if mode == LoraMode::Branch { layers.len() } else { 0 }, "LoRA {}", mode.name());
+        let plan = Arc::new(plan);
+        for threads in [1, 2] {
+            let mut session = Session::new(plan.clone(), threads).expect("session");
+            let mut run = |variant: &str| {
+                session.set_variant(variant).expect("a known variant");
+                let outs = session.run(&[Input { name: "image", data: &image.1, shape: &image.0 }]).expect("run");
+                let [(oname, got)] = &outs[..] else { panic!("{name}: one output expected") };
+                assert_eq!(oname, "logits");
+                assert_eq!(&got.shape, logits_shape);
+                got.data.clone()
+            };
+            let at = format!("LoRA {} at {threads} thread(s)", mode.name());
+            let base = run("base");
+            let err = max_abs_error(&base, base_want);
+            assert!(err <= 1e-4, "{name} base: logits differ from torchvision by {err:e}, {at}");
+            let got = run(&key);
+            let err = max_abs_error(&got, variant_want);
+            eprintln!("{name} {key}: logits max abs error vs PEFT (merged) {err:e}, {at}");
+            assert!(err <= 1e-4, "{name} {key}: logits differ from PEFT by {err:e}, {at}");
+            let again = run("base");
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&again), bits(&base), "{name}: base after {key} is not the base, {at}");
+        }
+    }
 }
