@@ -12,11 +12,15 @@
 //!   written once, final;
 //! * Winograd (whose output transform writes the planes directly), the depthwise loop and
 //!   a split by output channels (each thread then holds only some channels of a pixel)
-//!   finish the conv with scale and shift only, then [`apply_planes`] reads the output
-//!   once per chunk of pixels of one image (sized to stay in L2), threaded over the
-//!   chunks, and writes it back final: one read and one write of the activation instead
-//!   of the separate steps' seven (down reads `y`; the add reads `y` and `up`'s output and
-//!   writes; the ReLU reads and writes; `up` writes).
+//!   finish the conv with scale and shift only, then [`apply_planes`] runs the two GEMMs
+//!   on the output planes where they are, per chunk of pixels of one image (sized to stay
+//!   in L2; the GEMMs read rows a plane apart): `down` reads the chunk, `up` adds into it
+//!   and the bias and ReLU follow, instead of the separate steps' seven passes (down reads
+//!   `y`; the add reads `y` and `up`'s output and writes; the ReLU reads and writes; `up`
+//!   writes). Before, each chunk was gathered into scratch and scattered back: two copies
+//!   of the activation, and a `Vec` of slices per chunk allocated on every call. On
+//!   several threads the chunks' `down` is shared by chunks and `up` by channels (each
+//!   thread then writes only its own planes), one join between them.
 
 use rayon::prelude::*;
 
@@ -87,9 +91,6 @@ fn chunks(s: &Conv2dShape, mid: usize, threads: usize) -> (usize, usize) {
     (p, plane.div_ceil(p))
 }
 
-/// One chunk of pixels of one image, as one slice per channel.
-type Job<'a> = Vec<&'a mut [f32]>;
-
 /// Scratch floats [`apply_planes`] needs at this thread count.
 pub(super) fn planes_scratch_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
     threads.max(1) * (s.cout + mid) * chunk(s.cout, mid, s.oh * s.ow)
@@ -99,30 +100,65 @@ pub(super) fn planes_scratch_len(s: &Conv2dShape, mid: usize, threads: usize) ->
 /// shifted), in place, then the step's activation `act`; `h` holds at least `mid · tp`
 /// floats.
 pub(super) fn apply_tile(ad: &Adapter, y: &mut [f32], cout: usize, tp: usize, h: &mut [f32], act: Option<Activation>) {
-    let (mid, y) = (ad.mid, &mut y[..cout * tp]);
-    let h = &mut h[..mid * tp];
-    sgemm(
-        MatRef::row_major(ad.down, mid, cout),
-        MatRef::row_major(y, cout, tp),
-        MatMut::row_major(h, mid, tp),
-        false,
-        1,
-    );
-    bias_rows(h, ad.down_bias, tp, false);
+    apply_strided(ad, y, cout, tp, tp, h, act);
+}
+
+/// [`apply_tile`] on `cout` rows of `tp` pixels `stride` apart (a chunk of an image's
+/// channel planes, read and written where they are).
+fn apply_strided(
+    ad: &Adapter,
+    y: &mut [f32],
+    cout: usize,
+    tp: usize,
+    stride: usize,
+    h: &mut [f32],
+    act: Option<Activation>,
+) {
+    let h = &mut h[..ad.mid * tp];
+    down(ad, y, cout, tp, stride, h);
+    up(ad, h, y, 0..cout, tp, stride, act);
+}
+
+/// `h = act(down · y + down_bias)` for `cout` rows of `tp` pixels of `y`, `stride` apart.
+fn down(ad: &Adapter, y: &[f32], cout: usize, tp: usize, stride: usize, h: &mut [f32]) {
+    let (mid, h) = (ad.mid, &mut h[..ad.mid * tp]);
+    let y = MatRef { data: y, rows: cout, cols: tp, row_stride: stride, col_stride: 1 };
+    sgemm(MatRef::row_major(ad.down, mid, cout), y, MatMut::row_major(h, mid, tp), false, 1);
+    bias_rows(h, ad.down_bias, tp, tp, false);
     // A tile is one thread's work: its activations on this thread.
     elementwise::activation_chunk(ad.act, h);
-    sgemm(MatRef::row_major(ad.up, cout, mid), MatRef::row_major(h, mid, tp), MatMut::row_major(y, cout, tp), true, 1);
+}
+
+/// `y[c] += up[c] · h + up_bias[c]`, then `act`, for the channels `chans` of `y` (its
+/// rows `0..chans.len()`, `tp` pixels, `stride` apart).
+fn up(
+    ad: &Adapter,
+    h: &[f32],
+    y: &mut [f32],
+    chans: std::ops::Range<usize>,
+    tp: usize,
+    stride: usize,
+    act: Option<Activation>,
+) {
+    let (mid, rows) = (ad.mid, chans.len());
+    let w = MatRef::row_major(&ad.up[chans.start * mid..][..rows * mid], rows, mid);
+    let dst = MatMut { data: &mut *y, rows, cols: tp, row_stride: stride, col_stride: 1 };
+    sgemm(w, MatRef::row_major(&h[..mid * tp], mid, tp), dst, true, 1);
     let relu = act == Some(Activation::Relu);
-    bias_rows(y, ad.up_bias, tp, relu);
+    bias_rows(y, &ad.up_bias[chans], tp, stride, relu);
     if let Some(f) = act.filter(|_| !relu) {
-        elementwise::activation_chunk(f, y);
+        for row in y.chunks_mut(stride).take(rows) {
+            elementwise::activation_chunk(f, &mut row[..tp]);
+        }
     }
 }
 
 simd_fn! {
-    /// Row `c` of `rows` (of `tp` values) plus `bias[c]`, then the ReLU if `relu`.
-    fn bias_rows(rows: &mut [f32], bias: &[f32], tp: usize, relu: bool) {
-        for (row, &b) in rows.chunks_mut(tp).zip(bias) {
+    /// The first `tp` values of row `c` of `rows` (rows `stride` apart) plus `bias[c]`,
+    /// then the ReLU if `relu`.
+    fn bias_rows(rows: &mut [f32], bias: &[f32], tp: usize, stride: usize, relu: bool) {
+        for (row, &b) in rows.chunks_mut(stride).zip(bias) {
+            let row = &mut row[..tp];
             if relu {
                 row.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
             } else {
@@ -133,9 +169,12 @@ simd_fn! {
 }
 
 /// The adapter on a conv's whole output `[n, cout, oh, ow]` (scaled and shifted), in
-/// place, then the step's activation `act`: per chunk of [`chunk`] pixels of one image, copied
-/// into scratch, adapted there and copied back; the chunks shared by `threads` threads,
-/// each with its own part of `scratch` (at least [`planes_scratch_len`] floats).
+/// place, then the step's activation `act`, per chunk of [`chunk`] pixels of one image,
+/// read and written where it is (two GEMMs on the planes, rows a plane apart; nothing
+/// copied, nothing allocated). On one thread chunk by chunk; on more, per image and per
+/// round of chunks whose bottleneck rows fit `scratch` (at least [`planes_scratch_len`]
+/// floats): every chunk's `down` (the threads sharing the chunks, reading the planes),
+/// then `up` (the threads sharing the channels, each writing its own planes).
 pub(super) fn apply_planes(
     s: &Conv2dShape,
     ad: &Adapter,
@@ -149,55 +188,41 @@ pub(super) fn apply_planes(
         return;
     }
     let (p, per_image) = chunks(s, mid, threads);
-    // Each job: one chunk of one image, as one slice per channel.
-    let mut jobs: Vec<Vec<&mut [f32]>> = (0..s.n * per_image).map(|_| Vec::with_capacity(cout)).collect();
-    for (idx, pl) in out.chunks_mut(plane).enumerate() {
-        let n = idx / cout;
-        for (j, seg) in pl.chunks_mut(p).enumerate() {
-            jobs[n * per_image + j].push(seg);
-        }
-    }
-    let workers = threads.max(1).min(jobs.len());
-    let per = (cout + mid) * p;
-    let one = |job: &mut Vec<&mut [f32]>, scratch: &mut [f32]| {
-        let tp = job[0].len();
-        let (y, h) = scratch.split_at_mut(cout * tp);
-        gather(job, y, tp);
-        apply_tile(ad, y, cout, tp, h, act);
-        scatter(job, y, tp);
-    };
+    let workers = threads.max(1).min(s.n * per_image);
+    let chunk_px = |j: usize| (j * p, p.min(plane - j * p));
     if workers <= 1 {
-        let scratch = &mut scratch[..per];
-        jobs.iter_mut().for_each(|job| one(job, scratch));
+        let h = &mut scratch[..mid * p];
+        for image in out.chunks_mut(cout * plane) {
+            for j in 0..per_image {
+                let (p0, tp) = chunk_px(j);
+                apply_strided(ad, &mut image[p0..], cout, tp, plane, h, act);
+            }
+        }
         return;
     }
-    // Contiguous runs of jobs per worker, so each owns one part of the scratch.
-    let mut groups: Vec<(&mut [Job<'_>], &mut [f32])> = Vec::with_capacity(workers);
-    let (mut rest, mut scratch) = (jobs.as_mut_slice(), &mut scratch[..workers * per]);
-    for w in 0..workers {
-        let take = (rest.len()) / (workers - w);
-        let (mine, tail) = std::mem::take(&mut rest).split_at_mut(take);
-        let (sc, sc_tail) = std::mem::take(&mut scratch).split_at_mut(per);
-        groups.push((mine, sc));
-        (rest, scratch) = (tail, sc_tail);
-    }
-    groups.par_iter_mut().for_each(|(jobs, scratch)| jobs.iter_mut().for_each(|job| one(job, scratch)));
-}
-
-simd_fn! {
-    /// The chunk's channel slices into `y`, row-major `cout x tp`.
-    fn gather(job: &[&mut [f32]], y: &mut [f32], tp: usize) {
-        for (dst, src) in y.chunks_mut(tp).zip(job) {
-            dst.copy_from_slice(src);
-        }
-    }
-}
-
-simd_fn! {
-    /// `y` back into the chunk's channel slices.
-    fn scatter(job: &mut [&mut [f32]], y: &[f32], tp: usize) {
-        for (dst, src) in job.iter_mut().zip(y.chunks(tp)) {
-            dst.copy_from_slice(src);
+    // Chunks per round: as many bottleneck chunks as the scratch holds, at least one per
+    // worker (the scratch holds `workers · (cout + mid)` chunks' worth).
+    let round = (scratch.len() / (mid * p)).clamp(1, per_image);
+    // Channels per worker in `up`, in whole vectors of 8 rows of the weight.
+    let per_worker = cout.div_ceil(workers).next_multiple_of(8).min(cout);
+    for image in out.chunks_mut(cout * plane) {
+        for j0 in (0..per_image).step_by(round) {
+            let js = j0..(j0 + round).min(per_image);
+            let hs = &mut scratch[..js.len() * mid * p];
+            let y: &[f32] = image;
+            hs.par_chunks_mut(mid * p).zip(js.clone()).for_each(|(h, j)| {
+                let (p0, tp) = chunk_px(j);
+                down(ad, &y[p0..], cout, tp, plane, h);
+            });
+            let hs: &[f32] = hs;
+            image.par_chunks_mut(per_worker * plane).enumerate().for_each(|(w, planes)| {
+                let c0 = w * per_worker;
+                let chans = c0..(c0 + per_worker).min(cout);
+                for (h, j) in hs.chunks(mid * p).zip(js.clone()) {
+                    let (p0, tp) = chunk_px(j);
+                    up(ad, h, &mut planes[p0..], chans.clone(), tp, plane, act);
+                }
+            });
         }
     }
 }
@@ -332,14 +357,14 @@ mod tests {
             let relu = step_act == Some(Activation::Relu);
             let want = reference(s, &x, &w, &scale, &shift, &ad, step_act);
             let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: step_act };
-            for threads in [1, 2] {
+            for threads in [1, 2, 3] {
                 let need = adapter_scratch_len(s, algo, 0, mid, threads).expect("a size");
                 let mut scratch = vec![f32::NAN; need];
                 let mut out = vec![f32::NAN; want.len()];
                 conv2d_adapter(s, algo, &packed, None, Some(&ad), &ep, &x, &mut out, &mut scratch, threads);
                 let tol = if matches!(algo, ConvAlgo::Winograd4) { 1e-4 } else { 2e-5 };
                 assert_close(&out, &want, tol);
-                if relu {
+                if relu && threads < 3 {
                     in_tile.push(super::super::adapter_in_tile(s, algo, threads));
                 }
             }
@@ -383,6 +408,42 @@ mod tests {
         // Odd chunk counts over two threads.
         let s = shape(3, 4, (30, 30), 16, 3, 1, 1);
         check(&s, ConvAlgo::Winograd2, 4, Activation::Relu);
+    }
+
+    #[test]
+    fn rounds_of_chunks_and_uneven_channel_shares() {
+        // 100x100 at 16 + 16 channels on two threads: six chunks of 1680 pixels, whose
+        // bottleneck rows (16 x 1680 each) fill the scratch (2 x 32 x 2048) four at a
+        // time: two rounds. Three threads share 20 channels as 8, 8 and 4.
+        let s = shape(1, 4, (100, 100), 16, 3, 1, 1);
+        assert_eq!(chunks(&s, 16, 2), (1680, 6));
+        assert_eq!(planes_scratch_len(&s, 16, 2) / (16 * 1680), 4);
+        let (down, up) = (data(16 * 16, 21), data(16 * 16, 22));
+        let (bd, bu) = (data(16, 23), data(16, 24));
+        let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid: 16, act: Activation::Relu };
+        let y = data(16 * 10_000, 25);
+        let run = |threads: usize| {
+            let mut out = y.clone();
+            let mut scratch = vec![f32::NAN; planes_scratch_len(&s, 16, threads)];
+            apply_planes(&s, &ad, &mut out, Some(Activation::Relu), &mut scratch, threads);
+            out
+        };
+        let one = run(1);
+        // One thread against a naive loop at a few pixels, then two threads against one.
+        for p in [0, 1679, 1680, 9999] {
+            for c in [0, 7, 15] {
+                let at = |c: usize| f64::from(y[c * 10_000 + p]);
+                let h: Vec<f64> = (0..16)
+                    .map(|m| {
+                        ((0..16).map(|k| f64::from(down[m * 16 + k]) * at(k)).sum::<f64>() + f64::from(bd[m])).max(0.0)
+                    })
+                    .collect();
+                let z = at(c) + (0..16).map(|m| f64::from(up[c * 16 + m]) * h[m]).sum::<f64>() + f64::from(bu[c]);
+                assert!((f64::from(one[c * 10_000 + p]) - z.max(0.0)).abs() < 1e-4, "pixel {p} channel {c}");
+            }
+        }
+        assert_close(&run(2), &one, 1e-6);
+        check(&shape(2, 4, (9, 9), 20, 3, 1, 1), ConvAlgo::Winograd2, 5, Activation::Silu);
     }
 
     #[test]
