@@ -10,7 +10,8 @@ use readi_plan::ops::{self, BatchNorm, GroupNorm, LayerNorm, Operator, Pure, Sha
 
 use super::{DType, TensorType};
 use crate::ops::{
-    AffineOp, ConvOp, ConvTransposeOp, LinearOp, ParameterOp, batchnorm_slots, groupnorm_slots, layernorm_slots,
+    AffineOp, Conv3dOp, ConvOp, ConvTransposeOp, LinearOp, ParameterOp, batchnorm_slots, groupnorm_slots,
+    layernorm_slots,
 };
 
 /// An operation of the graph. The tensor inputs are the node's incoming edges; everything
@@ -26,6 +27,9 @@ pub enum Op {
     /// Transposed 2-D convolution over NCHW, weight `[in, out/groups, kh, kw]`, optional
     /// bias `[out]`.
     ConvTranspose2d(ConvTransposeOp),
+    /// 3-D convolution over NCDHW, weight `[out, in/groups, kd, kh, kw]`, optional bias
+    /// `[out]`.
+    Conv3d(Conv3dOp),
     /// Batch normalisation over axis 1 with affine parameters and running statistics.
     BatchNorm(BatchNorm),
     /// Layer normalisation over the last axis.
@@ -125,6 +129,7 @@ impl Op {
             Op::Parameter(o) => o,
             Op::Conv2d(o) => o,
             Op::ConvTranspose2d(o) => o,
+            Op::Conv3d(o) => o,
             Op::BatchNorm(o) => o,
             Op::LayerNorm(o) => o,
             Op::GroupNorm(o) => o,
@@ -161,6 +166,7 @@ impl Op {
             Op::Parameter(p) => p.param_slots(),
             Op::Conv2d(c) => c.param_slots(),
             Op::ConvTranspose2d(c) => c.param_slots(),
+            Op::Conv3d(c) => c.param_slots(),
             Op::BatchNorm(bn) => batchnorm_slots(bn),
             Op::LayerNorm(ln) => layernorm_slots(ln),
             Op::GroupNorm(gn) => groupnorm_slots(gn),

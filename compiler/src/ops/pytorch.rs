@@ -98,7 +98,6 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("minimum", Unsupported),
     ("where", Unsupported),
     // Operators of issue 12 not written yet.
-    ("conv3d", Unsupported),
     ("gather", Unsupported),
     ("index_select", Unsupported),
     ("embedding", Unsupported),
