@@ -546,6 +546,51 @@ fn a_crafted_conv_transpose_is_refused() {
 }
 
 #[test]
+fn a_crafted_conv3d_is_refused() {
+    use readi_plan::ops::{Conv3d, Window3};
+    use readi_runtime::plan::{EpilogueSpec, Kernel};
+    let dir = temp_dir("conv3d");
+    // in 2, out 4, kernel 2, stride 2: [N, 2, 4, 4, 4] to [N, 4, 2, 2, 2]; weight [4, 2, 2, 2, 2], bias [4].
+    let x5 = [None, Some(2), Some(4), Some(4), Some(4)];
+    let plan = |edit: &dyn Fn(&mut Conv3d), x: &[Option<usize>], weight: usize, bias: usize| {
+        let window = Window3 { kernel: [2; 3], stride: [2; 3], padding: [0; 3], dilation: [1; 3] };
+        let mut conv = Conv3d { in_channels: 2, out_channels: 4, window, groups: 1 };
+        edit(&mut conv);
+        let epilogue = EpilogueSpec { shift: Some(1), ..EpilogueSpec::default() };
+        let kernel = Kernel::Conv3d { conv, weight: 0, epilogue };
+        let tensors = [("w", vec![weight]), ("b", vec![bias])];
+        one_step(x, kernel, &[None, Some(4), Some(2), Some(2), Some(2)], &tensors)
+    };
+    // The unedited plan runs, so each refusal below is its edit's.
+    let (m, data) = plan(&|_| {}, &x5, 64, 4);
+    let path = dir.join("ok.plan");
+    std::fs::write(&path, plan_bytes(&m, &data)).expect("write plan");
+    let x = dir.join("x.npy");
+    write_npy(&x, &[1, 2, 4, 4, 4]);
+    let o = readi(&["run", &s(&path), "--input", &format!("x={}", s(&x))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let x_shape = [1, 2, 4, 4, 4];
+    let err = run_refused(&dir, "weight.plan", plan(&|_| {}, &x5, 63, 4), &x_shape);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");
+    assert!(err.contains("conv3d weight `w` has 63 values (shape [63]), it needs 64 ([4, 2, 2, 2, 2])"), "{err}");
+    let err = run_refused(&dir, "bias.plan", plan(&|_| {}, &x5, 64, 3), &x_shape);
+    assert!(err.contains("epilogue tensor `b` has 3 values for 4 channels"), "{err}");
+    let err = run_refused(&dir, "stride.plan", plan(&|c| c.window.stride = [0, 2, 2], &x5, 64, 4), &x_shape);
+    assert!(err.contains("stride 0x2x2, dilation 1: each must be at least 1"), "{err}");
+    let err = run_refused(&dir, "groups.plan", plan(&|c| c.groups = 3, &x5, 64, 4), &x_shape);
+    assert!(err.contains("groups=3 must divide both 2 input and 4 output channels"), "{err}");
+    let err = run_refused(&dir, "rank.plan", plan(&|_| {}, &x5[..4], 64, 4), &x_shape[..4]);
+    assert!(err.contains("conv3d expects a 5-D NCDHW tensor"), "{err}");
+    // The output declared one slice shallower than the layer makes.
+    let err = run_refused(&dir, "size.plan", plan(&|c| c.window.padding = [1, 0, 0], &x5, 64, 4), &x_shape);
+    assert!(
+        err.contains("its output has shape [N, 4, 2, 2, 2], but conv3d of its inputs gives [N, 4, 3, 2, 2]"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn a_linear_with_zero_input_features_is_refused() {
     use readi_plan::ops::Linear;
     use readi_runtime::plan::Kernel;

@@ -12,6 +12,8 @@
 //!   sizes; groupnorm with affine weights, without, and in one group; pixel (un)shuffle.
 //! - `movement.readi` (`make_movement_fixtures.py`): pad, roll and slicing, which must
 //!   equal torch's values exactly.
+//! - `conv3d.readi` (`make_conv3d_fixtures.py`): 3-D convolutions (padding, stride,
+//!   dilation, groups, depthwise, 1x1x1) and BatchNorm3d, at 1 and 2 threads.
 
 mod common;
 
@@ -225,5 +227,58 @@ fn swin_relative_position_bias_and_attention_mask_match_torchvision() {
             "swin_pieces.io.safetensors",
             threads,
         );
+    }
+}
+
+#[test]
+fn conv3ds_match_pytorch() {
+    for threads in [1, 2] {
+        matches_pytorch(
+            compile("tests/fixtures/ops/conv3d.readi", "conv3d.weights.safetensors"),
+            "conv3d.io.safetensors",
+            threads,
+        );
+    }
+}
+
+/// A conv3d takes its bias and a following activation into its epilogue; a BatchNorm3d
+/// after it stays a channel affine (over the 5-D value), which takes the ReLU.
+#[test]
+fn conv3ds_take_their_bias_and_activation() {
+    let plan = compile("tests/fixtures/ops/conv3d.readi", "conv3d.weights.safetensors");
+    let steps = &plan.manifest.steps;
+    let step = |name: &str| steps.iter().find(|s| s.path.starts_with(name)).unwrap_or_else(|| panic!("no {name}"));
+    let Kernel::Conv3d { epilogue, .. } = &step("s1").kernel else { panic!("s1 is {:?}", step("s1")) };
+    assert!(epilogue.shift.is_none() && epilogue.act.is_none(), "{epilogue:?}");
+    assert!(matches!(step("b1").kernel, Kernel::ChannelAffine { ref epilogue, .. } if epilogue.act.is_some()));
+    let Kernel::Conv3d { epilogue, .. } = &step("g").kernel else { panic!("g is {:?}", step("g")) };
+    assert!(epilogue.shift.is_some() && epilogue.act.is_some(), "the bias or ReLU is not fused: {epilogue:?}");
+    let Kernel::Conv3d { epilogue, .. } = &step("pw").kernel else { panic!("pw is {:?}", step("pw")) };
+    assert!(epilogue.shift.is_some() && epilogue.act.is_none(), "{epilogue:?}");
+    let convs = steps.iter().filter(|s| matches!(s.kernel, Kernel::Conv3d { .. })).count();
+    assert_eq!(convs, 6, "{steps:?}");
+}
+
+/// A conv3d weight without its depth (a conv2d's), and in a transposed conv's layout
+/// (`[in, out/groups, ...]`): errors naming the tensor, both shapes and the layer's line.
+#[test]
+fn conv3d_weights_of_the_wrong_layout_are_refused() {
+    let spec = "tests/fixtures/ops/conv3d.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    let module = out.module.expect("module");
+    let cases = [
+        ("s1.weight", vec![8, 4, 3, 3], "[8, 4, 3, 3, 3]", ":8:8"),
+        ("g.weight", vec![4, 3, 3, 3, 3], "[6, 2, 3, 3, 3]", ":15:7"),
+    ];
+    for (name, shape, want, line) in cases {
+        let mut weights = fixture("conv3d.weights.safetensors");
+        let n = shape.iter().product();
+        weights.tensors.insert(name.into(), (shape.clone(), vec![0.0; n]));
+        let d = backend::compile(&module, &weights, "conv3d.weights.safetensors", &CompileOptions::default())
+            .expect_err("a wrong shape");
+        let text = sources.render_all(&d, false);
+        let got = format!("{shape:?}");
+        assert!(text.contains(name) && text.contains(want) && text.contains(&got), "{text}");
+        assert!(text.contains(&format!("conv3d.readi{line}")), "{text}");
     }
 }

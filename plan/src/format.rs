@@ -21,14 +21,14 @@ use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::{KeyPart, VariantKey};
 use crate::ops::{
-    Activation, ChannelAffine, Conv2d, ConvAlgo, ConvTranspose2d, GroupNorm, LayerNorm, Linear, Operator, Pure,
+    Activation, ChannelAffine, Conv2d, Conv3d, ConvAlgo, ConvTranspose2d, GroupNorm, LayerNorm, Linear, Operator, Pure,
 };
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
 /// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
 /// Version 3: an epilogue's activation is any [`Activation`] (`act`), not a `relu` flag;
 /// a runtime that reads only version 2 refuses these plans instead of ignoring `act`.
-/// Version 4: new kernels and operators (`ConvTranspose2d`, `GroupNorm`, the reductions as
+/// Version 4: new kernels and operators (`ConvTranspose2d`, `Conv3d`, `GroupNorm`, the reductions as
 /// `Reduce` with a kind, adaptive pooling, pixel shuffle, pad, roll, slice, expand); a
 /// runtime that reads only version 3 refuses these plans by their version, not by an
 /// unknown variant deep in the manifest. Versions 2 and 3 read unchanged.
@@ -459,6 +459,13 @@ pub enum Kernel {
         weight: usize,
         epilogue: EpilogueSpec,
     },
+    /// 3-D convolution over NCDHW with a fused per-channel epilogue (bias = shift).
+    /// `weight` is PyTorch's `[out, in/groups, kd, kh, kw]`, as it is.
+    Conv3d {
+        conv: Conv3d,
+        weight: usize,
+        epilogue: EpilogueSpec,
+    },
     /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
     /// stored transposed, `[in, out]`.
     Linear {
@@ -495,6 +502,7 @@ impl Kernel {
         match self {
             Kernel::Conv2d { conv, .. } => conv,
             Kernel::ConvTranspose2d { conv, .. } => conv,
+            Kernel::Conv3d { conv, .. } => conv,
             Kernel::Linear { linear, .. } => linear,
             Kernel::ChannelAffine { affine, .. } => affine,
             Kernel::LayerNorm { norm, .. } => norm,
@@ -535,6 +543,7 @@ impl Kernel {
         match self {
             Kernel::Conv2d { epilogue, .. }
             | Kernel::ConvTranspose2d { epilogue, .. }
+            | Kernel::Conv3d { epilogue, .. }
             | Kernel::Linear { epilogue, .. }
             | Kernel::ChannelAffine { epilogue, .. } => Some(epilogue),
             _ => None,
@@ -553,7 +562,7 @@ impl Kernel {
                 v.extend(self.adapter().iter().flat_map(|a| a.tensors()));
                 v
             }
-            Kernel::ConvTranspose2d { weight, epilogue, .. } => {
+            Kernel::ConvTranspose2d { weight, epilogue, .. } | Kernel::Conv3d { weight, epilogue, .. } => {
                 let mut v = vec![*weight];
                 v.extend(ep(epilogue));
                 v

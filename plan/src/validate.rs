@@ -270,6 +270,21 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             }
             per_channel(epilogue, conv.out_channels)
         }
+        Kernel::Conv3d { conv, weight, epilogue } => {
+            // The shape rule has checked channels and groups; the weight does not depend
+            // on the input's size.
+            let want = conv.weight_len();
+            if numel(*weight) as u64 != want {
+                return Err(format!(
+                    "conv3d weight `{}` has {} values (shape {:?}), it needs {want} ({:?})",
+                    escaped(&m.tensors[*weight].name),
+                    numel(*weight),
+                    m.tensors[*weight].shape,
+                    conv.weight_shape()
+                ));
+            }
+            per_channel(epilogue, conv.out_channels)
+        }
         Kernel::Linear { linear, weight, epilogue, lora } => {
             let want = (linear.in_features as u64).saturating_mul(linear.out_features as u64);
             if numel(*weight) as u64 != want {

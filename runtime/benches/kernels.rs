@@ -1,7 +1,7 @@
 //! Criterion benchmarks of the GEMM-based kernels at 2 threads: sgemm 512³, conv2d on
 //! ResNet-18's layer shapes (batch 1) with the algorithm `conv::choose` picks, and a
 //! transformer-sized linear; conv_transpose2d on SECOND's FPN deblocks against the naive
-//! scatter loop; the polynomial unary kernels against naive libm loops; and pad, roll and
+//! scatter loop; conv3d on SECOND-style middle-encoder shapes against the naive loop; the polynomial unary kernels against naive libm loops; and pad, roll and
 //! slice against naive index loops. Throughput is reported in FLOP/s (criterion's "elem/s").
 //!
 //! `cargo bench -p readi-runtime --bench kernels` runs all; a filter such as `conv2d`
@@ -236,6 +236,64 @@ fn bench_conv_transpose(c: &mut Criterion) {
     g.finish();
 }
 
+/// `conv3d` on SECOND-style middle-encoder shapes (batch 1, bias and ReLU fused): a
+/// 3x3x3 block, its stride-2 downsampling, the depth downsampling (kernel (3, 1, 1),
+/// stride (2, 1, 1)) and a depthwise 3x3x3, against the naive loop
+/// (`conv3d::reference`, timed on its own: three calls, the fastest printed with the
+/// ratio). `cargo bench -p readi-runtime --bench kernels conv3d`.
+fn bench_conv3d(c: &mut Criterion) {
+    use readi_plan::ops::{Conv3d, Window3};
+    use readi_runtime::kernels::conv3d;
+    let pool = pool();
+    let mut g = c.benchmark_group("conv3d");
+    g.sample_size(10).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    // (name, cin, cout, kernel, stride, padding, groups, [d, h, w])
+    let shapes = [
+        ("k3p1_16_16_21x40x36", 16, 16, [3; 3], [1; 3], [1; 3], 1, [21, 40, 36]),
+        ("k3s2p1_16_32_21x40x36", 16, 32, [3; 3], [2; 3], [1; 3], 1, [21, 40, 36]),
+        ("k311s211_64_64_11x20x18", 64, 64, [3, 1, 1], [2, 1, 1], [0; 3], 1, [11, 20, 18]),
+        ("dw_k3p1_32_21x40x36", 32, 32, [3; 3], [1; 3], [1; 3], 32, [21, 40, 36]),
+    ];
+    for (name, cin, cout, kernel, stride, padding, groups, [d, h, w]) in shapes {
+        let window = Window3 { kernel, stride, padding, dilation: [1; 3] };
+        let op = Conv3d { in_channels: cin, out_channels: cout, window, groups };
+        let s = op.shape(1, d, h, w);
+        let x = data(s.cin * s.in_plane(), 3);
+        let wt = data(s.weight_len(), 4);
+        let bias = data(s.cout, 5);
+        let ep = Epilogue { scale: None, shift: Some(&bias), act: Some(readi_plan::ops::Activation::Relu) };
+        let mut out = vec![0.0; s.cout * s.out_plane()];
+        let mut scratch = vec![0.0; conv3d::scratch_len(&s, THREADS).expect("fits")];
+        g.throughput(Throughput::Elements(2 * (s.weight_len() * s.out_plane()) as u64));
+        let mut fastest = f64::INFINITY;
+        g.bench_function(name, |bench| {
+            pool.install(|| {
+                bench.iter(|| {
+                    let t = std::time::Instant::now();
+                    conv3d::conv3d(&s, &wt, &ep, &x, &mut out, &mut scratch, THREADS);
+                    fastest = fastest.min(t.elapsed().as_secs_f64());
+                    black_box(&out);
+                })
+            })
+        });
+        let mut naive = f64::INFINITY;
+        let mut want = vec![0.0; out.len()];
+        for _ in 0..3 {
+            let t = std::time::Instant::now();
+            conv3d::reference(&s, &wt, &ep, &x, &mut want);
+            naive = naive.min(t.elapsed().as_secs_f64());
+            black_box(&want);
+        }
+        eprintln!(
+            "conv3d/{name}: kernel {:.2} ms (fastest call, {THREADS} threads), naive loop {:.1} ms (1 thread): {:.0}x",
+            fastest * 1e3,
+            naive * 1e3,
+            naive / fastest
+        );
+    }
+    g.finish();
+}
+
 fn bench_linear(c: &mut Criterion) {
     let pool = pool();
     let (rows, fin, fout) = (196, 384, 1536);
@@ -392,6 +450,7 @@ criterion_group!(
     bench_conv,
     bench_conv_lora,
     bench_conv_transpose,
+    bench_conv3d,
     bench_linear,
     bench_unary,
     bench_movement

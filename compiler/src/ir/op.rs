@@ -10,8 +10,8 @@ use readi_plan::ops::{self, BatchNorm, GroupNorm, LayerNorm, Operator, Pure, Sha
 
 use super::{DType, TensorType};
 use crate::ops::{
-    AffineOp, BufferOp, ConstantOp, ConvOp, ConvTransposeOp, IndexSelectOp, LinearOp, ParameterOp, batchnorm_slots,
-    groupnorm_slots, layernorm_slots,
+    AffineOp, BufferOp, ConstantOp, Conv3dOp, ConvOp, ConvTransposeOp, IndexSelectOp, LinearOp, ParameterOp,
+    batchnorm_slots, groupnorm_slots, layernorm_slots,
 };
 
 /// An operation of the graph. The tensor inputs are the node's incoming edges; everything
@@ -34,6 +34,9 @@ pub enum Op {
     /// Transposed 2-D convolution over NCHW, weight `[in, out/groups, kh, kw]`, optional
     /// bias `[out]`.
     ConvTranspose2d(ConvTransposeOp),
+    /// 3-D convolution over NCDHW, weight `[out, in/groups, kd, kh, kw]`, optional bias
+    /// `[out]`.
+    Conv3d(Conv3dOp),
     /// Batch normalisation over axis 1 with affine parameters and running statistics.
     BatchNorm(BatchNorm),
     /// Layer normalisation over the last axis.
@@ -136,6 +139,7 @@ impl Op {
             Op::IndexSelect(o) => o,
             Op::Conv2d(o) => o,
             Op::ConvTranspose2d(o) => o,
+            Op::Conv3d(o) => o,
             Op::BatchNorm(o) => o,
             Op::LayerNorm(o) => o,
             Op::GroupNorm(o) => o,
@@ -174,6 +178,7 @@ impl Op {
             Op::Constant(c) => c.param_slots(),
             Op::Conv2d(c) => c.param_slots(),
             Op::ConvTranspose2d(c) => c.param_slots(),
+            Op::Conv3d(c) => c.param_slots(),
             Op::BatchNorm(bn) => batchnorm_slots(bn),
             Op::LayerNorm(ln) => layernorm_slots(ln),
             Op::GroupNorm(gn) => groupnorm_slots(gn),

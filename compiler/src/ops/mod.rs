@@ -15,6 +15,7 @@
 //! |------------------|-------------------------------------------------------------|
 //! | `conv.rs`        | `conv2d`, `conv1d` (a conv2d over `[N, C, 1, L]`)           |
 //! | `conv_transpose.rs` | `conv_transpose2d`                                       |
+//! | `conv3d.rs`      | `conv3d` (NCDHW)                                            |
 //! | `pool.rs`        | `maxpool`, `avgpool`, `global_avgpool`, `adaptive_avgpool`, `adaptive_maxpool` |
 //! | `elementwise.rs` | `add`, `sub`, `mul`, `div`, `pow`, every activation (`relu`, `clamp`, `gelu`, ...) and unary function (`exp`, `sqrt`, ...) |
 //! | `linear.rs`      | `linear`, `matmul`                                          |
@@ -33,6 +34,7 @@
 
 mod args;
 mod conv;
+mod conv3d;
 mod conv_transpose;
 mod elementwise;
 mod epilogue;
@@ -52,6 +54,7 @@ use std::sync::LazyLock;
 pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, req};
 pub use conv::{AdapterOp, ConvOp};
 pub use conv_transpose::ConvTransposeOp;
+pub use conv3d::Conv3dOp;
 pub use epilogue::{BnFold, Epilogue};
 pub use index::IndexSelectOp;
 pub use linear::LinearOp;
@@ -101,6 +104,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
     let families = [
         conv::builtins(),
         conv_transpose::builtins(),
+        conv3d::builtins(),
         norm::builtins(),
         linear::builtins(),
         elementwise::builtins(),

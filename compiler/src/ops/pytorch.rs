@@ -97,7 +97,6 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("maximum", Unsupported),
     ("minimum", Unsupported),
     // Operators of issue 12 not written yet.
-    ("conv3d", Unsupported),
     ("gather", Unsupported),
     // Indices need integer tensors, which readi does not compute (`max` and `min` are
     // torch.amax and torch.amin: the values).

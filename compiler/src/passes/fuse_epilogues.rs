@@ -1,15 +1,15 @@
 //! `fuse_epilogues`: gives conv, transposed conv, linear and channel-affine nodes the
 //! work they can do while writing their output.
 //!
-//! * rule `bias_to_shift`: a conv's, transposed conv's or linear's bias becomes its
-//!   epilogue's shift (the same tensor; a folded BatchNorm already has a shift and no
+//! * rule `bias_to_shift`: a conv's, transposed conv's, conv3d's or linear's bias becomes
+//!   its epilogue's shift (the same tensor; a folded BatchNorm already has a shift and no
 //!   bias);
 //! * rule `fuse_activation`: an activation (any [`Activation`]: relu, relu6, clamp,
 //!   hardswish, silu, gelu, ..., and the unary functions such as `exp`) whose input is a
-//!   conv, transposed conv, linear or channel affine without one, that nothing else
-//!   reads, runs in that node's epilogue; the activation leaves the graph. One per node:
-//!   a second activation stays a node. (A BatchNorm after a transposed conv is not folded
-//!   into it: it stays a channel affine, which takes the activation.)
+//!   conv, transposed conv, conv3d, linear or channel affine without one, that nothing
+//!   else reads, runs in that node's epilogue; the activation leaves the graph. One per
+//!   node: a second activation stays a node. (A BatchNorm after a transposed conv or a
+//!   conv3d is not folded into it: it stays a channel affine, which takes the activation.)
 //!
 //! Does nothing when no bias is left and no activation follows such a node. Assumes
 //! `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
@@ -39,6 +39,12 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
                 c.bias = false;
                 c.epilogue.shift = true;
                 Some(Op::ConvTranspose2d(c))
+            }
+            Op::Conv3d(c) if c.bias && !c.epilogue.shift => {
+                let mut c = c.clone();
+                c.bias = false;
+                c.epilogue.shift = true;
+                Some(Op::Conv3d(c))
             }
             Op::Linear(l) if l.bias && !l.epilogue.shift => {
                 let mut l = l.clone();
@@ -84,6 +90,7 @@ fn with_activation(g: &Graph, producer: NodeId, act: Activation) -> Option<Op> {
         Op::ConvTranspose2d(c) => {
             Op::ConvTranspose2d(crate::ops::ConvTransposeOp { epilogue: relu(&c.epilogue)?, ..c.clone() })
         }
+        Op::Conv3d(c) => Op::Conv3d(crate::ops::Conv3dOp { epilogue: relu(&c.epilogue)?, ..c.clone() }),
         Op::Linear(l) => Op::Linear(crate::ops::LinearOp { epilogue: relu(&l.epilogue)?, ..l.clone() }),
         Op::ChannelAffine(a) => Op::ChannelAffine(crate::ops::AffineOp { epilogue: relu(&a.epilogue)?, ..a.clone() }),
         _ => return None,

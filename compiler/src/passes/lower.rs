@@ -2,7 +2,7 @@
 //! stored tensors and its variant tables.
 //!
 //! A one-to-one map: an input becomes an input value, a `parameter` a stored-tensor
-//! value, a conv, transposed conv, linear, channel affine, layernorm or groupnorm a
+//! value, a conv, transposed conv, conv3d, linear, channel affine, layernorm or groupnorm a
 //! kernel reading the tensors its slots name (the epilogue's scale, shift and BatchNorm
 //! record included), and every other op the same [`Pure`](readi_plan::ops::Pure)
 //! operator as a kernel. The rewrites happened
@@ -310,6 +310,13 @@ impl<'m> Lowering<'m> {
                 }
                 let weight = self.tensor(node, "weight")?;
                 Kernel::ConvTranspose2d { conv: c.conv.clone(), weight, epilogue: self.epilogue(node, &c.epilogue)? }
+            }
+            Op::Conv3d(c) => {
+                if c.bias {
+                    return Err(ice(format!("conv3d `{}` still has a bias", node.path)));
+                }
+                let weight = self.tensor(node, "weight")?;
+                Kernel::Conv3d { conv: c.conv.clone(), weight, epilogue: self.epilogue(node, &c.epilogue)? }
             }
             Op::Linear(l) => {
                 if !l.packed || l.bias {

@@ -12,6 +12,7 @@
 //! |-----------------|------------------------------------------------------------------|
 //! | `conv.rs`       | `conv2d`                                                         |
 //! | `conv_transpose.rs` | `conv_transpose2d`                                           |
+//! | `conv3d.rs`     | `conv3d` (NCDHW; its window sized per axis by `window.rs`'s rule) |
 //! | `pool.rs`       | `maxpool`, `avgpool`, `global_avgpool`, `adaptive_{avg,max}pool` |
 //! | `window.rs`     | the sliding-window geometry of conv and pool                     |
 //! | `elementwise.rs`| binary ops with broadcasting, ops with a scalar, activations      |
@@ -29,6 +30,7 @@
 //! of their stored tensors.
 
 mod conv;
+mod conv3d;
 mod conv_transpose;
 mod elementwise;
 mod index;
@@ -48,6 +50,7 @@ use serde::{Deserialize, Serialize};
 use crate::dim::Dim;
 pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
+pub use conv3d::{Conv3d, Conv3dShape, Window3};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use index::{Cast, Fill, IndexSelect, Where};
 pub use layout::{Concat, Permute, Reshape};

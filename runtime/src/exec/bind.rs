@@ -7,6 +7,7 @@ use std::collections::HashMap;
 
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
+use crate::kernels::conv3d;
 use crate::kernels::{
     self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax,
 };
@@ -298,6 +299,15 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
                 (scratch_len, scratch_by) = (need, Some(k));
             }
         }
+        if let Kernel::Conv3d { conv: c, .. } = &step.kernel {
+            // `check_step` checked the layer, so its sizes are in range.
+            let x = &shapes[step.inputs[0]];
+            let need = conv3d::scratch_len(&c.shape(x[0], x[2], x[3], x[4]), threads)
+                .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
+            if need > scratch_len {
+                (scratch_len, scratch_by) = (need, Some(k));
+            }
+        }
         convs.push(conv);
     }
     let zeros_len: Vec<usize> =
@@ -539,6 +549,21 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             let xl = numel(x).ok_or("conv_transpose2d input too large")?;
             let ol = numel(out).ok_or("conv_transpose2d output too large")?;
             conv_transpose::check(&s, len(*weight), xl, ol, ep(epilogue))
+        }
+        Kernel::Conv3d { conv: c, weight, epilogue } => {
+            let [n, cin, d, h, w] = x[..] else {
+                return Err(format!("conv3d of a value of shape {x:?}, not 5-D"));
+            };
+            if cin != u(c.in_channels)? {
+                return Err(format!("conv3d expects {} input channels, its input is {x:?}", c.in_channels));
+            }
+            let s = c.shape(n, d, h, w);
+            if s.out != out.get(2..).unwrap_or_default() {
+                return Err(format!("conv3d of {x:?} gives {:?}, its output is {out:?}", s.out));
+            }
+            let xl = numel(x).ok_or("conv3d input too large")?;
+            let ol = numel(out).ok_or("conv3d output too large")?;
+            conv3d::check(&s, len(*weight), xl, ol, ep(epilogue))
         }
         Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
             linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))

@@ -7,6 +7,7 @@ use readi_plan::ops::Pure;
 
 use crate::kernels::conv;
 use crate::kernels::conv_transpose;
+use crate::kernels::conv3d;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
 use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, softmax};
@@ -130,6 +131,10 @@ pub(crate) fn run_step(
         Kernel::ConvTranspose2d { conv: c, weight, epilogue: ep } => {
             let s = c.shape(xs[0], xs[2], xs[3]);
             conv_transpose::conv_transpose2d(&s, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
+        }
+        Kernel::Conv3d { conv: c, weight, epilogue: ep } => {
+            let s = c.shape(xs[0], xs[2], xs[3], xs[4]);
+            conv3d::conv3d(&s, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
         }
         // Rows from the leading axes, not by dividing the length: a last axis may be 0.
         Kernel::Linear { linear: l, weight, epilogue: ep, lora } => {

@@ -82,6 +82,7 @@ pub struct Lora<'a> {
 }
 
 pub mod conv;
+pub mod conv3d;
 pub mod conv_transpose;
 pub mod elementwise;
 pub mod gemm;
