@@ -28,9 +28,10 @@ fn check_accepts_every_bundled_model() {
         "models/efficientnet_b0.readi",
         "models/convnext_tiny.readi",
         "models/vit_b_16.readi",
+        "models/regnet_y_400mf.readi",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("ok  ")).count(), 10, "{}", stdout(&o));
+    assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("ok  ")).count(), 11, "{}", stdout(&o));
 }
 
 #[test]

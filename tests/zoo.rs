@@ -136,8 +136,15 @@ fn check_parity(name: &str) {
 }
 
 /// The zoo, in the order of the README's table.
-const ZOO: [&str; 6] =
-    ["resnet50", "mobilenet_v2", "mobilenet_v3_large", "efficientnet_b0", "convnext_tiny", "vit_b_16"];
+const ZOO: [&str; 7] = [
+    "resnet50",
+    "mobilenet_v2",
+    "mobilenet_v3_large",
+    "efficientnet_b0",
+    "convnext_tiny",
+    "vit_b_16",
+    "regnet_y_400mf",
+];
 
 /// `readi params` reports torchvision's parameter count for each model, with 1000 classes.
 #[test]
@@ -328,4 +335,16 @@ fn vit_b_16_peft_lora_matches_peft() {
             assert_eq!(bits(&again), bits(&base), "{name}: base after {key} is not the base, {at}");
         }
     }
+}
+
+/// torchvision's `block1-0`-style names, spelt as quoted layer names.
+#[test]
+fn regnet_y_400mf_state_dict_matches_torchvision() {
+    check_table("regnet_y_400mf");
+}
+
+/// At 40x40 (the last stage runs at 2x2), batch 2.
+#[test]
+fn regnet_y_400mf_matches_torchvision() {
+    check_parity("regnet_y_400mf");
 }

@@ -172,11 +172,58 @@ pub struct InputDecl {
 /// Element types, shared with the compiler and the plan format.
 pub use readi_plan::DType;
 
-/// One segment of a layer path: `conv1` or `0`.
-#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+/// One segment of a layer path: `conv1`, `0`, `"block1-0"` or `"block{i}-{j}"`.
+#[derive(Clone, Debug, PartialEq)]
 pub enum LayerName {
     Ident(Ident),
     Index(u64, Span),
+    /// A quoted name; its text is known once its `{expr}` parts are evaluated.
+    Quoted(QuotedName),
+}
+
+/// `"block{i}-{j}"`: literal text and interpolated expressions, in order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct QuotedName {
+    pub parts: Vec<NamePart>,
+    /// The text between the quotes, as written (for printing).
+    pub source: String,
+    pub span: Span,
+}
+
+/// A piece of a quoted name.
+#[derive(Clone, Debug, PartialEq)]
+pub enum NamePart {
+    Text(String),
+    /// `{expr}`: replaced by the value of `expr`, an int or a string.
+    Expr(Expr),
+}
+
+/// Why `text` cannot be one segment of a layer path, if it cannot: segments are joined
+/// by `.` into state_dict keys, and `#` marks the names readi gives unnamed layers.
+pub fn bad_layer_name(text: &str) -> Option<&'static str> {
+    if text.is_empty() {
+        Some("a layer name cannot be empty")
+    } else if text.contains('.') {
+        Some("a layer name cannot contain `.`: it separates the segments of a path")
+    } else if text.contains('#') {
+        Some("a layer name cannot contain `#`: it marks the names of unnamed layers")
+    } else {
+        None
+    }
+}
+
+impl QuotedName {
+    /// The name's text when it has no `{expr}` parts.
+    pub fn literal(&self) -> Option<String> {
+        let mut out = String::new();
+        for p in &self.parts {
+            match p {
+                NamePart::Text(t) => out.push_str(t),
+                NamePart::Expr(_) => return None,
+            }
+        }
+        Some(out)
+    }
 }
 
 impl LayerName {
@@ -184,12 +231,23 @@ impl LayerName {
         match self {
             LayerName::Ident(i) => i.span,
             LayerName::Index(_, s) => *s,
+            LayerName::Quoted(q) => q.span,
         }
     }
+    /// The name as a path segment when it needs no evaluation; a quoted name with `{expr}`
+    /// parts gives its source text (the elaborator evaluates it instead).
     pub fn text(&self) -> String {
         match self {
             LayerName::Ident(i) => i.name.clone(),
             LayerName::Index(n, _) => n.to_string(),
+            LayerName::Quoted(q) => q.literal().unwrap_or_else(|| q.source.clone()),
+        }
+    }
+    /// The name as written in source: quoted names with their quotes.
+    pub fn source(&self) -> String {
+        match self {
+            LayerName::Quoted(q) => format!("\"{}\"", q.source),
+            _ => self.text(),
         }
     }
 }

@@ -164,11 +164,11 @@ impl Printer {
             }
             StmtKind::Return(v) => self.line_with_expr("return ", v),
             StmtKind::Scope { name, body } => {
-                self.open(&name.text());
+                self.open(&name.source());
                 self.body(body);
             }
             StmtKind::Named { name, value } => {
-                self.line_with_expr(&format!("{} = ", name.text()), value);
+                self.line_with_expr(&format!("{} = ", name.source()), value);
             }
         }
     }
@@ -191,7 +191,7 @@ impl Printer {
                 SeqItem::Call { name, callee, args, .. } => {
                     let mut text = String::new();
                     if let Some(n) = name {
-                        let _ = write!(text, "{} = ", n.text());
+                        let _ = write!(text, "{} = ", n.source());
                     }
                     text.push_str(&callee.name);
                     if !args.is_empty() {
@@ -270,7 +270,7 @@ impl Printer {
             }
             ExprKind::Member(base, name) => {
                 self.expr(base, true);
-                let _ = write!(self.out, ".{}", name.text());
+                let _ = write!(self.out, ".{}", name.source());
             }
             ExprKind::Index(base, idx) => {
                 self.expr(base, true);

@@ -82,7 +82,8 @@ impl<'a> Elab<'a> {
             }
             ExprKind::Member(base, name) => {
                 let b = self.eval(base, frame, None);
-                self.member(b, &name.text(), name.span(), base.span)
+                let Some(text) = self.layer_text(name, frame) else { return Value::Poison };
+                self.member(b, &text, name.span(), base.span)
             }
             ExprKind::Index(base, idx) => {
                 let b = self.eval(base, frame, None);

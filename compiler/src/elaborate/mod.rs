@@ -383,9 +383,44 @@ impl<'a> Elab<'a> {
     // Scopes and naming
     // ---------------------------------------------------------------------------------
 
+    /// The path segment a layer name stands for: a quoted name's `{expr}` parts evaluated
+    /// (ints and strings) and the result checked; `None` (reported) when it is no name.
+    fn layer_text(&mut self, name: &'a LayerName, frame: &mut Frame<'a>) -> Option<String> {
+        let LayerName::Quoted(q) = name else { return Some(name.text()) };
+        let mut text = String::new();
+        for part in &q.parts {
+            match part {
+                ast::NamePart::Text(t) => text.push_str(t),
+                ast::NamePart::Expr(e) => match self.eval(e, frame, None) {
+                    Value::Int(i) => text.push_str(&i.to_string()),
+                    Value::Str(s) => text.push_str(&s),
+                    Value::Poison => return None,
+                    v => {
+                        self.error(
+                            Diagnostic::error(
+                                Code::TypeMismatch,
+                                format!("a layer name is made of ints and strings, found {}", v.kind()),
+                            )
+                            .with_primary(e.span, "not an int or a string"),
+                        );
+                        return None;
+                    }
+                },
+            }
+        }
+        if let Some(why) = ast::bad_layer_name(&text) {
+            self.error(
+                Diagnostic::error(Code::BadValue, format!("`{text}`: {why}"))
+                    .with_primary(q.span, "computed name is not a layer name"),
+            );
+            return None;
+        }
+        Some(text)
+    }
+
     /// Checks that `name` is free in the current scope and returns the hint for it.
-    fn claim_name(&mut self, name: &LayerName, frame: &Frame<'a>) -> Option<Hint> {
-        let text = name.text();
+    fn claim_name(&mut self, name: &'a LayerName, frame: &mut Frame<'a>) -> Option<Hint> {
+        let text = self.layer_text(name, frame)?;
         if let Some((_, prev)) = self.tables[frame.scope.0 as usize].names.get(&text) {
             let prev = *prev;
             self.error(
@@ -399,8 +434,7 @@ impl<'a> Elab<'a> {
         Some(Hint { scope: frame.scope, name: text })
     }
 
-    fn bind_name(&mut self, name: &LayerName, v: Value, frame: &mut Frame<'a>) {
-        let text = name.text();
+    fn bind_name(&mut self, name: &LayerName, text: String, v: Value, frame: &mut Frame<'a>) {
         self.tables[frame.scope.0 as usize].names.insert(text.clone(), (v.clone(), name.span()));
         if let LayerName::Ident(_) = name {
             frame.vars.insert(text, v);

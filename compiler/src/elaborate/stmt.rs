@@ -86,12 +86,13 @@ impl<'a> Elab<'a> {
                             .with_primary(s.span, "return from the block instead"),
                     );
                 }
-                self.bind_name(name, Value::Scope(scope), frame);
+                self.bind_name(name, hint.name, Value::Scope(scope), frame);
             }
             StmtKind::Named { name, value } => {
                 let Some(hint) = self.claim_name(name, frame) else { return };
+                let text = hint.name.clone();
                 let v = self.eval(value, frame, Some(hint));
-                self.bind_name(name, v, frame);
+                self.bind_name(name, text, v, frame);
             }
         }
     }
@@ -213,7 +214,16 @@ impl<'a> Elab<'a> {
                 SeqItem::Call { name, callee, args, span } => {
                     let layer = name.clone().unwrap_or(LayerName::Index(*counter as u64, callee.span));
                     *counter += 1;
-                    let text = layer.text();
+                    let text = match name {
+                        Some(n) => match self.layer_text(n, frame) {
+                            Some(t) => t,
+                            None => {
+                                cur = Value::Poison;
+                                continue;
+                            }
+                        },
+                        None => layer.text(),
+                    };
                     if let Some((_, prev)) = self.tables[scope.0 as usize].names.get(&text) {
                         let prev = *prev;
                         self.error(

@@ -142,7 +142,8 @@ fn found_token(src: &str, pos: usize) -> Found {
 fn rule_words(rule: Rule) -> Option<&'static str> {
     Some(match rule {
         Rule::ident | Rule::var => "a name",
-        Rule::layer_name => "a layer name",
+        Rule::layer_name | Rule::quoted_name => "a layer name",
+        Rule::name_text | Rule::name_interp => return None,
         Rule::int => "an integer",
         Rule::float | Rule::number => "a number",
         Rule::string | Rule::string_body => "a string",

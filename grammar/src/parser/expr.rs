@@ -133,6 +133,8 @@ impl<'s> Builder<'s> {
                     let m = p.into_inner().next()?;
                     let name = if m.as_rule() == Rule::ident {
                         LayerName::Ident(self.ident(m))
+                    } else if m.as_rule() == Rule::quoted_name {
+                        LayerName::Quoted(self.parse_quoted_name(m)?)
                     } else {
                         let s = self.span(&m);
                         LayerName::Index(self.parse_int_literal(&m)? as u64, s)

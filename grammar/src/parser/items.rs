@@ -8,7 +8,7 @@ use pest::iterators::Pair;
 
 use super::{Builder, Rule, inner};
 use crate::ast::*;
-use crate::diag::Span;
+use crate::diag::{Code, Diagnostic, Span};
 
 impl<'s> Builder<'s> {
     // ---------------------------------------------------------------------------------
@@ -233,11 +233,110 @@ impl<'s> Builder<'s> {
         let p = pair.into_inner().next()?;
         match p.as_rule() {
             Rule::ident => Some(LayerName::Ident(self.ident(p))),
+            Rule::quoted_name => self.parse_quoted_name(p).map(LayerName::Quoted),
             _ => {
                 let span = self.span(&p);
                 let n = self.parse_int_literal(&p)?;
                 Some(LayerName::Index(n as u64, span))
             }
         }
+    }
+
+    /// `"block1-0"`, `"block{i}-{j}"`. The literal text is checked here; the value of an
+    /// `{expr}` part is checked when the elaborator computes it.
+    pub(super) fn parse_quoted_name(&mut self, pair: Pair<'_, Rule>) -> Option<QuotedName> {
+        let span = self.span(&pair);
+        let text = pair.as_str();
+        let source = text[1..text.len() - 1].to_string();
+        let mut parts = Vec::new();
+        let mut ok = true;
+        for p in pair.into_inner() {
+            match p.as_rule() {
+                Rule::name_text => {
+                    if let Some(why) = bad_layer_name(p.as_str()) {
+                        self.diags.push(
+                            Diagnostic::error(Code::BadLiteral, why)
+                                .with_primary(self.span(&p), "not allowed in a layer name"),
+                        );
+                        ok = false;
+                    }
+                    parts.push(NamePart::Text(p.as_str().to_string()));
+                }
+                Rule::name_interp => {
+                    let e = p.into_inner().next().and_then(|e| self.parse_expr(e));
+                    match e {
+                        Some(e) => parts.push(NamePart::Expr(e)),
+                        None => ok = false,
+                    }
+                }
+                _ => {}
+            }
+        }
+        if parts.is_empty() {
+            self.diags.push(
+                Diagnostic::error(Code::BadLiteral, "a layer name cannot be empty").with_primary(span, "empty name"),
+            );
+            return None;
+        }
+        ok.then_some(QuotedName { parts, source, span })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diag::Code;
+    use crate::parser::tests::{first_error, model_stmts, parse_ok};
+
+    #[test]
+    fn quoted_layer_names_hold_text_and_interpolations() {
+        let f = parse_ok("model m {\n  \"block1-0\" = f(x)\n  \"b{i}-{j + 1}\" { a = g(x) }\n}");
+        let stmts = model_stmts(&f);
+        let StmtKind::Named { name: LayerName::Quoted(q), .. } = &stmts[0].kind else { panic!("{:?}", stmts[0]) };
+        assert_eq!(q.literal().as_deref(), Some("block1-0"));
+        assert_eq!(q.span.start, 12);
+        let StmtKind::Scope { name: LayerName::Quoted(q), .. } = &stmts[1].kind else { panic!("{:?}", stmts[1]) };
+        assert_eq!(q.literal(), None);
+        assert_eq!(q.source, "b{i}-{j + 1}");
+        let kinds: Vec<bool> = q.parts.iter().map(|p| matches!(p, NamePart::Text(_))).collect();
+        assert_eq!(kinds, [true, false, true, false]);
+        let NamePart::Expr(e) = &q.parts[3] else { panic!() };
+        assert!(matches!(e.kind, ExprKind::Binary(BinaryOp::Add, _, _)), "{e:?}");
+    }
+
+    #[test]
+    fn quoted_names_are_reached_as_members_and_in_seq_items() {
+        let f = parse_ok("model m {\n  y = trunk.block1.\"block1-0\".f\n  z = seq(y) { \"c{k}\" = relu }\n}");
+        let stmts = model_stmts(&f);
+        let StmtKind::Named { value, .. } = &stmts[0].kind else { panic!() };
+        let ExprKind::Member(base, LayerName::Ident(f_)) = &value.kind else { panic!("{value:?}") };
+        assert_eq!(f_.name, "f");
+        assert!(matches!(&base.kind, ExprKind::Member(_, LayerName::Quoted(q)) if q.source == "block1-0"));
+        assert_eq!(crate::ast_print::expr_to_source(value), "trunk.block1.\"block1-0\".f");
+        let StmtKind::Named { value, .. } = &stmts[1].kind else { panic!() };
+        let ExprKind::Seq { items, .. } = &value.kind else { panic!("{value:?}") };
+        assert!(matches!(&items[0], SeqItem::Call { name: Some(LayerName::Quoted(q)), .. } if q.source == "c{k}"));
+    }
+
+    #[test]
+    fn bad_quoted_names_are_refused_where_they_are() {
+        let src = "model m {\n  \"\" = f(x)\n}";
+        let d = first_error(src);
+        assert_eq!(d.code, Code::BadLiteral);
+        assert!(d.message.contains("empty"), "{}", d.message);
+        assert_eq!(d.primary_span().map(|s| &src[s.range()]), Some("\"\""));
+
+        let src = "model m {\n  \"a.b{i}\" = f(x)\n}";
+        let d = first_error(src);
+        assert_eq!(d.code, Code::BadLiteral);
+        assert!(d.message.contains("`.`"), "{}", d.message);
+        assert_eq!(d.primary_span().map(|s| &src[s.range()]), Some("a.b"));
+
+        let d = first_error("model m {\n  \"a#1\" = f(x)\n}");
+        assert!(d.message.contains("`#`"), "{}", d.message);
+
+        // An unclosed interpolation is a syntax error, not a name.
+        let d = first_error("model m {\n  \"a{i\" = f(x)\n}");
+        assert_eq!(d.code, Code::Syntax);
     }
 }
