@@ -28,11 +28,13 @@ use crate::ops::{
 /// operators' attributes (`readi_plan::ops`), dimensions are one type, keys are checked.
 /// Version 3: an epilogue's activation is any [`Activation`] (`act`), not a `relu` flag;
 /// a runtime that reads only version 2 refuses these plans instead of ignoring `act`.
-/// Version 4: new kernels and operators (`ConvTranspose2d`, `Conv3d`, `GroupNorm`, the reductions as
+/// Version 4: new kernels and operators (`ConvTranspose2d`, `GroupNorm`, the reductions as
 /// `Reduce` with a kind, adaptive pooling, pixel shuffle, pad, roll, slice, expand); a
 /// runtime that reads only version 3 refuses these plans by their version, not by an
-/// unknown variant deep in the manifest. Versions 2 and 3 read unchanged.
-pub const FORMAT_VERSION: u32 = 4;
+/// unknown variant deep in the manifest.
+/// Version 5: `Conv3d`, `index_select` with its indices in the step, `where`, casts,
+/// comparisons and constant fills; for the same reason. Versions 2 to 4 read unchanged.
+pub const FORMAT_VERSION: u32 = 5;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
 /// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
