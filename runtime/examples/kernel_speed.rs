@@ -113,6 +113,32 @@ fn main() {
     let mut out = vec![0.0; 512];
     time("mean [1,512,7,7] axes 2,3", f, |_| reduce::mean(&x, &[1, 512, 7, 7], &[2, 3], &mut out));
 
+    // Variance over channels, the last axis kept, against plain two-pass loops: one output
+    // at a time, and one channel row at a time.
+    let x = data(256 * 56 * 56, 10);
+    let mut out = vec![0.0; 56 * 56];
+    let var = reduce::ReduceKind::Var { correction: 1 };
+    time("var [1,256,56,56] axis 1", f, |_| reduce::reduce(var, &x, &[1, 256, 56, 56], &[1], &mut out));
+    time("var [1,256,56,56] axis 1, naive loop per output", f, |_| {
+        for (o, v) in out.iter_mut().enumerate() {
+            let mean = (0..256).map(|c| x[c * 3136 + o]).sum::<f32>() / 256.0;
+            *v = (0..256).map(|c| (x[c * 3136 + o] - mean).powi(2)).sum::<f32>() / 255.0;
+        }
+        black_box(&out);
+    });
+    let mut mean = vec![0.0f32; 56 * 56];
+    time("var [1,256,56,56] axis 1, naive row loop", f, |_| {
+        mean.fill(0.0);
+        out.fill(0.0);
+        for row in x.chunks(3136) {
+            mean.iter_mut().zip(row).for_each(|(m, &v)| *m += v / 256.0);
+        }
+        for row in x.chunks(3136) {
+            out.iter_mut().zip(row).zip(&mean).for_each(|((o, &v), &m)| *o += (v - m) * (v - m) / 255.0);
+        }
+        black_box(&out);
+    });
+
     // Upsampling x2 of [64, 56, 56].
     let x = data(64 * 56 * 56, 11);
     let mut out = vec![0.0; 64 * 112 * 112];

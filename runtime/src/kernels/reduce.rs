@@ -253,18 +253,23 @@ pub(crate) fn max_nan(acc: f32, v: f32) -> f32 {
     if v.is_nan() { v } else { Max::one(acc, v) }
 }
 
-/// `sq[i] += (x[i] - mean[i])²` over three slices of one length, in SIMD vectors.
+/// `sum[i] += d` and `sq[i] += d * d` with `d = x[i] - k[i]`, over four slices of one
+/// length, in SIMD vectors.
 #[inline(always)]
-fn sq_dev_rows<S: Simd>(simd: S, sq: &mut [f32], mean: &[f32], x: &[f32]) {
+fn shifted_rows<S: Simd>(simd: S, sum: &mut [f32], sq: &mut [f32], k: &[f32], x: &[f32]) {
+    let (sh, st) = S::as_mut_simd_f32s(sum);
     let (qh, qt) = S::as_mut_simd_f32s(sq);
-    let (mh, mt) = S::as_simd_f32s(mean);
+    let (kh, kt) = S::as_simd_f32s(k);
     let (xh, xt) = S::as_simd_f32s(x);
-    for ((q, &m), &v) in qh.iter_mut().zip(mh).zip(xh) {
-        let d = simd.sub_f32s(v, m);
+    for (((s, q), &k), &v) in sh.iter_mut().zip(qh.iter_mut()).zip(kh).zip(xh) {
+        let d = simd.sub_f32s(v, k);
+        *s = simd.add_f32s(*s, d);
         *q = simd.mul_add_f32s(d, d, *q);
     }
-    for ((q, &m), &v) in qt.iter_mut().zip(mt).zip(xt) {
-        *q += (v - m) * (v - m);
+    for (((s, q), &k), &v) in st.iter_mut().zip(qt.iter_mut()).zip(kt).zip(xt) {
+        let d = v - k;
+        *s += d;
+        *q += d * d;
     }
 }
 
@@ -413,29 +418,39 @@ impl View {
                 *o = sq / div;
             }
         } else {
+            // One pass over x, with the data shifted by its first reduced row (`k`):
+            // var = (sum d^2 - (sum d)^2 / n) / div with d = x - k. The shift keeps the
+            // sums small where the mean is large (a sample is within a few deviations of
+            // the mean), and the one pass reads x once instead of twice.
             let mut pos = 0;
             let mut sq = [0f32; TILE];
             while pos < out.len() {
                 let (base, tn) = self.tile_at(start + pos, out.len() - pos);
                 let seg = &mut out[pos..pos + tn];
                 seg.fill(0.0);
-                for r in 0..combos {
-                    let b = base + self.reduced_offset(r);
-                    fold_rows::<S, Add>(simd, seg, &x[b..b + tn]);
-                }
-                seg.iter_mut().for_each(|m| *m *= inv);
                 let sq = &mut sq[..tn];
                 sq.fill(0.0);
-                for r in 0..combos {
-                    let b = base + self.reduced_offset(r);
-                    sq_dev_rows(simd, sq, seg, &x[b..b + tn]);
+                let k = &x[base..base + tn];
+                for off in self.reduced_offsets(combos) {
+                    shifted_rows(simd, seg, sq, k, &x[base + off..base + off + tn]);
                 }
                 for (o, &q) in seg.iter_mut().zip(sq.iter()) {
-                    *o = q / div;
+                    *o = (q - *o * *o * inv).max(0.0) / div;
                 }
                 pos += tn;
             }
         }
+    }
+
+    /// The offsets in x of reduced indices `0..combos`, in order: multiples of the stride
+    /// when one axis is reduced (no division per row), [`View::reduced_offset`] otherwise.
+    #[inline(always)]
+    fn reduced_offsets(&self, combos: usize) -> impl Iterator<Item = usize> + '_ {
+        let single = match self.reduced[..] {
+            [(_, stride)] => Some(stride),
+            _ => None,
+        };
+        (0..combos).map(move |r| single.map_or_else(|| self.reduced_offset(r), |stride| r * stride))
     }
 
     /// With the last axis kept: the tile of output elements starting at `g` (global),
@@ -604,6 +619,24 @@ mod tests {
             reduce(kind, &x, shape, axes, &mut got);
             assert_close(&got, &want, 1e-4);
         }
+        // The kept-last-axis path's one shifted pass: tiles past TILE, one reduced axis
+        // and two (its offsets by stride and by index), rows that are all alike (variance
+        // 0, never negative).
+        let x: Vec<f32> = data(3 * 4 * 5 * 600, 13).iter().map(|v| 1e4 + 0.1 * v).collect();
+        for (shape, axes) in [(&[15, 2400][..], &[0][..]), (&[3, 4, 5, 600], &[0, 2])] {
+            for correction in [0, 1] {
+                let kind = ReduceKind::Var { correction };
+                let want = naive(kind, &x, shape, axes);
+                let mut got = vec![f32::NAN; want.len()];
+                reduce(kind, &x, shape, axes, &mut got);
+                // Variances of about 3e-3: 1e-6 absolute is a relative 3e-4.
+                assert_close(&got, &want, 1e-6);
+            }
+        }
+        let same = vec![3.5f32; 6 * 1500];
+        let mut got = vec![f32::NAN; 1500];
+        reduce(ReduceKind::Var { correction: 1 }, &same, &[6, 1500], &[0], &mut got);
+        assert!(got.iter().all(|&v| v == 0.0), "{:?}", &got[..4]);
     }
 
     struct Sum<'a>(&'a [f32]);
