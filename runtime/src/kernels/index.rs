@@ -188,7 +188,8 @@ mod tests {
     #[test]
     fn where_matches_a_naive_loop() {
         // (condition, a, b, out): same shapes, a row condition, a column branch, scalars.
-        let cases: [(&[usize], &[usize], &[usize], &[usize]); 4] = [
+        type Shapes<'a> = (&'a [usize], &'a [usize], &'a [usize], &'a [usize]);
+        let cases: [Shapes; 4] = [
             (&[3, 4], &[3, 4], &[3, 4], &[3, 4]),
             (&[2, 1, 5], &[4, 5], &[1], &[2, 4, 5]),
             (&[4, 5], &[4, 1], &[5], &[4, 5]),
