@@ -3,48 +3,21 @@
 //! `conv2d`), each size an int or a `[d, h, w]` triple; weight `[out, in/groups, kd, kh,
 //! kw]` as its `state_dict` has it.
 
-use readi_plan::ops::{Conv3d, Operator, ShapeResult, TensorType, Window3};
+use readi_plan::ops::{Conv3d, Window3};
 
-use super::{Args, Builtin, Epilogue, P, R, boolean, int, req};
-use crate::ir::{Op, ParamSlot, ValueRef};
+use super::{Args, BiasedConv, Builtin, ConvWeights, Epilogue, P, R, boolean, int, req};
+use crate::ir::{Op, ValueRef};
 use crate::value::Value;
 
-/// A conv3d layer in the IR: the operator, whether it has a bias, and what the back end
-/// fused into it (`fuse_epilogues`: the bias as the shift, an activation).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Conv3dOp {
-    pub conv: Conv3d,
-    pub bias: bool,
-    pub epilogue: Epilogue,
-}
+/// A conv3d layer in the IR (see [`BiasedConv`]).
+pub type Conv3dOp = BiasedConv<Conv3d>;
 
-impl Conv3dOp {
-    /// `weight [out, in/groups, kd, kh, kw]` (PyTorch's layout, which the kernel reads as
-    /// it is), with a bias `bias [out]`, then the epilogue's slots.
-    pub fn param_slots(&self) -> Vec<ParamSlot> {
-        let mut v = vec![ParamSlot::param("weight", self.conv.weight_shape().to_vec())];
-        if self.bias {
-            v.push(ParamSlot::param("bias", vec![self.conv.out_channels]));
-        }
-        v.extend(self.epilogue.slots(self.conv.out_channels));
-        v
+impl ConvWeights for Conv3d {
+    fn weight_dims(&self) -> Vec<i64> {
+        self.weight_shape().to_vec()
     }
-}
-
-impl Operator for Conv3dOp {
-    fn kind_name(&self) -> &'static str {
-        self.conv.kind_name()
-    }
-    fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
-        self.conv.infer(inputs)
-    }
-    fn attrs(&self) -> Vec<(&'static str, String)> {
-        let mut v = self.conv.attrs();
-        v.push(("bias", self.bias.to_string()));
-        if let Some(e) = self.epilogue.attr() {
-            v.push(("epilogue", e));
-        }
-        v
+    fn out_channels(&self) -> i64 {
+        self.out_channels
     }
 }
 

@@ -1,47 +1,20 @@
 //! `conv_transpose2d(x, out, kernel, stride=1, padding=0, output_padding=0, groups=1,
 //! bias=true, dilation=1)`: PyTorch's `nn.ConvTranspose2d`, its arguments in its order.
 
-use readi_plan::ops::{ConvTranspose2d, Operator, ShapeResult, TensorType};
+use readi_plan::ops::ConvTranspose2d;
 
-use super::{Args, Builtin, Epilogue, P, R, boolean, int, req};
-use crate::ir::{Op, ParamSlot, ValueRef};
+use super::{Args, BiasedConv, Builtin, ConvWeights, Epilogue, P, R, boolean, int, req};
+use crate::ir::{Op, ValueRef};
 
-/// A transposed conv layer in the IR: the operator, whether it has a bias, and what the
-/// back end fused into it (`fuse_epilogues`: the bias as the shift, an activation).
-#[derive(Clone, Debug, PartialEq)]
-pub struct ConvTransposeOp {
-    pub conv: ConvTranspose2d,
-    pub bias: bool,
-    pub epilogue: Epilogue,
-}
+/// A transposed conv layer in the IR (see [`BiasedConv`]).
+pub type ConvTransposeOp = BiasedConv<ConvTranspose2d>;
 
-impl ConvTransposeOp {
-    /// `weight [in, out/groups, kh, kw]` (PyTorch's layout, which the kernel reads as it
-    /// is), with a bias `bias [out]`, then the epilogue's slots.
-    pub fn param_slots(&self) -> Vec<ParamSlot> {
-        let mut v = vec![ParamSlot::param("weight", self.conv.weight_shape().to_vec())];
-        if self.bias {
-            v.push(ParamSlot::param("bias", vec![self.conv.out_channels]));
-        }
-        v.extend(self.epilogue.slots(self.conv.out_channels));
-        v
+impl ConvWeights for ConvTranspose2d {
+    fn weight_dims(&self) -> Vec<i64> {
+        self.weight_shape().to_vec()
     }
-}
-
-impl Operator for ConvTransposeOp {
-    fn kind_name(&self) -> &'static str {
-        self.conv.kind_name()
-    }
-    fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
-        self.conv.infer(inputs)
-    }
-    fn attrs(&self) -> Vec<(&'static str, String)> {
-        let mut v = self.conv.attrs();
-        v.push(("bias", self.bias.to_string()));
-        if let Some(e) = self.epilogue.attr() {
-            v.push(("epilogue", e));
-        }
-        v
+    fn out_channels(&self) -> i64 {
+        self.out_channels
     }
 }
 

@@ -5,6 +5,8 @@
 //! AdaBN needs to undo the fold), `fuse_epilogues` turns a bias into a shift and absorbs an
 //! activation. Each part brings its parameter slots, bound to the tensors the pass derived.
 
+use readi_plan::ops::{Operator, ShapeResult, TensorType};
+
 use crate::ir::{Activation, ParamSlot};
 
 /// See the module documentation.
@@ -70,5 +72,51 @@ impl Epilogue {
             s.push_str(&format!(" ({} folded)", bn.name));
         }
         Some(s)
+    }
+}
+
+/// What a conv operator without LoRA or adapters (`conv_transpose2d`, `conv3d`) tells its
+/// IR form: its weight's shape in PyTorch's layout (which its kernel reads as it is) and
+/// its output channels.
+pub trait ConvWeights: Operator {
+    fn weight_dims(&self) -> Vec<i64>;
+    fn out_channels(&self) -> i64;
+}
+
+/// A conv layer in the IR: the operator, whether it has a bias, and what the back end
+/// fused into it (`fuse_epilogues`: the bias as the shift, an activation). Its slots are
+/// `weight`, `bias [out]` when it has one, then the epilogue's.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BiasedConv<C> {
+    pub conv: C,
+    pub bias: bool,
+    pub epilogue: Epilogue,
+}
+
+impl<C: ConvWeights> BiasedConv<C> {
+    pub fn param_slots(&self) -> Vec<ParamSlot> {
+        let mut v = vec![ParamSlot::param("weight", self.conv.weight_dims())];
+        if self.bias {
+            v.push(ParamSlot::param("bias", vec![self.conv.out_channels()]));
+        }
+        v.extend(self.epilogue.slots(self.conv.out_channels()));
+        v
+    }
+}
+
+impl<C: ConvWeights> Operator for BiasedConv<C> {
+    fn kind_name(&self) -> &'static str {
+        self.conv.kind_name()
+    }
+    fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        self.conv.infer(inputs)
+    }
+    fn attrs(&self) -> Vec<(&'static str, String)> {
+        let mut v = self.conv.attrs();
+        v.push(("bias", self.bias.to_string()));
+        if let Some(e) = self.epilogue.attr() {
+            v.push(("epilogue", e));
+        }
+        v
     }
 }

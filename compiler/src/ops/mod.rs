@@ -55,7 +55,7 @@ pub use args::{Args, Def, P, R, Sig, absent, boolean, flt, int, positive_float, 
 pub use conv::{AdapterOp, ConvOp};
 pub use conv_transpose::ConvTransposeOp;
 pub use conv3d::Conv3dOp;
-pub use epilogue::{BnFold, Epilogue};
+pub use epilogue::{BiasedConv, BnFold, ConvWeights, Epilogue};
 pub use index::IndexSelectOp;
 pub use linear::LinearOp;
 pub use norm::{AffineOp, batchnorm_slots, groupnorm_slots, layernorm_slots};
