@@ -592,6 +592,27 @@ simd_fn! {
     }
 }
 
+/// The strides of an operand of shape `shape` over the axes of `out_shape` (right-aligned,
+/// NumPy's rule); 0 where it broadcasts.
+///
+/// # Panics
+/// If `shape` does not broadcast to `out_shape`.
+pub(crate) fn broadcast_strides(shape: &[usize], out_shape: &[usize]) -> Vec<usize> {
+    let rank = out_shape.len();
+    assert!(shape.len() <= rank, "broadcast: {shape:?} has more axes than {out_shape:?}");
+    let mut s = vec![0; rank];
+    let mut acc = 1;
+    for (i, &n) in shape.iter().enumerate().rev() {
+        let axis = rank - shape.len() + i;
+        assert!(n == out_shape[axis] || n == 1, "broadcast: {shape:?} does not broadcast to {out_shape:?}");
+        if n != 1 {
+            s[axis] = acc;
+        }
+        acc *= n;
+    }
+    s
+}
+
 /// A broadcast reduced to the fewest axes: size-1 output axes dropped, neighbours that
 /// broadcast alike in both operands merged. Innermost strides are 0 or 1.
 struct Broadcast {
@@ -604,21 +625,7 @@ impl Broadcast {
     fn new(a_shape: &[usize], b_shape: &[usize], out_shape: &[usize]) -> Broadcast {
         let rank = out_shape.len();
         assert!(a_shape.len() <= rank && b_shape.len() <= rank, "binary: input rank exceeds output rank");
-        // Right-aligned strides of an operand over the output axes; 0 where it broadcasts.
-        let strides = |shape: &[usize]| -> Vec<usize> {
-            let mut s = vec![0; rank];
-            let mut acc = 1;
-            for (i, &n) in shape.iter().enumerate().rev() {
-                let axis = rank - shape.len() + i;
-                assert!(n == out_shape[axis] || n == 1, "binary: {shape:?} does not broadcast to {out_shape:?}");
-                if n != 1 {
-                    s[axis] = acc;
-                }
-                acc *= n;
-            }
-            s
-        };
-        let (sa, sb) = (strides(a_shape), strides(b_shape));
+        let (sa, sb) = (broadcast_strides(a_shape, out_shape), broadcast_strides(b_shape, out_shape));
         let mut dims: Vec<usize> = Vec::with_capacity(rank);
         let (mut a_strides, mut b_strides): (Vec<usize>, Vec<usize>) = (Vec::new(), Vec::new());
         for axis in 0..rank {

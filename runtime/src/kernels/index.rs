@@ -7,6 +7,8 @@
 
 use readi_plan::DType;
 
+use super::elementwise::broadcast_strides;
+
 /// Checks an `index_select` of `index` (`index_len` positions, each checked at plan load
 /// against the axis) along `axis` of `x` into `out`.
 pub fn check_index_select(
@@ -61,20 +63,6 @@ pub fn check_where(c: &[usize], a: &[usize], b: &[usize], out: &[usize]) -> Resu
         }
     }
     Ok(())
-}
-
-/// The strides of `s` aligned to the `rank` axes of an output, 0 where it broadcasts.
-fn broadcast_strides(s: &[usize], out: &[usize]) -> Vec<usize> {
-    let rank = out.len();
-    let mut dims = vec![1usize; rank];
-    dims[rank - s.len()..].copy_from_slice(s);
-    let mut st = vec![0usize; rank];
-    let mut acc = 1;
-    for a in (0..rank).rev() {
-        st[a] = if dims[a] == 1 { 0 } else { acc };
-        acc *= dims[a];
-    }
-    st
 }
 
 /// `torch.where(c, a, b)` with broadcasting: `a` where `c` is non-zero, else `b`. Rows of
