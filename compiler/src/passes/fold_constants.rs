@@ -92,8 +92,8 @@ fn index(g: &Graph, table: &TensorTable, id: NodeId, axis: usize) -> Result<Opti
     let Some(index_name) = stored(g, table, idx.node) else { return Ok(None) };
     let (Some(xt), Some(it)) = (g.value_type(data), g.value_type(idx)) else { return Ok(None) };
     let Some(index_shape) = known(&it.shape) else { return Ok(None) };
-    let values = table.get(&index_name).map(|t| t.base.clone()).ok_or_else(|| internal("an index is not bound"))?;
-    let index: Vec<i64> = values.iter().map(|&v| v as i64).collect();
+    let values = table.get(&index_name).ok_or_else(|| internal("an index is not bound"))?;
+    let index: Vec<i64> = values.base.iter().map(|&v| v as i64).collect();
     let op = Pure::IndexSelect(IndexSelect { axis, index, index_shape });
     if let Err(e) = readi_plan::ops::infer(op.op(), &[&TensorType::f32(xt.shape.clone())]) {
         let d = Diagnostic::error(Code::BadValue, format!("index_select `{}`: {e}", node.path))
