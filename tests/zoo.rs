@@ -20,7 +20,8 @@ use readi_compiler::ir::SlotKind;
 use readi_grammar::diag::SourceMap;
 use readi_runtime::exec::{Input, Session};
 
-/// The metadata of a fixture: the seed, the `--set` overrides and the conv weights' gain.
+/// The metadata of a fixture: the seed, the `--set` overrides and the conv weights' gain;
+/// its tensors are the input, the logits and torchvision's int64 buffers.
 struct Fixture {
     seed: u64,
     overrides: Vec<(String, String)>,
@@ -107,6 +108,15 @@ fn seeded_model(name: &str, fx: &Fixture) -> (SourceMap, Module, WeightSet) {
         if key.ends_with(".weight") && shape.len() == 4 {
             data.iter_mut().for_each(|v| *v *= fx.gain);
         }
+        // An int64 buffer is torchvision's own, stored once per name in the fixture.
+        if weights.integer.contains(key) {
+            let last = key.rsplit('.').next().unwrap_or(key);
+            let (want_shape, want) = fx.tensors.tensors.get(&format!("buffer.{last}")).unwrap_or_else(|| {
+                panic!("{name}: the fixture has no `buffer.{last}` for {key}");
+            });
+            assert_eq!(want_shape, shape, "{name}: shape of {key}");
+            data.clone_from(want);
+        }
     }
     let bytes = weights.to_safetensors().expect("serialises");
     let weights = WeightSet::from_safetensors("seeded.safetensors", &bytes).expect("valid safetensors");
@@ -136,12 +146,13 @@ fn check_parity(name: &str) {
 }
 
 /// The zoo, in the order of the README's table.
-const ZOO: [&str; 7] = [
+const ZOO: [&str; 8] = [
     "resnet50",
     "mobilenet_v2",
     "mobilenet_v3_large",
     "efficientnet_b0",
     "convnext_tiny",
+    "swin_t",
     "vit_b_16",
     "regnet_y_400mf",
 ];
@@ -227,50 +238,53 @@ fn vit_b_16_matches_torchvision() {
     check_parity("vit_b_16");
 }
 
-/// ViT's attention reads `in_proj_weight` transposed; `fold_constants` transposes it once,
-/// at compile time: no step of the plan reads only stored tensors (a permute of a weight,
-/// 7 MB per layer per run at 224), the plan's parameter table still lists the state_dict's
-/// names, and says where the weight went.
-#[test]
-fn vit_b_16_transposes_no_weight_at_run_time() {
+/// Compiled at the parity fixture's size with seeded weights, no step of `name`'s plan
+/// reads only stored tensors (`fold_constants` computed each such value once, at compile
+/// time), no step permutes a stored tensor, and the plan's parameter table lists the
+/// state_dict's names, each of `folded` saying where it was folded and stored no more.
+fn check_folded(name: &str, folded: &[&str]) {
     use readi_plan::format::{Kernel, Storage};
     use readi_plan::ops::Pure;
-    let fx = fixture("vit_b_16");
-    let overrides: Vec<(&str, &str)> = fx.overrides.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
-    let (sources, out) = common::compile("models/vit_b_16.readi", &overrides, None);
-    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
-    let module = out.module.expect("module");
-    let weights = backend::seeded_weights(&module.graph, fx.seed);
+    let fx = fixture(name);
+    let (sources, module, weights) = seeded_model(name, &fx);
     let (plan, _) = backend::compile(&module, &weights, "seeded", &CompileOptions::default())
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
     let m = &plan.manifest;
     let stored = |v: usize| matches!(m.values[v].storage, Storage::Tensor(_));
     for step in &m.steps {
-        // (An expand of the class token to the batch, a symbolic size, stays a step.)
+        // (An expand of ViT's class token to the batch, a symbolic size, stays a step.)
         let known = m.values[step.output].shape.iter().all(|d| d.as_known().is_some());
         assert!(!known || !step.inputs.iter().all(|&v| stored(v)), "step `{}` reads only stored tensors", step.path);
         if matches!(step.kernel, Kernel::Pure(Pure::Permute(_))) {
             assert!(!step.inputs.iter().any(|&v| stored(v)), "step `{}` permutes a stored tensor", step.path);
         }
     }
-    let name = "encoder.layers.encoder_layer_0.self_attention.in_proj_weight";
-    let p = m.params.iter().find(|p| p.name == name).expect("the state_dict's name in the parameter table");
-    assert!(p.stored_as.starts_with("constant-folded into"), "{name}: {}", p.stored_as);
-    assert!(!m.tensors.iter().any(|t| t.name == name), "the raw weight is stored too");
+    for &key in folded {
+        let p = m.params.iter().find(|p| p.name == key).expect("the state_dict's name in the parameter table");
+        // ("constant-folded into" for a weight; an index buffer is "folded into" the value.)
+        assert!(p.stored_as.contains("folded into"), "{key}: {}", p.stored_as);
+        assert!(!m.tensors.iter().any(|t| t.name == key), "the raw {key} is stored too");
+    }
     assert_eq!(m.params.len(), module.graph.param_table().len(), "the parameter table lists the spec's parameters");
 }
 
-/// PEFT's LoRA on vit_b_16 (tests/fixtures/zoo/make_zoo_peft_fixtures.py): r=4,
-/// lora_alpha=8 on `self_attention.out_proj`, `mlp.0` and `mlp.3` of two encoder layers,
-/// with non-zero B, saved by `save_pretrained`. The directory is read as PEFT wrote it and
-/// compiled as a LoRA-only variant over the seeded base of `vit_b_16_matches_torchvision`,
-/// with LoRA merged and as a branch, and run at 1 and 2 threads: the base, the variant
-/// against PEFT's merged model (torch's MultiheadAttention never calls `out_proj`'s
-/// forward, so only `merge_and_unload` applies that adapter: W + (alpha / r) B A, which
-/// is what readi computes), then the base again, bit for bit.
+/// ViT's attention reads `in_proj_weight` transposed; `fold_constants` transposes it once,
+/// at compile time (a permute of a weight would be 7 MB per layer per run at 224).
 #[test]
-fn vit_b_16_peft_lora_matches_peft() {
-    let name = "vit_b_16";
+fn vit_b_16_transposes_no_weight_at_run_time() {
+    check_folded("vit_b_16", &["encoder.layers.encoder_layer_0.self_attention.in_proj_weight"]);
+}
+
+/// A PEFT LoRA fixture of tests/fixtures/zoo/make_zoo_peft_fixtures.py: r=4,
+/// lora_alpha=8 on the `kinds` under each of the `layers`, with non-zero B, saved by
+/// `save_pretrained`. The directory is read as PEFT wrote it and compiled as a LoRA-only
+/// variant over the seeded base of the model's parity test, with LoRA merged and as a
+/// branch, and run at 1 and 2 threads: the base, the variant against PEFT's merged model
+/// (`merge_and_unload`: W + (alpha / r) B A, which is what readi computes; torchvision
+/// never calls the forward of some of these layers, see the script), then the base
+/// again, bit for bit. The one compile warning counts what the adapter gives (its LoRA
+/// matrices) of what the variant owns (the tuned norms and head, every layer's LoRA).
+fn check_peft(name: &str, layers: &[&str], kinds: &[&str]) {
     let fx = fixture(name);
     let (sources, module, weights) = seeded_model(name, &fx);
     let path = common::root().join(format!("tests/fixtures/zoo/peft/{name}.safetensors"));
@@ -284,14 +298,14 @@ fn vit_b_16_peft_lora_matches_peft() {
     let adapter = std::fs::read(dir.join(peft::WEIGHTS_FILE)).expect("adapter weights");
     let lora = peft::read_adapter(&dir.display().to_string(), &config, &adapter, &module)
         .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
-    let mut layers: Vec<String> =
+    let mut got_layers: Vec<String> =
         lora.tensors.keys().filter_map(|k| k.strip_suffix(".lora_A.weight")).map(str::to_string).collect();
-    layers.sort();
-    let kinds = ["mlp.0", "mlp.3", "self_attention.out_proj"];
-    let want_layers: Vec<String> =
-        [0, 11].iter().flat_map(|i| kinds.map(|k| format!("encoder.layers.encoder_layer_{i}.{k}"))).collect();
-    assert_eq!(layers, want_layers, "the adapter's LoRA layers");
-    assert_eq!(lora.tensors.len(), 2 * layers.len(), "A and B of each layer, nothing else");
+    got_layers.sort();
+    let mut want_layers: Vec<String> =
+        layers.iter().flat_map(|l| kinds.iter().map(move |k| format!("{l}.{k}"))).collect();
+    want_layers.sort();
+    assert_eq!(got_layers, want_layers, "the adapter's LoRA layers");
+    assert_eq!(lora.tensors.len(), 2 * got_layers.len(), "A and B of each layer, nothing else");
     let source = VariantSource { key: key.clone(), weights: lora, origin: dir.display().to_string() };
 
     let image = &fx.tensors.tensors["input.image"];
@@ -308,9 +322,10 @@ fn vit_b_16_peft_lora_matches_peft() {
         // of the other layers, keep the base value (zero for LoRA), in one warning.
         let text = sources.render_all(&warnings, false);
         assert_eq!(warnings.0.len(), 1, "{text}");
-        assert!(text.contains(&format!("{key} gives 12 of ")) && text.contains("keeps the base value"), "{text}");
+        let given = 2 * got_layers.len();
+        assert!(text.contains(&format!("{key} gives {given} of ")) && text.contains("keeps the base value"), "{text}");
         let fused = plan.manifest.steps.iter().filter(|s| s.kernel.lora().is_some()).count();
-        assert_eq!(fused, if mode == LoraMode::Branch { layers.len() } else { 0 }, "LoRA {}", mode.name());
+        assert_eq!(fused, if mode == LoraMode::Branch { got_layers.len() } else { 0 }, "LoRA {}", mode.name());
         let plan = Arc::new(plan);
         for threads in [1, 2] {
             let mut session = Session::new(plan.clone(), threads).expect("session");
@@ -337,6 +352,14 @@ fn vit_b_16_peft_lora_matches_peft() {
     }
 }
 
+/// PEFT's LoRA on vit_b_16's `self_attention.out_proj`, `mlp.0` and `mlp.3` of encoder
+/// layers 0 and 11.
+#[test]
+fn vit_b_16_peft_lora_matches_peft() {
+    let layers = ["encoder.layers.encoder_layer_0", "encoder.layers.encoder_layer_11"];
+    check_peft("vit_b_16", &layers, &["self_attention.out_proj", "mlp.0", "mlp.3"]);
+}
+
 /// torchvision's `block1-0`-style names, spelt as quoted layer names.
 #[test]
 fn regnet_y_400mf_state_dict_matches_torchvision() {
@@ -347,4 +370,36 @@ fn regnet_y_400mf_state_dict_matches_torchvision() {
 #[test]
 fn regnet_y_400mf_matches_torchvision() {
     check_parity("regnet_y_400mf");
+}
+
+#[test]
+fn swin_t_state_dict_matches_torchvision() {
+    check_table("swin_t");
+}
+
+/// At 56x56, batch 2: the first stage's 14x14 map rolls and masks its shifted blocks, the
+/// second's 7x7 is one window (no shift), the last two are padded up to a window, and the
+/// second PatchMerging pads 7x7 to 8x8. Swin's int64 `relative_position_index` is
+/// torchvision's, bound from the checkpoint.
+#[test]
+fn swin_t_matches_torchvision() {
+    check_parity("swin_t");
+}
+
+/// Swin's relative position bias (its table at the int64 index, permuted) and the
+/// shifted-window mask cost nothing at run time.
+#[test]
+fn swin_t_folds_its_position_bias_and_mask() {
+    let attn = "features.1.1.attn";
+    check_folded(
+        "swin_t",
+        &[&format!("{attn}.relative_position_bias_table"), &format!("{attn}.relative_position_index")],
+    );
+}
+
+/// PEFT's LoRA on swin_t's fused `attn.qkv` and `attn.proj` of a shifted block of the first
+/// stage and a block of the last.
+#[test]
+fn swin_t_peft_lora_matches_peft() {
+    check_peft("swin_t", &["features.1.1", "features.7.0"], &["attn.qkv", "attn.proj"]);
 }
