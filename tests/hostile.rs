@@ -600,6 +600,7 @@ fn a_linear_with_zero_input_features_is_refused() {
         weight: 0,
         epilogue: Default::default(),
         lora: None,
+        panels: false,
     };
     let plan = one_step(&[None, Some(0)], kernel, &[None, Some(4)], &[("w", vec![0, 4])]);
     let err = run_refused(&dir, "linear0.plan", plan, &[1, 0]);

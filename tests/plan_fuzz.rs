@@ -495,12 +495,12 @@ fn repair(manifest: &mut Value) {
                     sizes.extend([(a.down, mc), (a.down_bias, a.mid), (a.up, mc), (a.up_bias, c)]);
                 }
             }
-            Kernel::Linear { linear, weight, epilogue, lora } => {
+            Kernel::Linear { linear, weight, epilogue, lora, panels } => {
                 let (i, o) = (
                     usize::try_from(linear.in_features).unwrap_or(0),
                     usize::try_from(linear.out_features).unwrap_or(0),
                 );
-                sizes.push((*weight, i.saturating_mul(o)));
+                sizes.push((*weight, if *panels { linear.panel_len().unwrap_or(0) } else { i.saturating_mul(o) }));
                 if let Some(l) = lora {
                     sizes.extend([(l.a, i.saturating_mul(l.rank)), (l.b, o.saturating_mul(l.rank))]);
                 }

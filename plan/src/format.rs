@@ -34,7 +34,9 @@ use crate::ops::{
 /// unknown variant deep in the manifest.
 /// Version 5: `Conv3d`, `index_select` with its indices in the step, `where`, casts,
 /// comparisons and constant fills; for the same reason. Versions 2 to 4 read unchanged.
-pub const FORMAT_VERSION: u32 = 5;
+/// Version 6: a linear weight may be stored in panels (`Kernel::Linear { panels }`),
+/// which a version 5 runtime would read as `[in, out]`; versions 2 to 5 read unchanged.
+pub const FORMAT_VERSION: u32 = 6;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
 /// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
@@ -469,7 +471,7 @@ pub enum Kernel {
         epilogue: EpilogueSpec,
     },
     /// `y = x W^T` over the last axis with a fused epilogue (bias = shift). The weight is
-    /// stored transposed, `[in, out]`.
+    /// stored transposed, `[in, out]`, or in panels.
     Linear {
         linear: Linear,
         weight: usize,
@@ -477,6 +479,12 @@ pub enum Kernel {
         /// As for [`Kernel::Conv2d`].
         #[serde(default, skip_serializing_if = "Option::is_none")]
         lora: Option<LoraSpec>,
+        /// The weight is stored in panels of [`PANEL`](crate::ops::PANEL) output columns,
+        /// `[ceil(out / PANEL)][in][PANEL]`, zero past `out` ([`Linear::panel_len`]
+        /// values), the layout the runtime's register-blocked product reads. Absent: `[in,
+        /// out]`.
+        #[serde(default, skip_serializing_if = "is_false")]
+        panels: bool,
     },
     /// Per-channel affine over axis 1 (an unfused BatchNorm, folded to scale and shift).
     ChannelAffine {

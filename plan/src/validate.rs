@@ -285,11 +285,16 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
             }
             per_channel(epilogue, conv.out_channels)
         }
-        Kernel::Linear { linear, weight, epilogue, lora } => {
-            let want = (linear.in_features as u64).saturating_mul(linear.out_features as u64);
+        Kernel::Linear { linear, weight, epilogue, lora, panels } => {
+            let want = if *panels {
+                linear.panel_len().map_or(u64::MAX, |n| n as u64)
+            } else {
+                (linear.in_features as u64).saturating_mul(linear.out_features as u64)
+            };
             if numel(*weight) as u64 != want {
+                let layout = if *panels { " (in panels)" } else { "" };
                 return Err(format!(
-                    "linear weight `{}` has {} values, not {want}",
+                    "linear weight `{}` has {} values, not {want}{layout}",
                     escaped(&m.tensors[*weight].name),
                     numel(*weight)
                 ));

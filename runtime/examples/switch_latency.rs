@@ -97,6 +97,7 @@ fn plan() -> Plan {
                         bn: None,
                     },
                     lora: None,
+                    panels: false,
                 },
                 inputs: vec![0],
                 output: 1,

@@ -14,8 +14,11 @@ pub struct LinearOp {
     /// Back end: what runs after the accumulation (`fuse_epilogues`).
     pub epilogue: Epilogue,
     /// Back end: the weight slot holds the weight transposed, `[in, out]`, the layout the
-    /// GEMM reads fastest (`pack_weights`).
+    /// GEMM reads fastest, or in panels when `panels` (`pack_weights`).
     pub packed: bool,
+    /// Back end: the packed weight is in panels of [`PANEL`](readi_plan::ops::PANEL)
+    /// outputs ([`Linear::panel_len`] values), for the runtime's register-blocked product.
+    pub panels: bool,
     /// Back end: a LoRA branch of this rank computed in the layer's kernel (`fuse_lora`),
     /// slots `lora_A [rank, in]` and `lora_B [out, rank]` (pre-scaled).
     pub lora: Option<i64>,
@@ -24,15 +27,19 @@ pub struct LinearOp {
 impl LinearOp {
     /// A linear layer as the language writes it.
     pub fn new(linear: Linear, bias: bool) -> LinearOp {
-        LinearOp { linear, bias, epilogue: Epilogue::default(), packed: false, lora: None }
+        LinearOp { linear, bias, epilogue: Epilogue::default(), packed: false, panels: false, lora: None }
     }
 
-    /// `weight [out, in]` (packed: `[in, out]`), with a bias `bias [out]`, a fused LoRA
-    /// branch's `lora_A [rank, in]` and `lora_B [out, rank]`, then the epilogue's slots.
+    /// `weight [out, in]` (packed: `[in, out]`, or in panels `[panel_len]`), with a bias
+    /// `bias [out]`, a fused LoRA branch's `lora_A [rank, in]` and `lora_B [out, rank]`,
+    /// then the epilogue's slots.
     pub fn param_slots(&self) -> Vec<ParamSlot> {
         let l = &self.linear;
-        let weight =
-            if self.packed { vec![l.in_features, l.out_features] } else { vec![l.out_features, l.in_features] };
+        let weight = match (self.packed, self.panels) {
+            (true, true) => vec![l.panel_len().map_or(i64::MAX, |n| n as i64)],
+            (true, false) => vec![l.in_features, l.out_features],
+            (false, _) => vec![l.out_features, l.in_features],
+        };
         let mut v = vec![ParamSlot::param("weight", weight)];
         if self.bias {
             v.push(ParamSlot::param("bias", vec![l.out_features]));
@@ -56,6 +63,9 @@ impl Operator for LinearOp {
     fn attrs(&self) -> Vec<(&'static str, String)> {
         let mut v = self.linear.attrs();
         v.push(("bias", self.bias.to_string()));
+        if self.panels {
+            v.push(("weight", "panels".to_string()));
+        }
         if let Some(rank) = self.lora {
             v.push(("lora", format!("rank {rank}")));
         }

@@ -324,7 +324,8 @@ impl<'m> Lowering<'m> {
                 }
                 let weight = self.tensor(node, "weight")?;
                 let lora = self.lora(node, l.lora, false)?;
-                Kernel::Linear { linear: l.linear.clone(), weight, epilogue: self.epilogue(node, &l.epilogue)?, lora }
+                let (linear, epilogue) = (l.linear.clone(), self.epilogue(node, &l.epilogue)?);
+                Kernel::Linear { linear, weight, epilogue, lora, panels: l.panels }
             }
             Op::ChannelAffine(a) => {
                 Kernel::ChannelAffine { affine: a.affine.clone(), epilogue: self.epilogue(node, &a.epilogue)? }

@@ -13,6 +13,19 @@ pub struct Linear {
     pub out_features: i64,
 }
 
+/// Output columns per panel of a linear weight stored in panels (`Kernel::Linear {
+/// panels }`): two AVX-512 vectors.
+pub const PANEL: usize = 32;
+
+impl Linear {
+    /// Floats of this layer's weight stored in panels: `ceil(out / PANEL) * PANEL * in`,
+    /// `None` for a negative size or on overflow.
+    pub fn panel_len(&self) -> Option<usize> {
+        let (fin, fout) = (usize::try_from(self.in_features).ok()?, usize::try_from(self.out_features).ok()?);
+        fout.div_ceil(PANEL).checked_mul(PANEL)?.checked_mul(fin)
+    }
+}
+
 impl Operator for Linear {
     fn kind_name(&self) -> &'static str {
         "linear"

@@ -54,7 +54,7 @@ pub use conv3d::{Conv3d, Conv3dShape, Window3};
 pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
 pub use index::{Cast, Fill, IndexSelect, Where};
 pub use layout::{Concat, Permute, Reshape};
-pub use linear::{Linear, MatMul};
+pub use linear::{Linear, MatMul, PANEL};
 pub use movement::{Expand, Pad, PadMode, Resolved, Roll, Slice, SliceAxis};
 pub use norm::{BatchNorm, ChannelAffine, GroupNorm, LayerNorm, batchnorm_affine, batchnorm_channel};
 pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};

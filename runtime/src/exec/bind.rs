@@ -565,8 +565,9 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
             let ol = numel(out).ok_or("conv3d output too large")?;
             conv3d::check(&s, len(*weight), xl, ol, ep(epilogue))
         }
-        Kernel::Linear { linear: l, weight, epilogue, lora: r } => {
-            linear::check(x, u(l.in_features)?, u(l.out_features)?, len(*weight), out, ep(epilogue), lora(r))
+        Kernel::Linear { linear: l, weight, epilogue, lora: r, panels } => {
+            let layout = if *panels { linear::WeightLayout::Panels } else { linear::WeightLayout::InOut };
+            linear::check(x, u(l.in_features)?, u(l.out_features)?, layout, len(*weight), out, ep(epilogue), lora(r))
         }
         Kernel::ChannelAffine { affine, epilogue } => {
             norm::check_channel_affine(x, u(affine.channels)?, ep(epilogue), out)

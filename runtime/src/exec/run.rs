@@ -137,10 +137,10 @@ pub(crate) fn run_step(
             conv3d::conv3d(&s, w.get(*weight), &epilogue(w, ep), x, out, scratch, threads);
         }
         // Rows from the leading axes, not by dividing the length: a last axis may be 0.
-        Kernel::Linear { linear: l, weight, epilogue: ep, lora } => {
+        Kernel::Linear { linear: l, weight, epilogue: ep, lora, panels } => {
             let fin = xs.last().copied().unwrap_or(1);
             let rows = xs[..xs.len().saturating_sub(1)].iter().product();
-            let layout = linear::WeightLayout::InOut;
+            let layout = if *panels { linear::WeightLayout::Panels } else { linear::WeightLayout::InOut };
             let fout = l.out_features as usize;
             let lora = lora.map(|r| linear::Lora { a: w.get(r.a), b: w.get(r.b), rank: r.rank });
             let (wt, e) = (w.get(*weight), epilogue(w, ep));

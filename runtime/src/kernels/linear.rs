@@ -4,6 +4,7 @@ use rayon::prelude::*;
 
 use super::Epilogue;
 use super::gemm::{MatMut, MatRef, sgemm};
+use super::panel;
 
 /// Output floats per GEMM block before its epilogue runs: up to 1 MiB, so the block is
 /// still in L2 when the epilogue reads it. (Each GEMM call packs the weight again, so
@@ -23,6 +24,22 @@ pub enum WeightLayout {
     /// reads a row-major right operand up to 1.8x faster (measured: 259 vs 469 GFLOP/s on
     /// ViT-S's fc2, 2 threads).
     InOut,
+    /// Packed by [`panel::pack`] for [`panel::gemm`], which reads it without packing it
+    /// again on every call: what the compiler stores for layers with few rows, where that
+    /// pass over the weight costs most.
+    Panels,
+}
+
+impl WeightLayout {
+    /// Floats of an `in_features x out_features` weight in this layout, `None` on overflow.
+    pub fn len(self, in_features: usize, out_features: usize) -> Option<usize> {
+        match self {
+            WeightLayout::OutIn | WeightLayout::InOut => in_features.checked_mul(out_features),
+            WeightLayout::Panels => {
+                out_features.div_ceil(panel::PANEL).checked_mul(panel::PANEL)?.checked_mul(in_features)
+            }
+        }
+    }
 }
 
 /// `out[rows, out_features] = epilogue(x[rows, in_features] · weightᵀ)` for a weight in
@@ -83,6 +100,7 @@ pub fn linear_lora(
             &[rows, in_features],
             in_features,
             out_features,
+            layout,
             weight.len(),
             &[rows, out_features],
             [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)],
@@ -92,7 +110,7 @@ pub fn linear_lora(
         "linear preconditions"
     );
     assert_eq!(x.len(), rows * in_features, "linear: input length");
-    assert_eq!(weight.len(), out_features * in_features, "linear: weight length");
+    assert_eq!(Some(weight.len()), layout.len(in_features, out_features), "linear: weight length");
     assert_eq!(out.len(), rows * out_features, "linear: output length");
     for v in [ep.scale, ep.shift].into_iter().flatten() {
         assert_eq!(v.len(), out_features, "linear: epilogue length");
@@ -100,23 +118,29 @@ pub fn linear_lora(
     if out.is_empty() {
         return;
     }
-    // weightᵀ as an in_features × out_features view.
+    // weightᵀ as an in_features × out_features view (none in panels, which only
+    // `panel::gemm` reads).
     let wt = match layout {
         WeightLayout::OutIn => {
-            MatRef { data: weight, rows: in_features, cols: out_features, row_stride: 1, col_stride: in_features }
+            Some(MatRef { data: weight, rows: in_features, cols: out_features, row_stride: 1, col_stride: in_features })
         }
-        WeightLayout::InOut => MatRef::row_major(weight, in_features, out_features),
+        WeightLayout::InOut => Some(MatRef::row_major(weight, in_features, out_features)),
+        WeightLayout::Panels => None,
     };
     let block_rows = (BLOCK_FLOATS / out_features).max(1);
     let block = |rows_out: &mut [f32], x_rows: &[f32], gemm_threads: usize| {
         let r = rows_out.len() / out_features;
-        sgemm(
-            MatRef::row_major(x_rows, r, in_features),
-            wt,
-            MatMut::row_major(rows_out, r, out_features),
-            false,
-            gemm_threads,
-        );
+        match wt {
+            Some(wt) => sgemm(
+                MatRef::row_major(x_rows, r, in_features),
+                wt,
+                MatMut::row_major(rows_out, r, out_features),
+                false,
+                gemm_threads,
+            ),
+            // One thread per block: the rows are split over the threads below.
+            None => panel::gemm(x_rows, r, in_features, weight, out_features, rows_out),
+        }
         if let Some(l) = lora {
             // t = x Aᵀ, then out += t Bᵀ, over as many rows at a time as `t` fits on the
             // stack (kernels allocate nothing).
@@ -275,10 +299,12 @@ pub fn matmul(
 /// vectors of `out_features`; a LoRA branch `(rank, A's length, B's length)` of a rank
 /// of 1 to [`super::conv::MAX_LORA_RANK`], `A` of `rank × in_features` and `B` of
 /// `out_features × rank`. Checked at bind time; [`linear`] asserts it in debug builds.
+#[allow(clippy::too_many_arguments)]
 pub fn check(
     x_shape: &[usize],
     in_features: usize,
     out_features: usize,
+    layout: WeightLayout,
     weight_len: usize,
     out_shape: &[usize],
     epilogue: [Option<usize>; 2],
@@ -288,8 +314,8 @@ pub fn check(
     if last != in_features {
         return Err(format!("linear needs {in_features} input features, its input is {x_shape:?}"));
     }
-    if Some(weight_len) != in_features.checked_mul(out_features) {
-        return Err(format!("linear weight has {weight_len} values for {in_features} x {out_features}"));
+    if Some(weight_len) != layout.len(in_features, out_features) {
+        return Err(format!("linear weight has {weight_len} values for {in_features} x {out_features} ({layout:?})"));
     }
     let rows = numel(rows).ok_or("linear: too many rows")?;
     if numel(out_shape) != rows.checked_mul(out_features) {
@@ -423,14 +449,40 @@ mod tests {
                 .collect();
             let lora = Lora { a: &a, b: &b, rank };
             let fields = Some((rank, a.len(), b.len()));
-            assert_eq!(check(&[rows, fin], fin, fout, wt.len(), &[rows, fout], [Some(fout); 2], fields), Ok(()));
+            assert_eq!(
+                check(&[rows, fin], fin, fout, WeightLayout::InOut, wt.len(), &[rows, fout], [Some(fout); 2], fields),
+                Ok(())
+            );
+            // The same weight in panels (`panel::pack` from PyTorch's layout).
+            let mut packed = vec![0.0; WeightLayout::Panels.len(fin, fout).expect("fits")];
+            crate::kernels::panel::pack(&w, fin, fout, &mut packed);
+            assert_eq!(
+                check(
+                    &[rows, fin],
+                    fin,
+                    fout,
+                    WeightLayout::Panels,
+                    packed.len(),
+                    &[rows, fout],
+                    [Some(fout); 2],
+                    fields
+                ),
+                Ok(())
+            );
             for threads in [1, 2] {
-                let mut out = vec![f32::NAN; rows * fout];
-                linear_lora(&x, rows, fin, &wt, WeightLayout::InOut, Some(&lora), fout, &ep, &mut out, threads);
-                assert_close(&out, &want, 1e-4);
+                for (layout, weight) in [(WeightLayout::InOut, &wt), (WeightLayout::Panels, &packed)] {
+                    let mut out = vec![f32::NAN; rows * fout];
+                    linear_lora(&x, rows, fin, weight, layout, Some(&lora), fout, &ep, &mut out, threads);
+                    assert_close(&out, &want, 1e-4);
+                }
             }
         }
-        let bad = |l| check(&[2, 3], 3, 4, 12, &[2, 4], [None, None], Some(l)).expect_err("bad LoRA");
+        let packed_len =
+            |fin, fout| check(&[1, fin], fin, fout, WeightLayout::Panels, fin * fout, &[1, fout], [None, None], None);
+        assert!(packed_len(3, 32).is_ok(), "32 outputs fill one panel exactly");
+        assert!(packed_len(3, 33).expect_err("a short panel weight").contains("Panels"));
+        let bad =
+            |l| check(&[2, 3], 3, 4, WeightLayout::InOut, 12, &[2, 4], [None, None], Some(l)).expect_err("bad LoRA");
         assert!(bad((0, 0, 0)).contains("rank 0"));
         assert!(bad((2, 6, 7)).contains("B 7"));
         assert!(bad((2, 5, 8)).contains("A has 5"));

@@ -92,6 +92,7 @@ pub mod linear;
 pub mod merge;
 pub mod movement;
 pub mod norm;
+pub mod panel;
 pub mod pool;
 pub mod reduce;
 pub mod resize;

@@ -173,6 +173,7 @@ pub fn mlp(fin: usize, fout: usize) -> Mlp {
                     bn: None,
                 },
                 lora: None,
+                panels: false,
             },
             inputs: vec![0],
             output: 1,
