@@ -329,24 +329,22 @@ fn execute(
             let b: &Bound = bound;
             let out = &mut out_buf[..out_len];
             match at_step[k].map(|i| &mut layers[i]) {
-                None => {
-                    run_step(run, b, k, step, out, &mut scratch, threads);
-                    Ok(())
-                }
-                Some(layer) => {
-                    run_step(run, b, k, &layer.pre, out, &mut scratch, threads);
-                    let shape = &b.shapes[step.output];
-                    // The base's: no variant replaces these.
-                    let gamma = run.plan.tensor(layer.info.weight);
-                    let beta = run.plan.tensor(layer.info.bias);
-                    let adapted = layer.adapter.zip(b.convs[k].as_ref());
-                    train_mode_batchnorm(layer, adapted.is_none(), out, shape[0], shape[1], gamma, beta).map(|()| {
-                        if let Some((a, (s, _))) = adapted {
-                            let ad = crate::exec::adapter_of(run, &a);
-                            crate::kernels::conv::adapter_after(s, &ad, out, layer.act, &mut scratch, threads);
-                        }
-                    })
-                }
+                None => run_step(run, b, k, step, out, &mut scratch, threads).map_err(|d| step_error(step, d)),
+                Some(layer) => run_step(run, b, k, &layer.pre, out, &mut scratch, threads)
+                    .map_err(|d| step_error(step, d))
+                    .and_then(|()| {
+                        let shape = &b.shapes[step.output];
+                        // The base's: no variant replaces these.
+                        let gamma = run.plan.tensor(layer.info.weight);
+                        let beta = run.plan.tensor(layer.info.bias);
+                        let adapted = layer.adapter.zip(b.convs[k].as_ref());
+                        train_mode_batchnorm(layer, adapted.is_none(), out, shape[0], shape[1], gamma, beta).map(|()| {
+                            if let Some((a, (s, _))) = adapted {
+                                let ad = crate::exec::adapter_of(run, &a);
+                                crate::kernels::conv::adapter_after(s, &ad, out, layer.act, &mut scratch, threads);
+                            }
+                        })
+                    }),
             }
         };
         bound.scratch = scratch;
@@ -354,6 +352,11 @@ fn execute(
         result?;
     }
     Ok(())
+}
+
+/// A step that refused its data, as the calibration's error.
+fn step_error(step: &Step, detail: String) -> CalibrateError {
+    RunError::Step { step: step.path.clone(), detail }.into()
 }
 
 /// Elements per parallel task, roughly.

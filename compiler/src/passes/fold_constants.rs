@@ -157,13 +157,20 @@ fn fold_reading(
     // Shape inference agreed to these shapes; a kernel refusing them is a compiler bug.
     check_pure(p, &parts, &out_shape).map_err(|e| internal(format!("`{}` cannot be folded: {e}", node.path)))?;
     let refs: Vec<&str> = names.iter().map(String::as_str).chain(also).collect();
+    let refused = std::cell::RefCell::new(None);
     let folded = table
         .derive_one(&refs, "constant-folded into", out_shape.clone(), |v| {
             let mut out = vec![0.0f32; out_len];
-            run_pure(p, parts.len(), |j| (v[j], parts[j]), &mut out, &out_shape, 1);
+            *refused.borrow_mut() = run_pure(p, parts.len(), |j| (v[j], parts[j]), &mut out, &out_shape, 1).err();
             out
         })
         .map_err(internal)?;
+    if let Some(why) = refused.into_inner() {
+        let d =
+            Diagnostic::error(Code::BadValue, format!("{} `{}` of constants: {why}", p.op().kind_name(), node.path))
+                .with_primary(node.span, "computed at compile time from these constants");
+        return Err(Diagnostics(vec![d]));
+    }
     let name = format!("{}@const", node.path);
     let shape = out_shape.iter().map(|&d| d as i64).collect();
     let dtype = node.outputs[0].dtype;

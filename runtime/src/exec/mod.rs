@@ -83,6 +83,9 @@ pub enum RunError {
     NotFinite { name: String, index: usize, value: f32 },
     /// The plan is inconsistent (a corrupted or hand-edited file).
     BadPlan { step: String, detail: String },
+    /// A step refused the data it was given (an index computed at run time out of range):
+    /// checks only a run can make, of values rather than shapes.
+    Step { step: String, detail: String },
     /// The thread pool could not be created.
     Threads(String),
     /// A variant key the plan does not have (`key` as given), or a text that is not a
@@ -170,6 +173,7 @@ impl fmt::Display for RunError {
                 write!(f, "input `{}` holds {value} at flat index {index}; inputs must be finite", e(name))
             }
             RunError::BadPlan { step, detail } => write!(f, "invalid plan at {}: {}", e(step), e(detail)),
+            RunError::Step { step, detail } => write!(f, "{} cannot run on its inputs: {}", e(step), e(detail)),
             RunError::Threads(e) => write!(f, "cannot start the thread pool: {e}"),
             RunError::UnknownVariant { key, known, nearest, malformed } => {
                 match malformed {

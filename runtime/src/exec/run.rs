@@ -81,13 +81,14 @@ pub(super) fn execute(
         let mut out_buf = std::mem::take(&mut bound.slots[out_slot]);
         let out_len: usize = bound.shapes[step.output].iter().product();
         let mut scratch = std::mem::take(&mut bound.scratch);
-        {
+        let result = {
             let b: &Bound = bound;
             let out = &mut out_buf[..out_len];
-            run_step(run, b, k, step, out, &mut scratch, threads);
-        }
+            run_step(run, b, k, step, out, &mut scratch, threads)
+        };
         bound.scratch = scratch;
         bound.slots[out_slot] = out_buf;
+        result.map_err(|detail| RunError::Step { step: step.path.clone(), detail })?;
         if let (Some(p), Some(t)) = (profile.as_deref_mut(), start) {
             p[k] += t.elapsed().as_secs_f64();
         }
@@ -97,7 +98,8 @@ pub(super) fn execute(
 
 /// Runs `step`, the `k`-th (or a stand-in for it), its shapes checked at bind time; a
 /// raw LoRA `A` is read from `b`'s buffer, packed for the run's variant
-/// ([`Bound::pack_lora`]).
+/// ([`Bound::pack_lora`]). An `Err` says why the step refused its data (see
+/// [`RunError::Step`]); what bind checks never fails here.
 pub(crate) fn run_step(
     run: &Run<'_>,
     b: &Bound,
@@ -106,7 +108,7 @@ pub(crate) fn run_step(
     out: &mut [f32],
     scratch: &mut [f32],
     threads: usize,
-) {
+) -> Result<(), String> {
     let w = run.weights;
     let conv_params = b.convs[k].as_ref();
     let input = |j: usize| {
@@ -162,14 +164,16 @@ pub(crate) fn run_step(
             let (wt, bs) = (weight.map(|t| w.get(t)), bias.map(|t| w.get(t)));
             norm::groupnorm(x, n, c, inner, gn.num_groups as usize, wt, bs, gn.eps as f32, out);
         }
-        Kernel::Pure(op) => run_pure(op, step.inputs.len(), input, out, out_shape, threads),
+        Kernel::Pure(op) => return run_pure(op, step.inputs.len(), input, out, out_shape, threads),
     }
+    Ok(())
 }
 
 /// Runs the pure operator `op` on `count` inputs (`input(j)`: the data and shape of input
 /// `j`) into `out` of shape `out_shape`, its shapes checked ([`check_pure`](super::check_pure)):
 /// what every step of a pure kernel calls, and what the compiler folds constants with,
-/// so a folded tensor is the value the step would have computed.
+/// so a folded tensor is the value the step would have computed. An `Err` says why the
+/// operator refused its inputs' values (an index out of range).
 pub fn run_pure<'a>(
     op: &Pure,
     count: usize,
@@ -177,9 +181,10 @@ pub fn run_pure<'a>(
     out: &mut [f32],
     out_shape: &[usize],
     threads: usize,
-) {
+) -> Result<(), String> {
     if let Pure::Fill(f) = op {
-        return index::fill(f.start, f.step, out);
+        index::fill(f.start, f.step, out);
+        return Ok(());
     }
     let (x, xs) = input(0);
     match op {
@@ -230,6 +235,7 @@ pub fn run_pure<'a>(
         Pure::Cast(c) => index::cast(c.to, x, out),
         Pure::Fill(_) => {}
     }
+    Ok(())
 }
 
 /// Outputs at least this long are copied in parallel.
