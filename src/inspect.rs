@@ -195,6 +195,7 @@ pub fn schedule(m: &Manifest, verbose: bool) -> String {
             for (k, st) in m.steps.iter().enumerate() {
                 let ins: Vec<String> = st.inputs.iter().map(|i| format!("%{i}")).collect();
                 let buffer = match m.values[st.output].storage {
+                    Storage::Slot(s) if st.is_view(&m.values) => format!(" (view of buffer {s})"),
                     Storage::Slot(s) => format!(" (buffer {s})"),
                     _ => String::new(),
                 };

@@ -36,7 +36,9 @@ use crate::ops::{
 /// comparisons and constant fills; for the same reason. Versions 2 to 4 read unchanged.
 /// Version 6: a linear weight may be stored in panels (`Kernel::Linear { panels }`),
 /// which a version 5 runtime would read as `[in, out]`; versions 2 to 5 read unchanged.
-pub const FORMAT_VERSION: u32 = 6;
+/// Version 7: a reshape may share its input's buffer ([`Step::is_view`]), which a version
+/// 6 runtime refuses as a step reading the buffer it writes; versions 2 to 6 read unchanged.
+pub const FORMAT_VERSION: u32 = 7;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
 /// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
@@ -297,6 +299,20 @@ pub struct Step {
     pub kernel: Kernel,
     pub inputs: Vec<usize>,
     pub output: usize,
+}
+
+impl Step {
+    /// Whether the step is a view: a reshape whose output shares its input's activation
+    /// buffer. Its data are already in place, so it runs as nothing (`reshape`,
+    /// `flatten`, `squeeze`, `unsqueeze`, `view` cost no copy); `plan_buffers` makes
+    /// them, keeping the buffer live until the last reader of any of its views.
+    pub fn is_view(&self, values: &[ValueSpec]) -> bool {
+        let storage = |v: usize| values.get(v).map(|v| v.storage);
+        matches!(self.kernel, Kernel::Pure(crate::ops::Pure::Reshape(_)))
+            && self.inputs.len() == 1
+            && matches!(storage(self.output), Some(Storage::Slot(_)))
+            && storage(self.inputs[0]) == storage(self.output)
+    }
 }
 
 /// A per-channel epilogue read from stored tensors: `act(acc * scale[c] + shift[c])`.

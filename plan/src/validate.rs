@@ -158,7 +158,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
             if i >= nv || !written[i] {
                 return Err(format!("{at} reads value {i} before it is written"));
             }
-            if m.values[i].storage == Storage::Slot(out_slot) {
+            if m.values[i].storage == Storage::Slot(out_slot) && !step.is_view(&m.values) {
                 return Err(format!("{at} reads buffer {out_slot}, which it writes"));
             }
         }

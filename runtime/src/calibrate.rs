@@ -322,6 +322,9 @@ fn execute(
         let Storage::Slot(out_slot) = m.values[step.output].storage else {
             return Err(crate::exec::bad(&step.path, "output is not an activation buffer").into());
         };
+        if step.is_view(&m.values) {
+            continue;
+        }
         let mut out_buf = std::mem::take(&mut bound.slots[out_slot]);
         let out_len: usize = bound.shapes[step.output].iter().product();
         let mut scratch = std::mem::take(&mut bound.scratch);

@@ -76,8 +76,12 @@ pub(super) fn execute(
         let Storage::Slot(out_slot) = m.values[step.output].storage else {
             return Err(bad(&step.path, "output is not an activation buffer"));
         };
+        if step.is_view(&m.values) {
+            // Its data are its input's, in place.
+            continue;
+        }
         // Take the output buffer out so inputs can be borrowed alongside it; `bind`
-        // checked that no step reads the slot it writes.
+        // checked that no step but a view reads the slot it writes.
         let mut out_buf = std::mem::take(&mut bound.slots[out_slot]);
         let out_len: usize = bound.shapes[step.output].iter().product();
         let mut scratch = std::mem::take(&mut bound.scratch);
