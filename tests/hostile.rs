@@ -899,3 +899,33 @@ fn a_crafted_index_out_of_range_is_refused() {
     assert!(err.contains("takes 0 tensor input(s), got 1"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A crafted `lss_bev_pool` step (one input instead of six; six that are one tensor; a
+/// grid bound with a zero step) is refused at load with the step's name, never run.
+#[test]
+fn a_crafted_lss_bev_pool_is_refused() {
+    use readi_plan::ops::{LssBevPool, Pure};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("bev");
+    let op = LssBevPool {
+        image_size: [64, 96],
+        xbound: [-8.0, 8.0, 2.0],
+        ybound: [-8.0, 8.0, 2.0],
+        zbound: [-2.0, 2.0, 2.0],
+        dbound: [2.0, 10.0, 2.0],
+    };
+    let x = [None, Some(2), Some(4), Some(4), Some(6)];
+    let out = [None, Some(6), Some(8), Some(8)];
+    let cases: [(LssBevPool, usize, &str); 3] = [
+        (op.clone(), 1, "lss_bev_pool takes 6 tensor input(s), got 1"),
+        (op.clone(), 6, "lss_bev_pool camera_intrinsics must have 4 axes"),
+        (LssBevPool { xbound: [-8.0, 8.0, 0.0], ..op.clone() }, 6, "xbound needs a positive step"),
+    ];
+    for (k, (op, inputs, want)) in cases.into_iter().enumerate() {
+        let mut plan = one_step(&x, Kernel::Pure(Pure::LssBevPool(op)), &out, &[]);
+        plan.0.steps[0].inputs = vec![0; inputs];
+        let err = run_refused(&dir, &format!("bev{k}.plan"), plan, &[1, 2, 4, 4, 6]);
+        assert!(err.contains("the\\u{1b}step") && err.contains(want), "case {k}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

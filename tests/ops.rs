@@ -14,6 +14,8 @@
 //!   equal torch's values exactly.
 //! - `conv3d.readi` (`make_conv3d_fixtures.py`): 3-D convolutions (padding, stride,
 //!   dilation, groups, depthwise, 1x1x1) and BatchNorm3d, at 1 and 2 threads.
+//! - `bev_pool.readi` (`make_bev_pool_fixtures.py`): BEVFusion's camera-to-BEV view
+//!   transform (`lss_bev_pool`) under two calibrations, to 1e-4, at 1 and 2 threads.
 
 mod common;
 
@@ -280,5 +282,77 @@ fn conv3d_weights_of_the_wrong_layout_are_refused() {
         let got = format!("{shape:?}");
         assert!(text.contains(name) && text.contains(want) && text.contains(&got), "{text}");
         assert!(text.contains(&format!("conv3d.readi{line}")), "{text}");
+    }
+}
+
+/// The inputs of case `case` of bev_pool.io.safetensors and torch's output.
+fn bev_case<'a>(io: &'a WeightSet, case: &str) -> (Vec<Input<'a>>, &'a (Vec<usize>, Vec<f32>)) {
+    let prefix = format!("{case}.input.");
+    let inputs: Vec<Input<'_>> = io
+        .tensors
+        .iter()
+        .filter_map(|(k, (shape, data))| k.strip_prefix(prefix.as_str()).map(|name| Input { name, data, shape }))
+        .collect();
+    assert_eq!(inputs.len(), 6, "{case}");
+    (inputs, &io.tensors[&format!("{case}.output.bev")])
+}
+
+/// BEVFusion's view transform against a torch port of `get_geometry` + `bev_pool`: with
+/// identity augmentations, then on the same session with the augmented calibration (the
+/// cached geometry must follow it) and back; each at 1 and 2 threads, the same bits at
+/// both. A singular intrinsics matrix is refused naming the step.
+#[test]
+fn lss_bev_pool_matches_bevfusion_and_follows_the_calibration() {
+    let spec = "tests/fixtures/ops/bev_pool.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let (plan, _) = backend::compile(&module, &WeightSet::default(), "none", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let kinds: Vec<&str> = plan.manifest.steps.iter().map(|s| s.kernel.name()).collect();
+    assert_eq!(kinds, ["lss_bev_pool"]);
+    let plan = Arc::new(plan);
+    let io = fixture("bev_pool.io.safetensors");
+    let mut first: Vec<Vec<f32>> = Vec::new();
+    for threads in [1, 2] {
+        let mut session = Session::new(Arc::clone(&plan), threads).expect("session");
+        for (i, case) in ["identity", "augmented", "identity"].into_iter().enumerate() {
+            let (inputs, (shape, want)) = bev_case(&io, case);
+            let outputs = session.run(&inputs).expect("runs");
+            let t = &outputs[0].1;
+            assert_eq!(&t.shape, shape, "{case}");
+            let mut worst = 0.0f32;
+            for (j, (&g, &w)) in t.data.iter().zip(want).enumerate() {
+                let err = (g - w).abs() / w.abs().max(1.0);
+                assert!(err <= 1e-4, "{case} at {threads} threads, bev[{j}]: {g}, torch {w} (error {err:e})");
+                worst = worst.max(err);
+            }
+            eprintln!("{case} at {threads} threads: max error vs torch {worst:e}");
+            assert!(t.data.iter().filter(|v| **v != 0.0).count() > 20, "{case}: an empty grid");
+            if threads == 1 {
+                first.push(t.data.clone());
+            } else {
+                assert!(first[i].iter().zip(&t.data).all(|(a, b)| a.to_bits() == b.to_bits()), "{case}: threads");
+            }
+        }
+        // A camera without a focal length: refused, naming the step and the camera.
+        let (inputs, _) = bev_case(&io, "augmented");
+        let (_, k) = &io.tensors["augmented.input.camera_intrinsics"];
+        let mut singular = k.clone();
+        singular[16] = 0.0;
+        let inputs: Vec<Input<'_>> = inputs
+            .into_iter()
+            .map(|i| if i.name == "camera_intrinsics" { Input { data: &singular, ..i } } else { i })
+            .collect();
+        let e = session.run(&inputs).expect_err("a singular intrinsics matrix");
+        assert!(
+            matches!(&e, readi_runtime::exec::RunError::Step { detail, .. } if detail == "camera_intrinsics[0, 1] is singular"),
+            "{e:?}"
+        );
+        assert!(e.to_string().starts_with("lss_bev_pool#0 cannot run on its inputs"), "{e}");
+        // The session still runs a good calibration afterwards.
+        let (inputs, (_, want)) = bev_case(&io, "identity");
+        let outputs = session.run(&inputs).expect("runs after the error");
+        assert!(outputs[0].1.data.iter().zip(want).all(|(g, w)| (g - w).abs() <= 1e-4 * w.abs().max(1.0)));
     }
 }

@@ -5,13 +5,16 @@
 //! The plan uses only kernels that allocate nothing themselves, so the count is the
 //! executor's. (At the time of writing the conv, linear, matmul, permute and mean kernels
 //! allocate small work lists per call, a few to a few dozen, independent of the data.)
+//!
+//! A second plan, one `lss_bev_pool` step, runs under alternating calibrations: the
+//! geometry it recomputes each time is written into buffers sized at bind time.
 
 use std::alloc::System;
 use std::sync::Arc;
 
 use readi_plan::ops::{
-    Activation, BinaryOp, ChannelAffine, Concat, GlobalAvgPool, LayerNorm, Pool2d, PoolKind, Pure, Reshape, Softmax,
-    Window2,
+    Activation, BinaryOp, ChannelAffine, Concat, GlobalAvgPool, LayerNorm, LssBevPool, Pool2d, PoolKind, Pure, Reshape,
+    Softmax, Window2,
 };
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
@@ -351,4 +354,110 @@ fn switching_and_runs_allocate_only_outputs() {
         "{runs} runs made {running} allocations at least; their outputs need {}",
         per_run * runs
     );
+
+    // An lss_bev_pool step: a run whose calibration differs from the last recomputes the
+    // cached geometry in place, allocating nothing but the output (1 + 3 allocations).
+    let mut bev = Session::new(Arc::new(bev_plan()), 2).expect("session");
+    let (depth, context) = (data(2 * 4 * 24, 21), data(2 * 3 * 24, 22));
+    let cal: Vec<[Vec<f32>; 4]> = [0.0f32, 0.3].iter().map(|&yaw| bev_calibration(yaw)).collect();
+    fn bev_inputs<'a>(depth: &'a [f32], context: &'a [f32], c: &'a [Vec<f32>; 4]) -> Vec<Input<'a>> {
+        vec![
+            Input { name: "depth", data: depth, shape: &[1, 2, 4, 4, 6] },
+            Input { name: "context", data: context, shape: &[1, 2, 3, 4, 6] },
+            Input { name: "camera_intrinsics", data: &c[0], shape: &[1, 2, 4, 4] },
+            Input { name: "camera2lidar", data: &c[1], shape: &[1, 2, 4, 4] },
+            Input { name: "img_aug_matrix", data: &c[2], shape: &[1, 2, 4, 4] },
+            Input { name: "lidar_aug_matrix", data: &c[3], shape: &[1, 4, 4] },
+        ]
+    }
+    let both = [bev_inputs(&depth, &context, &cal[0]), bev_inputs(&depth, &context, &cal[1])];
+    let first = bev.run(&both[0]).expect("runs");
+    let second = bev.run(&both[1]).expect("runs");
+    assert_ne!(first, second, "the calibrations give the same grid");
+    let runs = 40;
+    let recomputing = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for i in 0..runs {
+                bev.run(&both[i % 2]).expect("runs");
+            }
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min()
+        .expect("trials");
+    assert!(
+        (4 * runs..=4 * runs + slack).contains(&recomputing),
+        "{runs} runs alternating two calibrations made {recomputing} allocations at least; their outputs need {}",
+        4 * runs
+    );
+}
+
+/// A row-major 4x4 from a 3x3 block and a translation.
+fn mat4(r: [[f32; 3]; 3], t: [f32; 3]) -> Vec<f32> {
+    let mut m = vec![0.0; 16];
+    for i in 0..3 {
+        m[i * 4..i * 4 + 3].copy_from_slice(&r[i]);
+        m[i * 4 + 3] = t[i];
+    }
+    m[15] = 1.0;
+    m
+}
+
+/// Two cameras (forward, backward) around a lidar turned by `yaw`.
+fn bev_calibration(yaw: f32) -> [Vec<f32>; 4] {
+    let id = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let k = mat4([[60.0, 0.0, 47.5], [0.0, 60.0, 31.5], [0.0, 0.0, 1.0]], [0.0; 3]);
+    let front = mat4([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], [0.3, 0.1, 0.5]);
+    let back = mat4([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], [-0.3, 0.1, 0.5]);
+    let (c, s) = (yaw.cos(), yaw.sin());
+    let lidar = mat4([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], [0.1, 0.0, 0.0]);
+    [[k.clone(), k].concat(), [front, back].concat(), [mat4(id, [0.0; 3]), mat4(id, [0.0; 3])].concat(), lidar]
+}
+
+/// BEVFusion's view transform on two cameras (`lss_bev_pool`) as a one-step plan.
+fn bev_plan() -> Plan {
+    let op = LssBevPool {
+        image_size: [64, 96],
+        xbound: [-8.0, 8.0, 2.0],
+        ybound: [-8.0, 8.0, 2.0],
+        zbound: [-2.0, 2.0, 2.0],
+        dbound: [2.0, 10.0, 2.0],
+    };
+    let shapes: [&[usize]; 6] = [&[2, 4, 4, 6], &[2, 3, 4, 6], &[2, 4, 4], &[2, 4, 4], &[2, 4, 4], &[4, 4]];
+    let names = ["depth", "context", "camera_intrinsics", "camera2lidar", "img_aug_matrix", "lidar_aug_matrix"];
+    let mut values: Vec<ValueSpec> = (0..6)
+        .map(|i| ValueSpec { shape: shape(false, &[&[1], shapes[i]].concat()), storage: Storage::Input(i) })
+        .collect();
+    values.push(ValueSpec { shape: shape(false, &[1, 6, 8, 8]), storage: Storage::Slot(0) });
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "bev".into(),
+        model_params: Vec::new(),
+        symbols: Vec::new(),
+        inputs: (0..6)
+            .map(|i| InputSpec {
+                name: names[i].into(),
+                shape: values[i].shape.clone(),
+                modality: None,
+                optional: false,
+                value: i,
+            })
+            .collect(),
+        outputs: vec![OutputSpec { name: "bev".into(), value: 6 }],
+        values,
+        steps: vec![Step {
+            path: "bev".into(),
+            kernel: Kernel::Pure(Pure::LssBevPool(op)),
+            inputs: (0..6).collect(),
+            output: 6,
+        }],
+        slots: 1,
+        tensors: Vec::new(),
+        params: Vec::new(),
+        variants: Vec::new(),
+        conditions: None,
+        footprint: None,
+    };
+    Plan::new(manifest, Vec::<Vec<f32>>::new()).expect("a valid plan")
 }

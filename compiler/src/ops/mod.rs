@@ -26,6 +26,7 @@
 //! | `movement.rs`    | `pad`, `roll`, `slice`, `narrow`, `select`, `chunk`, `split`, `squeeze`, `unsqueeze`, `expand` |
 //! | `parameter.rs`   | `parameter`, `buffer`                                       |
 //! | `index.rs`       | `arange`, `zeros`, `ones`, `full`, `where`, `float`, `to`, `index_select`, `embedding` |
+//! | `bev.rs`         | `lss_bev_pool` (BEVFusion's camera-to-BEV view transform)   |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -33,6 +34,7 @@
 //! options (`clamp`, `leaky_relu`, ...) have a builder in `elementwise.rs`.
 
 mod args;
+mod bev;
 mod conv;
 mod conv3d;
 mod conv_transpose;
@@ -115,6 +117,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         resize::builtins(),
         parameter::builtins(),
         index::builtins(),
+        bev::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

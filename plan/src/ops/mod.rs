@@ -23,12 +23,14 @@
 //! | `resize.rs`     | `upsample`, `pixel_shuffle`, `pixel_unshuffle`                   |
 //! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`), `expand` |
 //! | `index.rs`      | `index_select` (also `embedding`), `where`, casts, `arange` / `full` constants |
+//! | `bev.rs`        | `lss_bev_pool`, BEVFusion's camera-to-BEV view transform         |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
 //! wrapped by the IR with their parameter slots and by the plan's kernel with the indices
 //! of their stored tensors.
 
+mod bev;
 mod conv;
 mod conv3d;
 mod conv_transpose;
@@ -48,6 +50,7 @@ use std::fmt;
 use serde::{Deserialize, Serialize};
 
 use crate::dim::Dim;
+pub use bev::{LSS_INPUTS, LssBevPool, MAX_GRID_AXIS, check_bound, show_bound};
 pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use conv3d::{Conv3d, Conv3dShape, Window3};
@@ -236,6 +239,7 @@ pub enum Pure {
     Cast(Cast),
     /// A constant; the compiler folds it, a plan never runs it.
     Fill(Fill),
+    LssBevPool(LssBevPool),
 }
 
 impl Pure {
@@ -264,6 +268,7 @@ impl Pure {
             Pure::Where(o) => o,
             Pure::Cast(o) => o,
             Pure::Fill(o) => o,
+            Pure::LssBevPool(o) => o,
         }
     }
 }

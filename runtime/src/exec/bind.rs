@@ -4,7 +4,9 @@
 //! values (its batch size) differ from the last binding's.
 
 use std::collections::HashMap;
+use std::sync::Mutex;
 
+use crate::kernels::bev_pool;
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
@@ -43,6 +45,11 @@ pub(crate) struct Bound {
     pub(super) lora_variant: Option<usize>,
     /// What this binding takes.
     pub(super) footprint: Footprint,
+    /// Per step, the geometry an `lss_bev_pool` step computed from the calibration of the
+    /// last run (recomputed when a run's calibration differs), `None` for the others.
+    /// Behind a lock because a step gets the binding shared; only the running step takes
+    /// it.
+    pub(crate) bev: Vec<Option<Mutex<bev_pool::Geometry>>>,
 }
 
 /// Matches `inputs` to the plan's by name: `given[i]` is the position in `inputs` of the
@@ -162,6 +169,9 @@ pub struct Footprint {
     pub inputs: usize,
     /// The outputs a run returns.
     pub outputs: usize,
+    /// The geometry caches of the `lss_bev_pool` steps (each frustum point's place in the
+    /// BEV grid).
+    pub geometry: usize,
     /// Everything above.
     pub total: usize,
     /// The largest parts, largest first: a description (`buffer 3, written by step 7
@@ -185,6 +195,8 @@ pub(super) struct Layout {
     working_len: Vec<usize>,
     switch_tmp_len: usize,
     pub(super) footprint: Footprint,
+    /// Per step, the sizes of an `lss_bev_pool` step (`None` for the others).
+    bev: Vec<Option<bev_pool::Dims>>,
 }
 
 fn overflow(what: String) -> RunError {
@@ -263,6 +275,8 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     let mut lora_floats = 0usize;
     let mut working_len = vec![0usize; m.steps.len()];
     let (mut working_floats, mut switch_tmp_len) = (0usize, 0usize);
+    let mut bev = vec![None; m.steps.len()];
+    let mut geometry = 0usize;
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
         check_step(plan, step, &shapes).map_err(|e| bad(&at, e))?;
@@ -308,6 +322,14 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
                 (scratch_len, scratch_by) = (need, Some(k));
             }
         }
+        if let Kernel::Pure(Pure::LssBevPool(op)) = &step.kernel {
+            // `check_step` checked the step, so this succeeds.
+            let parts: Vec<&[usize]> = step.inputs.iter().map(|&v| shapes[v].as_slice()).collect();
+            let dims = bev_pool::check(op, &parts, &shapes[step.output]).map_err(|e| bad(&at, e))?;
+            let b = bev_pool::geometry_bytes(&dims).ok_or_else(|| overflow(format!("the geometry of {at}")))?;
+            geometry = sum([geometry, b], "the bev_pool geometry caches")?;
+            bev[k] = Some(dims);
+        }
         convs.push(conv);
     }
     let zeros_len: Vec<usize> =
@@ -338,6 +360,9 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     if working > 0 {
         parts.push(("the working copies of the convs merged on switch".into(), working));
     }
+    if geometry > 0 {
+        parts.push(("the geometry caches of the lss_bev_pool steps".into(), geometry));
+    }
     let mut zeros = 0usize;
     let mut inputs = 0usize;
     for (spec, &z) in m.inputs.iter().zip(&zeros_len) {
@@ -355,11 +380,23 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         outputs = sum([outputs, b], "the outputs")?;
         parts.push((format!("output `{}` {}", o.name, shape_of(o.value)), b));
     }
-    let total = sum([activations, scratch, lora, working, zeros, inputs, outputs], "the memory footprint")?;
+    let total = sum([activations, scratch, lora, working, zeros, inputs, outputs, geometry], "the memory footprint")?;
     parts.sort_by_key(|p| std::cmp::Reverse(p.1));
     parts.truncate(LARGEST_SHOWN);
-    let footprint = Footprint { activations, scratch, lora, working, zeros, inputs, outputs, total, largest: parts };
-    Ok(Layout { shapes, slot_len, scratch_len, convs, zeros_len, lora_len, working_len, switch_tmp_len, footprint })
+    let footprint =
+        Footprint { activations, scratch, lora, working, zeros, inputs, outputs, geometry, total, largest: parts };
+    Ok(Layout {
+        shapes,
+        slot_len,
+        scratch_len,
+        convs,
+        zeros_len,
+        lora_len,
+        working_len,
+        switch_tmp_len,
+        footprint,
+        bev,
+    })
 }
 
 fn sum(parts: impl IntoIterator<Item = usize>, what: &str) -> Result<usize, RunError> {
@@ -424,6 +461,7 @@ pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize)
         switch_tmp: vec![0.0; layout.switch_tmp_len],
         lora_variant: None,
         footprint: layout.footprint,
+        bev: layout.bev.into_iter().map(|d| d.map(|d| Mutex::new(bev_pool::Geometry::new(d)))).collect(),
     })
 }
 
@@ -481,6 +519,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let arity = match &step.kernel {
         Kernel::Pure(Pure::MatMul(_) | Pure::Binary(_)) => Some(2),
         Kernel::Pure(Pure::Where(_)) => Some(3),
+        Kernel::Pure(Pure::LssBevPool(_)) => Some(6),
         Kernel::Pure(Pure::Concat(_)) => None,
         _ => Some(1),
     };
@@ -594,6 +633,7 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::MatMul(_) | Pure::Binary(_) => Some(2),
         Pure::Where(_) => Some(3),
         Pure::Fill(_) => Some(0),
+        Pure::LssBevPool(_) => Some(6),
         Pure::Concat(_) => None,
         _ => Some(1),
     };
@@ -627,6 +667,7 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::Where(_) => index::check_where(x, inputs[1], inputs[2], out),
         Pure::Cast(_) => elementwise::check_same_length(x, out),
         Pure::Fill(_) => Ok(()),
+        Pure::LssBevPool(op) => bev_pool::check(op, inputs, out).map(|_| ()),
     }
 }
 

@@ -24,6 +24,11 @@
 //! variant differs from the one the buffer holds (`Bound::pack_lora`; microseconds for a
 //! few small `A`s, nothing allocated).
 //!
+//! An `lss_bev_pool` step (BEVFusion's view transform) keeps, per session, where its
+//! frustum points land in the BEV grid (`Bound::bev`, sized at bind time): computed from
+//! its calibration inputs by the first run, recomputed in place only by a run whose
+//! calibration differs bit for bit from the last.
+//!
 //! # Where things are
 //!
 //! * this file: the types a caller sees ([`Tensor`], [`Input`], [`RunError`]) and

@@ -5,6 +5,7 @@ use rayon::prelude::*;
 
 use readi_plan::ops::Pure;
 
+use crate::kernels::bev_pool;
 use crate::kernels::conv;
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
@@ -168,6 +169,14 @@ pub(crate) fn run_step(
             let (wt, bs) = (weight.map(|t| w.get(t)), bias.map(|t| w.get(t)));
             norm::groupnorm(x, n, c, inner, gn.num_groups as usize, wt, bs, gn.eps as f32, out);
         }
+        Kernel::Pure(Pure::LssBevPool(op)) => {
+            // The session's geometry for this step, recomputed only when the calibration
+            // inputs changed since the last run.
+            let Some(cache) = b.bev[k].as_ref() else { return Err("no geometry cache was bound for it".into()) };
+            let mut g = cache.lock().unwrap_or_else(|e| e.into_inner());
+            g.update(op, [input(2).0, input(3).0, input(4).0, input(5).0])?;
+            bev_pool::lss_bev_pool(&g, x, input(1).0, out, threads);
+        }
         Kernel::Pure(op) => return run_pure(op, step.inputs.len(), input, out, out_shape, threads),
     }
     Ok(())
@@ -238,6 +247,13 @@ pub fn run_pure<'a>(
         Pure::Where(_) => index::where_select((x, xs), input(1), input(2), out, out_shape),
         Pure::Cast(c) => index::cast(c.to, x, out),
         Pure::Fill(_) => {}
+        Pure::LssBevPool(op) => {
+            // Outside a session (a folded constant): the geometry computed for this call.
+            let shapes: Vec<&[usize]> = (0..count).map(|j| input(j).1).collect();
+            let mut g = bev_pool::Geometry::new(bev_pool::check(op, &shapes, out_shape)?);
+            g.update(op, [input(2).0, input(3).0, input(4).0, input(5).0])?;
+            bev_pool::lss_bev_pool(&g, x, input(1).0, out, threads);
+        }
     }
     Ok(())
 }

@@ -81,6 +81,7 @@ pub struct Lora<'a> {
     pub rank: usize,
 }
 
+pub mod bev_pool;
 pub mod conv;
 pub mod conv3d;
 pub mod conv_transpose;
