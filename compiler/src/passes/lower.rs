@@ -75,7 +75,9 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     }
     let mut outputs = Vec::new();
     for o in &g.outputs {
-        outputs.push(OutputSpec { name: o.name.clone(), value: l.value(o.value)? });
+        // The plan's values are f32; an integer or bool output says so for printing.
+        let dtype = g.value_type(o.value).map_or(readi_plan::DType::F32, |t| t.dtype);
+        outputs.push(OutputSpec { name: o.name.clone(), value: l.value(o.value)?, dtype });
     }
     let Lowering { values, steps, names, records, .. } = l;
     let tensors: Vec<TensorSpec> = names

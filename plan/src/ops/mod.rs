@@ -23,6 +23,7 @@
 //! | `resize.rs`     | `upsample`, `pixel_shuffle`, `pixel_unshuffle`                   |
 //! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`), `expand` |
 //! | `index.rs`      | `index_select` (also `embedding`), `where`, casts, `arange` / `full` constants |
+//! | `select.rs`     | run-time indices: `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `index_select` at a computed index, `one_hot`, `where` with a number |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -41,6 +42,7 @@ mod norm;
 mod pool;
 mod reduce;
 mod resize;
+mod select;
 mod window;
 
 use std::fmt;
@@ -51,7 +53,7 @@ use crate::dim::Dim;
 pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use conv3d::{Conv3d, Conv3dShape, Window3};
-pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
+pub use elementwise::{Activation, BinaryOp, Scalar, broadcast, floor_divide, maximum, minimum, remainder};
 pub use index::{Cast, Fill, IndexSelect, Where};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul, PANEL};
@@ -60,6 +62,7 @@ pub use norm::{BatchNorm, ChannelAffine, GroupNorm, LayerNorm, batchnorm_affine,
 pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
 pub use reduce::{Reduce, ReduceKind, Softmax};
 pub use resize::{PixelShuffle, Upsample, UpsampleMode};
+pub use select::{ArgKind, ArgReduce, Gather, IndexSelectAt, OneHot, TopK, WhereScalar};
 pub use window::{Window2, window_out};
 
 /// Element types of tensors.
@@ -236,6 +239,12 @@ pub enum Pure {
     Cast(Cast),
     /// A constant; the compiler folds it, a plan never runs it.
     Fill(Fill),
+    ArgReduce(ArgReduce),
+    TopK(TopK),
+    Gather(Gather),
+    IndexSelectAt(IndexSelectAt),
+    OneHot(OneHot),
+    WhereScalar(WhereScalar),
 }
 
 impl Pure {
@@ -264,6 +273,12 @@ impl Pure {
             Pure::Where(o) => o,
             Pure::Cast(o) => o,
             Pure::Fill(o) => o,
+            Pure::ArgReduce(o) => o,
+            Pure::TopK(o) => o,
+            Pure::Gather(o) => o,
+            Pure::IndexSelectAt(o) => o,
+            Pure::OneHot(o) => o,
+            Pure::WhereScalar(o) => o,
         }
     }
 }

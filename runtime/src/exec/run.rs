@@ -3,14 +3,14 @@
 
 use rayon::prelude::*;
 
-use readi_plan::ops::Pure;
+use readi_plan::ops::{ArgKind, Pure};
 
 use crate::kernels::conv;
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
-use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, softmax};
+use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, select, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
@@ -234,6 +234,28 @@ pub fn run_pure<'a>(
         Pure::Where(_) => index::where_select((x, xs), input(1), input(2), out, out_shape),
         Pure::Cast(c) => index::cast(c.to, x, out),
         Pure::Fill(_) => {}
+        Pure::ArgReduce(a) => select::arg_reduce(a.kind == ArgKind::Max, x, xs, a.axis, out),
+        Pure::TopK(t) => select::topk(x, xs, t.k, t.axis, t.largest, t.indices, out),
+        Pure::Gather(g) => return select::gather((x, xs), input(1), g.axis, out, out_shape),
+        Pure::IndexSelectAt(s) => return select::index_select_at(x, xs, s.axis, input(1).0, out),
+        Pure::OneHot(h) => return select::one_hot(x, h.num_classes, out),
+        Pure::WhereScalar(w) => {
+            // A number branch is a tensor of shape [], which broadcasts.
+            let (a, b) = (w.input.map(|v| [v as f32]), w.other.map(|v| [v as f32]));
+            let mut next = 1;
+            let mut branch = |v: &Option<[f32; 1]>| match v {
+                Some(_) => None,
+                None => {
+                    next += 1;
+                    Some(input(next - 1))
+                }
+            };
+            let (ta, tb) = (branch(&a), branch(&b));
+            let none: &[usize] = &[];
+            let pa = ta.unwrap_or_else(|| (a.as_ref().map_or(&[][..], |v| &v[..]), none));
+            let pb = tb.unwrap_or_else(|| (b.as_ref().map_or(&[][..], |v| &v[..]), none));
+            index::where_select((x, xs), pa, pb, out, out_shape);
+        }
     }
     Ok(())
 }
