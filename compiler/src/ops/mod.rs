@@ -26,6 +26,7 @@
 //! | `movement.rs`    | `pad`, `roll`, `slice`, `narrow`, `select`, `chunk`, `split`, `squeeze`, `unsqueeze`, `expand` |
 //! | `parameter.rs`   | `parameter`, `buffer`                                       |
 //! | `index.rs`       | `arange`, `zeros`, `ones`, `full`, `where`, `float`, `to`, `index_select`, `embedding` |
+//! | `select.rs`      | `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `one_hot`, `maximum`, `minimum`, `floor_divide`, `remainder`, `atan2` |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -48,6 +49,7 @@ mod pool;
 pub mod pytorch;
 mod reduce;
 mod resize;
+mod select;
 
 use std::sync::LazyLock;
 
@@ -115,6 +117,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         resize::builtins(),
         parameter::builtins(),
         index::builtins(),
+        select::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

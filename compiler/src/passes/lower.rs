@@ -264,16 +264,11 @@ impl<'m> Lowering<'m> {
                 return Ok(());
             }
             Op::Buffer(_) => return Err(ice(format!("integer buffer `{}` was not folded", node.path))),
-            Op::IndexSelect(_) => {
-                use readi_grammar::diag::{Code, Diagnostic};
-                let d = Diagnostic::error(
-                    Code::BadValue,
-                    format!("`{}`: index_select with an index computed at run time is not supported", node.path),
-                )
-                .with_primary(node.span, "the index must be a constant")
-                .with_note("an index is a constant when it is computed only from buffers and constants (`buffer(..., dtype=i64)`, `arange`)");
-                return Err(Diagnostics(vec![d]));
-            }
+            // An index `fold_constants` could not bake (computed from the model's
+            // inputs): read at run time, each position checked by the kernel.
+            Op::IndexSelect(s) => Kernel::Pure(readi_plan::ops::Pure::IndexSelectAt(
+                readi_plan::ops::IndexSelectAt { axis: s.axis },
+            )),
             Op::Conv2d(c) => {
                 let algo =
                     c.algo.filter(|_| c.packed).ok_or_else(|| ice(format!("conv `{}` is not packed", node.path)))?;

@@ -390,3 +390,21 @@ mod tests {
         assert!(run(&none, &[c, t(&[1]), t(&[1])]).is_err());
     }
 }
+
+#[cfg(test)]
+mod movement_tests {
+    use super::super::testutil::run;
+    use super::super::{Expand, Permute, Reshape};
+    use super::*;
+
+    #[test]
+    fn indices_move_like_floats() {
+        let i = TensorType::new(DType::I64, vec![Dim::known(1), Dim::known(6)]);
+        let r = Reshape { shape: vec![Dim::known(1), Dim::known(1), Dim::known(6)] };
+        let y = run(&r, &[i.clone()]).expect("an i64 reshape");
+        assert_eq!(y.dtype, DType::I64);
+        let e = Expand { shape: vec![Dim::known(1), Dim::known(4), Dim::known(6)] };
+        assert_eq!(run(&e, &[y]).expect("an i64 expand").dtype, DType::I64);
+        assert_eq!(run(&Permute { perm: vec![1, 0] }, &[i]).expect("an i64 permute").dtype, DType::I64);
+    }
+}
