@@ -312,13 +312,8 @@ fn run_time_indices_match_pytorch() {
     }
     assert_eq!(dtype("is_peak"), DType::Bool);
     assert_eq!(dtype("scores"), DType::F32);
-    let integer: Vec<String> = plan
-        .manifest
-        .outputs
-        .iter()
-        .filter(|o| o.dtype != DType::F32)
-        .map(|o| o.name.clone())
-        .collect();
+    let integer: Vec<String> =
+        plan.manifest.outputs.iter().filter(|o| o.dtype != DType::F32).map(|o| o.name.clone()).collect();
     let plan = Arc::new(plan);
     let io = fixture("index.io.safetensors");
     for threads in [1, 2] {
@@ -332,7 +327,8 @@ fn run_time_indices_match_pytorch() {
         for (name, t) in &outputs {
             let (shape, want) = &io.tensors[&format!("output.{name}")];
             assert_eq!(&t.shape, shape, "shape of {name}");
-            if integer.contains(name) || ["gathered", "taken", "selected", "scores", "smallest"].contains(&name.as_str())
+            if integer.contains(name)
+                || ["gathered", "taken", "selected", "scores", "smallest"].contains(&name.as_str())
             {
                 // Indices, and values copied at them: exactly torch's.
                 assert_eq!(&t.data, want, "{name} at {threads} threads");
@@ -366,7 +362,8 @@ fn a_run_time_index_out_of_range_is_a_step_error() {
     };
     let y = run(&mut s, &[4.0, 0.0, 2.0]).expect("in range");
     assert_eq!(y[0].1.data, [14.0, 10.0, 12.0]);
-    for (i, want) in [([0.0, 5.0, 1.0], "index 5 (at flat position 1) is out of range"), ([-1.0, 0.0, 0.0], "index -1")] {
+    for (i, want) in [([0.0, 5.0, 1.0], "index 5 (at flat position 1) is out of range"), ([-1.0, 0.0, 0.0], "index -1")]
+    {
         let e = run(&mut s, &i).expect_err("out of range");
         let RunError::Step { step, detail } = &e else { panic!("{e:?}") };
         assert_eq!(step, &gather_path);

@@ -21,8 +21,8 @@ use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::{KeyPart, VariantKey};
 use crate::ops::{
-    Activation, ChannelAffine, Conv2d, Conv3d, ConvAlgo, ConvTranspose2d, DType, GroupNorm, LayerNorm, Linear, Operator,
-    Pure,
+    Activation, ChannelAffine, Conv2d, Conv3d, ConvAlgo, ConvTranspose2d, DType, GroupNorm, LayerNorm, Linear,
+    Operator, Pure,
 };
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their

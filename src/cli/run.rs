@@ -99,8 +99,7 @@ pub fn run(
     let result = session.run(&given).map_err(|e| fail(format!("{}: {e}", plan_path.display())))?;
     let elapsed = start.elapsed();
     // The element type the model gives each output (f32 in plans before version 7).
-    let dtype_of =
-        |name: &str| plan.manifest.outputs.iter().find(|o| o.name == name).map_or(DType::F32, |o| o.dtype);
+    let dtype_of = |name: &str| plan.manifest.outputs.iter().find(|o| o.name == name).map_or(DType::F32, |o| o.dtype);
     let dtypes: Vec<DType> = result.iter().map(|(n, _)| dtype_of(n)).collect();
     for ((name, t), &d) in result.iter().zip(&dtypes) {
         println!("{}: {}", escaped(name), describe(t, d));

@@ -115,7 +115,9 @@ fn index_arg(args: &Args<'_>, name: &str, rank: usize) -> R<ValueRef> {
         return Err(args.bad_value(name, format!("must be an i64 tensor (from topk, argmax, ...), got {index}")));
     }
     if index.rank() != rank {
-        return Err(args.bad_value(name, format!("has {} axes and `input` {rank}: they must have as many", index.rank())));
+        return Err(
+            args.bad_value(name, format!("has {} axes and `input` {rank}: they must have as many", index.rank()))
+        );
     }
     args.tensor(name)
 }

@@ -266,9 +266,9 @@ impl<'m> Lowering<'m> {
             Op::Buffer(_) => return Err(ice(format!("integer buffer `{}` was not folded", node.path))),
             // An index `fold_constants` could not bake (computed from the model's
             // inputs): read at run time, each position checked by the kernel.
-            Op::IndexSelect(s) => Kernel::Pure(readi_plan::ops::Pure::IndexSelectAt(
-                readi_plan::ops::IndexSelectAt { axis: s.axis },
-            )),
+            Op::IndexSelect(s) => {
+                Kernel::Pure(readi_plan::ops::Pure::IndexSelectAt(readi_plan::ops::IndexSelectAt { axis: s.axis }))
+            }
             Op::Conv2d(c) => {
                 let algo =
                     c.algo.filter(|_| c.packed).ok_or_else(|| ice(format!("conv `{}` is not packed", node.path)))?;

@@ -104,9 +104,9 @@ impl Operator for TopK {
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = inputs[0];
         super::axis_in_range(self.axis, x)?;
-        let size = x.known_dim(self.axis).ok_or_else(|| {
-            ShapeError::new(format!("topk along axis {} of {x}, which is symbolic", self.axis))
-        })?;
+        let size = x
+            .known_dim(self.axis)
+            .ok_or_else(|| ShapeError::new(format!("topk along axis {} of {x}, which is symbolic", self.axis)))?;
         if self.k as i64 > size {
             return Err(ShapeError::new(format!(
                 "topk of k = {} along axis {} of {x}, which has {size} values",
@@ -382,7 +382,7 @@ mod tests {
         assert_eq!(w.arity(), Some(2));
         assert_eq!(run(&w, &[c.clone(), t(&[1, 5])]).expect("valid"), t(&[4, 5]));
         let both = WhereScalar { input: Some(1.0), other: Some(0.0), dtype: DType::I64 };
-        assert_eq!(run(&both, &[c.clone()]).expect("valid"), i64s(&[4, 1]));
+        assert_eq!(run(&both, std::slice::from_ref(&c)).expect("valid"), i64s(&[4, 1]));
         assert!(run(&w, &[c.clone(), t(&[3, 5])]).is_err(), "4 and 3");
         let nan = WhereScalar { input: Some(f64::NAN), other: None, dtype: DType::F32 };
         assert!(run(&nan, &[c.clone(), t(&[1])]).is_err());
@@ -401,7 +401,7 @@ mod movement_tests {
     fn indices_move_like_floats() {
         let i = TensorType::new(DType::I64, vec![Dim::known(1), Dim::known(6)]);
         let r = Reshape { shape: vec![Dim::known(1), Dim::known(1), Dim::known(6)] };
-        let y = run(&r, &[i.clone()]).expect("an i64 reshape");
+        let y = run(&r, std::slice::from_ref(&i)).expect("an i64 reshape");
         assert_eq!(y.dtype, DType::I64);
         let e = Expand { shape: vec![Dim::known(1), Dim::known(4), Dim::known(6)] };
         assert_eq!(run(&e, &[y]).expect("an i64 expand").dtype, DType::I64);

@@ -321,9 +321,9 @@ mod tests {
                     let mut row: Vec<(f32, usize)> = (0..7).map(|j| (x[(o * 7 + j) * 3 + i], j)).collect();
                     // A stable sort keeps the lower position first on ties.
                     row.sort_by(|a, b| if largest { b.0.total_cmp(&a.0) } else { a.0.total_cmp(&b.0) });
-                    for j in 0..k {
+                    for (j, &(v, p)) in row.iter().take(k).enumerate() {
                         let at = (o * k + j) * 3 + i;
-                        assert_eq!((vals[at], idx[at]), (row[j].0, row[j].1 as f32), "k {k} row {o},{i} #{j}");
+                        assert_eq!((vals[at], idx[at]), (v, p as f32), "k {k} row {o},{i} #{j}");
                     }
                 }
             }
