@@ -671,3 +671,53 @@ fn a_deployment_file_uses_a_model_file() {
     assert!(err.contains("E0104") && err.contains("bad.readi:2:1") && err.contains("missing.readi"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A model whose outputs are i64 (top-k indices) and bool (a mask): `readi run` prints
+/// their values as integers and writes them as int64 and bool (`.npy` and
+/// `.safetensors`), not as floats.
+#[test]
+fn integer_and_bool_outputs_are_printed_and_written_as_such() {
+    let dir = std::env::temp_dir().join(format!("readi-cli-int-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let spec = dir.join("top.readi");
+    let text = "model top {\n  input x: f32[1, 5]\n  let t = topk(x, 3)\n  output idx = t[1]\n  output \
+                pos = x > 0.0\n  output val = t[0]\n}\n";
+    std::fs::write(&spec, text).expect("write spec");
+    let plan = dir.join("top.plan");
+    // The model has no parameters: an empty weights file.
+    let weights = dir.join("none.safetensors");
+    let empty: Vec<(String, safetensors::tensor::TensorView<'_>)> = Vec::new();
+    std::fs::write(&weights, safetensors::serialize(empty, None).expect("serialize")).expect("write weights");
+    let o = readi(&["compile", &p(&spec), "--weights", &p(&weights), "-o", &p(&plan)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let input = dir.join("x.npy");
+    write_npy(&input, &readi_runtime::exec::Tensor { shape: vec![1, 5], data: vec![0.5, -2.0, 3.0, 1.0, -0.25] });
+    let (idx, all) = (dir.join("idx.npy"), dir.join("all.safetensors"));
+    let o = readi(&[
+        "run",
+        &p(&plan),
+        "--input",
+        &format!("x={}", p(&input)),
+        "--output",
+        &format!("idx={}", p(&idx)),
+        "--output",
+        &p(&all),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("idx: [1, 3] i64  min 0  max 3  [2, 3, 0]"), "{out}");
+    assert!(out.contains("pos: [1, 5] bool  3 true of 5"), "{out}");
+    assert!(out.contains("val: [1, 3]  min 0.5000  max 3.0000"), "{out}");
+    use ndarray_npy::ReadNpyExt;
+    let a = ndarray::ArrayD::<i64>::read_npy(std::fs::File::open(&idx).expect("open")).expect("an int64 .npy");
+    assert_eq!(a.iter().copied().collect::<Vec<_>>(), [2, 3, 0]);
+    let bytes = std::fs::read(&all).expect("read");
+    let st = safetensors::SafeTensors::deserialize(&bytes).expect("safetensors");
+    use safetensors::tensor::Dtype;
+    assert_eq!(st.tensor("idx").expect("idx").dtype(), Dtype::I64);
+    assert_eq!(st.tensor("pos").expect("pos").data(), &[1u8, 0, 1, 1, 0]);
+    assert_eq!(st.tensor("pos").expect("pos").dtype(), Dtype::BOOL);
+    assert_eq!(st.tensor("val").expect("val").dtype(), Dtype::F32);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -249,7 +249,7 @@ fn one_step(
         model_params: Vec::new(),
         symbols: vec!["N".into()],
         inputs: vec![InputSpec { name: "x".into(), shape: dims(x), modality: None, optional: false, value: 0 }],
-        outputs: vec![OutputSpec { name: "y".into(), value: 1 }],
+        outputs: vec![OutputSpec::f32("y", 1)],
         values: vec![
             ValueSpec { shape: dims(x), storage: Storage::Input(0) },
             ValueSpec { shape: dims(out), storage: Storage::Slot(0) },

@@ -356,3 +356,91 @@ fn lss_bev_pool_matches_bevfusion_and_follows_the_calibration() {
         assert!(outputs[0].1.data.iter().zip(want).all(|(g, w)| (g - w).abs() <= 1e-4 * w.abs().max(1.0)));
     }
 }
+
+/// A TransFusion head's query selection and every run-time index operator against
+/// PyTorch (tests/fixtures/ops/index.readi, make_index_fixtures.py), at 1 and 2 threads:
+/// top-k scores and indices, class and cell by `//` and `%`, the features gathered at
+/// the cells three ways, one-hot classes, argmax / argmin, maximum / minimum, atan2,
+/// floor division and remainder. Integer outputs must be torch's exactly, and the plan
+/// records them as i64 (a comparison as bool).
+#[test]
+fn run_time_indices_match_pytorch() {
+    use readi_plan::DType;
+    let spec = "tests/fixtures/ops/index.readi";
+    let (sources, out) = common::compile(spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let (plan, _) = backend::compile(&module, &WeightSet::default(), "none", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let kinds: Vec<&str> = plan.manifest.steps.iter().map(|s| s.kernel.name()).collect();
+    for k in ["topk", "gather", "take_along_dim", "index_select", "one_hot", "argmax", "argmin", "where"] {
+        assert!(kinds.contains(&k), "no `{k}` step in {kinds:?}");
+    }
+    assert!(
+        plan.manifest.steps.iter().any(|s| matches!(s.kernel, Kernel::Pure(Pure::IndexSelectAt(_)))),
+        "index_select at the cells reads them at run time"
+    );
+    let dtype = |name: &str| plan.manifest.outputs.iter().find(|o| o.name == name).expect("an output").dtype;
+    for name in ["indices", "classes", "cells", "labels", "best_class", "coldest", "class_floor"] {
+        assert_eq!(dtype(name), DType::I64, "{name}");
+    }
+    assert_eq!(dtype("is_peak"), DType::Bool);
+    assert_eq!(dtype("scores"), DType::F32);
+    let integer: Vec<String> =
+        plan.manifest.outputs.iter().filter(|o| o.dtype != DType::F32).map(|o| o.name.clone()).collect();
+    let plan = Arc::new(plan);
+    let io = fixture("index.io.safetensors");
+    for threads in [1, 2] {
+        let inputs: Vec<Input<'_>> = io
+            .tensors
+            .iter()
+            .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
+            .collect();
+        let outputs = Session::new(plan.clone(), threads).expect("session").run(&inputs).expect("runs");
+        assert_eq!(outputs.len(), io.tensors.keys().filter(|k| k.starts_with("output.")).count());
+        for (name, t) in &outputs {
+            let (shape, want) = &io.tensors[&format!("output.{name}")];
+            assert_eq!(&t.shape, shape, "shape of {name}");
+            if integer.contains(name)
+                || ["gathered", "taken", "selected", "scores", "smallest"].contains(&name.as_str())
+            {
+                // Indices, and values copied at them: exactly torch's.
+                assert_eq!(&t.data, want, "{name} at {threads} threads");
+                continue;
+            }
+            for (i, (&g, &w)) in t.data.iter().zip(want).enumerate() {
+                let err = (g - w).abs() / w.abs().max(1.0);
+                assert!(err <= 1e-5, "{name}[{i}]: {g}, torch {w} (error {err:e}) at {threads} threads");
+            }
+        }
+    }
+}
+
+/// An index computed at run time that is out of range fails the run at the step that
+/// reads it, naming the value: a crafted input cannot make `gather` read past its data.
+#[test]
+fn a_run_time_index_out_of_range_is_a_step_error() {
+    use readi_runtime::exec::RunError;
+    let text = "model m {\n  input x: f32[1, 5]\n  input i: f32[1, 3]\n  output y = gather(x, 1, to(i, i64))\n  \
+                output z = one_hot(to(i, i64), 5)\n}\n";
+    let (sources, out) = common::compile_text("gather.readi", text, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let (plan, _) = backend::compile(&module, &WeightSet::default(), "none", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let gather_path = plan.manifest.steps.iter().find(|s| s.kernel.name() == "gather").expect("a gather").path.clone();
+    let mut s = Session::new(Arc::new(plan), 1).expect("session");
+    let x = [10.0, 11.0, 12.0, 13.0, 14.0];
+    let run = |s: &mut Session, i: &[f32]| {
+        s.run(&[Input { name: "x", data: &x, shape: &[1, 5] }, Input { name: "i", data: i, shape: &[1, 3] }])
+    };
+    let y = run(&mut s, &[4.0, 0.0, 2.0]).expect("in range");
+    assert_eq!(y[0].1.data, [14.0, 10.0, 12.0]);
+    for (i, want) in [([0.0, 5.0, 1.0], "index 5 (at flat position 1) is out of range"), ([-1.0, 0.0, 0.0], "index -1")]
+    {
+        let e = run(&mut s, &i).expect_err("out of range");
+        let RunError::Step { step, detail } = &e else { panic!("{e:?}") };
+        assert_eq!(step, &gather_path);
+        assert!(detail.contains(want), "{e}");
+    }
+}

@@ -196,15 +196,34 @@ fn int64_buffers_are_checked_for_type_shape_and_range() {
     assert!(e.contains("int64 tensor `idx` holds 1099511627776 at flat index 1"), "{e}");
 }
 
+/// An index computed from a model input is read when the plan runs: the rows it names,
+/// and an error naming the step and the value for one out of range (no panic, no read
+/// past the table).
 #[test]
-fn an_index_computed_at_run_time_is_refused() {
+fn an_index_computed_at_run_time_is_read_and_checked_as_the_plan_runs() {
+    use readi_plan::ops::Pure;
+    use readi_runtime::exec::{Input, RunError, Session};
+    use readi_runtime::plan::Kernel;
     let text = "model m {\n  input x: f32[2, 4]\n  table = parameter([10, 3])\n  output y = index_select(table, 0, to(x[0], i64))\n}\n";
     let (sources, out) = common::compile_text("runtime_index.readi", text, &[], None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
     let weights = backend::seeded_weights(&module.graph, 1);
-    let d = backend::compile(&module, &weights, "seeded", &CompileOptions::default()).expect_err("refused");
-    let e = sources.render_all(&d, false);
-    assert!(e.contains("index_select with an index computed at run time is not supported"), "{e}");
-    assert!(e.contains("runtime_index.readi:4:"), "{e}");
+    let (plan, _) = backend::compile(&module, &weights, "seeded", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let step = plan.manifest.steps.iter().find(|s| matches!(s.kernel, Kernel::Pure(Pure::IndexSelectAt(_))));
+    let path = step.expect("an index_select step reading its index").path.clone();
+    let table = &weights.tensors["table"].1;
+    let mut session = Session::new(std::sync::Arc::new(plan), 1).expect("session");
+    // `to(.., i64)` rounds towards zero: 2.7 is row 2.
+    let x = [2.7, 0.0, 9.0, 1.0, 5.0, 5.0, 5.0, 5.0];
+    let y = session.run(&[Input { name: "x", data: &x, shape: &[2, 4] }]).expect("runs");
+    let want: Vec<f32> = [2, 0, 9, 1].iter().flat_map(|&r| table[r * 3..r * 3 + 3].to_vec()).collect();
+    assert_eq!(y[0].1.data, want);
+    let x = [2.0, 10.0, 0.0, 1.0, 5.0, 5.0, 5.0, 5.0];
+    let e = session.run(&[Input { name: "x", data: &x, shape: &[2, 4] }]).expect_err("10 is past the table");
+    let RunError::Step { step, detail } = &e else { panic!("{e:?}") };
+    assert_eq!(step, &path);
+    assert!(detail.contains("index 10 (at flat position 1) is out of range for an axis of size 10"), "{e}");
+    assert!(e.to_string().contains("cannot run on its inputs"), "{e}");
 }

@@ -21,7 +21,8 @@ use crate::conditions::Conditions;
 use crate::dim::Dim;
 use crate::key::{KeyPart, VariantKey};
 use crate::ops::{
-    Activation, ChannelAffine, Conv2d, Conv3d, ConvAlgo, ConvTranspose2d, GroupNorm, LayerNorm, Linear, Operator, Pure,
+    Activation, ChannelAffine, Conv2d, Conv3d, ConvAlgo, ConvTranspose2d, DType, GroupNorm, LayerNorm, Linear,
+    Operator, Pure,
 };
 
 /// Version of the plan format this crate describes. Version 2: kernels hold their
@@ -37,7 +38,11 @@ use crate::ops::{
 /// Version 6: a linear weight may be stored in panels (`Kernel::Linear { panels }`),
 /// which a version 5 runtime would read as `[in, out]`; versions 2 to 5 read unchanged.
 /// Version 7: a reshape may share its input's buffer ([`Step::is_view`]), which a version
-/// 6 runtime refuses as a step reading the buffer it writes; versions 2 to 6 read unchanged.
+/// 6 runtime refuses as a step reading the buffer it writes; run-time index operators
+/// (`argmax` / `argmin`, `topk`, `gather` / `take_along_dim`, `index_select` at a computed
+/// index, `one_hot`, `where` with a number; `maximum`, `minimum`, `floor_divide`,
+/// `remainder`, `atan2` as binary ops); an output's element type (`OutputSpec::dtype`,
+/// f32 when absent); `lss_bev_pool`. Versions 2 to 6 read unchanged.
 pub const FORMAT_VERSION: u32 = 7;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
@@ -156,6 +161,26 @@ pub struct InputSpec {
 pub struct OutputSpec {
     pub name: String,
     pub value: usize,
+    /// The element type the model gives it: its values are f32 either way, integers for
+    /// i64 and 0 or 1 for bool, which `readi run` prints and writes as such. Absent (in
+    /// plans before version 7, and for f32): f32.
+    #[serde(default = "f32_dtype", skip_serializing_if = "is_f32")]
+    pub dtype: DType,
+}
+
+impl OutputSpec {
+    /// An f32 output.
+    pub fn f32(name: impl Into<String>, value: usize) -> OutputSpec {
+        OutputSpec { name: name.into(), value, dtype: DType::F32 }
+    }
+}
+
+fn f32_dtype() -> DType {
+    DType::F32
+}
+
+fn is_f32(d: &DType) -> bool {
+    *d == DType::F32
 }
 
 /// A value (tensor) of the schedule.

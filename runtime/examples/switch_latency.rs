@@ -78,7 +78,7 @@ fn plan() -> Plan {
         model_params: Vec::new(),
         symbols: vec!["N".into()],
         inputs: vec![InputSpec { name: "x".into(), shape: n(FIN), modality: None, optional: false, value: 0 }],
-        outputs: vec![OutputSpec { name: "y".into(), value: 2 }],
+        outputs: vec![OutputSpec::f32("y", 2)],
         values: vec![
             ValueSpec { shape: n(FIN), storage: Storage::Input(0) },
             ValueSpec { shape: n(FOUT), storage: Storage::Slot(0) },

@@ -128,7 +128,7 @@ fn plan() -> Plan {
             InputSpec { name: "x".into(), shape: shape(true, &[4, 8, 8]), modality: None, optional: false, value: 0 },
             InputSpec { name: "z".into(), shape: shape(true, &[2, 8, 8]), modality: None, optional: true, value: 1 },
         ],
-        outputs: vec![OutputSpec { name: "probs".into(), value: 10 }, OutputSpec { name: "act".into(), value: 9 }],
+        outputs: vec![OutputSpec::f32("probs", 10), OutputSpec::f32("act", 9)],
         values,
         steps,
         slots: 4,
@@ -192,7 +192,7 @@ fn switch_plan() -> Plan {
             optional: false,
             value: 0,
         }],
-        outputs: vec![OutputSpec { name: "y".into(), value: 1 }],
+        outputs: vec![OutputSpec::f32("y", 1)],
         values: vec![
             ValueSpec { shape: shape(false, &[1, 64, 14, 14]), storage: Storage::Input(0) },
             ValueSpec { shape: shape(false, &[1, 4, 14, 14]), storage: Storage::Slot(0) },
@@ -444,7 +444,7 @@ fn bev_plan() -> Plan {
                 value: i,
             })
             .collect(),
-        outputs: vec![OutputSpec { name: "bev".into(), value: 6 }],
+        outputs: vec![OutputSpec::f32("bev", 6)],
         values,
         steps: vec![Step {
             path: "bev".into(),

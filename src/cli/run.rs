@@ -5,6 +5,7 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::Instant;
 
+use readi_plan::DType;
 use readi_runtime::conditions;
 use readi_runtime::exec::{Input, Session, SessionOptions, Tensor};
 use readi_runtime::plan::escaped;
@@ -19,8 +20,26 @@ pub enum Choice {
     Auto(Vec<(String, f64)>),
 }
 
-/// Summary of a tensor for terminal output: shape, min, max, mean.
-fn describe(t: &Tensor) -> String {
+/// Values of an integer output printed.
+const SHOWN: usize = 8;
+
+/// Summary of a tensor for terminal output: shape, min, max, mean; for an i64 output its
+/// type, min and max as integers and its first values, for a bool one how many are true.
+fn describe(t: &Tensor, dtype: DType) -> String {
+    match dtype {
+        DType::I64 | DType::I32 => {
+            let ints: Vec<i64> = t.data.iter().map(|&v| v as i64).collect();
+            let (lo, hi) = (ints.iter().min().copied().unwrap_or(0), ints.iter().max().copied().unwrap_or(0));
+            let first: Vec<String> = ints.iter().take(SHOWN).map(i64::to_string).collect();
+            let more = if ints.len() > SHOWN { ", ..." } else { "" };
+            return format!("{:?} i64  min {lo}  max {hi}  [{}{more}]", t.shape, first.join(", "));
+        }
+        DType::Bool => {
+            let n = t.data.iter().filter(|&&v| v != 0.0).count();
+            return format!("{:?} bool  {n} true of {}", t.shape, t.data.len());
+        }
+        _ => {}
+    }
     let (mut lo, mut hi, mut sum) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f64);
     for &v in &t.data {
         lo = lo.min(v);
@@ -79,8 +98,11 @@ pub fn run(
     let start = Instant::now();
     let result = session.run(&given).map_err(|e| fail(format!("{}: {e}", plan_path.display())))?;
     let elapsed = start.elapsed();
-    for (name, t) in &result {
-        println!("{}: {}", escaped(name), describe(t));
+    // The element type the model gives each output (f32 in plans before version 7).
+    let dtype_of = |name: &str| plan.manifest.outputs.iter().find(|o| o.name == name).map_or(DType::F32, |o| o.dtype);
+    let dtypes: Vec<DType> = result.iter().map(|(n, _)| dtype_of(n)).collect();
+    for ((name, t), &d) in result.iter().zip(&dtypes) {
+        println!("{}: {}", escaped(name), describe(t, d));
     }
     println!(
         "ran variant {} in {:.2} ms on {} threads",
@@ -92,10 +114,10 @@ pub fn run(
         match dest {
             Destination::One(name, file) => {
                 if let Some((_, t)) = result.iter().find(|(n, _)| n == name) {
-                    tensor_io::write_npy(Path::new(file), t).map_err(fail)?;
+                    tensor_io::write_npy(Path::new(file), t, dtype_of(name)).map_err(fail)?;
                 }
             }
-            Destination::All(file) => tensor_io::write_outputs(Path::new(file), &result).map_err(fail)?,
+            Destination::All(file) => tensor_io::write_outputs(Path::new(file), &result, &dtypes).map_err(fail)?,
         }
     }
     Ok(())

@@ -5,6 +5,7 @@ use std::path::Path;
 
 use ndarray::{ArrayD, IxDyn};
 use ndarray_npy::{ReadNpyExt, WriteNpyExt};
+use readi_plan::DType;
 use readi_runtime::exec::Tensor;
 use readi_runtime::plan::escaped;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
@@ -119,9 +120,12 @@ pub fn read_input(name: &str, path: &Path, limit: usize) -> Result<Loaded, Strin
     }
 }
 
-/// Writes outputs: all of them to one `.safetensors` file, or one to a `.npy` file.
-pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), String> {
+/// Writes outputs, each of the element type the model gives it (`dtypes[i]` for
+/// `outputs[i]`: an i64 or bool output is f32 holding integers, written as int64 or bool):
+/// all of them to one `.safetensors` file, or one to a `.npy` file.
+pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]) -> Result<(), String> {
     let shown = path.display();
+    let dtype = |i: usize| dtypes.get(i).copied().unwrap_or(DType::F32);
     match extension(path).as_str() {
         "npy" => {
             let [(_, t)] = outputs else {
@@ -132,15 +136,14 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), St
                     names.join(", ")
                 ));
             };
-            write_npy(path, t)
+            write_npy(path, t, dtype(0))
         }
         "safetensors" => {
-            let bytes: Vec<Vec<u8>> =
-                outputs.iter().map(|(_, t)| t.data.iter().flat_map(|v| v.to_le_bytes()).collect()).collect();
+            let encoded: Vec<(Dtype, Vec<u8>)> =
+                outputs.iter().enumerate().map(|(i, (_, t))| encode(&t.data, dtype(i))).collect();
             let mut views = Vec::new();
-            for ((name, t), b) in outputs.iter().zip(&bytes) {
-                let view =
-                    TensorView::new(Dtype::F32, t.shape.clone(), b).map_err(|e| format!("{}: {e}", escaped(name)))?;
+            for ((name, t), (d, b)) in outputs.iter().zip(&encoded) {
+                let view = TensorView::new(*d, t.shape.clone(), b).map_err(|e| format!("{}: {e}", escaped(name)))?;
                 views.push((name.clone(), view));
             }
             let data = safetensors::serialize(views, None::<HashMap<String, String>>).map_err(|e| e.to_string())?;
@@ -150,12 +153,33 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)]) -> Result<(), St
     }
 }
 
-/// Writes one tensor as `.npy`.
-pub fn write_npy(path: &Path, t: &Tensor) -> Result<(), String> {
+/// The safetensors element type and little-endian bytes of values of type `dtype`.
+fn encode(data: &[f32], dtype: DType) -> (Dtype, Vec<u8>) {
+    match dtype {
+        DType::I64 | DType::I32 => (Dtype::I64, data.iter().flat_map(|&v| (v as i64).to_le_bytes()).collect()),
+        DType::Bool => (Dtype::BOOL, data.iter().map(|&v| u8::from(v != 0.0)).collect()),
+        _ => (Dtype::F32, data.iter().flat_map(|v| v.to_le_bytes()).collect()),
+    }
+}
+
+/// Writes one tensor as `.npy`, of the element type `dtype` (int64 for i64, bool for
+/// bool, else float32).
+pub fn write_npy(path: &Path, t: &Tensor, dtype: DType) -> Result<(), String> {
     let shown = path.display();
-    let a = ArrayD::from_shape_vec(IxDyn(&t.shape), t.data.clone()).map_err(|e| format!("{shown}: {e}"))?;
     let file = std::fs::File::create(path).map_err(|e| format!("cannot write {shown}: {e}"))?;
-    a.write_npy(std::io::BufWriter::new(file)).map_err(|e| format!("cannot write {shown}: {e}"))
+    let w = std::io::BufWriter::new(file);
+    let shape = IxDyn(&t.shape);
+    let err = |e: ndarray::ShapeError| format!("{shown}: {e}");
+    let written = match dtype {
+        DType::I64 | DType::I32 => {
+            ArrayD::from_shape_vec(shape, t.data.iter().map(|&v| v as i64).collect()).map_err(err)?.write_npy(w)
+        }
+        DType::Bool => {
+            ArrayD::from_shape_vec(shape, t.data.iter().map(|&v| v != 0.0).collect()).map_err(err)?.write_npy(w)
+        }
+        _ => ArrayD::from_shape_vec(shape, t.data.clone()).map_err(err)?.write_npy(w),
+    };
+    written.map_err(|e| format!("cannot write {shown}: {e}"))
 }
 
 #[cfg(test)]
@@ -168,10 +192,10 @@ mod tests {
         std::fs::create_dir_all(&dir).expect("temp dir");
         let t = Tensor { shape: vec![2, 3], data: vec![1.0, -2.0, 3.5, 0.0, 5.0, -6.25] };
         let npy = dir.join("x.npy");
-        write_npy(&npy, &t).expect("write npy");
+        write_npy(&npy, &t, DType::F32).expect("write npy");
         assert_eq!(read_input("x", &npy, 1 << 20).expect("read npy"), (t.shape.clone(), t.data.clone()));
         let st = dir.join("out.safetensors");
-        write_outputs(&st, &[("y".into(), t.clone()), ("z".into(), t.clone())]).expect("write safetensors");
+        write_outputs(&st, &[("y".into(), t.clone()), ("z".into(), t.clone())], &[]).expect("write safetensors");
         assert_eq!(read_input("z", &st, 1 << 20).expect("read by name"), (t.shape.clone(), t.data.clone()));
         assert!(read_input("w", &st, 1 << 20).expect_err("no such tensor").contains("has no tensor `w`"));
         // Truncated: the header is intact, the data short.
@@ -188,6 +212,23 @@ mod tests {
                 .expect_err("over the limit")
                 .contains("over the limit of 16 bytes for this kind of file (--max-memory)")
         );
+        // Integer and bool outputs are written as int64 and bool.
+        let i = Tensor { shape: vec![3], data: vec![4.0, 0.0, 191.0] };
+        let b = Tensor { shape: vec![2], data: vec![1.0, 0.0] };
+        let npy = dir.join("i.npy");
+        write_npy(&npy, &i, DType::I64).expect("write i64 npy");
+        let a = ArrayD::<i64>::read_npy(std::fs::File::open(&npy).expect("open")).expect("an int64 .npy");
+        assert_eq!(a.iter().copied().collect::<Vec<_>>(), [4, 0, 191]);
+        write_npy(&npy, &b, DType::Bool).expect("write bool npy");
+        let a = ArrayD::<bool>::read_npy(std::fs::File::open(&npy).expect("open")).expect("a bool .npy");
+        assert_eq!(a.iter().copied().collect::<Vec<_>>(), [true, false]);
+        write_outputs(&st, &[("i".into(), i), ("b".into(), b)], &[DType::I64, DType::Bool]).expect("write");
+        let bytes = std::fs::read(&st).expect("read back");
+        let st = SafeTensors::deserialize(&bytes).expect("safetensors");
+        let iv = st.tensor("i").expect("i");
+        assert_eq!((iv.dtype(), iv.data()), (Dtype::I64, &[4i64, 0, 191].map(i64::to_le_bytes).concat()[..]));
+        let bv = st.tensor("b").expect("b");
+        assert_eq!((bv.dtype(), bv.data()), (Dtype::BOOL, &[1u8, 0][..]));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

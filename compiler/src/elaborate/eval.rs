@@ -489,6 +489,8 @@ fn tensor_kind(op: BinaryOp) -> Option<TensorOp> {
         BinaryOp::Le => Some(TensorOp::Le),
         BinaryOp::Gt => Some(TensorOp::Gt),
         BinaryOp::Ge => Some(TensorOp::Ge),
+        BinaryOp::FloorDiv => Some(TensorOp::FloorDiv),
+        BinaryOp::Mod => Some(TensorOp::Remainder),
         _ => None,
     }
 }

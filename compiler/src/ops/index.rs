@@ -8,10 +8,15 @@
 //! them (with the runtime's kernels) into a stored f32 tensor. An index must be such a
 //! constant: `index_select` and `embedding` make an [`IndexSelectOp`] whose index input
 //! the back end folds into the plan's [`IndexSelect`] (the indices in the step, checked
-//! when the plan loads); an index computed from a model input is refused.
+//! when the plan loads) when it is a constant; an index computed from a model input
+//! (a `topk`'s, an `argmax`'s) becomes an `index_select` step reading it
+//! ([`IndexSelectAt`](readi_plan::ops::IndexSelectAt)), each position checked as it
+//! runs. `where` takes a number for either branch (`where(c, x, 0.0)`).
 
 use readi_plan::DType;
-use readi_plan::ops::{Cast, Fill, IndexSelect, Operator, Pure, ShapeError, ShapeResult, TensorType, Where};
+use readi_plan::ops::{
+    Cast, Fill, IndexSelect, Operator, Pure, ShapeError, ShapeResult, TensorType, Where, WhereScalar,
+};
 
 use super::{Args, Builtin, P, R, absent, int, req};
 use crate::ir::{Op, ValueRef};
@@ -164,8 +169,36 @@ fn where_(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
     if c.dtype != DType::Bool {
         return Err(args.bad_value("condition", format!("must be a bool tensor (a comparison), got {c}")));
     }
-    let inputs = vec![args.tensor("condition")?, args.tensor("input")?, args.tensor("other")?];
-    Ok((Op::Pure(Pure::Where(Where)), inputs))
+    let is_tensor = |name| matches!(args.value(name), Some(Value::Tensor { .. }));
+    if is_tensor("input") && is_tensor("other") {
+        let inputs = vec![args.tensor("condition")?, args.tensor("input")?, args.tensor("other")?];
+        return Ok((Op::Pure(Pure::Where(Where)), inputs));
+    }
+    // `torch.where(c, x, 0.0)`: a number for a branch, promoted as torch does (an int
+    // tensor with a float makes floats; two ints make an i64).
+    let mut inputs = vec![args.tensor("condition")?];
+    let mut branch = |name: &str| -> R<(Option<f64>, Option<DType>, bool)> {
+        match args.value(name) {
+            Some(Value::Tensor { value, .. }) => {
+                inputs.push(*value);
+                Ok((None, Some(args.ttype(name)?.dtype), false))
+            }
+            _ => {
+                let (v, is_int) = number(args, name)?;
+                Ok((Some(v), None, !is_int))
+            }
+        }
+    };
+    let (input, ti, fi) = branch("input")?;
+    let (other, to, fo) = branch("other")?;
+    let dtype = match ti.or(to) {
+        Some(t) if t.is_float() => t,
+        Some(_) if fi || fo => DType::F32,
+        Some(DType::Bool) | None if !(fi || fo) => DType::I64,
+        Some(t) if !(fi || fo) => t,
+        _ => DType::F32,
+    };
+    Ok((Op::Pure(Pure::WhereScalar(WhereScalar { input, other, dtype })), inputs))
 }
 
 fn float(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {

@@ -27,6 +27,7 @@
 //! | `parameter.rs`   | `parameter`, `buffer`                                       |
 //! | `index.rs`       | `arange`, `zeros`, `ones`, `full`, `where`, `float`, `to`, `index_select`, `embedding` |
 //! | `bev.rs`         | `lss_bev_pool` (BEVFusion's camera-to-BEV view transform)   |
+//! | `select.rs`      | `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `one_hot`, `maximum`, `minimum`, `floor_divide`, `remainder`, `atan2` |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -50,6 +51,7 @@ mod pool;
 pub mod pytorch;
 mod reduce;
 mod resize;
+mod select;
 
 use std::sync::LazyLock;
 
@@ -118,6 +120,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         parameter::builtins(),
         index::builtins(),
         bev::builtins(),
+        select::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

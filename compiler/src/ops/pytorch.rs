@@ -87,23 +87,13 @@ pub static PYTORCH_NAMES: &[(&str, Spelling)] = &[
     ("asin", Unsupported),
     ("acos", Unsupported),
     ("atan", Unsupported),
-    ("atan2", Unsupported),
     ("floor", Unsupported),
     ("ceil", Unsupported),
     ("round", Unsupported),
     ("trunc", Unsupported),
     ("frac", Unsupported),
     ("sign", Unsupported),
-    ("maximum", Unsupported),
-    ("minimum", Unsupported),
-    // Operators of issue 12 not written yet.
-    ("gather", Unsupported),
-    // Indices need integer tensors, which readi does not compute (`max` and `min` are
-    // torch.amax and torch.amin: the values).
-    ("argmax", Unsupported),
-    ("argmin", Unsupported),
     ("instance_norm", Unsupported),
-    ("topk", Unsupported),
     ("einsum", Unsupported),
 ];
 

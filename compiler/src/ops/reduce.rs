@@ -56,7 +56,7 @@ fn reduce(args: &Args<'_>) -> R<(Op, Vec<ValueRef>)> {
         return Err(args.bad_value(
             "dim",
             format!(
-                "`{name}` reduces over axes; the element-wise {what} of two tensors (torch.{what}) is not supported"
+                "`{name}` reduces over axes; the element-wise {what} of two tensors (torch.{what}) is `{what}(input, other)`"
             ),
         ));
     }

@@ -75,7 +75,9 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     }
     let mut outputs = Vec::new();
     for o in &g.outputs {
-        outputs.push(OutputSpec { name: o.name.clone(), value: l.value(o.value)? });
+        // The plan's values are f32; an integer or bool output says so for printing.
+        let dtype = g.value_type(o.value).map_or(readi_plan::DType::F32, |t| t.dtype);
+        outputs.push(OutputSpec { name: o.name.clone(), value: l.value(o.value)?, dtype });
     }
     let Lowering { values, steps, names, records, .. } = l;
     let tensors: Vec<TensorSpec> = names
@@ -262,15 +264,10 @@ impl<'m> Lowering<'m> {
                 return Ok(());
             }
             Op::Buffer(_) => return Err(ice(format!("integer buffer `{}` was not folded", node.path))),
-            Op::IndexSelect(_) => {
-                use readi_grammar::diag::{Code, Diagnostic};
-                let d = Diagnostic::error(
-                    Code::BadValue,
-                    format!("`{}`: index_select with an index computed at run time is not supported", node.path),
-                )
-                .with_primary(node.span, "the index must be a constant")
-                .with_note("an index is a constant when it is computed only from buffers and constants (`buffer(..., dtype=i64)`, `arange`)");
-                return Err(Diagnostics(vec![d]));
+            // An index `fold_constants` could not bake (computed from the model's
+            // inputs): read at run time, each position checked by the kernel.
+            Op::IndexSelect(s) => {
+                Kernel::Pure(readi_plan::ops::Pure::IndexSelectAt(readi_plan::ops::IndexSelectAt { axis: s.axis }))
             }
             Op::Conv2d(c) => {
                 let algo =

@@ -412,6 +412,20 @@ mod tests {
     }
 
     #[test]
+    fn floor_division_and_remainder_bind_as_multiplication() {
+        // `a + b // c % d * e` is `a + (((b // c) % d) * e)`: left to right among `* / // %`.
+        let f = parse_ok("model m { let a = i + j // 64 % 8 * 2 }");
+        let StmtKind::Let { value, .. } = &model_stmts(&f)[0].kind else { panic!() };
+        let ExprKind::Binary(BinaryOp::Add, _, mul) = &value.kind else { panic!("{value:?}") };
+        let ExprKind::Binary(BinaryOp::Mul, rem, two) = &mul.kind else { panic!("{mul:?}") };
+        assert!(matches!(two.kind, ExprKind::Int(2)));
+        let ExprKind::Binary(BinaryOp::Mod, div, eight) = &rem.kind else { panic!("{rem:?}") };
+        assert!(matches!(eight.kind, ExprKind::Int(8)));
+        assert!(matches!(div.kind, ExprKind::Binary(BinaryOp::FloorDiv, _, _)), "{div:?}");
+        assert_eq!(crate::ast_print::expr_to_source(value), "i + (((j // 64) % 8) * 2)");
+    }
+
+    #[test]
     fn dotted_member_paths_are_not_floats() {
         let f = parse_ok("model m { x = layer1.0.conv1 }");
         let StmtKind::Named { value, .. } = &model_stmts(&f)[0].kind else { panic!() };

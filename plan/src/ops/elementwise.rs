@@ -29,6 +29,19 @@ pub enum BinaryOp {
     Le,
     Gt,
     Ge,
+    /// `torch.maximum` / `torch.minimum`: the larger (smaller) of the two, NaN if either
+    /// is NaN.
+    Maximum,
+    Minimum,
+    /// `torch.floor_divide` (`a // b`): the quotient rounded towards negative infinity,
+    /// computed as PyTorch's CPU kernel does for floats (from `fmod`, so exact on
+    /// integers below 2^24); a zero divisor gives IEEE's `a / b`.
+    FloorDiv,
+    /// `torch.remainder` (`a % b`): `a - b * floor(a / b)`, with the divisor's sign, from
+    /// `fmod` as PyTorch computes it; NaN for a zero divisor.
+    Remainder,
+    /// `torch.atan2(input, other)`: the angle of the point `(other, input)`.
+    Atan2,
 }
 
 impl BinaryOp {
@@ -37,8 +50,19 @@ impl BinaryOp {
         matches!(self, BinaryOp::Eq | BinaryOp::Ne | BinaryOp::Lt | BinaryOp::Le | BinaryOp::Gt | BinaryOp::Ge)
     }
 
-    /// The operations with a builtin `name(a, b)` (`pow` has its own, `pow(x, exponent)`).
+    /// The operations with a builtin `name(a, b)` (`pow` has its own, `pow(x, exponent)`;
+    /// the ones after `div` theirs, with PyTorch's `input` and `other`).
     pub const ALL: [BinaryOp; 4] = [BinaryOp::Add, BinaryOp::Sub, BinaryOp::Mul, BinaryOp::Div];
+
+    /// The operations with a builtin `name(input, other)` (a number for either).
+    pub const INPUT_OTHER: [BinaryOp; 5] =
+        [BinaryOp::Maximum, BinaryOp::Minimum, BinaryOp::FloorDiv, BinaryOp::Remainder, BinaryOp::Atan2];
+
+    /// Whether the operation takes integer tensors too (`maximum`, `minimum`,
+    /// `floor_divide`, `remainder`), an integer result from integers.
+    pub fn takes_integers(self) -> bool {
+        matches!(self, BinaryOp::Maximum | BinaryOp::Minimum | BinaryOp::FloorDiv | BinaryOp::Remainder)
+    }
 
     pub fn name(self) -> &'static str {
         match self {
@@ -53,6 +77,11 @@ impl BinaryOp {
             BinaryOp::Le => "le",
             BinaryOp::Gt => "gt",
             BinaryOp::Ge => "ge",
+            BinaryOp::Maximum => "maximum",
+            BinaryOp::Minimum => "minimum",
+            BinaryOp::FloorDiv => "floor_divide",
+            BinaryOp::Remainder => "remainder",
+            BinaryOp::Atan2 => "atan2",
         }
     }
 
@@ -71,8 +100,54 @@ impl BinaryOp {
             BinaryOp::Le => (a <= b) as u8 as f32,
             BinaryOp::Gt => (a > b) as u8 as f32,
             BinaryOp::Ge => (a >= b) as u8 as f32,
+            BinaryOp::Maximum => maximum(a, b),
+            BinaryOp::Minimum => minimum(a, b),
+            BinaryOp::FloorDiv => floor_divide(a, b),
+            BinaryOp::Remainder => remainder(a, b),
+            BinaryOp::Atan2 => a.atan2(b),
         }
     }
+}
+
+/// `torch.maximum` of two values: NaN if either is.
+#[inline(always)]
+pub fn maximum(a: f32, b: f32) -> f32 {
+    if a.is_nan() || a > b { a } else { b }
+}
+
+/// `torch.minimum` of two values: NaN if either is.
+#[inline(always)]
+pub fn minimum(a: f32, b: f32) -> f32 {
+    if a.is_nan() || a < b { a } else { b }
+}
+
+/// `torch.floor_divide` of two floats, PyTorch's `div_floor_floating`: the exact
+/// quotient of `a - fmod(a, b)` by `b`, one less when the remainder's sign differs from
+/// the divisor's, rounded to the nearest integer (the division may leave it a hair off).
+#[inline(always)]
+pub fn floor_divide(a: f32, b: f32) -> f32 {
+    if b == 0.0 {
+        return a / b;
+    }
+    let m = a % b;
+    let mut div = (a - m) / b;
+    if m != 0.0 && (b < 0.0) != (m < 0.0) {
+        div -= 1.0;
+    }
+    if div != 0.0 {
+        let f = div.floor();
+        if div - f > 0.5 { f + 1.0 } else { f }
+    } else {
+        0.0f32.copysign(a / b)
+    }
+}
+
+/// `torch.remainder` of two floats: `fmod(a, b)`, plus `b` when its sign differs from the
+/// divisor's.
+#[inline(always)]
+pub fn remainder(a: f32, b: f32) -> f32 {
+    let m = a % b;
+    if m != 0.0 && (b < 0.0) != (m < 0.0) { m + b } else { m }
 }
 
 impl Operator for BinaryOp {
@@ -85,7 +160,7 @@ impl Operator for BinaryOp {
     }
 
     fn any_dtype(&self) -> bool {
-        self.is_comparison()
+        self.is_comparison() || self.takes_integers()
     }
 
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
@@ -148,11 +223,15 @@ impl Operator for Scalar {
         if self.op.is_comparison() {
             return Ok(TensorType::new(DType::Bool, inputs[0].shape.clone()));
         }
+        if !inputs[0].dtype.is_float() && self.value.fract() != 0.0 {
+            // An integer tensor with a fractional number: a float result, as torch.
+            return Ok(TensorType::f32(inputs[0].shape.clone()));
+        }
         Ok(inputs[0].clone())
     }
 
     fn any_dtype(&self) -> bool {
-        self.op.is_comparison()
+        self.op.is_comparison() || self.op.takes_integers()
     }
 
     fn attrs(&self) -> Vec<(&'static str, String)> {
@@ -424,6 +503,54 @@ mod tests {
         let c = Activation::Clamp { min: Some(0.0), max: Some(6.5) };
         assert_eq!(c.attrs(), vec![("min", "0.0".to_string()), ("max", "6.5".to_string())]);
         assert_eq!(Activation::LeakyRelu { negative_slope: 0.2 }.attrs()[0].0, "negative_slope");
+    }
+
+    #[test]
+    fn floor_division_and_remainder_follow_python() {
+        // Hand-computed with Python's `//` and `%`: the quotient rounds down, the
+        // remainder takes the divisor's sign.
+        let cases = [
+            (7.0, 2.0, 3.0, 1.0),
+            (-7.0, 2.0, -4.0, 1.0),
+            (7.0, -2.0, -4.0, -1.0),
+            (-7.0, -2.0, 3.0, -1.0),
+            (191.0, 64.0, 2.0, 63.0),
+            (128.0, 64.0, 2.0, 0.0),
+            (5.5, 2.0, 2.0, 1.5),
+            (-0.5, 2.0, -1.0, 1.5),
+        ];
+        for (a, b, q, r) in cases {
+            assert_eq!((floor_divide(a, b), remainder(a, b)), (q, r), "{a} // {b}, {a} % {b}");
+        }
+        assert_eq!(floor_divide(1.0, 0.0), f32::INFINITY);
+        assert!(remainder(1.0, 0.0).is_nan());
+        // Every integer quotient below 2^24 is exact (a // b times b plus a % b is a).
+        for a in [0.0f32, 1.0, 16_777_215.0, 12_345_677.0, 65_535.0] {
+            for b in [1.0f32, 3.0, 64.0, 4095.0, -7.0] {
+                let (q, r) = (floor_divide(a, b), remainder(a, b));
+                assert_eq!(f64::from(q) * f64::from(b) + f64::from(r), f64::from(a), "{a} // {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn maximum_and_minimum_propagate_nan() {
+        assert_eq!((maximum(1.0, 2.0), minimum(1.0, 2.0)), (2.0, 1.0));
+        for (a, b) in [(f32::NAN, 1.0), (1.0, f32::NAN)] {
+            assert!(maximum(a, b).is_nan() && minimum(a, b).is_nan(), "{a} {b}");
+        }
+    }
+
+    #[test]
+    fn integer_operations_keep_their_type() {
+        let i = |s: &[i64]| TensorType::new(DType::I64, s.iter().map(|&d| Dim::known(d)).collect());
+        let y = run(&BinaryOp::FloorDiv, &[i(&[1, 6]), i(&[1])]).expect("valid");
+        assert_eq!(y, i(&[1, 6]));
+        assert!(run(&BinaryOp::Atan2, &[i(&[2]), i(&[2])]).is_err(), "atan2 of integers");
+        assert!(run(&BinaryOp::Maximum, &[i(&[2]), t(&[2])]).is_err(), "an i64 and an f32");
+        let s = |value| Scalar { op: BinaryOp::Remainder, value, scalar_first: false };
+        assert_eq!(run(&s(64.0), &[i(&[6])]).expect("valid"), i(&[6]));
+        assert_eq!(run(&s(2.5), &[i(&[6])]).expect("valid"), t(&[6]), "a fractional divisor makes floats");
     }
 
     #[test]

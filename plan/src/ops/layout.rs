@@ -16,6 +16,11 @@ impl Operator for Concat {
         "concat"
     }
 
+    /// A copy: integer and bool tensors move like floats (indices from `topk`).
+    fn any_dtype(&self) -> bool {
+        true
+    }
+
     fn arity(&self) -> Option<usize> {
         None
     }
@@ -68,6 +73,11 @@ impl Operator for Reshape {
         "reshape"
     }
 
+    /// A copy: integer and bool tensors move like floats (indices from `topk`).
+    fn any_dtype(&self) -> bool {
+        true
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = inputs[0];
         let have = Dim::product(&x.shape).ok_or_else(|| ShapeError::new("element count overflows"))?;
@@ -96,6 +106,11 @@ pub struct Permute {
 impl Operator for Permute {
     fn kind_name(&self) -> &'static str {
         "permute"
+    }
+
+    /// A copy: integer and bool tensors move like floats (indices from `topk`).
+    fn any_dtype(&self) -> bool {
+        true
     }
 
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {

@@ -24,6 +24,7 @@
 //! | `movement.rs`   | `pad`, `roll`, `slice` (also `narrow`, `select`, `chunk`, `split`), `expand` |
 //! | `index.rs`      | `index_select` (also `embedding`), `where`, casts, `arange` / `full` constants |
 //! | `bev.rs`        | `lss_bev_pool`, BEVFusion's camera-to-BEV view transform         |
+//! | `select.rs`     | run-time indices: `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `index_select` at a computed index, `one_hot`, `where` with a number |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -43,6 +44,7 @@ mod norm;
 mod pool;
 mod reduce;
 mod resize;
+mod select;
 mod window;
 
 use std::fmt;
@@ -54,7 +56,7 @@ pub use bev::{LSS_INPUTS, LssBevPool, MAX_GRID_AXIS, check_bound, show_bound};
 pub use conv::{Conv2d, Conv2dShape, ConvAlgo};
 pub use conv_transpose::{ConvTranspose2d, ConvTranspose2dShape, transpose_out};
 pub use conv3d::{Conv3d, Conv3dShape, Window3};
-pub use elementwise::{Activation, BinaryOp, Scalar, broadcast};
+pub use elementwise::{Activation, BinaryOp, Scalar, broadcast, floor_divide, maximum, minimum, remainder};
 pub use index::{Cast, Fill, IndexSelect, Where};
 pub use layout::{Concat, Permute, Reshape};
 pub use linear::{Linear, MatMul, PANEL};
@@ -63,6 +65,7 @@ pub use norm::{BatchNorm, ChannelAffine, GroupNorm, LayerNorm, batchnorm_affine,
 pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
 pub use reduce::{Reduce, ReduceKind, Softmax};
 pub use resize::{PixelShuffle, Upsample, UpsampleMode};
+pub use select::{ArgKind, ArgReduce, Gather, IndexSelectAt, OneHot, TopK, WhereScalar};
 pub use window::{Window2, window_out};
 
 /// Element types of tensors.
@@ -240,6 +243,12 @@ pub enum Pure {
     /// A constant; the compiler folds it, a plan never runs it.
     Fill(Fill),
     LssBevPool(LssBevPool),
+    ArgReduce(ArgReduce),
+    TopK(TopK),
+    Gather(Gather),
+    IndexSelectAt(IndexSelectAt),
+    OneHot(OneHot),
+    WhereScalar(WhereScalar),
 }
 
 impl Pure {
@@ -269,6 +278,12 @@ impl Pure {
             Pure::Cast(o) => o,
             Pure::Fill(o) => o,
             Pure::LssBevPool(o) => o,
+            Pure::ArgReduce(o) => o,
+            Pure::TopK(o) => o,
+            Pure::Gather(o) => o,
+            Pure::IndexSelectAt(o) => o,
+            Pure::OneHot(o) => o,
+            Pure::WhereScalar(o) => o,
         }
     }
 }

@@ -122,6 +122,11 @@ impl Operator for Roll {
         "roll"
     }
 
+    /// A copy: integer and bool tensors move like floats (indices from `topk`).
+    fn any_dtype(&self) -> bool {
+        true
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = inputs[0];
         if self.axes.is_empty() {
@@ -242,6 +247,11 @@ impl Operator for Slice {
         "slice"
     }
 
+    /// A copy: integer and bool tensors move like floats (indices from `topk`).
+    fn any_dtype(&self) -> bool {
+        true
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = inputs[0];
         if self.axes.len() != x.rank() {
@@ -291,6 +301,11 @@ pub struct Expand {
 impl Operator for Expand {
     fn kind_name(&self) -> &'static str {
         "expand"
+    }
+
+    /// A copy: integer and bool tensors move like floats (indices from `topk`).
+    fn any_dtype(&self) -> bool {
+        true
     }
 
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {

@@ -11,9 +11,9 @@ use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
 use crate::kernels::{
-    self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, softmax,
+    self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, select, softmax,
 };
-use readi_plan::ops::Pure;
+use readi_plan::ops::{Operator, Pure};
 
 use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
 
@@ -520,6 +520,8 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::Pure(Pure::MatMul(_) | Pure::Binary(_)) => Some(2),
         Kernel::Pure(Pure::Where(_)) => Some(3),
         Kernel::Pure(Pure::LssBevPool(_)) => Some(6),
+        Kernel::Pure(Pure::Gather(_) | Pure::IndexSelectAt(_)) => Some(2),
+        Kernel::Pure(Pure::WhereScalar(w)) => w.arity(),
         Kernel::Pure(Pure::Concat(_)) => None,
         _ => Some(1),
     };
@@ -634,6 +636,8 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::Where(_) => Some(3),
         Pure::Fill(_) => Some(0),
         Pure::LssBevPool(_) => Some(6),
+        Pure::Gather(_) | Pure::IndexSelectAt(_) => Some(2),
+        Pure::WhereScalar(w) => w.arity(),
         Pure::Concat(_) => None,
         _ => Some(1),
     };
@@ -668,6 +672,27 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::Cast(_) => elementwise::check_same_length(x, out),
         Pure::Fill(_) => Ok(()),
         Pure::LssBevPool(op) => bev_pool::check(op, inputs, out).map(|_| ()),
+        Pure::ArgReduce(a) => select::check_arg_reduce(x, a.axis, out),
+        Pure::TopK(t) => select::check_topk(x, t.k, t.axis, out),
+        Pure::Gather(g) => select::check_gather(x, inputs[1], g.axis, g.broadcast, out),
+        Pure::IndexSelectAt(s) => select::check_index_select_at(x, inputs[1], s.axis, out),
+        Pure::OneHot(h) => select::check_one_hot(x, h.num_classes, out),
+        Pure::WhereScalar(w) => {
+            if w.input.into_iter().chain(w.other).any(|v| !v.is_finite()) {
+                return Err("a where with a number that is not finite".into());
+            }
+            // The tensor branches follow the condition; a number is a tensor of shape [].
+            let mut next = 1;
+            let mut branch = |v: Option<f64>| match v {
+                Some(_) => &[][..],
+                None => {
+                    next += 1;
+                    inputs[next - 1]
+                }
+            };
+            let (a, b) = (branch(w.input), branch(w.other));
+            index::check_where(x, a, b, out)
+        }
     }
 }
 

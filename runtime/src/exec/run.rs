@@ -3,7 +3,7 @@
 
 use rayon::prelude::*;
 
-use readi_plan::ops::Pure;
+use readi_plan::ops::{ArgKind, Pure};
 
 use crate::kernels::bev_pool;
 use crate::kernels::conv;
@@ -11,7 +11,7 @@ use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
-use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, softmax};
+use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, select, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
 use super::bind::Bound;
@@ -253,6 +253,28 @@ pub fn run_pure<'a>(
             let mut g = bev_pool::Geometry::new(bev_pool::check(op, &shapes, out_shape)?);
             g.update(op, [input(2).0, input(3).0, input(4).0, input(5).0])?;
             bev_pool::lss_bev_pool(&g, x, input(1).0, out, threads);
+        }
+        Pure::ArgReduce(a) => select::arg_reduce(a.kind == ArgKind::Max, x, xs, a.axis, out),
+        Pure::TopK(t) => select::topk(x, xs, t.k, t.axis, t.largest, t.indices, out),
+        Pure::Gather(g) => return select::gather((x, xs), input(1), g.axis, out, out_shape),
+        Pure::IndexSelectAt(s) => return select::index_select_at(x, xs, s.axis, input(1).0, out),
+        Pure::OneHot(h) => return select::one_hot(x, h.num_classes, out),
+        Pure::WhereScalar(w) => {
+            // A number branch is a tensor of shape [], which broadcasts.
+            let (a, b) = (w.input.map(|v| [v as f32]), w.other.map(|v| [v as f32]));
+            let mut next = 1;
+            let mut branch = |v: &Option<[f32; 1]>| match v {
+                Some(_) => None,
+                None => {
+                    next += 1;
+                    Some(input(next - 1))
+                }
+            };
+            let (ta, tb) = (branch(&a), branch(&b));
+            let none: &[usize] = &[];
+            let pa = ta.unwrap_or_else(|| (a.as_ref().map_or(&[][..], |v| &v[..]), none));
+            let pb = tb.unwrap_or_else(|| (b.as_ref().map_or(&[][..], |v| &v[..]), none));
+            index::where_select((x, xs), pa, pb, out, out_shape);
         }
     }
     Ok(())

@@ -498,6 +498,26 @@ macro_rules! per_op {
                 let $f = ge;
                 $body
             }
+            BinaryOp::Maximum => {
+                let $f = readi_plan::ops::maximum;
+                $body
+            }
+            BinaryOp::Minimum => {
+                let $f = readi_plan::ops::minimum;
+                $body
+            }
+            BinaryOp::FloorDiv => {
+                let $f = readi_plan::ops::floor_divide;
+                $body
+            }
+            BinaryOp::Remainder => {
+                let $f = readi_plan::ops::remainder;
+                $body
+            }
+            BinaryOp::Atan2 => {
+                let $f = f32::atan2;
+                $body
+            }
         }
     };
 }
@@ -744,7 +764,58 @@ mod tests {
             BinaryOp::Le => f32::from(u8::from(x <= y)),
             BinaryOp::Gt => f32::from(u8::from(x > y)),
             BinaryOp::Ge => f32::from(u8::from(x >= y)),
+            BinaryOp::Maximum | BinaryOp::Minimum | BinaryOp::FloorDiv | BinaryOp::Remainder | BinaryOp::Atan2 => {
+                reference(op, x, y)
+            }
         }
+    }
+
+    /// The operations added with run-time indices, in f64 from their definitions
+    /// (Python's `//` and `%`, C's `atan2`), independent of the kernel's f32 formulas.
+    fn reference(op: BinaryOp, x: f32, y: f32) -> f32 {
+        let (a, b) = (f64::from(x), f64::from(y));
+        let nan = x.is_nan() || y.is_nan();
+        (match op {
+            BinaryOp::Maximum if nan => f64::NAN,
+            BinaryOp::Minimum if nan => f64::NAN,
+            BinaryOp::Maximum => a.max(b),
+            BinaryOp::Minimum => a.min(b),
+            BinaryOp::FloorDiv => (a / b).floor(),
+            BinaryOp::Remainder => a - b * (a / b).floor(),
+            BinaryOp::Atan2 => a.atan2(b),
+            _ => unreachable!("{op:?}"),
+        }) as f32
+    }
+
+    #[test]
+    fn maximum_minimum_floor_divide_remainder_atan2_match_their_definitions() {
+        let added = [BinaryOp::Maximum, BinaryOp::Minimum, BinaryOp::FloorDiv, BinaryOp::Remainder, BinaryOp::Atan2];
+        let (a_shape, b_shape, out_shape) = ([2, 3, 40], [3, 1], [2, 3, 40]);
+        let a: Vec<f32> = data(240, 5).iter().map(|v| v * 7.0).collect();
+        let mut b: Vec<f32> = data(3, 6).iter().map(|v| v * 3.0 + 0.25).collect();
+        b[1] = -b[1].abs() - 0.5;
+        for op in added {
+            let want: Vec<f32> = (0..240).map(|i| reference(op, a[i], b[(i / 40) % 3])).collect();
+            let mut got = vec![f32::NAN; 240];
+            binary(op, &a, &a_shape, &b, &b_shape, &mut got, &out_shape);
+            assert_close(&got, &want, 1e-6);
+            scalar(op, &a, -2.5, false, &mut got);
+            let want: Vec<f32> = a.iter().map(|&v| reference(op, v, -2.5)).collect();
+            assert_close(&got, &want, 1e-6);
+        }
+        // Integers (as f32) divide exactly: flat indices of a [3, 64] map to class, cell.
+        let idx: Vec<f32> = (0..192).map(|i| i as f32).collect();
+        let mut q = vec![0.0; 192];
+        let mut r = vec![0.0; 192];
+        scalar(BinaryOp::FloorDiv, &idx, 64.0, false, &mut q);
+        scalar(BinaryOp::Remainder, &idx, 64.0, false, &mut r);
+        for i in 0..192 {
+            assert_eq!((q[i], r[i]), ((i / 64) as f32, (i % 64) as f32), "{i}");
+        }
+        // NaN propagates through maximum and minimum from either side.
+        let mut o = [0.0; 2];
+        binary(BinaryOp::Maximum, &[f32::NAN, 1.0], &[2], &[0.0, f32::NAN], &[2], &mut o, &[2]);
+        assert!(o[0].is_nan() && o[1].is_nan(), "{o:?}");
     }
 
     /// Plain broadcasting: for every output multi-index, index each operand with its

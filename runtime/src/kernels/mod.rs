@@ -97,6 +97,7 @@ pub mod panel;
 pub mod pool;
 pub mod reduce;
 pub mod resize;
+pub mod select;
 pub mod softmax;
 
 #[cfg(test)]

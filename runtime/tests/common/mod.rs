@@ -74,7 +74,7 @@ pub fn manifest(
         model_params: Vec::new(),
         symbols: vec!["N".into()],
         inputs,
-        outputs: vec![OutputSpec { name: "y".into(), value: output }],
+        outputs: vec![OutputSpec::f32("y", output)],
         values,
         steps,
         slots,
