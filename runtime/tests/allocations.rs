@@ -7,7 +7,8 @@
 //! allocate small work lists per call, a few to a few dozen, independent of the data.)
 //!
 //! A second plan, one `lss_bev_pool` step, runs under alternating calibrations: the
-//! geometry it recomputes each time is written into buffers sized at bind time.
+//! geometry it recomputes each time is written into buffers sized at bind time. A third,
+//! whose input's point count `P` changes every run, keeps its buffers (counted in bytes).
 
 use std::alloc::System;
 use std::sync::Arc;
@@ -391,6 +392,80 @@ fn switching_and_runs_allocate_only_outputs() {
         "{runs} runs alternating two calibrations made {recomputing} allocations at least; their outputs need {}",
         4 * runs
     );
+
+    // A symbol only an input carries (`P`, a lidar sweep's point count): a run at
+    // another `P` keeps the buffers it has. Rebinding would allocate the 256 KiB buffer
+    // of the sum at every run; what a run allocates is its output and the broadcasting
+    // add's small work lists.
+    let mut sweeps = Session::new(Arc::new(points_plan()), 2).expect("session");
+    let frames: Vec<Vec<f32>> = [5usize, 9, 17].iter().map(|&p| data(4 * p, p as u64)).collect();
+    let dims: Vec<[usize; 4]> = frames.iter().map(|f| [1, 4, f.len() / 4, 1]).collect();
+    let frame = |i: usize| [Input { name: "points", data: &frames[i], shape: &dims[i] }];
+    for i in 0..3 {
+        let out = sweeps.run(&frame(i)).expect("runs");
+        let p = dims[i][2];
+        let means = (0..4).map(|c| frames[i][c * p..(c + 1) * p].iter().sum::<f32>() / p as f32);
+        let expected: Vec<f32> = means.zip(sweep_offsets()).map(|(m, o)| m + o).collect();
+        let close = out[0].1.data.iter().zip(&expected).all(|(a, b)| (a - b).abs() < 1e-5);
+        assert!(close, "sweep {i}: {:?}, not {expected:?}", out[0].1.data);
+    }
+    let runs = 30;
+    let bytes = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for i in 0..runs {
+                sweeps.run(&frame(i % 3)).expect("runs");
+            }
+            region.change().bytes_allocated
+        })
+        .min()
+        .expect("trials");
+    assert!(
+        bytes < runs * 16 * 1024,
+        "{runs} runs of sweeps of 5, 9 and 17 points allocated {bytes} bytes: the buffers were made anew"
+    );
+}
+
+/// The per-channel means of the stored offsets, `[1, 4, 128, 128]`.
+fn sweep_offsets() -> Vec<f32> {
+    let t = data(4 * 128 * 128, 40);
+    t.chunks(128 * 128).map(|c| c.iter().sum::<f32>() / c.len() as f32).collect()
+}
+
+/// `points: [1, 4, P, 1]` to its per-channel means, broadcast-added to stored offsets
+/// `[1, 4, 128, 128]` and averaged again (the means plus the offsets' means): no buffer
+/// depends on `P`.
+fn points_plan() -> Plan {
+    let p = vec![Dim::from(1usize), Dim::from(4usize), Dim::symbol("P"), Dim::from(1usize)];
+    let values = vec![
+        ValueSpec { shape: p.clone(), storage: Storage::Input(0) },
+        ValueSpec { shape: shape(false, &[1, 4, 1, 1]), storage: Storage::Slot(0) },
+        ValueSpec { shape: shape(false, &[1, 4, 128, 128]), storage: Storage::Tensor(0) },
+        ValueSpec { shape: shape(false, &[1, 4, 128, 128]), storage: Storage::Slot(1) },
+        ValueSpec { shape: shape(false, &[1, 4, 1, 1]), storage: Storage::Slot(0) },
+    ];
+    let step = |path: &str, kernel, inputs, output| Step { path: path.into(), kernel, inputs, output };
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "sweep".into(),
+        model_params: Vec::new(),
+        symbols: vec!["P".into()],
+        inputs: vec![InputSpec { name: "points".into(), shape: p, modality: None, optional: false, value: 0 }],
+        outputs: vec![OutputSpec::f32("means", 4)],
+        values,
+        steps: vec![
+            step("mean", Kernel::Pure(Pure::GlobalAvgPool(GlobalAvgPool)), vec![0], 1),
+            step("offset", Kernel::Pure(Pure::Binary(BinaryOp::Add)), vec![1, 2], 3),
+            step("mean2", Kernel::Pure(Pure::GlobalAvgPool(GlobalAvgPool)), vec![3], 4),
+        ],
+        slots: 2,
+        tensors: vec![TensorSpec { name: "offsets".into(), shape: vec![1, 4, 128, 128] }],
+        params: Vec::new(),
+        variants: Vec::new(),
+        conditions: None,
+        footprint: None,
+    };
+    Plan::new(manifest, vec![data(4 * 128 * 128, 40)]).expect("a valid plan")
 }
 
 /// A row-major 4x4 from a 3x3 block and a translation.

@@ -148,7 +148,7 @@ pub(super) fn bind_symbols(
 const LARGEST_SHOWN: usize = 3;
 
 /// The memory a run at one binding of the symbols takes, in bytes, by part: what
-/// [`bind`] allocates (activation buffers, conv scratch, zeros for absent optional
+/// [`rebind`] allocates (activation buffers, conv scratch, zeros for absent optional
 /// inputs) and what the caller holds or receives (the given inputs, the returned
 /// outputs). Computed with checked arithmetic before anything is allocated.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -441,15 +441,38 @@ pub(super) fn within(f: &Footprint, limit: usize, m: &Manifest, symbols: &[usize
     Err(RunError::OverBudget { needed: f.total, limit, at: show_bindings(m, symbols), largest: f.largest.clone() })
 }
 
-/// Refuses a layout whose footprint exceeds `limit` bytes, then allocates its buffers.
+/// Binds `bound` to new symbol values, refusing a layout whose footprint exceeds `limit`
+/// bytes: in place when the buffers keep their lengths ([`Bound::rebind_in_place`]), else
+/// afresh, the old buffers freed first so that the new binding alone must fit. On an error
+/// `bound` is left as it was.
 ///
 /// The checks read the base's tensors. Every variant's replacement has exactly its base
 /// tensor's shape (checked when the plan was built), so they hold under every variant
 /// and a switch needs no new check.
-pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize) -> Result<Bound, RunError> {
+pub(super) fn rebind(
+    bound: &mut Option<Bound>,
+    plan: &Plan,
+    symbols: &[usize],
+    threads: usize,
+    limit: usize,
+) -> Result<(), RunError> {
     let layout = layout(plan, symbols, threads)?;
     within(&layout.footprint, limit, &plan.manifest, symbols)?;
-    Ok(Bound {
+    let layout = match bound.as_mut() {
+        Some(b) => match b.rebind_in_place(symbols, layout) {
+            Ok(()) => return Ok(()),
+            Err(layout) => *layout,
+        },
+        None => layout,
+    };
+    *bound = None;
+    *bound = Some(allocate(symbols, layout));
+    Ok(())
+}
+
+/// Allocates the buffers of `layout`.
+fn allocate(symbols: &[usize], layout: Layout) -> Bound {
+    Bound {
         symbols: symbols.to_vec(),
         shapes: layout.shapes,
         slots: layout.slot_len.into_iter().map(|n| vec![0.0; n]).collect(),
@@ -462,10 +485,44 @@ pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize)
         lora_variant: None,
         footprint: layout.footprint,
         bev: layout.bev.into_iter().map(|d| d.map(|d| Mutex::new(bev_pool::Geometry::new(d)))).collect(),
-    })
+    }
 }
 
 impl Bound {
+    /// Takes `layout` (of new symbol values) in place when every buffer it needs has the
+    /// length this binding's has, as when the symbol that changed is carried only by an
+    /// input the steps read in place (a lidar sweep's point count `P`, different every
+    /// frame): the shapes change, no buffer is allocated and the caches (packed LoRA,
+    /// working copies, geometry) stay valid. Otherwise hands `layout` back, for a fresh
+    /// binding.
+    fn rebind_in_place(&mut self, symbols: &[usize], layout: Layout) -> Result<(), Box<Layout>> {
+        let same = |bufs: &[Vec<f32>], lens: &[usize]| {
+            bufs.len() == lens.len() && bufs.iter().zip(lens).all(|(b, &n)| b.len() == n)
+        };
+        let same_geometry = self.bev.len() == layout.bev.len()
+            && self.bev.iter().zip(&layout.bev).all(|(g, d)| match (g, d) {
+                (None, None) => true,
+                (Some(g), Some(d)) => g.lock().is_ok_and(|g| g.dims() == *d),
+                _ => false,
+            });
+        let fits = same(&self.slots, &layout.slot_len)
+            && self.scratch.len() == layout.scratch_len
+            && same(&self.zeros, &layout.zeros_len)
+            && same(&self.lora_a, &layout.lora_len)
+            && same(&self.working, &layout.working_len)
+            && self.switch_tmp.len() == layout.switch_tmp_len
+            && self.convs == layout.convs
+            && same_geometry;
+        if !fits {
+            return Err(Box::new(layout));
+        }
+        self.symbols.clear();
+        self.symbols.extend_from_slice(symbols);
+        self.shapes = layout.shapes;
+        self.footprint = layout.footprint;
+        Ok(())
+    }
+
     /// Prepares the session's buffers for the variant of `weights`, unless they hold it
     /// already: packs every raw LoRA `A` ([`LoraSpec::a_raw`]) for its conv's algorithm,
     /// and writes every working copy of a conv merged on switch

@@ -5,8 +5,11 @@
 //! from the inputs' (the plan's load checked every step's shapes against its operator's
 //! rule for any batch size, so binding only bounds the sizes and builds each conv's
 //! parameters), and allocates one buffer per slot of the plan's buffer plan plus the
-//! kernels' scratch. Later runs at the same batch size allocate nothing in the executor
-//! but the output tensors they return (`runtime/tests/allocations.rs` counts; some
+//! kernels' scratch. A run whose symbol values differ but need buffers of the same
+//! lengths (a symbol only an input carries, such as a lidar sweep's point count) takes
+//! the new shapes in the buffers it has. Later runs at the same batch size allocate
+//! nothing in the executor but the output tensors they return
+//! (`runtime/tests/allocations.rs` counts; some
 //! kernels still allocate small per-call work lists: conv, the GEMM, matmul, permute,
 //! mean and broadcasting binary ops); weights are read in place from the plan.
 //!
@@ -362,9 +365,7 @@ impl Session {
 
     fn bind_current(&mut self) -> Result<&Footprint, RunError> {
         if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
-            // Free the old buffers first: the new binding alone must fit.
-            self.bound = None;
-            self.bound = Some(bind::bind(&self.plan, &self.symbols, self.threads, self.max_memory)?);
+            bind::rebind(&mut self.bound, &self.plan, &self.symbols, self.threads, self.max_memory)?;
         }
         match &self.bound {
             Some(b) => Ok(&b.footprint),

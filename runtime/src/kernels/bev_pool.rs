@@ -186,6 +186,11 @@ fn cell(g: f64, (lo, dx): (f64, f64), cells: usize) -> Option<usize> {
 }
 
 impl Geometry {
+    /// The sizes the cache was made for.
+    pub fn dims(&self) -> Dims {
+        self.dims
+    }
+
     /// A cache for a step of these sizes, with nothing computed yet; allocates every
     /// buffer it will use.
     pub fn new(dims: Dims) -> Geometry {
