@@ -20,7 +20,7 @@ use readi_plan::ops::{
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
 use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
-use readi_runtime::kernels::merge;
+use readi_runtime::kernels::{merge, select};
 use readi_runtime::plan::{
     EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage,
     TensorSpec, ValueSpec, VariantTable,
@@ -304,6 +304,30 @@ fn switching_and_runs_allocate_only_outputs() {
         })
         .min();
     assert_eq!(merging, Some(0), "re-merging a layer allocated");
+
+    // The run-time index kernels (a TransFusion head's top-k over its heatmap, the
+    // gathers of the selected queries) work in their outputs.
+    let heat = data(10 * 400, 15);
+    let feats = data(8 * 400, 16);
+    let (mut top, mut at) = (vec![0.0; 64], vec![0.0; 64]);
+    let mut picked = vec![0.0; 8 * 64];
+    let rows: Vec<f32> = (0..8 * 64).map(|j| (j * 37 % 400) as f32).collect();
+    let mut gathered = vec![0.0; 8 * 64];
+    let indexing = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            select::topk(&heat, &[1, 4000], 64, 1, true, false, &mut top);
+            select::topk(&heat, &[1, 4000], 64, 1, true, true, &mut at);
+            for v in &mut at {
+                *v %= 400.0;
+            }
+            select::index_select_at(&feats, &[8, 400], 1, &at, &mut picked).expect("in range");
+            select::gather((&feats, &[8, 400]), (&rows, &[8, 64]), 1, &mut gathered, &[8, 64]).expect("in range");
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min();
+    assert_eq!(indexing, Some(0), "the index kernels allocated");
     let switched = Arc::new(switch_plan());
     let mut sw = Session::new(Arc::clone(&switched), 1).expect("session");
     let xs = data(64 * 14 * 14, 14);

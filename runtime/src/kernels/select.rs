@@ -8,6 +8,8 @@
 //! an `Err` naming it (the step then fails with `RunError::Step`), never a panic or a read
 //! out of bounds. The output may then be partly written.
 
+use std::cmp::Ordering;
+
 /// The position an index value names along an axis of `size`, or why it names none.
 #[inline]
 fn position(v: f32, size: usize, at: usize, what: &str) -> Result<usize, String> {
@@ -76,6 +78,9 @@ pub fn check_topk(x: &[usize], k: usize, axis: usize, out: &[usize]) -> Result<(
     if axis >= x.len() || k > x[axis] {
         return Err(format!("topk of k = {k} along axis {axis} of {x:?}"));
     }
+    if x[axis] > MAX_INDEXED {
+        return Err(format!("topk along an axis of {} positions, more than an f32 index names exactly", x[axis]));
+    }
     let mut want = x.to_vec();
     want[axis] = k;
     if want != out {
@@ -87,36 +92,100 @@ pub fn check_topk(x: &[usize], k: usize, axis: usize, out: &[usize]) -> Result<(
 /// `torch.topk` along `axis`: per row, the `k` largest values (`largest`) or smallest, in
 /// order, or (`indices`) their positions. Ties go to the lower position; NaN counts as
 /// larger than every number.
+///
+/// A heap of the `k` best positions seen so far, kept in the row's own output (worst on
+/// top), then sorted in place: `O(size log k)` and no memory but `out`.
 pub fn topk(x: &[f32], xs: &[usize], k: usize, axis: usize, largest: bool, indices: bool, out: &mut [f32]) {
     let (outer, size, inner) = split(xs, axis);
     assert_eq!(out.len(), outer * k * inner, "topk: out does not match its shape");
-    let mut row: Vec<(f32, usize)> = Vec::with_capacity(size);
-    // `a` before `b`: the greater first (NaN greatest) for `largest`, else the smaller,
-    // the lower position on ties.
-    let order = |a: &(f32, usize), b: &(f32, usize)| {
-        let by_value = match (a.0.is_nan(), b.0.is_nan()) {
-            (true, true) => std::cmp::Ordering::Equal,
-            (true, false) => std::cmp::Ordering::Greater,
-            (false, true) => std::cmp::Ordering::Less,
-            _ => a.0.partial_cmp(&b.0).unwrap_or(std::cmp::Ordering::Equal),
-        };
-        let by_value = if largest { by_value.reverse() } else { by_value };
-        by_value.then(a.1.cmp(&b.1))
-    };
+    assert!(size <= MAX_INDEXED, "topk: {size} positions are more than an f32 index holds");
+    if k == 0 {
+        return;
+    }
     for o in 0..outer {
         for i in 0..inner {
-            row.clear();
-            row.extend((0..size).map(|j| (x[(o * size + j) * inner + i], j)));
-            if k == 0 {
-                continue;
+            let value = |p: usize| x[(o * size + p) * inner + i];
+            // `p` before `q` in the output: the greater first (NaN greatest) for
+            // `largest`, else the smaller, the lower position on ties.
+            let before = |p: usize, q: usize| {
+                let (a, b) = (value(p), value(q));
+                let by_value = match (a.is_nan(), b.is_nan()) {
+                    (true, true) => Ordering::Equal,
+                    (true, false) => Ordering::Greater,
+                    (false, true) => Ordering::Less,
+                    _ => a.partial_cmp(&b).unwrap_or(Ordering::Equal),
+                };
+                let by_value = if largest { by_value.reverse() } else { by_value };
+                by_value.then(p.cmp(&q)) == Ordering::Less
+            };
+            let slot = |j: usize| (o * k + j) * inner + i;
+            let mut heap = Heap { out: &mut *out, slot: &slot, before: &before };
+            for j in 0..k {
+                heap.set(j, j);
             }
-            if k < size {
-                row.select_nth_unstable_by(k - 1, order);
+            for j in (0..k / 2).rev() {
+                heap.sift_down(j, k);
             }
-            row[..k].sort_unstable_by(order);
-            for (j, &(v, p)) in row[..k].iter().enumerate() {
-                out[(o * k + j) * inner + i] = if indices { p as f32 } else { v };
+            for p in k..size {
+                if before(p, heap.get(0)) {
+                    heap.set(0, p);
+                    heap.sift_down(0, k);
+                }
             }
+            // Heap sort: the worst to the back, one at a time.
+            for end in (1..k).rev() {
+                let (top, last) = (heap.get(0), heap.get(end));
+                heap.set(0, last);
+                heap.set(end, top);
+                heap.sift_down(0, end);
+            }
+            if !indices {
+                for j in 0..k {
+                    out[slot(j)] = value(out[slot(j)] as usize);
+                }
+            }
+        }
+    }
+}
+
+/// Most positions an index in an f32 names exactly (2^24).
+pub const MAX_INDEXED: usize = 1 << 24;
+
+/// A binary heap of positions (stored as f32 in strided `out` slots), the position that
+/// comes last in the output on top.
+struct Heap<'a, S: Fn(usize) -> usize, B: Fn(usize, usize) -> bool> {
+    out: &'a mut [f32],
+    slot: &'a S,
+    before: &'a B,
+}
+
+impl<S: Fn(usize) -> usize, B: Fn(usize, usize) -> bool> Heap<'_, S, B> {
+    fn get(&self, j: usize) -> usize {
+        self.out[(self.slot)(j)] as usize
+    }
+
+    fn set(&mut self, j: usize, p: usize) {
+        self.out[(self.slot)(j)] = p as f32;
+    }
+
+    /// Restores the heap below `j` among the first `len` entries.
+    fn sift_down(&mut self, mut j: usize, len: usize) {
+        loop {
+            let (l, r) = (2 * j + 1, 2 * j + 2);
+            let mut worst = j;
+            if l < len && (self.before)(self.get(worst), self.get(l)) {
+                worst = l;
+            }
+            if r < len && (self.before)(self.get(worst), self.get(r)) {
+                worst = r;
+            }
+            if worst == j {
+                return;
+            }
+            let (a, b) = (self.get(j), self.get(worst));
+            self.set(j, b);
+            self.set(worst, a);
+            j = worst;
         }
     }
 }
@@ -126,6 +195,9 @@ pub fn topk(x: &[f32], xs: &[usize], k: usize, axis: usize, largest: bool, indic
 pub fn check_gather(x: &[usize], index: &[usize], axis: usize, broadcast: bool, out: &[usize]) -> Result<(), String> {
     if x.len() != index.len() || axis >= x.len() || out.len() != x.len() {
         return Err(format!("gather of {x:?} at an index {index:?} along {axis} into {out:?}"));
+    }
+    if x.len() > MAX_GATHER_RANK {
+        return Err(format!("gather of {} axes, more than {MAX_GATHER_RANK}", x.len()));
     }
     for d in 0..x.len() {
         let ok = if d == axis {
@@ -142,6 +214,10 @@ pub fn check_gather(x: &[usize], index: &[usize], axis: usize, broadcast: bool, 
     Ok(())
 }
 
+/// Most axes a `gather` / `take_along_dim` kernel indexes (its position counters live on
+/// the stack).
+pub const MAX_GATHER_RANK: usize = 8;
+
 /// `torch.gather` / `torch.take_along_dim`: `out[o] = x[o with axis `axis` replaced by
 /// index[o]]`, where `x` and `index` are read at 0 along an axis of 1 that `out` has
 /// larger (broadcasting) and at `o` along the others. Each index is checked first.
@@ -156,9 +232,10 @@ pub fn gather(
     let (idx, is) = index;
     assert_eq!(out.len(), os.iter().product::<usize>(), "gather: out does not match its shape");
     let rank = os.len();
+    assert!(rank <= MAX_GATHER_RANK, "gather: {rank} axes");
     // Row-major strides, 0 on an axis of 1 (which every output position reads at 0).
     let strides = |s: &[usize]| {
-        let mut st = vec![0usize; rank];
+        let mut st = [0usize; MAX_GATHER_RANK];
         let mut acc = 1;
         for d in (0..rank).rev() {
             st[d] = if s[d] == 1 { 0 } else { acc };
@@ -169,7 +246,7 @@ pub fn gather(
     let (sx, si) = (strides(xs), strides(is));
     // Stride of `x` along `axis` whatever its size (an axis of 1 reads position 0 only).
     let ax_stride: usize = xs[axis + 1..].iter().product();
-    let mut o_idx = vec![0usize; rank];
+    let mut o_idx = [0usize; MAX_GATHER_RANK];
     for o in out.iter_mut() {
         let (mut xo, mut io) = (0, 0);
         for d in 0..rank {
@@ -210,15 +287,15 @@ pub fn check_index_select_at(x: &[usize], index: &[usize], axis: usize, out: &[u
 pub fn index_select_at(x: &[f32], xs: &[usize], axis: usize, index: &[f32], out: &mut [f32]) -> Result<(), String> {
     let (outer, n, inner) = split(xs, axis);
     assert_eq!(out.len(), outer * index.len() * inner, "index_select: out does not match its shape");
-    let mut at = Vec::with_capacity(index.len());
     for (j, &v) in index.iter().enumerate() {
-        at.push(position(v, n, j, "index")?);
+        position(v, n, j, "index")?;
     }
     if out.is_empty() {
         return Ok(());
     }
     let rows = out.chunks_exact_mut(inner.max(1));
-    let from = (0..outer).flat_map(|o| at.iter().map(move |&i| (o * n + i) * inner));
+    // Every index was checked above.
+    let from = (0..outer).flat_map(|o| index.iter().map(move |&v| (o * n + v as usize) * inner));
     for (row, start) in rows.zip(from) {
         row.copy_from_slice(&x[start..start + inner]);
     }
@@ -325,6 +402,28 @@ mod tests {
                         let at = (o * k + j) * 3 + i;
                         assert_eq!((vals[at], idx[at]), (v, p as f32), "k {k} row {o},{i} #{j}");
                     }
+                }
+            }
+        }
+        // A long row of few distinct values (ties everywhere) and some NaNs.
+        let mut long: Vec<f32> = data(301, 3).iter().map(|v| (v * 3.0).round()).collect();
+        for j in [7, 150, 299] {
+            long[j] = f32::NAN;
+        }
+        for k in [1, 2, 17, 100, 301] {
+            for largest in [true, false] {
+                let mut row: Vec<(f32, usize)> = long.iter().copied().zip(0..).collect();
+                // NaN above every number; -0 and 0 equal, as comparisons have them.
+                let nan_last = |a: f32, b: f32| {
+                    a.is_nan().cmp(&b.is_nan()).then(a.partial_cmp(&b).unwrap_or(std::cmp::Ordering::Equal))
+                };
+                row.sort_by(|a, b| if largest { nan_last(b.0, a.0) } else { nan_last(a.0, b.0) });
+                let (mut vals, mut idx) = (vec![0.0; k], vec![0.0; k]);
+                topk(&long, &[301], k, 0, largest, false, &mut vals);
+                topk(&long, &[301], k, 0, largest, true, &mut idx);
+                for (j, &(v, p)) in row.iter().take(k).enumerate() {
+                    assert_eq!(idx[j], p as f32, "k {k} largest {largest} #{j}");
+                    assert!(vals[j].to_bits() == v.to_bits(), "k {k} largest {largest} #{j}: {} not {v}", vals[j]);
                 }
             }
         }
