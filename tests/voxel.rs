@@ -224,3 +224,45 @@ fn bad_attributes_are_refused_at_the_argument() {
     let text = refused(&DEPTH.replace("input camera2lidar: f32[1, 2, 4, 4]", "input camera2lidar: f32[1, 3, 4, 4]"));
     assert!(text.contains("camera2lidar"), "{text}");
 }
+
+/// `readi run --input points=sweep.bin` reads a KITTI / nuScenes point cloud (rows of the
+/// input's C little-endian f32 values), the same as the `.npy` of those points; a file
+/// that is not a whole number of rows is refused naming it.
+#[test]
+fn the_cli_reads_bin_point_clouds() {
+    let dir = std::env::temp_dir().join(format!("readi-voxel-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let spec = dir.join("vox5.readi");
+    std::fs::write(&spec, spec_text_for_cli()).expect("spec");
+    let plan = dir.join("vox5.plan");
+    // The model stores no tensors: an empty safetensors file (an 8-byte length and `{}`).
+    let weights = dir.join("none.safetensors");
+    std::fs::write(&weights, [&2u64.to_le_bytes()[..], b"{}"].concat()).expect("weights");
+    let o = common::readi(&["compile", &p(&spec), "--weights", &p(&weights), "-o", &p(&plan)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let io = fixture();
+    let (shape, pts) = &io.tensors["c5.input.points"];
+    let bin = dir.join("sweep.bin");
+    std::fs::write(&bin, pts.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>()).expect("bin");
+    let out = dir.join("out.safetensors");
+    let o = common::readi(&["run", &p(&plan), "--input", &format!("points={}", p(&bin)), "--output", &p(&out)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let got = WeightSet::from_safetensors("out", &std::fs::read(&out).expect("out")).expect("outputs");
+    assert_eq!(shape, &[250, 5]);
+    assert_eq!(got.tensors["coords"], io.tensors["c5.output.coords"]);
+    assert_eq!(got.tensors["num_points"], io.tensors["c5.output.num_points"]);
+    // 1249 floats are not rows of 5.
+    std::fs::write(&bin, pts[..1249].iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>()).expect("bin");
+    let o = common::readi(&["run", &p(&plan), "--input", &format!("points={}", p(&bin)), "--output", &p(&out)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("sweep.bin") && err.contains("not a positive multiple of 20"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn spec_text_for_cli() -> String {
+    "model vox {\n  input points: f32[P, 5] @lidar\n  let v = voxelize(points, voxel_size=[0.5, 0.5, 1.0], \
+     point_cloud_range=[-4.0, -4.0, -2.0, 4.0, 4.0, 2.0], max_num_points=3, max_voxels=40)\n  \
+     output coords = v[1]\n  output num_points = v[2]\n}\n"
+        .into()
+}
