@@ -79,13 +79,15 @@ pub fn check(op: &Voxelize, points: &[usize], out: &[usize]) -> Result<Dims, Str
         return Err(format!("{name}: points of shape {points:?} have fewer than 3 features"));
     }
     let v = op.max_voxels;
-    let want: Vec<usize> = match (op.output, op.max_points) {
-        (VoxelOutput::Voxels, Some(t)) => vec![v, t, c],
-        (VoxelOutput::Mean, None) => vec![v, c],
-        (VoxelOutput::Coords, _) => vec![v, 3],
-        (VoxelOutput::NumPoints, Some(_)) => vec![v],
+    // On the stack: a session's run checks the step again and allocates nothing.
+    let (want, rank) = match (op.output, op.max_points) {
+        (VoxelOutput::Voxels, Some(t)) => ([v, t, c], 3),
+        (VoxelOutput::Mean, None) => ([v, c, 0], 2),
+        (VoxelOutput::Coords, _) => ([v, 3, 0], 2),
+        (VoxelOutput::NumPoints, Some(_)) => ([v, 0, 0], 1),
         (o, _) => return Err(format!("{name} has no `{}` result", o.name())),
     };
+    let want = &want[..rank];
     if out != want || want.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).is_none() {
         return Err(format!("{name}: output {out:?}, expected {want:?}"));
     }
