@@ -8,14 +8,16 @@
 //!
 //! A second plan, one `lss_bev_pool` step, runs under alternating calibrations: the
 //! geometry it recomputes each time is written into buffers sized at bind time. A third,
-//! whose input's point count `P` changes every run, keeps its buffers (counted in bytes).
+//! the lidar front end (voxelizations and the depth map), hashes into tables sized at
+//! bind time. A fourth, whose input's point count `P` changes every run, keeps its buffers
+//! (counted in bytes).
 
 use std::alloc::System;
 use std::sync::Arc;
 
 use readi_plan::ops::{
-    Activation, BinaryOp, ChannelAffine, Concat, GlobalAvgPool, LayerNorm, LssBevPool, Pool2d, PoolKind, Pure, Reshape,
-    Softmax, Window2,
+    Activation, BinaryOp, ChannelAffine, Concat, GlobalAvgPool, LayerNorm, LidarDepthMap, LssBevPool, Pool2d, PoolKind,
+    Pure, Reshape, Softmax, VoxelOutput, Voxelize, Window2,
 };
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
@@ -417,6 +419,39 @@ fn switching_and_runs_allocate_only_outputs() {
         4 * runs
     );
 
+    // The lidar front end: hard and dynamic voxelization (their hash tables cleared and
+    // refilled in place) and the depth map, allocating nothing but the five outputs.
+    let mut vox = Session::new(Arc::new(voxel_plan()), 2).expect("session");
+    let points: Vec<f32> = data(300 * 4, 23).iter().map(|v| v * 6.0).collect();
+    let cal = bev_calibration(0.2);
+    let vox_inputs = [
+        Input { name: "points", data: &points, shape: &[300, 4] },
+        Input { name: "camera_intrinsics", data: &cal[0], shape: &[1, 2, 4, 4] },
+        Input { name: "camera2lidar", data: &cal[1], shape: &[1, 2, 4, 4] },
+        Input { name: "img_aug_matrix", data: &cal[2], shape: &[1, 2, 4, 4] },
+        Input { name: "lidar_aug_matrix", data: &cal[3], shape: &[1, 4, 4] },
+    ];
+    let out = vox.run(&vox_inputs).expect("runs");
+    assert!(out[1].1.data.iter().filter(|&&n| n > 0.0).count() > 10, "too few voxels");
+    assert!(out[4].1.data.iter().filter(|&&d| d > 0.0).count() > 10, "too few depths");
+    let voxelizing = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for _ in 0..runs {
+                vox.run(&vox_inputs).expect("runs");
+            }
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min()
+        .expect("trials");
+    let per_run = 1 + 3 * 5;
+    assert!(
+        (per_run * runs..=per_run * runs + slack).contains(&voxelizing),
+        "{runs} voxelizing runs made {voxelizing} allocations at least; their outputs need {}",
+        per_run * runs
+    );
+
     // A symbol only an input carries (`P`, a lidar sweep's point count): a run at
     // another `P` keeps the buffers it has. Rebinding would allocate the 256 KiB buffer
     // of the sum at every run; what a run allocates is its output and the broadcasting
@@ -448,6 +483,71 @@ fn switching_and_runs_allocate_only_outputs() {
         bytes < runs * 16 * 1024,
         "{runs} runs of sweeps of 5, 9 and 17 points allocated {bytes} bytes: the buffers were made anew"
     );
+}
+
+/// Hard voxelization (voxels, num_points), dynamic voxelization (features) of `[300, 4]`
+/// points and their depth map in two cameras, as a five-step plan.
+fn voxel_plan() -> Plan {
+    let voxelize = |output, max_points| Voxelize {
+        voxel_size: [0.5, 0.5, 1.0],
+        point_cloud_range: [-4.0, -4.0, -2.0, 4.0, 4.0, 2.0],
+        max_points,
+        max_voxels: 64,
+        output,
+    };
+    let kernels = [
+        Pure::Voxelize(voxelize(VoxelOutput::Voxels, Some(3))),
+        Pure::Voxelize(voxelize(VoxelOutput::NumPoints, Some(3))),
+        Pure::Voxelize(voxelize(VoxelOutput::Coords, Some(3))),
+        Pure::Voxelize(voxelize(VoxelOutput::Mean, None)),
+        Pure::LidarDepthMap(LidarDepthMap { image_size: [64, 96] }),
+    ];
+    let out_shapes: [&[usize]; 5] = [&[64, 3, 4], &[64], &[64, 3], &[64, 4], &[1, 2, 1, 64, 96]];
+    let names = ["points", "camera_intrinsics", "camera2lidar", "img_aug_matrix", "lidar_aug_matrix"];
+    let in_shapes: [&[usize]; 5] = [&[300, 4], &[1, 2, 4, 4], &[1, 2, 4, 4], &[1, 2, 4, 4], &[1, 4, 4]];
+    let mut values: Vec<ValueSpec> =
+        (0..5).map(|i| ValueSpec { shape: shape(false, in_shapes[i]), storage: Storage::Input(i) }).collect();
+    for (k, s) in out_shapes.iter().enumerate() {
+        values.push(ValueSpec { shape: shape(false, s), storage: Storage::Slot(k) });
+    }
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "voxel".into(),
+        model_params: Vec::new(),
+        symbols: Vec::new(),
+        inputs: (0..5)
+            .map(|i| InputSpec {
+                name: names[i].into(),
+                shape: values[i].shape.clone(),
+                modality: None,
+                optional: false,
+                value: i,
+            })
+            .collect(),
+        outputs: ["voxels", "num_points", "coords", "features", "depth"]
+            .iter()
+            .enumerate()
+            .map(|(k, n)| OutputSpec::f32(*n, 5 + k))
+            .collect(),
+        values,
+        steps: kernels
+            .into_iter()
+            .enumerate()
+            .map(|(k, op)| Step {
+                path: format!("step{k}"),
+                inputs: if k == 4 { (0..5).collect() } else { vec![0] },
+                kernel: Kernel::Pure(op),
+                output: 5 + k,
+            })
+            .collect(),
+        slots: 5,
+        tensors: Vec::new(),
+        params: Vec::new(),
+        variants: Vec::new(),
+        conditions: None,
+        footprint: None,
+    };
+    Plan::new(manifest, Vec::<Vec<f32>>::new()).expect("a valid plan")
 }
 
 /// The per-channel means of the stored offsets, `[1, 4, 128, 128]`.

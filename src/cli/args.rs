@@ -181,7 +181,7 @@ pub enum Command {
         #[command(flatten)]
         model: ModelArgs,
     },
-    /// Run a plan on inputs from .npy or .safetensors files.
+    /// Run a plan on inputs from .npy or .safetensors files (and .bin point clouds).
     #[command(after_help = "Examples:\n  readi run r18.plan --input image=img.npy --output logits.npy\n  \
                             readi run bev.plan --input camera=cams.npy --input lidar_bev=bev.npy --output out.safetensors")]
     Run {

@@ -50,6 +50,23 @@ fn describe(t: &Tensor, dtype: DType) -> String {
     format!("{:?}  min {lo:.4}  max {hi:.4}  mean {mean:.4}", t.shape)
 }
 
+/// The values per row of a `.bin` point cloud given for input `name`: the known last axis
+/// of the input, which must be `[P, C]`.
+fn bin_columns(m: &readi_runtime::plan::Manifest, name: &str, file: &str) -> Result<usize, String> {
+    let Some(spec) = m.inputs.iter().find(|s| s.name == name) else {
+        return Err(format!("the plan has no input `{}` (given {})", escaped(name), escaped(file)));
+    };
+    match &spec.shape[..] {
+        [_, c] if c.symbols().is_empty() && c.coef() >= 1 => Ok(c.coef() as usize),
+        _ => Err(format!(
+            "{}: a .bin point cloud is read into a [P, C] input with a known C; input `{}` is {}",
+            escaped(file),
+            escaped(name),
+            readi_runtime::plan::show_shape(&spec.shape)
+        )),
+    }
+}
+
 pub fn run(
     plan_path: &Path,
     inputs: &[(String, String)],
@@ -66,7 +83,14 @@ pub fn run(
     let destinations = destinations(&plan.manifest, outputs).map_err(fail)?;
     let mut loaded = Vec::new();
     for (name, file) in inputs {
-        loaded.push((name.clone(), tensor_io::read_input(name, Path::new(file), options.max_memory).map_err(fail)?));
+        let path = Path::new(file);
+        let t = if tensor_io::is_bin(path) {
+            let columns = bin_columns(&plan.manifest, name, file).map_err(fail)?;
+            tensor_io::read_bin(path, columns, options.max_memory)
+        } else {
+            tensor_io::read_input(name, path, options.max_memory)
+        };
+        loaded.push((name.clone(), t.map_err(fail)?));
     }
     for (name, views) in drop_views {
         let Some((_, (shape, data))) = loaded.iter_mut().find(|(n, _)| n == name) else {

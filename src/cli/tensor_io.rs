@@ -116,8 +116,31 @@ pub fn read_input(name: &str, path: &Path, limit: usize) -> Result<Loaded, Strin
             };
             Ok((view.shape().to_vec(), values))
         }
-        _ => Err(format!("{shown}: inputs are read from .npy or .safetensors files")),
+        _ => Err(format!("{shown}: inputs are read from .npy, .safetensors or (point clouds) .bin files")),
     }
+}
+
+/// Whether `path` is a KITTI / nuScenes point cloud (`.bin`), read by [`read_bin`].
+pub fn is_bin(path: &Path) -> bool {
+    extension(path) == "bin"
+}
+
+/// Reads a KITTI / nuScenes `.bin` point cloud: raw little-endian f32 rows of `columns`
+/// values (4: x, y, z, intensity; 5 adds nuScenes' ring index), a regular file of at
+/// most `limit` bytes. A size that is not a whole number of rows is refused.
+pub fn read_bin(path: &Path, columns: usize, limit: usize) -> Result<Loaded, String> {
+    let shown = path.display();
+    let bytes = read_limited(path, limit)?;
+    let row = columns.max(1) * 4;
+    if bytes.is_empty() || bytes.len() % row != 0 {
+        return Err(format!(
+            "{shown}: a .bin point cloud holds rows of {columns} little-endian f32 values ({row} bytes), \
+             but the file has {} bytes, not a positive multiple of {row}",
+            bytes.len()
+        ));
+    }
+    let data: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    Ok((vec![data.len() / columns.max(1), columns], data))
 }
 
 /// Writes outputs, each of the element type the model gives it (`dtypes[i]` for
@@ -198,6 +221,16 @@ mod tests {
         write_outputs(&st, &[("y".into(), t.clone()), ("z".into(), t.clone())], &[]).expect("write safetensors");
         assert_eq!(read_input("z", &st, 1 << 20).expect("read by name"), (t.shape.clone(), t.data.clone()));
         assert!(read_input("w", &st, 1 << 20).expect_err("no such tensor").contains("has no tensor `w`"));
+        let bin = dir.join("sweep.bin");
+        let pts: Vec<u8> =
+            [1.0f32, 2.0, 3.0, 0.5, -1.0, -2.0, -3.0, 0.25].iter().flat_map(|v| v.to_le_bytes()).collect();
+        std::fs::write(&bin, &pts).expect("write bin");
+        assert_eq!(
+            read_bin(&bin, 4, 1 << 20).expect("4 columns"),
+            (vec![2, 4], vec![1.0, 2.0, 3.0, 0.5, -1.0, -2.0, -3.0, 0.25])
+        );
+        let e = read_bin(&bin, 5, 1 << 20).expect_err("32 bytes are not rows of 5");
+        assert!(e.contains("sweep.bin") && e.contains("not a positive multiple of 20"), "{e}");
         // Truncated: the header is intact, the data short.
         let bytes = std::fs::read(&npy).expect("read back");
         let cut = dir.join("cut.npy");

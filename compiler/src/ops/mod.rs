@@ -28,6 +28,7 @@
 //! | `index.rs`       | `arange`, `zeros`, `ones`, `full`, `where`, `float`, `to`, `index_select`, `embedding` |
 //! | `bev.rs`         | `lss_bev_pool` (BEVFusion's camera-to-BEV view transform)   |
 //! | `select.rs`      | `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `one_hot`, `maximum`, `minimum`, `floor_divide`, `remainder`, `atan2` |
+//! | `voxel.rs`       | `voxelize`, `dynamic_voxelize`, `lidar_depth_map` (BEVFusion's lidar front end) |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -52,6 +53,7 @@ pub mod pytorch;
 mod reduce;
 mod resize;
 mod select;
+mod voxel;
 
 use std::sync::LazyLock;
 
@@ -121,6 +123,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         index::builtins(),
         bev::builtins(),
         select::builtins(),
+        voxel::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

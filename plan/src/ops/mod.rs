@@ -25,6 +25,7 @@
 //! | `index.rs`      | `index_select` (also `embedding`), `where`, casts, `arange` / `full` constants |
 //! | `bev.rs`        | `lss_bev_pool`, BEVFusion's camera-to-BEV view transform         |
 //! | `select.rs`     | run-time indices: `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `index_select` at a computed index, `one_hot`, `where` with a number |
+//! | `voxel.rs`      | the lidar front end: `voxelize`, `dynamic_voxelize`, `lidar_depth_map` |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -45,6 +46,7 @@ mod pool;
 mod reduce;
 mod resize;
 mod select;
+mod voxel;
 mod window;
 
 use std::fmt;
@@ -66,6 +68,7 @@ pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
 pub use reduce::{Reduce, ReduceKind, Softmax};
 pub use resize::{PixelShuffle, Upsample, UpsampleMode};
 pub use select::{ArgKind, ArgReduce, Gather, IndexSelectAt, OneHot, TopK, WhereScalar};
+pub use voxel::{DEPTH_MAP_INPUTS, LidarDepthMap, MAX_GRID_CELLS, MAX_VOXELS, VoxelOutput, Voxelize, point_features};
 pub use window::{Window2, window_out};
 
 /// Element types of tensors.
@@ -249,6 +252,8 @@ pub enum Pure {
     IndexSelectAt(IndexSelectAt),
     OneHot(OneHot),
     WhereScalar(WhereScalar),
+    Voxelize(Voxelize),
+    LidarDepthMap(LidarDepthMap),
 }
 
 impl Pure {
@@ -284,6 +289,8 @@ impl Pure {
             Pure::IndexSelectAt(o) => o,
             Pure::OneHot(o) => o,
             Pure::WhereScalar(o) => o,
+            Pure::Voxelize(o) => o,
+            Pure::LidarDepthMap(o) => o,
         }
     }
 }

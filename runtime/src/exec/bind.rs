@@ -10,6 +10,7 @@ use crate::kernels::bev_pool;
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
+use crate::kernels::voxel;
 use crate::kernels::{
     self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, select, softmax,
 };
@@ -50,6 +51,9 @@ pub(crate) struct Bound {
     /// Behind a lock because a step gets the binding shared; only the running step takes
     /// it.
     pub(crate) bev: Vec<Option<Mutex<bev_pool::Geometry>>>,
+    /// Per step, the hash table of a voxelization step (sized from its `max_voxels`),
+    /// `None` for the others. Behind a lock as `bev`.
+    pub(crate) voxel: Vec<Option<Mutex<voxel::Table>>>,
 }
 
 /// Matches `inputs` to the plan's by name: `given[i]` is the position in `inputs` of the
@@ -172,6 +176,8 @@ pub struct Footprint {
     /// The geometry caches of the `lss_bev_pool` steps (each frustum point's place in the
     /// BEV grid).
     pub geometry: usize,
+    /// The hash tables of the voxelization steps.
+    pub voxel_tables: usize,
     /// Everything above.
     pub total: usize,
     /// The largest parts, largest first: a description (`buffer 3, written by step 7
@@ -197,6 +203,8 @@ pub(super) struct Layout {
     pub(super) footprint: Footprint,
     /// Per step, the sizes of an `lss_bev_pool` step (`None` for the others).
     bev: Vec<Option<bev_pool::Dims>>,
+    /// Per step, the `max_voxels` of a voxelization step (`None` for the others).
+    voxel: Vec<Option<usize>>,
 }
 
 fn overflow(what: String) -> RunError {
@@ -277,6 +285,8 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     let (mut working_floats, mut switch_tmp_len) = (0usize, 0usize);
     let mut bev = vec![None; m.steps.len()];
     let mut geometry = 0usize;
+    let mut voxel_v = vec![None; m.steps.len()];
+    let mut voxel_tables = 0usize;
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
         check_step(plan, step, &shapes).map_err(|e| bad(&at, e))?;
@@ -330,6 +340,11 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
             geometry = sum([geometry, b], "the bev_pool geometry caches")?;
             bev[k] = Some(dims);
         }
+        if let Kernel::Pure(Pure::Voxelize(op)) = &step.kernel {
+            let b = voxel::Table::bytes(op.max_voxels).ok_or_else(|| overflow(format!("the hash table of {at}")))?;
+            voxel_tables = sum([voxel_tables, b], "the voxelization hash tables")?;
+            voxel_v[k] = Some(op.max_voxels);
+        }
         convs.push(conv);
     }
     let zeros_len: Vec<usize> =
@@ -363,6 +378,9 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     if geometry > 0 {
         parts.push(("the geometry caches of the lss_bev_pool steps".into(), geometry));
     }
+    if voxel_tables > 0 {
+        parts.push(("the hash tables of the voxelization steps".into(), voxel_tables));
+    }
     let mut zeros = 0usize;
     let mut inputs = 0usize;
     for (spec, &z) in m.inputs.iter().zip(&zeros_len) {
@@ -380,11 +398,25 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         outputs = sum([outputs, b], "the outputs")?;
         parts.push((format!("output `{}` {}", o.name, shape_of(o.value)), b));
     }
-    let total = sum([activations, scratch, lora, working, zeros, inputs, outputs, geometry], "the memory footprint")?;
+    let total = sum(
+        [activations, scratch, lora, working, zeros, inputs, outputs, geometry, voxel_tables],
+        "the memory footprint",
+    )?;
     parts.sort_by_key(|p| std::cmp::Reverse(p.1));
     parts.truncate(LARGEST_SHOWN);
-    let footprint =
-        Footprint { activations, scratch, lora, working, zeros, inputs, outputs, geometry, total, largest: parts };
+    let footprint = Footprint {
+        activations,
+        scratch,
+        lora,
+        working,
+        zeros,
+        inputs,
+        outputs,
+        geometry,
+        voxel_tables,
+        total,
+        largest: parts,
+    };
     Ok(Layout {
         shapes,
         slot_len,
@@ -396,6 +428,7 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         switch_tmp_len,
         footprint,
         bev,
+        voxel: voxel_v,
     })
 }
 
@@ -485,6 +518,7 @@ fn allocate(symbols: &[usize], layout: Layout) -> Bound {
         lora_variant: None,
         footprint: layout.footprint,
         bev: layout.bev.into_iter().map(|d| d.map(|d| Mutex::new(bev_pool::Geometry::new(d)))).collect(),
+        voxel: layout.voxel.into_iter().map(|v| v.map(|v| Mutex::new(voxel::Table::new(v)))).collect(),
     }
 }
 
@@ -516,6 +550,7 @@ impl Bound {
         if !fits {
             return Err(Box::new(layout));
         }
+        // The voxelization tables are sized by the plan's `max_voxels` alone.
         self.symbols.clear();
         self.symbols.extend_from_slice(symbols);
         self.shapes = layout.shapes;
@@ -580,6 +615,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::Pure(Pure::Gather(_) | Pure::IndexSelectAt(_)) => Some(2),
         Kernel::Pure(Pure::WhereScalar(w)) => w.arity(),
         Kernel::Pure(Pure::Concat(_)) => None,
+        Kernel::Pure(Pure::LidarDepthMap(_)) => Some(5),
         _ => Some(1),
     };
     if step.inputs.is_empty() || arity.is_some_and(|n| step.inputs.len() != n) {
@@ -696,6 +732,7 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::Gather(_) | Pure::IndexSelectAt(_) => Some(2),
         Pure::WhereScalar(w) => w.arity(),
         Pure::Concat(_) => None,
+        Pure::LidarDepthMap(_) => Some(5),
         _ => Some(1),
     };
     if (arity.is_none() && inputs.is_empty()) || arity.is_some_and(|n| inputs.len() != n) {
@@ -750,6 +787,8 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
             let (a, b) = (branch(w.input), branch(w.other));
             index::check_where(x, a, b, out)
         }
+        Pure::Voxelize(v) => voxel::check(v, x, out).map(|_| ()),
+        Pure::LidarDepthMap(d) => voxel::check_depth_map(d, inputs, out).map(|_| ()),
     }
 }
 

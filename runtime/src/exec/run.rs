@@ -11,6 +11,7 @@ use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
+use crate::kernels::voxel;
 use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, select, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
@@ -177,6 +178,12 @@ pub(crate) fn run_step(
             g.update(op, [input(2).0, input(3).0, input(4).0, input(5).0])?;
             bev_pool::lss_bev_pool(&g, x, input(1).0, out, threads);
         }
+        Kernel::Pure(Pure::Voxelize(op)) => {
+            // The session's hash table for this step, sized at bind time.
+            let Some(table) = b.voxel[k].as_ref() else { return Err("no hash table was bound for it".into()) };
+            let mut t = table.lock().unwrap_or_else(|e| e.into_inner());
+            voxel::voxelize(op, voxel::check(op, xs, out_shape)?, x, &mut t, out)?;
+        }
         Kernel::Pure(op) => return run_pure(op, step.inputs.len(), input, out, out_shape, threads),
     }
     Ok(())
@@ -275,6 +282,18 @@ pub fn run_pure<'a>(
             let pa = ta.unwrap_or_else(|| (a.as_ref().map_or(&[][..], |v| &v[..]), none));
             let pb = tb.unwrap_or_else(|| (b.as_ref().map_or(&[][..], |v| &v[..]), none));
             index::where_select((x, xs), pa, pb, out, out_shape);
+        }
+        Pure::Voxelize(v) => {
+            // Outside a session (a folded constant): a table for this call.
+            let d = voxel::check(v, xs, out_shape)?;
+            return voxel::voxelize(v, d, x, &mut voxel::Table::new(v.max_voxels), out);
+        }
+        Pure::LidarDepthMap(op) => {
+            // On the stack: a session's run allocates nothing.
+            let shapes = [0, 1, 2, 3, 4].map(|j| if j < count { input(j).1 } else { &[][..] });
+            let dims = voxel::check_depth_map(op, &shapes, out_shape)?;
+            let mats = [input(1).0, input(2).0, input(3).0, input(4).0];
+            return voxel::lidar_depth_map(op, dims, x, mats, out, threads);
         }
     }
     Ok(())
