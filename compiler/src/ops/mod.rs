@@ -28,6 +28,7 @@
 //! | `index.rs`       | `arange`, `zeros`, `ones`, `full`, `where`, `float`, `to`, `index_select`, `embedding` |
 //! | `bev.rs`         | `lss_bev_pool` (BEVFusion's camera-to-BEV view transform)   |
 //! | `select.rs`      | `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `one_hot`, `maximum`, `minimum`, `floor_divide`, `remainder`, `atan2` |
+//! | `sparse.rs`      | `sparse_out_coords`, `sparse_conv3d`, `subm_conv3d`, `sparse_to_dense` (spconv's sparse 3-D conv) |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -52,6 +53,7 @@ pub mod pytorch;
 mod reduce;
 mod resize;
 mod select;
+mod sparse;
 
 use std::sync::LazyLock;
 
@@ -121,6 +123,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         index::builtins(),
         bev::builtins(),
         select::builtins(),
+        sparse::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

@@ -25,6 +25,7 @@
 //! | `index.rs`      | `index_select` (also `embedding`), `where`, casts, `arange` / `full` constants |
 //! | `bev.rs`        | `lss_bev_pool`, BEVFusion's camera-to-BEV view transform         |
 //! | `select.rs`     | run-time indices: `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `index_select` at a computed index, `one_hot`, `where` with a number |
+//! | `sparse.rs`     | `sparse_out_coords`, `sparse_conv3d` / `subm_conv3d`, `sparse_to_dense`: spconv's sparse 3-D conv |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -45,6 +46,7 @@ mod pool;
 mod reduce;
 mod resize;
 mod select;
+mod sparse;
 mod window;
 
 use std::fmt;
@@ -66,6 +68,9 @@ pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
 pub use reduce::{Reduce, ReduceKind, Softmax};
 pub use resize::{PixelShuffle, Upsample, UpsampleMode};
 pub use select::{ArgKind, ArgReduce, Gather, IndexSelectAt, OneHot, TopK, WhereScalar};
+pub use sparse::{
+    MAX_SPARSE_AXIS, MAX_SPARSE_TAPS, SparseConv3d, SparseOutCoords, SparseToDense, check_spatial_shape, sparse_out_shape,
+};
 pub use window::{Window2, window_out};
 
 /// Element types of tensors.
@@ -249,6 +254,9 @@ pub enum Pure {
     IndexSelectAt(IndexSelectAt),
     OneHot(OneHot),
     WhereScalar(WhereScalar),
+    SparseOutCoords(SparseOutCoords),
+    SparseConv3d(SparseConv3d),
+    SparseToDense(SparseToDense),
 }
 
 impl Pure {
@@ -284,6 +292,9 @@ impl Pure {
             Pure::IndexSelectAt(o) => o,
             Pure::OneHot(o) => o,
             Pure::WhereScalar(o) => o,
+            Pure::SparseOutCoords(o) => o,
+            Pure::SparseConv3d(o) => o,
+            Pure::SparseToDense(o) => o,
         }
     }
 }

@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 
 use crate::kernels::bev_pool;
+use crate::kernels::sparse;
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
@@ -50,6 +51,9 @@ pub(crate) struct Bound {
     /// Behind a lock because a step gets the binding shared; only the running step takes
     /// it.
     pub(crate) bev: Vec<Option<Mutex<bev_pool::Geometry>>>,
+    /// Per step, the hash table and rulebook of a sparse conv step (or the candidate
+    /// sites of a `sparse_out_coords` one), rebuilt by every run; `None` for the others.
+    pub(crate) sparse: Vec<Option<Mutex<sparse::Scratch>>>,
 }
 
 /// Matches `inputs` to the plan's by name: `given[i]` is the position in `inputs` of the
@@ -170,7 +174,7 @@ pub struct Footprint {
     /// The outputs a run returns.
     pub outputs: usize,
     /// The geometry caches of the `lss_bev_pool` steps (each frustum point's place in the
-    /// BEV grid).
+    /// BEV grid), and the hash tables and rulebooks of the sparse conv steps.
     pub geometry: usize,
     /// Everything above.
     pub total: usize,
@@ -197,6 +201,9 @@ pub(super) struct Layout {
     pub(super) footprint: Footprint,
     /// Per step, the sizes of an `lss_bev_pool` step (`None` for the others).
     bev: Vec<Option<bev_pool::Dims>>,
+    /// Per step, the sizes of a sparse conv or `sparse_out_coords` step (`true`: a conv).
+    sparse: Vec<Option<(bool, sparse::Dims)>>,
+    threads: usize,
 }
 
 fn overflow(what: String) -> RunError {
@@ -276,6 +283,7 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     let mut working_len = vec![0usize; m.steps.len()];
     let (mut working_floats, mut switch_tmp_len) = (0usize, 0usize);
     let mut bev = vec![None; m.steps.len()];
+    let mut sparse_dims = vec![None; m.steps.len()];
     let mut geometry = 0usize;
     for (k, step) in m.steps.iter().enumerate() {
         let at = format!("step {k} (`{}`)", step.path);
@@ -330,6 +338,25 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
             geometry = sum([geometry, b], "the bev_pool geometry caches")?;
             bev[k] = Some(dims);
         }
+        if let Kernel::Pure(op @ (Pure::SparseConv3d(_) | Pure::SparseOutCoords(_))) = &step.kernel {
+            // `check_step` checked the step, so this succeeds.
+            let parts: Vec<&[usize]> = step.inputs.iter().map(|&v| shapes[v].as_slice()).collect();
+            let out = &shapes[step.output];
+            let (conv, dims, b) = match op {
+                Pure::SparseConv3d(c) => {
+                    let d = sparse::check_conv(c, &parts, out).map_err(|e| bad(&at, e))?;
+                    (true, d, sparse::Scratch::conv_bytes(&d, threads))
+                }
+                Pure::SparseOutCoords(c) => {
+                    let d = sparse::check_out_coords(c, &parts, out).map_err(|e| bad(&at, e))?;
+                    (false, d, sparse::Scratch::out_coords_bytes(&d))
+                }
+                _ => unreachable!("matched above"),
+            };
+            let b = b.ok_or_else(|| overflow(format!("the rulebook of {at}")))?;
+            geometry = sum([geometry, b], "the sparse conv rulebooks")?;
+            sparse_dims[k] = Some((conv, dims));
+        }
         convs.push(conv);
     }
     let zeros_len: Vec<usize> =
@@ -361,7 +388,7 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         parts.push(("the working copies of the convs merged on switch".into(), working));
     }
     if geometry > 0 {
-        parts.push(("the geometry caches of the lss_bev_pool steps".into(), geometry));
+        parts.push(("the geometry caches of the lss_bev_pool steps and the sparse conv rulebooks".into(), geometry));
     }
     let mut zeros = 0usize;
     let mut inputs = 0usize;
@@ -396,6 +423,8 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         switch_tmp_len,
         footprint,
         bev,
+        sparse: sparse_dims,
+        threads,
     })
 }
 
@@ -462,6 +491,15 @@ pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize)
         lora_variant: None,
         footprint: layout.footprint,
         bev: layout.bev.into_iter().map(|d| d.map(|d| Mutex::new(bev_pool::Geometry::new(d)))).collect(),
+        sparse: layout
+            .sparse
+            .into_iter()
+            .map(|d| {
+                d.map(|(conv, d)| {
+                    Mutex::new(if conv { sparse::Scratch::conv(&d, layout.threads) } else { sparse::Scratch::out_coords(&d) })
+                })
+            })
+            .collect(),
     })
 }
 
@@ -522,6 +560,8 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::Pure(Pure::LssBevPool(_)) => Some(6),
         Kernel::Pure(Pure::Gather(_) | Pure::IndexSelectAt(_)) => Some(2),
         Kernel::Pure(Pure::WhereScalar(w)) => w.arity(),
+        Kernel::Pure(Pure::SparseConv3d(c)) => c.arity(),
+        Kernel::Pure(Pure::SparseToDense(_)) => Some(2),
         Kernel::Pure(Pure::Concat(_)) => None,
         _ => Some(1),
     };
@@ -638,6 +678,8 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::LssBevPool(_) => Some(6),
         Pure::Gather(_) | Pure::IndexSelectAt(_) => Some(2),
         Pure::WhereScalar(w) => w.arity(),
+        Pure::SparseConv3d(c) => c.arity(),
+        Pure::SparseToDense(_) => Some(2),
         Pure::Concat(_) => None,
         _ => Some(1),
     };
@@ -677,6 +719,9 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::Gather(g) => select::check_gather(x, inputs[1], g.axis, g.broadcast, out),
         Pure::IndexSelectAt(s) => select::check_index_select_at(x, inputs[1], s.axis, out),
         Pure::OneHot(h) => select::check_one_hot(x, h.num_classes, out),
+        Pure::SparseOutCoords(o) => sparse::check_out_coords(o, inputs, out).map(|_| ()),
+        Pure::SparseConv3d(c) => sparse::check_conv(c, inputs, out).map(|_| ()),
+        Pure::SparseToDense(o) => sparse::check_to_dense(o, inputs, out),
         Pure::WhereScalar(w) => {
             if w.input.into_iter().chain(w.other).any(|v| !v.is_finite()) {
                 return Err("a where with a number that is not finite".into());
