@@ -40,12 +40,15 @@ fn plan() -> Plan {
 }
 
 /// Runs the plan on `features` and `coords` at `threads` threads.
-fn run(plan: &Arc<Plan>, features: &[f32], coords: &[f32], threads: usize) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>, RunError> {
+fn run(
+    plan: &Arc<Plan>,
+    features: &[f32],
+    coords: &[f32],
+    threads: usize,
+) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>, RunError> {
     let (fs, cs) = ([64usize, 4], [64usize, 3]);
-    let inputs = [
-        Input { name: "features", data: features, shape: &fs },
-        Input { name: "coords", data: coords, shape: &cs },
-    ];
+    let inputs =
+        [Input { name: "features", data: features, shape: &fs }, Input { name: "coords", data: coords, shape: &cs }];
     let out = Session::new(plan.clone(), threads).expect("session").run(&inputs)?;
     Ok(out.into_iter().map(|(n, t)| (n.to_string(), t.shape.clone(), t.data.clone())).collect())
 }
@@ -160,10 +163,22 @@ fn hostile_coords_are_refused_at_run_time() {
 fn bad_attributes_are_compile_errors() {
     let text = std::fs::read_to_string(common::root().join(SPEC)).expect("spec");
     let cases = [
-        ("kernel=3, stride=2, padding=1, max_out=96", "kernel=3, stride=0, padding=1, max_out=96", "must be at least 1"),
+        (
+            "kernel=3, stride=2, padding=1, max_out=96",
+            "kernel=3, stride=0, padding=1, max_out=96",
+            "must be at least 1",
+        ),
         ("max_out=96", "max_out=0", "max_out"),
-        ("sparse_out_coords(coords, [5, 9, 7], kernel=3", "sparse_out_coords(coords, [5, 0, 7], kernel=3", "spatial_shape"),
-        ("kernel=[3, 1, 1], stride=[2, 1, 1], max_out=128", "kernel=[9, 1, 1], stride=[2, 1, 1], max_out=128", "does not fit"),
+        (
+            "sparse_out_coords(coords, [5, 9, 7], kernel=3",
+            "sparse_out_coords(coords, [5, 0, 7], kernel=3",
+            "spatial_shape",
+        ),
+        (
+            "kernel=[3, 1, 1], stride=[2, 1, 1], max_out=128",
+            "kernel=[9, 1, 1], stride=[2, 1, 1], max_out=128",
+            "does not fit",
+        ),
         ("subm_w = parameter([3, 3, 3, 4, 8])", "subm_w = parameter([2, 3, 3, 4, 8])", "odd kernel"),
         ("subm_w = parameter([3, 3, 3, 4, 8])", "subm_w = parameter([8, 4, 3, 3, 3])", "weight"),
         ("subm_conv3d(features, coords, subm_w", "subm_conv3d(features, features, subm_w", "coords"),

@@ -15,7 +15,9 @@
 //! names them as spconv's `state_dict` does (`conv_input.0.weight`).
 
 use readi_plan::DType;
-use readi_plan::ops::{Pure, SparseConv3d, SparseOutCoords, SparseToDense, Window3, check_spatial_shape, sparse_out_shape};
+use readi_plan::ops::{
+    Pure, SparseConv3d, SparseOutCoords, SparseToDense, Window3, check_spatial_shape, sparse_out_shape,
+};
 
 use super::conv3d::triple;
 use super::{Args, Builtin, P, R, absent, int, req};

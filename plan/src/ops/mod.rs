@@ -69,7 +69,8 @@ pub use reduce::{Reduce, ReduceKind, Softmax};
 pub use resize::{PixelShuffle, Upsample, UpsampleMode};
 pub use select::{ArgKind, ArgReduce, Gather, IndexSelectAt, OneHot, TopK, WhereScalar};
 pub use sparse::{
-    MAX_SPARSE_AXIS, MAX_SPARSE_TAPS, SparseConv3d, SparseOutCoords, SparseToDense, check_spatial_shape, sparse_out_shape,
+    MAX_SPARSE_AXIS, MAX_SPARSE_TAPS, SparseConv3d, SparseOutCoords, SparseToDense, check_spatial_shape,
+    sparse_out_shape,
 };
 pub use window::{Window2, window_out};
 

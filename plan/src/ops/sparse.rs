@@ -79,8 +79,7 @@ fn rows<'a>(x: &'a TensorType, dtype: DType, width: Option<i64>, op: &str, name:
     // A plan holds i64 values as f32 (the runtime computes in f32); the compiler's
     // builtins have checked the language's types.
     let same = x.dtype == dtype || (dtype == DType::I64 && x.dtype == DType::F32 && x.rank() == 2);
-    if !same || x.rank() != 2 || x.known_dim(1).is_none() || width.is_some_and(|w| x.known_dim(1) != Some(w))
-    {
+    if !same || x.rank() != 2 || x.known_dim(1).is_none() || width.is_some_and(|w| x.known_dim(1) != Some(w)) {
         return Err(ShapeError::new(format!("{op} {name} must be {}[V, {shown}], got {x}", dtype.as_str())));
     }
     Ok(&x.shape[0])
@@ -255,12 +254,8 @@ mod tests {
 
     #[test]
     fn conv_shapes() {
-        let op = SparseConv3d {
-            spatial_shape: [5, 8, 8],
-            window: win([3; 3], [1; 3], [1; 3]),
-            subm: true,
-            bias: false,
-        };
+        let op =
+            SparseConv3d { spatial_shape: [5, 8, 8], window: win([3; 3], [1; 3], [1; 3]), subm: true, bias: false };
         let f = ti(&[10, 4], DType::F32);
         let c = ti(&[10, 3], DType::I64);
         let w = ti(&[3, 3, 3, 4, 16], DType::F32);
@@ -282,7 +277,10 @@ mod tests {
         assert_eq!(sparse_out_shape(op.spatial_shape, &op.window), Ok([20, 16, 16]));
         let c = ti(&[7, 3], DType::I64);
         assert_eq!(run(&op, std::slice::from_ref(&c)), Ok(ti(&[7, 3], DType::I64)));
-        assert_eq!(run(&SparseOutCoords { max_out: Some(30), ..op.clone() }, &[c.clone()]), Ok(ti(&[30, 3], DType::I64)));
+        assert_eq!(
+            run(&SparseOutCoords { max_out: Some(30), ..op.clone() }, &[c.clone()]),
+            Ok(ti(&[30, 3], DType::I64))
+        );
         assert!(run(&SparseOutCoords { max_out: Some(0), ..op.clone() }, &[c.clone()]).is_err());
         assert!(run(&SparseOutCoords { spatial_shape: [0, 4, 4], ..op.clone() }, &[c.clone()]).is_err());
         assert!(run(&SparseOutCoords { spatial_shape: [1, 4, 4], ..op }, &[c.clone()]).is_err(), "kernel 3 on depth 1");

@@ -7,10 +7,10 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 
 use crate::kernels::bev_pool;
-use crate::kernels::sparse;
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
+use crate::kernels::sparse;
 use crate::kernels::{
     self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, select, softmax,
 };
@@ -496,7 +496,11 @@ pub(super) fn bind(plan: &Plan, symbols: &[usize], threads: usize, limit: usize)
             .into_iter()
             .map(|d| {
                 d.map(|(conv, d)| {
-                    Mutex::new(if conv { sparse::Scratch::conv(&d, layout.threads) } else { sparse::Scratch::out_coords(&d) })
+                    Mutex::new(if conv {
+                        sparse::Scratch::conv(&d, layout.threads)
+                    } else {
+                        sparse::Scratch::out_coords(&d)
+                    })
                 })
             })
             .collect(),

@@ -6,12 +6,12 @@ use rayon::prelude::*;
 use readi_plan::ops::{ArgKind, Pure};
 
 use crate::kernels::bev_pool;
-use crate::kernels::sparse;
 use crate::kernels::conv;
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
+use crate::kernels::sparse;
 use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, select, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
 
@@ -277,7 +277,9 @@ pub fn run_pure<'a>(
             let shapes: Vec<&[usize]> = (0..count).map(|j| input(j).1).collect();
             let mut s = match op {
                 Pure::SparseConv3d(c) => sparse::Scratch::conv(&sparse::check_conv(c, &shapes, out_shape)?, threads),
-                Pure::SparseOutCoords(c) => sparse::Scratch::out_coords(&sparse::check_out_coords(c, &shapes, out_shape)?),
+                Pure::SparseOutCoords(c) => {
+                    sparse::Scratch::out_coords(&sparse::check_out_coords(c, &shapes, out_shape)?)
+                }
                 _ => unreachable!("matched above"),
             };
             return run_sparse(op, &mut s, &shapes, input, out, out_shape);

@@ -8,15 +8,17 @@
 //! time) and builds its rulebook: for each active output row and kernel tap, the input
 //! row it reads or none. Then, per block of [`BLOCK`] output rows and per tap, it gathers
 //! the input rows the block reads into a `[m, Cin]` tile, multiplies it by that tap's
-//! `[Cin, Cout]` slice of the weight with the runtime's GEMM, and adds the product rows
-//! into their output rows. Blocks start at multiples of [`BLOCK`] whatever the thread
+//! `[Cin, Cout]` slice of the weight with the runtime's panel GEMM (`panel.rs`: the
+//! weight packed into panels once per run, in bound scratch; the `gemm` crate's
+//! `sgemm` allocates its packing buffers on some calls), and adds the product rows into
+//! their output rows. Blocks start at multiples of [`BLOCK`] whatever the thread
 //! count and each output row takes its taps in order, so results are the same bits at
 //! any number of threads.
 
 use rayon::prelude::*;
 use readi_plan::ops::{SparseConv3d, SparseOutCoords, SparseToDense, Window3, sparse_out_shape};
 
-use super::gemm::{MatMut, MatRef, sgemm};
+use super::panel::{self, PANEL};
 
 /// Output rows per gather-GEMM-scatter block.
 pub const BLOCK: usize = 64;
@@ -74,6 +76,9 @@ pub fn check_conv(op: &SparseConv3d, inputs: &[&[usize]], out: &[usize]) -> Resu
     if op.bias && inputs.get(4) != Some(&&[cout][..]) {
         return Err(format!("sparse conv bias {:?}, it needs [{cout}]", inputs.get(4)));
     }
+    if cin == 0 || cout == 0 {
+        return Err(format!("sparse conv of {cin} input and {cout} output channels"));
+    }
     if v_in >= NONE as usize || v_out >= NONE as usize {
         return Err("sparse conv of 2^32 rows or more".into());
     }
@@ -114,6 +119,8 @@ pub struct Scratch {
     /// Per part (thread), a `[BLOCK, cin]` gather tile and a `[BLOCK, cout]` product.
     gather: Vec<f32>,
     product: Vec<f32>,
+    /// The weight packed per tap for the panel GEMM, `taps · packed_len(cin, cout)`.
+    packed: Vec<f32>,
     /// `sparse_out_coords`: the candidate output sites, `[v_in · taps]`.
     candidates: Vec<i64>,
     parts: usize,
@@ -130,7 +137,8 @@ impl Scratch {
         let t = Self::table_len(d.v_in).checked_mul(12)?;
         let r = d.v_out.checked_mul(d.taps)?.checked_mul(4)?;
         let g = threads.max(1).checked_mul(BLOCK)?.checked_mul(d.cin.checked_add(d.cout)?)?.checked_mul(4)?;
-        t.checked_add(r)?.checked_add(g)
+        let p = d.taps.checked_mul(d.cout.div_ceil(PANEL))?.checked_mul(PANEL)?.checked_mul(d.cin)?.checked_mul(4)?;
+        t.checked_add(r)?.checked_add(g)?.checked_add(p)
     }
 
     /// Bytes the scratch of a `sparse_out_coords` of these sizes takes.
@@ -147,6 +155,7 @@ impl Scratch {
             rulebook: vec![NONE; d.v_out * d.taps],
             gather: vec![0.0; parts * BLOCK * d.cin],
             product: vec![0.0; parts * BLOCK * d.cout],
+            packed: vec![0.0; d.taps * panel::packed_len(d.cin, d.cout)],
             candidates: Vec::new(),
             parts,
         }
@@ -205,7 +214,10 @@ fn build_table(s: &mut Scratch, coords: &[f32], n: usize, g: [usize; 3]) -> Resu
         let mut h = slot(key, mask);
         while s.rows[h] != NONE {
             if s.keys[h] == key {
-                return Err(format!("coords rows {} and {r} are the same site ({}, {}, {})", s.rows[h], c[0], c[1], c[2]));
+                return Err(format!(
+                    "coords rows {} and {r} are the same site ({}, {}, {})",
+                    s.rows[h], c[0], c[1], c[2]
+                ));
             }
             h = (h + 1) & mask;
         }
@@ -274,10 +286,22 @@ pub fn sparse_conv3d(
     if n_out == 0 || cout == 0 {
         return Ok(());
     }
+    // Each tap's `[cin, cout]` slice as `[ceil(cout / PANEL)][cin][PANEL]` panels.
+    let plen = panel::packed_len(cin, cout);
+    s.packed.par_chunks_mut(plen.max(1)).zip(weight.par_chunks(cin * cout)).for_each(|(dst, wt)| {
+        for (p, pan) in dst.chunks_mut(cin * PANEL).enumerate() {
+            for (i, row) in pan.chunks_mut(PANEL).enumerate() {
+                for (c, v) in row.iter_mut().enumerate() {
+                    let j = p * PANEL + c;
+                    *v = if j < cout { wt[i * cout + j] } else { 0.0 };
+                }
+            }
+        }
+    });
     // Parts of whole blocks, one per thread at most, each with its own tiles.
     let blocks = n_out.div_ceil(BLOCK);
     let part_blocks = blocks.div_ceil(s.parts);
-    let book = &s.rulebook;
+    let (book, packed) = (&s.rulebook, &s.packed);
     out[..n_out * cout]
         .par_chunks_mut(part_blocks * BLOCK * cout)
         .zip(s.gather.par_chunks_mut(BLOCK * cin.max(1)))
@@ -302,14 +326,8 @@ pub fn sparse_conv3d(
                     if m == 0 {
                         continue;
                     }
-                    let wt = &weight[t * cin * cout..(t + 1) * cin * cout];
-                    sgemm(
-                        MatRef::row_major(&gather[..m * cin], m, cin),
-                        MatRef::row_major(wt, cin, cout),
-                        MatMut::row_major(&mut product[..m * cout], m, cout),
-                        false,
-                        1,
-                    );
+                    let wt = &packed[t * plen..(t + 1) * plen];
+                    panel::gemm(&gather[..m * cin], m, cin, wt, cout, &mut product[..m * cout]);
                     for (q, &j) in at[..m].iter().enumerate() {
                         let row = &mut dst[j as usize * cout..(j as usize + 1) * cout];
                         row.iter_mut().zip(&product[q * cout..(q + 1) * cout]).for_each(|(o, v)| *o += v);
@@ -393,8 +411,9 @@ mod tests {
         let mut out = vec![0.0f32; d.v_out * cout];
         for (r, o) in outs.iter().enumerate() {
             for (t, k) in tap_offsets(&d.window).enumerate() {
-                let i: Vec<i64> =
-                    (0..3).map(|a| o[a] * d.window.stride[a] - d.window.padding[a] + k[a] * d.window.dilation[a]).collect();
+                let i: Vec<i64> = (0..3)
+                    .map(|a| o[a] * d.window.stride[a] - d.window.padding[a] + k[a] * d.window.dilation[a])
+                    .collect();
                 if let Some(src) = coords.iter().position(|c| c[..] == i[..]) {
                     for co in 0..cout {
                         for ci in 0..cin {
@@ -457,7 +476,8 @@ mod tests {
                         for x in 0..od.grid_out[2] as i64 {
                             let o = [z, y, x];
                             let hit = tap_offsets(&window).any(|k| {
-                                let i: Vec<i64> = (0..3).map(|a| o[a] * window.stride[a] - window.padding[a] + k[a]).collect();
+                                let i: Vec<i64> =
+                                    (0..3).map(|a| o[a] * window.stride[a] - window.padding[a] + k[a]).collect();
                                 coords.iter().any(|c| c[..] == i[..])
                             });
                             if hit {
@@ -509,7 +529,11 @@ mod tests {
         let mut out = [0.0; 2];
         let e = sparse_conv3d(&d, &mut Scratch::conv(&d, 1), &[1.0, 2.0], &twice, &twice, &[1.0], None, &mut out);
         assert!(e.expect_err("duplicate").contains("same site"));
-        let oc = SparseOutCoords { spatial_shape: [4, 4, 4], window: Window3 { kernel: [3; 3], ..d.window }, max_out: Some(2) };
+        let oc = SparseOutCoords {
+            spatial_shape: [4, 4, 4],
+            window: Window3 { kernel: [3; 3], ..d.window },
+            max_out: Some(2),
+        };
         let od = check_out_coords(&oc, &[&[2, 3]], &[2, 3]).expect("shapes");
         let e = sparse_out_coords(&od, &mut Scratch::out_coords(&od), &flat(&[[1, 1, 1]], 2), &mut [0.0; 6]);
         assert!(e.expect_err("over").contains("raise max_out"));
