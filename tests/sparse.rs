@@ -40,12 +40,10 @@ fn plan() -> Plan {
 }
 
 /// Runs the plan on `features` and `coords` at `threads` threads.
-fn run(
-    plan: &Arc<Plan>,
-    features: &[f32],
-    coords: &[f32],
-    threads: usize,
-) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>, RunError> {
+/// An output: its name, shape and data.
+type Output = (String, Vec<usize>, Vec<f32>);
+
+fn run(plan: &Arc<Plan>, features: &[f32], coords: &[f32], threads: usize) -> Result<Vec<Output>, RunError> {
     let (fs, cs) = ([64usize, 4], [64usize, 3]);
     let inputs =
         [Input { name: "features", data: features, shape: &fs }, Input { name: "coords", data: coords, shape: &cs }];

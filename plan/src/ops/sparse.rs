@@ -278,12 +278,15 @@ mod tests {
         let c = ti(&[7, 3], DType::I64);
         assert_eq!(run(&op, std::slice::from_ref(&c)), Ok(ti(&[7, 3], DType::I64)));
         assert_eq!(
-            run(&SparseOutCoords { max_out: Some(30), ..op.clone() }, &[c.clone()]),
+            run(&SparseOutCoords { max_out: Some(30), ..op.clone() }, std::slice::from_ref(&c)),
             Ok(ti(&[30, 3], DType::I64))
         );
-        assert!(run(&SparseOutCoords { max_out: Some(0), ..op.clone() }, &[c.clone()]).is_err());
-        assert!(run(&SparseOutCoords { spatial_shape: [0, 4, 4], ..op.clone() }, &[c.clone()]).is_err());
-        assert!(run(&SparseOutCoords { spatial_shape: [1, 4, 4], ..op }, &[c.clone()]).is_err(), "kernel 3 on depth 1");
+        assert!(run(&SparseOutCoords { max_out: Some(0), ..op.clone() }, std::slice::from_ref(&c)).is_err());
+        assert!(run(&SparseOutCoords { spatial_shape: [0, 4, 4], ..op.clone() }, std::slice::from_ref(&c)).is_err());
+        assert!(
+            run(&SparseOutCoords { spatial_shape: [1, 4, 4], ..op }, std::slice::from_ref(&c)).is_err(),
+            "kernel 3 on depth 1"
+        );
         let d = SparseToDense { spatial_shape: [2, 3, 4] };
         assert_eq!(run(&d, &[ti(&[7, 5], DType::F32), c]), Ok(ti(&[1, 5, 2, 3, 4], DType::F32)));
     }

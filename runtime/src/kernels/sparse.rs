@@ -51,7 +51,7 @@ fn taps(w: &Window3) -> usize {
     w.kernel.iter().map(|&k| k as usize).product()
 }
 
-fn two_d<'a>(x: &'a [usize], what: &str) -> Result<[usize; 2], String> {
+fn two_d(x: &[usize], what: &str) -> Result<[usize; 2], String> {
     match *x {
         [a, b] => Ok([a, b]),
         _ => Err(format!("{what} of shape {x:?}, not [V, C]")),
