@@ -11,13 +11,17 @@
 //! the lidar front end (voxelizations and the depth map), hashes into tables sized at
 //! bind time. A fourth, whose input's point count `P` changes every run, keeps its buffers
 //! (counted in bytes).
+//!
+//! Sparse convs (`subm_conv3d`, `sparse_out_coords`, a strided `sparse_conv3d`,
+//! `sparse_to_dense`) on changing coords: the hash tables and rulebooks rebuilt each run
+//! are the buffers sized at bind time.
 
 use std::alloc::System;
 use std::sync::Arc;
 
 use readi_plan::ops::{
     Activation, BinaryOp, ChannelAffine, Concat, GlobalAvgPool, LayerNorm, LidarDepthMap, LssBevPool, Pool2d, PoolKind,
-    Pure, Reshape, Softmax, VoxelOutput, Voxelize, Window2,
+    Pure, Reshape, Softmax, SparseConv3d, SparseOutCoords, SparseToDense, VoxelOutput, Voxelize, Window2, Window3,
 };
 use readi_plan::{Dim, VariantKey};
 use readi_runtime::exec::{Input, Session};
@@ -483,6 +487,51 @@ fn switching_and_runs_allocate_only_outputs() {
         bytes < runs * 16 * 1024,
         "{runs} runs of sweeps of 5, 9 and 17 points allocated {bytes} bytes: the buffers were made anew"
     );
+
+    // Sparse convs on two sets of active sites: nothing but the outputs (1 + 2 * 3).
+    let mut sp = Session::new(Arc::new(sparse_plan()), 2).expect("session");
+    let features = data(64 * 4, 31);
+    let coord_sets: Vec<Vec<f32>> = [(40usize, 7usize), (25, 11)]
+        .iter()
+        .map(|&(n, step)| {
+            let mut c = vec![-1.0f32; 64 * 3];
+            for r in 0..n {
+                let l = (r * step) % (5 * 9 * 7);
+                c[3 * r..3 * r + 3].copy_from_slice(&[(l / 63) as f32, (l / 7 % 9) as f32, (l % 7) as f32]);
+            }
+            c
+        })
+        .collect();
+    let sp_inputs = |c: &[f32]| {
+        let (f, c) = (features.clone(), c.to_vec());
+        (f, c)
+    };
+    let sets: Vec<(Vec<f32>, Vec<f32>)> = coord_sets.iter().map(|c| sp_inputs(c)).collect();
+    let inputs: Vec<[Input<'_>; 2]> = sets
+        .iter()
+        .map(|(f, c)| {
+            [Input { name: "features", data: f, shape: &[64, 4] }, Input { name: "coords", data: c, shape: &[64, 3] }]
+        })
+        .collect();
+    let a = sp.run(&inputs[0]).expect("runs");
+    let b = sp.run(&inputs[1]).expect("runs");
+    assert_ne!(a, b, "the two site sets give the same outputs");
+    let sparse_runs = (0..TRIALS)
+        .map(|_| {
+            let region = Region::new(GLOBAL);
+            for i in 0..runs {
+                sp.run(&inputs[i % 2]).expect("runs");
+            }
+            let c = region.change();
+            c.allocations + c.reallocations
+        })
+        .min()
+        .expect("trials");
+    assert!(
+        (7 * runs..=7 * runs + slack).contains(&sparse_runs),
+        "{runs} sparse runs made {sparse_runs} allocations at least; their outputs need {}",
+        7 * runs
+    );
 }
 
 /// Hard voxelization (voxels, num_points), dynamic voxelization (features) of `[300, 4]`
@@ -590,6 +639,71 @@ fn points_plan() -> Plan {
         footprint: None,
     };
     Plan::new(manifest, vec![data(4 * 128 * 128, 40)]).expect("a valid plan")
+}
+
+/// `features [64, 4]` and `coords [64, 3]` in a `[5, 9, 7]` grid through a submanifold
+/// 3x3x3 conv (output `subm`) and, at the sites `sparse_out_coords` finds, a strided one
+/// (stride 2, padding 1) made dense (output `dense`).
+fn sparse_plan() -> Plan {
+    let grid = [5, 9, 7];
+    let win =
+        |stride, padding| Window3 { kernel: [3; 3], stride: [stride; 3], padding: [padding; 3], dilation: [1; 3] };
+    let v = |s: &[usize], storage| ValueSpec { shape: shape(false, s), storage };
+    let values = vec![
+        v(&[64, 4], Storage::Input(0)),
+        v(&[64, 3], Storage::Input(1)),
+        v(&[3, 3, 3, 4, 8], Storage::Tensor(0)),
+        v(&[64, 8], Storage::Slot(0)),
+        v(&[64, 3], Storage::Slot(1)),
+        v(&[3, 3, 3, 4, 6], Storage::Tensor(1)),
+        v(&[64, 6], Storage::Slot(2)),
+        v(&[1, 6, 3, 5, 4], Storage::Slot(3)),
+    ];
+    let step = |path: &str, kernel: Pure, inputs: Vec<usize>, output| Step {
+        path: path.into(),
+        kernel: Kernel::Pure(kernel),
+        inputs,
+        output,
+    };
+    let subm = SparseConv3d { spatial_shape: grid, window: win(1, 1), subm: true, bias: false };
+    let down = SparseConv3d { spatial_shape: grid, window: win(2, 1), subm: false, bias: false };
+    let coords = SparseOutCoords { spatial_shape: grid, window: win(2, 1), max_out: None };
+    let steps = vec![
+        step("subm", Pure::SparseConv3d(subm), vec![0, 1, 1, 2], 3),
+        step("down_coords", Pure::SparseOutCoords(coords), vec![1], 4),
+        step("down", Pure::SparseConv3d(down), vec![0, 1, 4, 5], 6),
+        step("dense", Pure::SparseToDense(SparseToDense { spatial_shape: [3, 5, 4] }), vec![6, 4], 7),
+    ];
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        model: "sparse".into(),
+        model_params: Vec::new(),
+        symbols: Vec::new(),
+        inputs: ["features", "coords"]
+            .iter()
+            .enumerate()
+            .map(|(i, n)| InputSpec {
+                name: (*n).into(),
+                shape: values[i].shape.clone(),
+                modality: None,
+                optional: false,
+                value: i,
+            })
+            .collect(),
+        outputs: vec![OutputSpec::f32("subm", 3), OutputSpec::f32("dense", 7)],
+        values,
+        steps,
+        slots: 4,
+        tensors: vec![
+            TensorSpec { name: "subm.weight".into(), shape: vec![3, 3, 3, 4, 8] },
+            TensorSpec { name: "down.weight".into(), shape: vec![3, 3, 3, 4, 6] },
+        ],
+        params: Vec::new(),
+        variants: Vec::new(),
+        conditions: None,
+        footprint: None,
+    };
+    Plan::new(manifest, vec![data(27 * 4 * 8, 41), data(27 * 4 * 6, 42)]).expect("a valid plan")
 }
 
 /// A row-major 4x4 from a 3x3 block and a translation.

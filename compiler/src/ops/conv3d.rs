@@ -38,7 +38,7 @@ pub(super) fn builtins() -> Vec<Builtin> {
 
 /// An int or a list of three ints (depth, height, width), each at least `min`: `3` or
 /// `[3, 1, 1]`.
-fn triple(args: &Args<'_>, name: &str, min: i64) -> R<[i64; 3]> {
+pub(super) fn triple(args: &Args<'_>, name: &str, min: i64) -> R<[i64; 3]> {
     let expected = "an int or a list of three ints [d, h, w]";
     let t = match args.value(name) {
         Some(Value::Int(i)) => [*i; 3],

@@ -29,6 +29,7 @@
 //! | `bev.rs`         | `lss_bev_pool` (BEVFusion's camera-to-BEV view transform)   |
 //! | `select.rs`      | `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `one_hot`, `maximum`, `minimum`, `floor_divide`, `remainder`, `atan2` |
 //! | `voxel.rs`       | `voxelize`, `dynamic_voxelize`, `lidar_depth_map` (BEVFusion's lidar front end) |
+//! | `sparse.rs`      | `sparse_out_coords`, `sparse_conv3d`, `subm_conv3d`, `sparse_to_dense` (spconv's sparse 3-D conv) |
 //! | `pytorch.rs`     | no builtins: PyTorch's names readi spells differently or lacks |
 //!
 //! Activations need nothing here: every [`Activation`](readi_plan::ops::Activation) without
@@ -53,6 +54,7 @@ pub mod pytorch;
 mod reduce;
 mod resize;
 mod select;
+mod sparse;
 mod voxel;
 
 use std::sync::LazyLock;
@@ -124,6 +126,7 @@ static BUILTINS: LazyLock<Vec<Builtin>> = LazyLock::new(|| {
         bev::builtins(),
         select::builtins(),
         voxel::builtins(),
+        sparse::builtins(),
     ];
     families.into_iter().flatten().collect()
 });

@@ -26,6 +26,7 @@
 //! | `bev.rs`        | `lss_bev_pool`, BEVFusion's camera-to-BEV view transform         |
 //! | `select.rs`     | run-time indices: `argmax`, `argmin`, `topk`, `gather`, `take_along_dim`, `index_select` at a computed index, `one_hot`, `where` with a number |
 //! | `voxel.rs`      | the lidar front end: `voxelize`, `dynamic_voxelize`, `lidar_depth_map` |
+//! | `sparse.rs`     | `sparse_out_coords`, `sparse_conv3d` / `subm_conv3d`, `sparse_to_dense`: spconv's sparse 3-D conv |
 //!
 //! Operators without stored tensors are [`Pure`]: the graph IR and the plan hold the same
 //! value, so lowering one is a copy. Operators with weights (conv, linear, the norms) are
@@ -46,6 +47,7 @@ mod pool;
 mod reduce;
 mod resize;
 mod select;
+mod sparse;
 mod voxel;
 mod window;
 
@@ -68,6 +70,10 @@ pub use pool::{AdaptivePool2d, GlobalAvgPool, Pool2d, PoolKind, adaptive_bin};
 pub use reduce::{Reduce, ReduceKind, Softmax};
 pub use resize::{PixelShuffle, Upsample, UpsampleMode};
 pub use select::{ArgKind, ArgReduce, Gather, IndexSelectAt, OneHot, TopK, WhereScalar};
+pub use sparse::{
+    MAX_SPARSE_AXIS, MAX_SPARSE_TAPS, SparseConv3d, SparseOutCoords, SparseToDense, check_spatial_shape,
+    sparse_out_shape,
+};
 pub use voxel::{DEPTH_MAP_INPUTS, LidarDepthMap, MAX_GRID_CELLS, MAX_VOXELS, VoxelOutput, Voxelize, point_features};
 pub use window::{Window2, window_out};
 
@@ -254,6 +260,9 @@ pub enum Pure {
     WhereScalar(WhereScalar),
     Voxelize(Voxelize),
     LidarDepthMap(LidarDepthMap),
+    SparseOutCoords(SparseOutCoords),
+    SparseConv3d(SparseConv3d),
+    SparseToDense(SparseToDense),
 }
 
 impl Pure {
@@ -291,6 +300,9 @@ impl Pure {
             Pure::WhereScalar(o) => o,
             Pure::Voxelize(o) => o,
             Pure::LidarDepthMap(o) => o,
+            Pure::SparseOutCoords(o) => o,
+            Pure::SparseConv3d(o) => o,
+            Pure::SparseToDense(o) => o,
         }
     }
 }

@@ -10,6 +10,7 @@ use crate::kernels::bev_pool;
 use crate::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
+use crate::kernels::sparse;
 use crate::kernels::voxel;
 use crate::kernels::{
     self, elementwise, index, layout as layout_k, linear, merge, movement, norm, pool, reduce, resize, select, softmax,
@@ -54,6 +55,9 @@ pub(crate) struct Bound {
     /// Per step, the hash table of a voxelization step (sized from its `max_voxels`),
     /// `None` for the others. Behind a lock as `bev`.
     pub(crate) voxel: Vec<Option<Mutex<voxel::Table>>>,
+    /// Per step, the hash table and rulebook of a sparse conv step (or the candidate
+    /// sites of a `sparse_out_coords` one), rebuilt by every run; `None` for the others.
+    pub(crate) sparse: Vec<Option<Mutex<sparse::Scratch>>>,
 }
 
 /// Matches `inputs` to the plan's by name: `given[i]` is the position in `inputs` of the
@@ -174,7 +178,7 @@ pub struct Footprint {
     /// The outputs a run returns.
     pub outputs: usize,
     /// The geometry caches of the `lss_bev_pool` steps (each frustum point's place in the
-    /// BEV grid).
+    /// BEV grid), and the hash tables and rulebooks of the sparse conv steps.
     pub geometry: usize,
     /// The hash tables of the voxelization steps.
     pub voxel_tables: usize,
@@ -205,6 +209,9 @@ pub(super) struct Layout {
     bev: Vec<Option<bev_pool::Dims>>,
     /// Per step, the `max_voxels` of a voxelization step (`None` for the others).
     voxel: Vec<Option<usize>>,
+    /// Per step, the sizes of a sparse conv or `sparse_out_coords` step (`true`: a conv).
+    sparse: Vec<Option<(bool, sparse::Dims)>>,
+    threads: usize,
 }
 
 fn overflow(what: String) -> RunError {
@@ -284,6 +291,7 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     let mut working_len = vec![0usize; m.steps.len()];
     let (mut working_floats, mut switch_tmp_len) = (0usize, 0usize);
     let mut bev = vec![None; m.steps.len()];
+    let mut sparse_dims = vec![None; m.steps.len()];
     let mut geometry = 0usize;
     let mut voxel_v = vec![None; m.steps.len()];
     let mut voxel_tables = 0usize;
@@ -345,6 +353,25 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
             voxel_tables = sum([voxel_tables, b], "the voxelization hash tables")?;
             voxel_v[k] = Some(op.max_voxels);
         }
+        if let Kernel::Pure(op @ (Pure::SparseConv3d(_) | Pure::SparseOutCoords(_))) = &step.kernel {
+            // `check_step` checked the step, so this succeeds.
+            let parts: Vec<&[usize]> = step.inputs.iter().map(|&v| shapes[v].as_slice()).collect();
+            let out = &shapes[step.output];
+            let (conv, dims, b) = match op {
+                Pure::SparseConv3d(c) => {
+                    let d = sparse::check_conv(c, &parts, out).map_err(|e| bad(&at, e))?;
+                    (true, d, sparse::Scratch::conv_bytes(&d, threads))
+                }
+                Pure::SparseOutCoords(c) => {
+                    let d = sparse::check_out_coords(c, &parts, out).map_err(|e| bad(&at, e))?;
+                    (false, d, sparse::Scratch::out_coords_bytes(&d))
+                }
+                _ => unreachable!("matched above"),
+            };
+            let b = b.ok_or_else(|| overflow(format!("the rulebook of {at}")))?;
+            geometry = sum([geometry, b], "the sparse conv rulebooks")?;
+            sparse_dims[k] = Some((conv, dims));
+        }
         convs.push(conv);
     }
     let zeros_len: Vec<usize> =
@@ -376,7 +403,7 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         parts.push(("the working copies of the convs merged on switch".into(), working));
     }
     if geometry > 0 {
-        parts.push(("the geometry caches of the lss_bev_pool steps".into(), geometry));
+        parts.push(("the geometry caches of the lss_bev_pool steps and the sparse conv rulebooks".into(), geometry));
     }
     if voxel_tables > 0 {
         parts.push(("the hash tables of the voxelization steps".into(), voxel_tables));
@@ -429,6 +456,8 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
         footprint,
         bev,
         voxel: voxel_v,
+        sparse: sparse_dims,
+        threads,
     })
 }
 
@@ -519,6 +548,19 @@ fn allocate(symbols: &[usize], layout: Layout) -> Bound {
         footprint: layout.footprint,
         bev: layout.bev.into_iter().map(|d| d.map(|d| Mutex::new(bev_pool::Geometry::new(d)))).collect(),
         voxel: layout.voxel.into_iter().map(|v| v.map(|v| Mutex::new(voxel::Table::new(v)))).collect(),
+        sparse: layout
+            .sparse
+            .into_iter()
+            .map(|d| {
+                d.map(|(conv, d)| {
+                    Mutex::new(if conv {
+                        sparse::Scratch::conv(&d, layout.threads)
+                    } else {
+                        sparse::Scratch::out_coords(&d)
+                    })
+                })
+            })
+            .collect(),
     }
 }
 
@@ -614,6 +656,8 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::Pure(Pure::LssBevPool(_)) => Some(6),
         Kernel::Pure(Pure::Gather(_) | Pure::IndexSelectAt(_)) => Some(2),
         Kernel::Pure(Pure::WhereScalar(w)) => w.arity(),
+        Kernel::Pure(Pure::SparseConv3d(c)) => c.arity(),
+        Kernel::Pure(Pure::SparseToDense(_)) => Some(2),
         Kernel::Pure(Pure::Concat(_)) => None,
         Kernel::Pure(Pure::LidarDepthMap(_)) => Some(5),
         _ => Some(1),
@@ -731,6 +775,8 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::LssBevPool(_) => Some(6),
         Pure::Gather(_) | Pure::IndexSelectAt(_) => Some(2),
         Pure::WhereScalar(w) => w.arity(),
+        Pure::SparseConv3d(c) => c.arity(),
+        Pure::SparseToDense(_) => Some(2),
         Pure::Concat(_) => None,
         Pure::LidarDepthMap(_) => Some(5),
         _ => Some(1),
@@ -771,6 +817,9 @@ pub fn check_pure(op: &Pure, inputs: &[&[usize]], out: &[usize]) -> Result<(), S
         Pure::Gather(g) => select::check_gather(x, inputs[1], g.axis, g.broadcast, out),
         Pure::IndexSelectAt(s) => select::check_index_select_at(x, inputs[1], s.axis, out),
         Pure::OneHot(h) => select::check_one_hot(x, h.num_classes, out),
+        Pure::SparseOutCoords(o) => sparse::check_out_coords(o, inputs, out).map(|_| ()),
+        Pure::SparseConv3d(c) => sparse::check_conv(c, inputs, out).map(|_| ()),
+        Pure::SparseToDense(o) => sparse::check_to_dense(o, inputs, out),
         Pure::WhereScalar(w) => {
             if w.input.into_iter().chain(w.other).any(|v| !v.is_finite()) {
                 return Err("a where with a number that is not finite".into());

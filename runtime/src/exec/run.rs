@@ -11,6 +11,7 @@ use crate::kernels::conv_transpose;
 use crate::kernels::conv3d;
 use crate::kernels::pool::{self, Pool2dShape};
 use crate::kernels::resize;
+use crate::kernels::sparse;
 use crate::kernels::voxel;
 use crate::kernels::{Epilogue, elementwise, index, layout, linear, movement, norm, reduce, select, softmax};
 use crate::plan::{AdapterSpec, EpilogueSpec, Kernel, LoraSpec, Plan, Step, Storage, VariantTensors};
@@ -184,6 +185,18 @@ pub(crate) fn run_step(
             let mut t = table.lock().unwrap_or_else(|e| e.into_inner());
             voxel::voxelize(op, voxel::check(op, xs, out_shape)?, x, &mut t, out)?;
         }
+        Kernel::Pure(op @ (Pure::SparseConv3d(_) | Pure::SparseOutCoords(_))) => {
+            // The session's hash table and rulebook for this step, rebuilt every run.
+            let Some(cell) = b.sparse[k].as_ref() else { return Err("no rulebook was bound for it".into()) };
+            let mut s = cell.lock().unwrap_or_else(|e| e.into_inner());
+            // At most 5 inputs (`check_step`); no list is allocated per run.
+            let mut shapes: [&[usize]; 5] = [&[]; 5];
+            let n = step.inputs.len().min(5);
+            for (j, sh) in shapes.iter_mut().enumerate().take(n) {
+                *sh = input(j).1;
+            }
+            return run_sparse(op, &mut s, &shapes[..n], input, out, out_shape);
+        }
         Kernel::Pure(op) => return run_pure(op, step.inputs.len(), input, out, out_shape, threads),
     }
     Ok(())
@@ -266,6 +279,19 @@ pub fn run_pure<'a>(
         Pure::Gather(g) => return select::gather((x, xs), input(1), g.axis, out, out_shape),
         Pure::IndexSelectAt(s) => return select::index_select_at(x, xs, s.axis, input(1).0, out),
         Pure::OneHot(h) => return select::one_hot(x, h.num_classes, out),
+        Pure::SparseConv3d(_) | Pure::SparseOutCoords(_) => {
+            // Outside a session (a folded constant): scratch for this call.
+            let shapes: Vec<&[usize]> = (0..count).map(|j| input(j).1).collect();
+            let mut s = match op {
+                Pure::SparseConv3d(c) => sparse::Scratch::conv(&sparse::check_conv(c, &shapes, out_shape)?, threads),
+                Pure::SparseOutCoords(c) => {
+                    sparse::Scratch::out_coords(&sparse::check_out_coords(c, &shapes, out_shape)?)
+                }
+                _ => unreachable!("matched above"),
+            };
+            return run_sparse(op, &mut s, &shapes, input, out, out_shape);
+        }
+        Pure::SparseToDense(o) => return sparse::sparse_to_dense(o, x, input(1).0, out),
         Pure::WhereScalar(w) => {
             // A number branch is a tensor of shape [], which broadcasts.
             let (a, b) = (w.input.map(|v| [v as f32]), w.other.map(|v| [v as f32]));
@@ -297,6 +323,30 @@ pub fn run_pure<'a>(
         }
     }
     Ok(())
+}
+
+/// A sparse conv or `sparse_out_coords` step with its scratch `s`, sized for these
+/// shapes (checked at bind time).
+fn run_sparse<'a>(
+    op: &Pure,
+    s: &mut sparse::Scratch,
+    shapes: &[&[usize]],
+    input: impl Fn(usize) -> (&'a [f32], &'a [usize]),
+    out: &mut [f32],
+    out_shape: &[usize],
+) -> Result<(), String> {
+    match op {
+        Pure::SparseConv3d(c) => {
+            let d = sparse::check_conv(c, shapes, out_shape)?;
+            let bias = c.bias.then(|| input(4).0);
+            sparse::sparse_conv3d(&d, s, input(0).0, input(1).0, input(2).0, input(3).0, bias, out)
+        }
+        Pure::SparseOutCoords(c) => {
+            let d = sparse::check_out_coords(c, shapes, out_shape)?;
+            sparse::sparse_out_coords(&d, s, input(0).0, out)
+        }
+        _ => Err(format!("`{}` is not a sparse conv step", op.op().kind_name())),
+    }
 }
 
 /// Outputs at least this long are copied in parallel.

@@ -99,6 +99,7 @@ pub mod reduce;
 pub mod resize;
 pub mod select;
 pub mod softmax;
+pub mod sparse;
 pub mod voxel;
 
 #[cfg(test)]
