@@ -7,12 +7,9 @@
 
 mod common;
 
-use std::path::Path;
 use std::sync::Arc;
 
 use readi_compiler::backend::{self, CompileOptions, WeightSet};
-use readi_compiler::passes::{self, Options};
-use readi_grammar::diag::SourceMap;
 use readi_runtime::exec::{Input, Session, Tensor};
 use readi_runtime::plan::Plan;
 
@@ -22,23 +19,9 @@ fn fixture(name: &str) -> WeightSet {
     WeightSet::from_safetensors(name, &bytes).expect("fixture")
 }
 
-/// Compiles a model file and the files it uses (paths relative to the using file) with
-/// `overrides`, binding `weights`.
+/// Compiles a model file with `overrides`, binding `weights`.
 fn compile(rel: &str, overrides: &[(&str, &str)], weights: &str) -> Plan {
-    let mut sources = SourceMap::new();
-    let path = common::root().join(rel);
-    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{rel}: {e}"));
-    let file = sources.add(path.display().to_string(), text.clone());
-    let opts = Options::with_overrides(overrides);
-    let out = {
-        let mut load = |from, used: &str| {
-            let base = Path::new(sources.name(from)).parent().unwrap_or(Path::new("")).to_path_buf();
-            let full = base.join(used);
-            let text = std::fs::read_to_string(&full).map_err(|e| format!("{}: {e}", full.display()))?;
-            Ok((sources.add(full.display().to_string(), text.clone()), text))
-        };
-        passes::run_with_uses(file, &text, &opts, &mut load)
-    };
+    let (sources, out) = common::compile(rel, overrides, None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
     let (plan, _) = backend::compile(&module, &fixture(weights), weights, &CompileOptions::default())
