@@ -43,7 +43,11 @@ use crate::ops::{
 /// index, `one_hot`, `where` with a number; `maximum`, `minimum`, `floor_divide`,
 /// `remainder`, `atan2` as binary ops); an output's element type (`OutputSpec::dtype`,
 /// f32 when absent); `lss_bev_pool`. Versions 2 to 6 read unchanged.
-pub const FORMAT_VERSION: u32 = 7;
+/// Version 8: the lidar front end (`Voxelize` with its output, `LidarDepthMap`) and the
+/// sparse 3-D conv (`SparseOutCoords`, `SparseConv3d`, `SparseToDense`), which a version 7
+/// runtime would refuse as unknown variants deep in the manifest. Versions 2 to 7 read
+/// unchanged.
+pub const FORMAT_VERSION: u32 = 8;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
 /// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
