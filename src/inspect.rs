@@ -65,7 +65,8 @@ pub fn header(plan: &Plan, path: &Path) -> String {
         }
         writeln!(out, "outputs:")?;
         for o in &m.outputs {
-            writeln!(out, "  {}: f32{}", escaped(&o.name), show_shape(&m.values[o.value].shape))?;
+            let (name, shape) = (escaped(&o.name), show_shape(&m.values[o.value].shape));
+            writeln!(out, "  {name}: {}{shape}", o.dtype.as_str())?;
         }
         writeln!(
             out,

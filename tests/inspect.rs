@@ -95,3 +95,26 @@ fn inspect_lists_a_conv_merged_on_switch() {
     assert!(a.contains("conv2d[im2col switch(lora_rank=4) shift relu]"), "{listing}");
     insta::assert_snapshot!(listing);
 }
+
+/// The header gives each output the element type the model gives it: an `argmax` is
+/// i64, a comparison bool.
+#[test]
+fn inspect_header_shows_output_element_types() {
+    let spec = "model m {
+  input x: f32[N, 4]
+  output y = relu(x)
+  output idx = argmax(x, dim=1)
+  output big = x > 0.5
+}
+";
+    let (sources, out) = common::compile_text("types.readi", spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let weights = backend::seeded_weights(&m.graph, 3);
+    let (plan, _) = backend::compile_variants(&m, &weights, "seeded", &[], &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let header = readi::inspect::header(&plan, std::path::Path::new("types.plan"));
+    for line in ["  y: f32[N, 4]", "  idx: i64[N]", "  big: bool[N, 4]"] {
+        assert!(header.lines().any(|l| l == line), "no line `{line}` in\n{header}");
+    }
+}
