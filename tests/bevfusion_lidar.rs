@@ -71,7 +71,10 @@ fn lidar_encoder_matches_pytorch() {
         let a = one.run(&inputs).expect("runs");
         let b = two.run(&inputs).expect("runs");
         let (got, got2) = (&a.iter().find(|(n, _)| n == "lidar_bev").expect("lidar_bev").1, &b[0].1);
-        assert!(got.data.iter().zip(&got2.data).all(|(x, y)| x.to_bits() == y.to_bits()), "{case}: 1 and 2 threads differ");
+        assert!(
+            got.data.iter().zip(&got2.data).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{case}: 1 and 2 threads differ"
+        );
         close(&format!("{case}.lidar_bev"), got, &io.tensors[&format!("{case}.lidar_bev")], 1e-4);
         let nonzero = got.data.iter().filter(|v| **v != 0.0).count();
         assert!(nonzero > got.data.len() / 5, "{case}: a mostly empty BEV ({nonzero} of {})", got.data.len());
