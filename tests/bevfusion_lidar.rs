@@ -1,0 +1,82 @@
+//! BEVFusion's lidar encoder (models/bevfusion/lidar.readi: hard voxelization,
+//! HardSimpleVFE, mmdet3d's SparseEncoder with SparseBasicBlocks, the height-flattened BEV)
+//! against a plain-PyTorch port (tests/fixtures/bevfusion/make_lidar_fixtures.py: mit-han-lab's
+//! CPU voxelization in numpy, the sparse convs as dense conv3d with an active-site mask) at a
+//! reduced size with seeded weights: `lidar_bev` to 1e-4 on two point clouds of different
+//! sizes in one session, the same bits at 1 and 2 threads.
+
+mod common;
+
+use std::sync::Arc;
+
+use readi_compiler::backend::{self, CompileOptions, WeightSet};
+use readi_runtime::exec::{Input, Session, Tensor};
+
+fn fixture(name: &str) -> WeightSet {
+    let path = common::root().join("tests/fixtures/bevfusion").join(name);
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    WeightSet::from_safetensors(name, &bytes).expect("fixture")
+}
+
+/// The sizes of make_lidar_fixtures.py's `cfg` and `build(5, 4, 6, 8, 8, 6)`.
+const LIDAR: &[(&str, &str)] = &[
+    ("vx", "0.25"),
+    ("vy", "0.25"),
+    ("x_min", "-6.0"),
+    ("y_min", "-6.0"),
+    ("x_max", "6.0"),
+    ("y_max", "6.0"),
+    ("max_points", "4"),
+    ("max_voxels", "240"),
+    ("nx", "48"),
+    ("ny", "48"),
+    ("max_sites", "1920"),
+    ("c0", "4"),
+    ("c1", "6"),
+    ("c2", "8"),
+    ("c3", "8"),
+    ("out_ch", "6"),
+];
+
+/// `got` against torch's `want` to `tol` (absolute, or relative above 1); returns the worst error.
+fn close(name: &str, got: &Tensor, want: &(Vec<usize>, Vec<f32>), tol: f32) -> f32 {
+    assert_eq!(got.shape, want.0, "{name}: shape");
+    let mut worst = 0.0f32;
+    for (i, (&g, &w)) in got.data.iter().zip(&want.1).enumerate() {
+        let err = (g - w).abs() / w.abs().max(1.0);
+        assert!(err <= tol, "{name}[{i}]: {g}, torch {w} (error {err:e})");
+        worst = worst.max(err);
+    }
+    eprintln!("{name}: max error vs torch {worst:e}");
+    worst
+}
+
+/// A 320-point cloud (the voxel cap of 240 and the 4 points per voxel both hit, points
+/// outside the range) and a 150-point one, run one after the other in the same sessions.
+#[test]
+fn lidar_encoder_matches_pytorch() {
+    let (sources, out) = common::compile("models/bevfusion/lidar.readi", LIDAR, None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let weights = fixture("lidar.weights.safetensors");
+    let (plan, _) = backend::compile(&module, &weights, "lidar.weights.safetensors", &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    let io = fixture("lidar.io.safetensors");
+    let plan = Arc::new(plan);
+    let mut one = Session::new(Arc::clone(&plan), 1).expect("session");
+    let mut two = Session::new(plan, 2).expect("session");
+    for case in ["large", "small", "large"] {
+        let (shape, data) = &io.tensors[&format!("{case}.input.points")];
+        let inputs = [Input { name: "points", data, shape }];
+        let a = one.run(&inputs).expect("runs");
+        let b = two.run(&inputs).expect("runs");
+        let (got, got2) = (&a.iter().find(|(n, _)| n == "lidar_bev").expect("lidar_bev").1, &b[0].1);
+        assert!(
+            got.data.iter().zip(&got2.data).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{case}: 1 and 2 threads differ"
+        );
+        close(&format!("{case}.lidar_bev"), got, &io.tensors[&format!("{case}.lidar_bev")], 1e-4);
+        let nonzero = got.data.iter().filter(|v| **v != 0.0).count();
+        assert!(nonzero > got.data.len() / 5, "{case}: a mostly empty BEV ({nonzero} of {})", got.data.len());
+    }
+}
