@@ -215,6 +215,31 @@ fn switch_plan() -> Plan {
     Plan::new(manifest, tensors).expect("a valid plan")
 }
 
+/// What some work allocated: the fewest allocations and the fewest bytes of [`TRIALS`].
+struct Fewest {
+    allocations: usize,
+    bytes: usize,
+}
+
+/// The counter sees every thread, and the pool's threads allocate now and then on their
+/// own (rayon's queues, crossbeam's epoch bookkeeping), more under CPU contention. So each
+/// count is taken over several trials and the smallest kept: an allocation made by
+/// switching or by the executor shows in every trial.
+const TRIALS: usize = 5;
+
+/// Runs `work` [`TRIALS`] times under the counter; allocations include reallocations.
+fn fewest(mut work: impl FnMut()) -> Fewest {
+    let mut f = Fewest { allocations: usize::MAX, bytes: usize::MAX };
+    for _ in 0..TRIALS {
+        let region = Region::new(GLOBAL);
+        work();
+        let c = region.change();
+        f.allocations = f.allocations.min(c.allocations + c.reallocations);
+        f.bytes = f.bytes.min(c.bytes_allocated);
+    }
+    f
+}
+
 #[test]
 fn switching_and_runs_allocate_only_outputs() {
     let plan = Arc::new(plan());
@@ -235,27 +260,17 @@ fn switching_and_runs_allocate_only_outputs() {
         }
     }
 
-    // The counter sees every thread, and the pool's threads allocate now and then on
-    // their own (rayon's queues, crossbeam's epoch bookkeeping), more under CPU
-    // contention. So each count is taken over several trials and the smallest kept: an
-    // allocation made by switching or by the executor shows in every trial.
-    const TRIALS: usize = 5;
-
-    let switching = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for i in 0..10_000 {
-                handle.set(&keys[i % keys.len()]).expect("known key");
-                s.set_variant(&keys[(i + 5) % keys.len()]).expect("known key");
-                handle.set_index(i % keys.len()).expect("in range");
-                handle.set_key(&parsed[(i + 3) % keys.len()]).expect("known key");
-                s.set_variant_key(&parsed[(i + 7) % keys.len()]).expect("known key");
-            }
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min();
-    assert_eq!(switching, Some(0), "50,000 switches allocated");
+    let switching = fewest(|| {
+        for i in 0..10_000 {
+            handle.set(&keys[i % keys.len()]).expect("known key");
+            s.set_variant(&keys[(i + 5) % keys.len()]).expect("known key");
+            handle.set_index(i % keys.len()).expect("in range");
+            handle.set_key(&parsed[(i + 3) % keys.len()]).expect("known key");
+            s.set_variant_key(&parsed[(i + 7) % keys.len()]).expect("known key");
+        }
+    })
+    .allocations;
+    assert_eq!(switching, 0, "50,000 switches allocated");
 
     // The first run after a switch packs the raw LoRA `A`s of the plan's Winograd convs
     // into the session's buffers (`Bound::pack_lora`, with the kernels' `pack_weight`):
@@ -281,17 +296,13 @@ fn switching_and_runs_allocate_only_outputs() {
     let raw = data(4 * 64 * 9, 9);
     let mut bufs: Vec<(ConvAlgo, Vec<f32>)> =
         [ConvAlgo::Winograd4, ConvAlgo::Winograd2].map(|a| (a, vec![0.0; conv::packed_weight_len(&s3, a)])).into();
-    let packing = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for (algo, buf) in &mut bufs {
-                conv::pack_weight(&s3, *algo, &raw, buf);
-            }
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min();
-    assert_eq!(packing, Some(0), "packing a raw LoRA A allocated");
+    let packing = fewest(|| {
+        for (algo, buf) in &mut bufs {
+            conv::pack_weight(&s3, *algo, &raw, buf);
+        }
+    })
+    .allocations;
+    assert_eq!(packing, 0, "packing a raw LoRA A allocated");
 
     // A conv merged on switch: the re-merge (`kernels::merge::switch_pack`, W + B A
     // packed for Winograd into the working copy) allocates nothing, and in a session the
@@ -300,16 +311,12 @@ fn switching_and_runs_allocate_only_outputs() {
     let lora = readi_runtime::kernels::Lora { a: &a, b: &b, rank: 2 };
     let mut tmp = vec![0.0; merge::switch_tmp_len(&s3, ConvAlgo::Winograd4, true)];
     let mut working = vec![0.0; conv::packed_weight_len(&s3, ConvAlgo::Winograd4)];
-    let merging = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            merge::switch_pack(&s3, ConvAlgo::Winograd4, &w, Some(&lora), &mut tmp, &mut working);
-            merge::switch_pack(&s3, ConvAlgo::Winograd2, &w, None, &mut tmp, &mut working[..4 * 64 * 16]);
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min();
-    assert_eq!(merging, Some(0), "re-merging a layer allocated");
+    let merging = fewest(|| {
+        merge::switch_pack(&s3, ConvAlgo::Winograd4, &w, Some(&lora), &mut tmp, &mut working);
+        merge::switch_pack(&s3, ConvAlgo::Winograd2, &w, None, &mut tmp, &mut working[..4 * 64 * 16]);
+    })
+    .allocations;
+    assert_eq!(merging, 0, "re-merging a layer allocated");
 
     // The run-time index kernels (a TransFusion head's top-k over its heatmap, the
     // gathers of the selected queries) work in their outputs.
@@ -319,21 +326,17 @@ fn switching_and_runs_allocate_only_outputs() {
     let mut picked = vec![0.0; 8 * 64];
     let rows: Vec<f32> = (0..8 * 64).map(|j| (j * 37 % 400) as f32).collect();
     let mut gathered = vec![0.0; 8 * 64];
-    let indexing = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            select::topk(&heat, &[1, 4000], 64, 1, true, false, &mut top);
-            select::topk(&heat, &[1, 4000], 64, 1, true, true, &mut at);
-            for v in &mut at {
-                *v %= 400.0;
-            }
-            select::index_select_at(&feats, &[8, 400], 1, &at, &mut picked).expect("in range");
-            select::gather((&feats, &[8, 400]), (&rows, &[8, 64]), 1, &mut gathered, &[8, 64]).expect("in range");
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min();
-    assert_eq!(indexing, Some(0), "the index kernels allocated");
+    let indexing = fewest(|| {
+        select::topk(&heat, &[1, 4000], 64, 1, true, false, &mut top);
+        select::topk(&heat, &[1, 4000], 64, 1, true, true, &mut at);
+        for v in &mut at {
+            *v %= 400.0;
+        }
+        select::index_select_at(&feats, &[8, 400], 1, &at, &mut picked).expect("in range");
+        select::gather((&feats, &[8, 400]), (&rows, &[8, 64]), 1, &mut gathered, &[8, 64]).expect("in range");
+    })
+    .allocations;
+    assert_eq!(indexing, 0, "the index kernels allocated");
     let switched = Arc::new(switch_plan());
     let mut sw = Session::new(Arc::clone(&switched), 1).expect("session");
     let xs = data(64 * 14 * 14, 14);
@@ -343,20 +346,15 @@ fn switching_and_runs_allocate_only_outputs() {
         sw.run(&input).expect("runs");
     }
     let count = |sw: &mut Session, switch: bool| {
-        (0..TRIALS)
-            .map(|_| {
-                let region = Region::new(GLOBAL);
-                for i in 0..10 {
-                    if switch {
-                        sw.set_variant(["fog=1", "fog=2"][i % 2]).expect("key");
-                    }
-                    sw.run(&input).expect("runs");
+        fewest(|| {
+            for i in 0..10 {
+                if switch {
+                    sw.set_variant(["fog=1", "fog=2"][i % 2]).expect("key");
                 }
-                let c = region.change();
-                c.allocations + c.reallocations
-            })
-            .min()
-            .expect("trials")
+                sw.run(&input).expect("runs");
+            }
+        })
+        .allocations
     };
     let (steady, switching) = (count(&mut sw, false), count(&mut sw, true));
     assert_eq!(switching, steady, "10 runs each after a switch allocated {switching}, 10 steady runs {steady}");
@@ -364,19 +362,14 @@ fn switching_and_runs_allocate_only_outputs() {
     // Each run returns a Vec of two (name, tensor) pairs: 1 + 2 * 3 allocations.
     let per_run = 7;
     let runs = 100;
-    let running = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for i in 0..runs {
-                handle.set_index(i % keys.len()).expect("in range");
-                let out = s.run(if i % 2 == 0 { &with_z[..] } else { without_z }).expect("runs");
-                assert_eq!(out.len(), 2);
-            }
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min()
-        .expect("trials");
+    let running = fewest(|| {
+        for i in 0..runs {
+            handle.set_index(i % keys.len()).expect("in range");
+            let out = s.run(if i % 2 == 0 { &with_z[..] } else { without_z }).expect("runs");
+            assert_eq!(out.len(), 2);
+        }
+    })
+    .allocations;
     // rayon's injector queue (every job handed to the pool from outside goes through it)
     // allocates a block per 63 jobs: one or two per trial.
     let slack = 2;
@@ -406,17 +399,12 @@ fn switching_and_runs_allocate_only_outputs() {
     let second = bev.run(&both[1]).expect("runs");
     assert_ne!(first, second, "the calibrations give the same grid");
     let runs = 40;
-    let recomputing = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for i in 0..runs {
-                bev.run(&both[i % 2]).expect("runs");
-            }
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min()
-        .expect("trials");
+    let recomputing = fewest(|| {
+        for i in 0..runs {
+            bev.run(&both[i % 2]).expect("runs");
+        }
+    })
+    .allocations;
     assert!(
         (4 * runs..=4 * runs + slack).contains(&recomputing),
         "{runs} runs alternating two calibrations made {recomputing} allocations at least; their outputs need {}",
@@ -438,17 +426,12 @@ fn switching_and_runs_allocate_only_outputs() {
     let out = vox.run(&vox_inputs).expect("runs");
     assert!(out[1].1.data.iter().filter(|&&n| n > 0.0).count() > 10, "too few voxels");
     assert!(out[4].1.data.iter().filter(|&&d| d > 0.0).count() > 10, "too few depths");
-    let voxelizing = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for _ in 0..runs {
-                vox.run(&vox_inputs).expect("runs");
-            }
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min()
-        .expect("trials");
+    let voxelizing = fewest(|| {
+        for _ in 0..runs {
+            vox.run(&vox_inputs).expect("runs");
+        }
+    })
+    .allocations;
     let per_run = 1 + 3 * 5;
     assert!(
         (per_run * runs..=per_run * runs + slack).contains(&voxelizing),
@@ -473,16 +456,12 @@ fn switching_and_runs_allocate_only_outputs() {
         assert!(close, "sweep {i}: {:?}, not {expected:?}", out[0].1.data);
     }
     let runs = 30;
-    let bytes = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for i in 0..runs {
-                sweeps.run(&frame(i % 3)).expect("runs");
-            }
-            region.change().bytes_allocated
-        })
-        .min()
-        .expect("trials");
+    let bytes = fewest(|| {
+        for i in 0..runs {
+            sweeps.run(&frame(i % 3)).expect("runs");
+        }
+    })
+    .bytes;
     assert!(
         bytes < runs * 16 * 1024,
         "{runs} runs of sweeps of 5, 9 and 17 points allocated {bytes} bytes: the buffers were made anew"
@@ -516,17 +495,12 @@ fn switching_and_runs_allocate_only_outputs() {
     let a = sp.run(&inputs[0]).expect("runs");
     let b = sp.run(&inputs[1]).expect("runs");
     assert_ne!(a, b, "the two site sets give the same outputs");
-    let sparse_runs = (0..TRIALS)
-        .map(|_| {
-            let region = Region::new(GLOBAL);
-            for i in 0..runs {
-                sp.run(&inputs[i % 2]).expect("runs");
-            }
-            let c = region.change();
-            c.allocations + c.reallocations
-        })
-        .min()
-        .expect("trials");
+    let sparse_runs = fewest(|| {
+        for i in 0..runs {
+            sp.run(&inputs[i % 2]).expect("runs");
+        }
+    })
+    .allocations;
     assert!(
         (7 * runs..=7 * runs + slack).contains(&sparse_runs),
         "{runs} sparse runs made {sparse_runs} allocations at least; their outputs need {}",
