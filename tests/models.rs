@@ -27,6 +27,20 @@ fn resnet18_counts_torchvisions_parameters() {
     assert_eq!(module("models/resnet18.readi", &[("num_classes", "10")]).graph.parameter_count(), 11_181_642);
 }
 
+#[test]
+fn bevfusion_parts_count_the_references_parameters() {
+    // The plain-PyTorch ports at the nuScenes config's sizes, `--count`:
+    // make_lidar_fixtures.py (encoders.lidar.backbone) 2,694,352; make_bevfusion_fixtures.py
+    // (encoders.camera.neck + vtransform) 3,202,022, (fuser + decoder + heads.object) 6,386,334.
+    for (rel, count) in [
+        ("models/bevfusion/lidar.readi", 2_694_352),
+        ("models/bevfusion/camera.readi", 3_202_022),
+        ("models/bevfusion/decoder.readi", 6_386_334),
+    ] {
+        assert_eq!(module(rel, &[]).graph.parameter_count(), count, "{rel}");
+    }
+}
+
 struct Reference {
     params: BTreeMap<String, String>,
     count: u64,
