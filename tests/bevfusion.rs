@@ -46,19 +46,6 @@ fn run(plan: Plan, io: &WeightSet) -> Vec<(String, Tensor)> {
     one
 }
 
-/// `got` against torch's `want` to `tol` (absolute, or relative above 1); returns the worst error.
-fn close(name: &str, got: &Tensor, want: &(Vec<usize>, Vec<f32>), tol: f32) -> f32 {
-    assert_eq!(got.shape, want.0, "{name}: shape");
-    let mut worst = 0.0f32;
-    for (i, (&g, &w)) in got.data.iter().zip(&want.1).enumerate() {
-        let err = (g - w).abs() / w.abs().max(1.0);
-        assert!(err <= tol, "{name}[{i}]: {g}, torch {w} (error {err:e})");
-        worst = worst.max(err);
-    }
-    eprintln!("{name}: max error vs torch {worst:e}");
-    worst
-}
-
 fn output<'a>(outputs: &'a [(String, Tensor)], name: &str) -> &'a Tensor {
     &outputs.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("no output {name}")).1
 }
@@ -105,11 +92,11 @@ fn decoder_and_transfusion_head_match_pytorch() {
         "boxes",
         "scores",
     ] {
-        close(name, output(&outputs, name), &io.tensors[name], 1e-4);
+        common::close(name, output(&outputs, name), &io.tensors[name], 1e-4);
     }
     // The integer outputs exactly: the query classes, the labels, the keep mask.
     for name in ["query_labels", "labels", "keep"] {
-        close(name, output(&outputs, name), &io.tensors[name], 0.0);
+        common::close(name, output(&outputs, name), &io.tensors[name], 0.0);
     }
     let keep = output(&outputs, "keep");
     let kept = keep.data.iter().filter(|v| **v == 1.0).count();
@@ -125,9 +112,9 @@ fn decoder_and_transfusion_head_match_pytorch() {
             let shape = if width == 1 { vec![rows.len()] } else { vec![rows.len(), width] };
             Tensor { shape, data }
         };
-        close(&format!("kept{b}.boxes"), &gather(boxes, 9), &io.tensors[&format!("kept{b}.boxes")], 1e-4);
-        close(&format!("kept{b}.scores"), &gather(scores, 1), &io.tensors[&format!("kept{b}.scores")], 1e-4);
-        close(&format!("kept{b}.labels"), &gather(labels, 1), &io.tensors[&format!("kept{b}.labels")], 0.0);
+        common::close(&format!("kept{b}.boxes"), &gather(boxes, 9), &io.tensors[&format!("kept{b}.boxes")], 1e-4);
+        common::close(&format!("kept{b}.scores"), &gather(scores, 1), &io.tensors[&format!("kept{b}.scores")], 1e-4);
+        common::close(&format!("kept{b}.labels"), &gather(labels, 1), &io.tensors[&format!("kept{b}.labels")], 0.0);
     }
 }
 
@@ -159,8 +146,8 @@ fn camera_neck_and_depth_lss_transform_match_pytorch() {
     let plan = compile("models/bevfusion/camera.readi", CAMERA, "camera.weights.safetensors");
     let io = fixture("camera.io.safetensors");
     let outputs = run(plan, &io);
-    close("neck", output(&outputs, "neck"), &io.tensors["neck"], 1e-4);
+    common::close("neck", output(&outputs, "neck"), &io.tensors["neck"], 1e-4);
     let bev = output(&outputs, "camera_bev");
-    close("camera_bev", bev, &io.tensors["camera_bev"], 1e-4);
+    common::close("camera_bev", bev, &io.tensors["camera_bev"], 1e-4);
     assert!(bev.data.iter().filter(|v| **v != 0.0).count() > bev.data.len() / 4, "a mostly empty BEV");
 }

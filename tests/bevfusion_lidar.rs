@@ -10,7 +10,7 @@ mod common;
 use std::sync::Arc;
 
 use readi_compiler::backend::{self, CompileOptions, WeightSet};
-use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::exec::{Input, Session};
 
 fn fixture(name: &str) -> WeightSet {
     let path = common::root().join("tests/fixtures/bevfusion").join(name);
@@ -38,19 +38,6 @@ const LIDAR: &[(&str, &str)] = &[
     ("out_ch", "6"),
 ];
 
-/// `got` against torch's `want` to `tol` (absolute, or relative above 1); returns the worst error.
-fn close(name: &str, got: &Tensor, want: &(Vec<usize>, Vec<f32>), tol: f32) -> f32 {
-    assert_eq!(got.shape, want.0, "{name}: shape");
-    let mut worst = 0.0f32;
-    for (i, (&g, &w)) in got.data.iter().zip(&want.1).enumerate() {
-        let err = (g - w).abs() / w.abs().max(1.0);
-        assert!(err <= tol, "{name}[{i}]: {g}, torch {w} (error {err:e})");
-        worst = worst.max(err);
-    }
-    eprintln!("{name}: max error vs torch {worst:e}");
-    worst
-}
-
 /// A 320-point cloud (the voxel cap of 240 and the 4 points per voxel both hit, points
 /// outside the range) and a 150-point one, run one after the other in the same sessions.
 #[test]
@@ -75,7 +62,7 @@ fn lidar_encoder_matches_pytorch() {
             got.data.iter().zip(&got2.data).all(|(x, y)| x.to_bits() == y.to_bits()),
             "{case}: 1 and 2 threads differ"
         );
-        close(&format!("{case}.lidar_bev"), got, &io.tensors[&format!("{case}.lidar_bev")], 1e-4);
+        common::close(&format!("{case}.lidar_bev"), got, &io.tensors[&format!("{case}.lidar_bev")], 1e-4);
         let nonzero = got.data.iter().filter(|v| **v != 0.0).count();
         assert!(nonzero > got.data.len() / 5, "{case}: a mostly empty BEV ({nonzero} of {})", got.data.len());
     }

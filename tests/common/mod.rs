@@ -73,3 +73,17 @@ pub fn plan_file_bytes(format_version: &str, json: String, tensors: &[(String, V
     ]);
     safetensors::serialize(views, Some(metadata)).expect("serialise the plan file")
 }
+
+/// `got` against a reference `want` (shape, values) to `tol` (absolute, or relative above
+/// 1); returns the worst error.
+pub fn close(name: &str, got: &readi_runtime::exec::Tensor, want: &(Vec<usize>, Vec<f32>), tol: f32) -> f32 {
+    assert_eq!(got.shape, want.0, "{name}: shape");
+    let mut worst = 0.0f32;
+    for (i, (&g, &w)) in got.data.iter().zip(&want.1).enumerate() {
+        let err = (g - w).abs() / w.abs().max(1.0);
+        assert!(err <= tol, "{name}[{i}]: {g}, torch {w} (error {err:e})");
+        worst = worst.max(err);
+    }
+    eprintln!("{name}: max error vs torch {worst:e}");
+    worst
+}
