@@ -1,10 +1,11 @@
 //! `use "other.readi"`: a file's items together with those of the files it uses.
 //!
-//! A used file brings its blocks and its model. Its `adapt` sections come too unless the
-//! using file has `adapt` sections of its own, and likewise its `variants` section: a
-//! deployment file can then hold only the adaptation and the conditions for a model
-//! written elsewhere (`use "resnet50.readi"` and an `adapt` section), replacing the model
-//! file's own. Paths are relative to the file that writes them; reading them is the
+//! A used file brings its blocks. Its model, its `adapt` sections and its `variants`
+//! section come too unless the using file has its own of that kind: a deployment file can
+//! then hold only the adaptation and the conditions for a model written elsewhere
+//! (`use "resnet50.readi"` and an `adapt` section), replacing the model file's own, and a
+//! model can be assembled from the blocks of part files that each keep a model of their
+//! own for testing (`models/bevfusion.readi` uses `models/bevfusion/*.readi`). Paths are relative to the file that writes them; reading them is the
 //! caller's (a [`Load`]), so the parser itself never touches the file system.
 //!
 //! Each file is included once: a file reached twice (two files use a third) or a cycle
@@ -40,6 +41,7 @@ fn expand(
 ) -> Vec<Item> {
     diags.extend(parsed.diagnostics);
     let own = parsed.file.items;
+    let has_model = own.iter().any(|i| matches!(i, Item::Model(_)));
     let has_adapt = own.iter().any(|i| matches!(i, Item::Adapt(_)));
     let has_variants = own.iter().any(|i| matches!(i, Item::Variants(_)));
     let mut items = Vec::with_capacity(own.len());
@@ -72,6 +74,7 @@ fn expand(
         let parsed = parse(used, &text);
         for i in expand(used, parsed, load, seen, diags, depth + 1) {
             match i {
+                Item::Model(_) if has_model => {}
                 Item::Adapt(_) if has_adapt => {}
                 Item::Variants(_) if has_variants => {}
                 i => items.push(i),
@@ -133,6 +136,26 @@ mod tests {
         assert!(rules.contains("batchnorm") && !rules.contains("\"fc\""), "{rules}");
         assert_eq!(p.file.variant_sections().count(), 1);
         assert_eq!(p.file.uses().count(), 0, "uses are resolved away");
+    }
+
+    #[test]
+    fn a_model_assembled_from_part_files_keeps_only_its_own_model() {
+        let a = "block A(x) { return relu(x) }\nmodel a { input x: f32[N, 4]\n output y = A(x) }\nadapt { tune fc }\n";
+        let b = "block B(x) { return sigmoid(x) }\nmodel b { input x: f32[N, 4]\n output y = B(x) }\n";
+        let whole = "use \"a.readi\"\nuse \"b.readi\"\nmodel whole { input x: f32[N, 4]\n output y = B(A(x)) }\n";
+        let (p, _) = parse_root(vec![("a.readi", a), ("b.readi", b), ("w.readi", whole)], "w.readi");
+        assert!(p.diagnostics.is_empty(), "{:?}", p.diagnostics);
+        assert_eq!(p.file.blocks().count(), 2);
+        let models: Vec<_> = p.file.models().map(|m| m.name.name.as_str()).collect();
+        assert_eq!(models, ["whole"]);
+        // The part's adapt section still comes along: the assembled file has none.
+        assert_eq!(p.file.adapt_sections().count(), 1);
+        // Without a model of its own, the using file gets both parts' models.
+        let (p, _) = parse_root(
+            vec![("a.readi", a), ("b.readi", b), ("u.readi", "use \"a.readi\"\nuse \"b.readi\"\n")],
+            "u.readi",
+        );
+        assert_eq!(p.file.models().count(), 2);
     }
 
     #[test]

@@ -61,6 +61,18 @@ impl Frontend {
         let _ = err.write_all(self.sources.render_all(diags, self.color).as_bytes());
     }
 
+    /// The number of blocks of `path` when it is a block library: a file that parses (its
+    /// uses included) to blocks and no model, which model files `use` and which is
+    /// therefore not elaborated on its own. `None` for anything else, and for a file that
+    /// cannot be read or does not parse (the full compile then reports why).
+    pub fn library_blocks(&mut self, path: &Path) -> Option<usize> {
+        let (file, text) = self.read_source(path).ok()?;
+        let parsed = readi_grammar::imports::parse_with_uses(file, &text, &mut |from, p| self.load_used(from, p));
+        let library = !parsed.diagnostics.has_errors() && parsed.file.models().next().is_none();
+        let blocks = parsed.file.blocks().count();
+        (library && blocks > 0).then_some(blocks)
+    }
+
     pub fn compile(
         &mut self,
         path: &Path,

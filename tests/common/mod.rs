@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use readi_compiler::passes::{self, Options, Outcome, Pass};
-use readi_grammar::diag::SourceMap;
+use readi_grammar::diag::{FileId, SourceMap};
 
 /// Runs the `readi` binary from the repository root, without colour.
 pub fn readi(args: &[&str]) -> std::process::Output {
@@ -21,10 +21,26 @@ pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// Compiles a file (path relative to the root) through the pipeline.
+/// Compiles a file (path relative to the root) through the pipeline, with the files it
+/// `use`s read relative to it, as `readi` reads them.
 pub fn compile(rel: &str, overrides: &[(&str, &str)], stop_after: Option<Pass>) -> (SourceMap, Outcome) {
     let text = std::fs::read_to_string(root().join(rel)).unwrap_or_else(|e| panic!("read {rel}: {e}"));
-    compile_text(rel, &text, overrides, stop_after)
+    let mut sources = SourceMap::new();
+    let file = sources.add(rel, &text);
+    let opts = Options { stop_after, ..Options::with_overrides(overrides) };
+    let mut read: Vec<(PathBuf, FileId)> = Vec::new();
+    let out = passes::run_with_uses(file, &text, &opts, &mut |from, path| {
+        let used = Path::new(sources.name(from)).parent().unwrap_or(Path::new("")).join(path);
+        let full = root().join(&used).canonicalize().map_err(|e| format!("{}: {e}", used.display()))?;
+        if let Some(&(_, id)) = read.iter().find(|(p, _)| *p == full) {
+            return Ok((id, sources.text(id).to_string()));
+        }
+        let text = std::fs::read_to_string(&full).map_err(|e| format!("{}: {e}", used.display()))?;
+        let id = sources.add(used.display().to_string(), &text);
+        read.push((full, id));
+        Ok((id, text))
+    });
+    (sources, out)
 }
 
 /// Compiles source text registered under `name`.
