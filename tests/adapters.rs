@@ -114,6 +114,60 @@ fn bevfusion_tiny_fused_adapters_match_the_unfused_plan() {
     check("models/bevfusion_tiny.readi", &[], &["gamma=0.25", "fog=0.06"], adapters);
 }
 
+/// An adapter before a BatchNorm of rows of features (`[N, C]`, as a sparse tensor's: the
+/// lidar encoder's residual blocks) is two linears; the variant's output against a naive
+/// evaluation of `bn(h + up(relu(down(h))))`, `h = linear(x)`, from its seeded tensors.
+#[test]
+fn an_adapter_on_rows_of_features_is_two_linears() {
+    let spec = "block Res(x: tensor) {\n  fc = linear(x, 8)\n  bn = batchnorm(fc)\n  return relu(bn)\n}\n\
+        model rows {\n  input x: f32[5, 6] @lidar\n  res = Res(x)\n  output y = res\n}\n\
+        adapt lidar { adapter squeeze=2 act=relu in Res before bn }\n\
+        variants { axis fog on lidar: 0.1 clear 0 }\n";
+    let (sources, out) = common::compile_text("rows.readi", spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let keys = vec!["fog=0.1".to_string()];
+    let variants = backend::seeded_variants(&m, &keys, 4);
+    let base = backend::seeded_weights(&m.graph, 3);
+    let plan = Arc::new(
+        backend::compile_variants(&m, &base, "seeded", &variants, &CompileOptions::default()).expect("compiles").0,
+    );
+    let x: Vec<f32> = (0..30).map(|k| ((k * 37 % 19) as f32 / 9.0) - 1.0).collect();
+    let mut session = Session::new(plan, 1).expect("session");
+    session.set_variant("fog=0.1").expect("key");
+    let got = session.run(&[Input { name: "x", data: &x, shape: &[5, 6] }]).expect("runs");
+
+    let get = |name: &str| -> Vec<f64> {
+        let t = variants[0].weights.tensors.get(name).or_else(|| base.tensors.get(name));
+        t.unwrap_or_else(|| panic!("no tensor {name}")).1.iter().map(|&v| v as f64).collect()
+    };
+    // `y[r, o] = sum_i w[o, i] a[r, i] + b[o]` over rows of `a`.
+    let linear = |a: &[f64], cin: usize, w: &[f64], b: &[f64]| -> Vec<f64> {
+        let cout = b.len();
+        (0..a.len() / cin * cout)
+            .map(|k| b[k % cout] + (0..cin).map(|i| w[k % cout * cin + i] * a[k / cout * cin + i]).sum::<f64>())
+            .collect()
+    };
+    let xs: Vec<f64> = x.iter().map(|&v| v as f64).collect();
+    let h = linear(&xs, 6, &get("res.fc.weight"), &get("res.fc.bias"));
+    let down: Vec<f64> = linear(&h, 8, &get("res.bn.adapter.down.weight"), &get("res.bn.adapter.down.bias"))
+        .into_iter()
+        .map(|v| v.max(0.0))
+        .collect();
+    let up = linear(&down, 4, &get("res.bn.adapter.up.weight"), &get("res.bn.adapter.up.bias"));
+    let (gamma, beta, mean, var) =
+        (get("res.bn.weight"), get("res.bn.bias"), get("res.bn.running_mean"), get("res.bn.running_var"));
+    let want: Vec<f32> = (0..40)
+        .map(|k| {
+            let c = k % 8;
+            let z = h[k] + up[k];
+            (((z - mean[c]) / (var[c] + 1e-5).sqrt() * gamma[c] + beta[c]).max(0.0)) as f32
+        })
+        .collect();
+    assert!(up.iter().any(|v| v.abs() > 1e-3), "the adapter adds nothing");
+    common::close("y", &got[0].1, &(vec![5, 8], want), 1e-5);
+}
+
 /// Writes `resnet18.plan` (adapters fused), `resnet18_unfused.plan` and
 /// `resnet18_no_adapters.plan` (the spec without its adapter rules), likewise for
 /// bevfusion_tiny, each with one seeded variant (`gamma=0.5`, `gamma=0.25`), into the directory

@@ -16,7 +16,8 @@
 //!
 //! For every adapter target `t(x)` (before a BatchNorm, say), a residual bottleneck on its
 //! input, `t(x + up(act(down(x))))`: `down` a 1x1 conv `C -> C/squeeze` with bias, `up` a 1x1
-//! conv `C/squeeze -> C` with bias. Nodes `<t>.adapter.down`, `.act`, `.up`, `.add`.
+//! conv `C/squeeze -> C` with bias (on rows of features `[N, C]`, a sparse tensor's, two
+//! linears). Nodes `<t>.adapter.down`, `.act`, `.up`, `.add`.
 //!
 //! The new parameter slots are [`SlotKind::Added`]: they are not in the base model, whose
 //! value for them is zero (so `lora_B = 0` and `up = 0` make every branch vanish), and each
@@ -24,7 +25,7 @@
 //! the back end uses to merge LoRA into the base weights.
 //!
 //! Assumes: `resolve_adapt` ran without errors (targets are linear/conv2d layers with
-//! known sizes, adapter inputs are NCHW with channels divisible by the squeeze ratio).
+//! known sizes, adapter inputs are NCHW or `[N, C]` with channels divisible by the squeeze ratio).
 
 use readi_grammar::diag::Span;
 
@@ -127,7 +128,12 @@ fn adapter(
         .value_type(x)
         .and_then(|t| t.known_dim(1))
         .ok_or_else(|| format!("the input of `{path}` has no known channel count"))?;
+    // 1x1 convs on NCHW, linears on rows of features ([N, C]: a sparse tensor's).
+    let rows = graph.value_type(x).is_some_and(|t| t.rank() == 2);
     let conv = |cin: i64, cout: i64| {
+        if rows {
+            return Op::Linear(LinearOp::new(Linear { in_features: cin, out_features: cout }, true));
+        }
         let conv = Conv2d { in_channels: cin, out_channels: cout, window: Window2::ONE, groups: 1 };
         Op::Conv2d(ConvOp::new(conv, true))
     };

@@ -23,7 +23,7 @@
 //! * `lora` on `linear(in, out)`: `rank * (in + out)`; on `conv2d(in, out, k)`:
 //!   `rank * in * kh * kw + out * rank` (PEFT's `lora_A` conv and 1x1 `lora_B` conv);
 //! * `adapter` with squeeze `r` on `C` channels: a 1x1 conv `C -> C/r` and a 1x1 conv
-//!   `C/r -> C`, both with bias: `2 * C * C/r + C/r + C`.
+//!   `C/r -> C`, both with bias: `2 * C * C/r + C/r + C` (two linears on `[N, C]` rows).
 
 use std::collections::{HashMap, HashSet};
 
@@ -532,16 +532,18 @@ impl Cx<'_> {
                     continue;
                 }
                 let input = g.inputs(n).first().and_then(|v| g.value_type(*v)).cloned();
-                // The adapter's 1x1 convs need known channels and spatial sizes.
-                let nchw =
-                    input.as_ref().filter(|t| t.rank() == 4 && t.known_dim(2).is_some() && t.known_dim(3).is_some());
-                let channels = nchw.and_then(|t| t.known_dim(1));
+                // The adapter's 1x1 convs need known channels and spatial sizes; on rows of
+                // features ([N, C]: a sparse tensor's, a linear's) it is two linears.
+                let fits = |t: &&crate::ir::TensorType| {
+                    (t.rank() == 4 && t.known_dim(2).is_some() && t.known_dim(3).is_some()) || t.rank() == 2
+                };
+                let channels = input.as_ref().filter(fits).and_then(|t| t.known_dim(1));
                 let Some(c) = channels else {
                     diags.push(
                         Diagnostic::error(
                             Code::BadSelector,
                             format!(
-                                "an adapter needs an NCHW input with known channels and spatial sizes, but `{}` takes {}",
+                                "an adapter needs an NCHW input with known channels and spatial sizes, or [N, C] rows, but `{}` takes {}",
                                 node.path,
                                 show(input.as_ref())
                             ),
