@@ -31,11 +31,15 @@ fn resnet18_counts_torchvisions_parameters() {
 fn bevfusion_parts_count_the_references_parameters() {
     // The plain-PyTorch ports at the nuScenes config's sizes, `--count`:
     // make_lidar_fixtures.py (encoders.lidar.backbone) 2,694,352; make_bevfusion_fixtures.py
-    // (encoders.camera.neck + vtransform) 3,202,022, (fuser + decoder + heads.object) 6,386,334.
+    // (encoders.camera.neck + vtransform) 3,202,022, (fuser + decoder + heads.object) 6,386,334;
+    // make_swin_fixtures.py (encoders.camera.backbone, mmdet's Swin-T with out_indices
+    // [1, 2, 3]) 27,520,506: torchvision's swin_t 28,288,354 without its head (769,000) and
+    // final norm (1,536), with mmdet's three output norms (2,688).
     for (rel, count) in [
         ("models/bevfusion/lidar.readi", 2_694_352),
         ("models/bevfusion/camera.readi", 3_202_022),
         ("models/bevfusion/decoder.readi", 6_386_334),
+        ("models/bevfusion/swin.readi", 27_520_506),
     ] {
         assert_eq!(module(rel, &[]).graph.parameter_count(), count, "{rel}");
     }
