@@ -34,12 +34,14 @@ fn bevfusion_parts_count_the_references_parameters() {
     // (encoders.camera.neck + vtransform) 3,202,022, (fuser + decoder + heads.object) 6,386,334;
     // make_swin_fixtures.py (encoders.camera.backbone, mmdet's Swin-T with out_indices
     // [1, 2, 3]) 27,520,506: torchvision's swin_t 28,288,354 without its head (769,000) and
-    // final norm (1,536), with mmdet's three output norms (2,688).
+    // final norm (1,536), with mmdet's three output norms (2,688); make_full_fixtures.py (the
+    // whole detector) 39,803,214, their sum.
     for (rel, count) in [
         ("models/bevfusion/lidar.readi", 2_694_352),
         ("models/bevfusion/camera.readi", 3_202_022),
         ("models/bevfusion/decoder.readi", 6_386_334),
         ("models/bevfusion/swin.readi", 27_520_506),
+        ("models/bevfusion.readi", 39_803_214),
     ] {
         assert_eq!(module(rel, &[]).graph.parameter_count(), count, "{rel}");
     }
