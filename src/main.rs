@@ -107,7 +107,9 @@ fn run(cli: Cli) -> ExitCode {
             cli::bench::run(&plan, session, runs, warmup, batch, profile, variant.as_deref())
         }
         Command::Inspect { plan, verbose, max_memory } => cli::inspect::run(&plan, verbose, max_memory),
-        Command::Demo { threads, frames } => cli::demo::run(&mut s, cli::threads_or_default(threads), frames),
+        Command::Demo { model, threads, frames } => {
+            cli::demo::run(&mut s, model, cli::threads_or_default(threads), frames)
+        }
         Command::Simulate(args) => cli::simulate::run(&args),
         Command::AdaptBn { plan, variant, samples, output, threads, max_memory } => {
             cli::adapt_bn::run(&plan, &variant, &samples, &output, cli::session_options(threads, max_memory))

@@ -167,6 +167,40 @@ fn demo_runs_on_the_embedded_model() {
     assert!(out.contains("exist budget") && out.contains("add budget"), "{out}");
 }
 
+/// The BEVFusion demo's drive: the simulated weather and exposure, read back from the
+/// sensor data and metadata by the spec's selectors, pick each frame's intended variant
+/// (the meld for fog at dusk, missing=lidar without points) and the detector decodes boxes.
+#[test]
+fn the_bevfusion_demo_picks_each_conditions_variant() {
+    let o = Command::new(env!("CARGO_BIN_EXE_readi"))
+        .args(["demo", "--model", "bevfusion", "--threads", "2"])
+        .current_dir(std::env::temp_dir())
+        .output()
+        .expect("run readi demo");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    // The frame lines: `  <frame> <conditions> <points> <variant> ...`.
+    let frame = |what: &str| {
+        let mut frames =
+            out.lines().filter(|l| l.trim_start().starts_with(|c: char| c.is_ascii_digit()) && l.contains(" us "));
+        frames.find(|l| l.contains(what)).unwrap_or_else(|| panic!("no {what}: {out}"))
+    };
+    for (what, key) in [
+        ("clear ", " base "),
+        ("fog rising", " fog=0.03 "),
+        ("dusk in dense fog", " fog=0.06+gamma=0.5 "),
+        ("snow", " snow=1.5 "),
+        ("tunnel: dark", " gamma=0.25 "),
+        ("lidar lost", " missing=lidar "),
+        ("cameras lost", " base "),
+    ] {
+        let line = frame(what);
+        assert!(line.contains(key), "{what}: {line}");
+        assert!(line.contains(" m, yaw "), "{what}: no box: {line}");
+    }
+    assert!(!out.contains("ignored"), "a selection the demo's plan cannot serve: {out}");
+}
+
 /// Writes seeded weights for a spec to a temp safetensors file; returns (dir, weights path).
 fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (std::path::PathBuf, std::path::PathBuf) {
     let module = common::compile(spec, overrides, None).1.module.expect("module");

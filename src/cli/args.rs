@@ -286,8 +286,12 @@ pub enum Command {
         #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
         max_memory: Option<usize>,
     },
-    /// Compile the bundled BEVFusion-tiny model with seeded weights and variants; drive through changing conditions.
+    /// Compile the bundled BEVFusion-tiny model (or, with `--model bevfusion`, the paper's
+    /// BEVFusion at a demo size) with seeded weights and variants; drive through changing conditions.
     Demo {
+        /// The model to drive.
+        #[arg(long, value_enum, default_value_t)]
+        model: super::demo::DemoModel,
         /// Worker threads (default: all cores).
         #[arg(long)]
         threads: Option<usize>,

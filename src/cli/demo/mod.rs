@@ -4,6 +4,7 @@
 //! then a simulated drive runs frame by frame while conditions change — clear, fog rising,
 //! dusk on top of fog, a dark camera, the lidar lost, clear again — and each frame's
 //! variant is chosen from the sensor data and the weather metadata by the spec's selectors.
+//! `readi demo --model bevfusion` does the same with the paper's network ([`bevfusion`]).
 
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -19,8 +20,21 @@ use readi_runtime::plan::Plan;
 
 use super::frontend::Frontend;
 
+mod bevfusion;
+mod scene;
+
+/// Which model `readi demo` drives.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum DemoModel {
+    /// models/bevfusion_tiny.readi: small, a frame in milliseconds.
+    #[default]
+    Tiny,
+    /// models/bevfusion.readi at a demo size: a sweep and six views to boxes.
+    Bevfusion,
+}
+
 /// The embedded model.
-pub const MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../../models/bevfusion_tiny.readi"));
+pub const MODEL: (&str, &str) = ("models/bevfusion_tiny.readi", include_str!("../../../models/bevfusion_tiny.readi"));
 
 /// The variants the demo compiles: every fog level, two exposures, the lost lidar.
 const VARIANTS: &[&str] = &[
@@ -132,8 +146,15 @@ fn describe_model(m: &Module, name: &str, check_ms: f64) {
     }
 }
 
-/// Runs the demo; `frames` frames of the drive (it repeats when longer).
-pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCode> {
+/// Runs the demo on `model`; `frames` frames of the drive (it repeats when longer).
+pub fn run(s: &mut Frontend, model: DemoModel, threads: usize, frames: usize) -> Result<(), ExitCode> {
+    match model {
+        DemoModel::Tiny => run_tiny(s, threads, frames),
+        DemoModel::Bevfusion => bevfusion::run(s, threads, frames),
+    }
+}
+
+fn run_tiny(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCode> {
     let fail = |msg: String| {
         eprintln!("error: {msg}");
         ExitCode::FAILURE
