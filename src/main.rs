@@ -102,9 +102,10 @@ fn run(cli: Cli) -> ExitCode {
             let session = cli::session_options(threads, max_memory);
             cli::run::run(&plan, &inputs, &outputs, session, choice, &drop_views)
         }
-        Command::Bench { plan, threads, runs, warmup, batch, profile, variant, max_memory } => {
+        Command::Bench { plan, threads, runs, warmup, batch, profile, variant, inputs, max_memory } => {
             let session = cli::session_options(threads, max_memory);
-            cli::bench::run(&plan, session, runs, warmup, batch, profile, variant.as_deref())
+            let timing = cli::bench::Timing { runs, warmup, batch, profile };
+            cli::bench::run(&plan, session, &timing, variant.as_deref(), &inputs)
         }
         Command::Inspect { plan, verbose, max_memory } => cli::inspect::run(&plan, verbose, max_memory),
         Command::Demo { model, threads, frames } => {

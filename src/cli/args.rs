@@ -236,6 +236,10 @@ pub enum Command {
         /// The variant to time, by key; default the base model.
         #[arg(long, value_name = "KEY")]
         variant: Option<String>,
+        /// An input from a file, `NAME=FILE` as for `readi run` (repeatable); the others are
+        /// seeded. For models whose work depends on the data (a point cloud's voxels).
+        #[arg(long = "input", value_name = "NAME=FILE", value_parser = parse_set)]
+        inputs: Vec<(String, String)>,
         /// Most memory a run may take (activation buffers, scratch, inputs, outputs): bytes, or
         /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
         #[arg(long, value_name = "BYTES", value_parser = parse_memory)]

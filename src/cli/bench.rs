@@ -36,21 +36,36 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)]
 }
 
+/// How `readi bench` times a plan.
+pub struct Timing {
+    /// Timed runs.
+    pub runs: usize,
+    /// Untimed runs first.
+    pub warmup: usize,
+    /// The batch size bound to the symbolic batch dimension.
+    pub batch: usize,
+    /// Whether to print the per-step profile.
+    pub profile: bool,
+}
+
+/// Times `plan_path` under `variant` (or the base) on seeded inputs, except those `inputs`
+/// names (`NAME=FILE`, read as `readi run` reads them): a model whose work depends on its
+/// data (a point cloud's voxels and sparse sites) is timed on real data that way.
 pub fn run(
     plan_path: &Path,
     options: SessionOptions,
-    runs: usize,
-    warmup: usize,
-    batch: usize,
-    profile: bool,
+    timing: &Timing,
     variant: Option<&str>,
+    inputs: &[(String, String)],
 ) -> Result<(), ExitCode> {
+    let Timing { runs, warmup, batch, profile } = *timing;
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
         eprintln!("error: {msg}");
         ExitCode::FAILURE
     };
     let threads = options.threads;
+    let options_max_memory = options.max_memory;
     let mut session = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
     if let Some(key) = variant {
         session.set_variant(key).map_err(|e| fail(e.to_string()))?;
@@ -58,7 +73,13 @@ pub fn run(
     // Bound first: a batch too large for the memory limit (or for the address space) is
     // refused before the inputs are made.
     session.bind_batch(batch).map_err(|e| fail(format!("{}: batch {batch}: {e}", plan_path.display())))?;
-    let data = synthetic_inputs(&plan, batch, 42);
+    let mut data = synthetic_inputs(&plan, batch, 42);
+    for (name, (shape, d)) in super::run::load_inputs(&plan.manifest, inputs, options_max_memory).map_err(fail)? {
+        match data.iter_mut().find(|(n, _, _)| *n == name) {
+            Some(slot) => *slot = (name, shape, d),
+            None => return Err(fail(format!("the plan has no input `{}`", escaped(&name)))),
+        }
+    }
     let given: Vec<Input<'_>> = data.iter().map(|(name, shape, d)| Input { name, data: d, shape }).collect();
     let shown = plan_path.display();
     for _ in 0..warmup {

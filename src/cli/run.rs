@@ -67,6 +67,26 @@ fn bin_columns(m: &readi_runtime::plan::Manifest, name: &str, file: &str) -> Res
     }
 }
 
+/// The `--input NAME=FILE` tensors: `.npy` / `.safetensors`, or a `.bin` point cloud read
+/// into the `[P, C]` input's C columns; each at most `max_memory` bytes.
+pub fn load_inputs(
+    m: &readi_runtime::plan::Manifest,
+    inputs: &[(String, String)],
+    max_memory: usize,
+) -> Result<Vec<(String, (Vec<usize>, Vec<f32>))>, String> {
+    let mut loaded = Vec::with_capacity(inputs.len());
+    for (name, file) in inputs {
+        let path = Path::new(file);
+        let t = if tensor_io::is_bin(path) {
+            tensor_io::read_bin(path, bin_columns(m, name, file)?, max_memory)
+        } else {
+            tensor_io::read_input(name, path, max_memory)
+        };
+        loaded.push((name.clone(), t?));
+    }
+    Ok(loaded)
+}
+
 pub fn run(
     plan_path: &Path,
     inputs: &[(String, String)],
@@ -81,17 +101,7 @@ pub fn run(
         ExitCode::FAILURE
     };
     let destinations = destinations(&plan.manifest, outputs).map_err(fail)?;
-    let mut loaded = Vec::new();
-    for (name, file) in inputs {
-        let path = Path::new(file);
-        let t = if tensor_io::is_bin(path) {
-            let columns = bin_columns(&plan.manifest, name, file).map_err(fail)?;
-            tensor_io::read_bin(path, columns, options.max_memory)
-        } else {
-            tensor_io::read_input(name, path, options.max_memory)
-        };
-        loaded.push((name.clone(), t.map_err(fail)?));
-    }
+    let mut loaded = load_inputs(&plan.manifest, inputs, options.max_memory).map_err(fail)?;
     for (name, views) in drop_views {
         let Some((_, (shape, data))) = loaded.iter_mut().find(|(n, _)| n == name) else {
             return Err(fail(format!("--drop-views names `{name}`, which is not given with --input")));
