@@ -62,10 +62,17 @@ pub fn channel_affine(
     assert_eq!(out.len(), x.len(), "channel_affine: out and x differ in length");
     assert!(scale.is_none_or(|s| s.len() == c), "channel_affine: scale must have length c");
     assert!(shift.is_none_or(|s| s.len() == c), "channel_affine: shift must have length c");
-    affine_rows(x, out, inner, act == Some(Activation::Relu), |row| {
-        let ch = row % c;
-        (scale.map_or(1.0, |s| s[ch]), shift.map_or(0.0, |s| s[ch]))
-    });
+    let relu = act == Some(Activation::Relu);
+    if inner == 1 && c > 1 {
+        // Rows of features ([n, c]: a sparse tensor's, BatchNorm1d's): the channel is the
+        // fastest axis, so a row is one vector of coefficients, not c rows of one element.
+        affine_channels_last(x, out, c, relu, scale, shift);
+    } else {
+        affine_rows(x, out, inner, relu, |row| {
+            let ch = row % c;
+            (scale.map_or(1.0, |s| s[ch]), shift.map_or(0.0, |s| s[ch]))
+        });
+    }
     if let Some(act) = act.filter(|a| *a != Activation::Relu) {
         elementwise::activation_in_place(act, out);
     }
@@ -264,6 +271,39 @@ where
     }
 }
 
+/// `out = x * scale + shift` (then ReLU) on rows of `c` channels, the channel fastest;
+/// threaded over whole rows. A missing scale is 1, a missing shift 0.
+fn affine_channels_last(
+    x: &[f32],
+    out: &mut [f32],
+    c: usize,
+    relu: bool,
+    scale: Option<&[f32]>,
+    shift: Option<&[f32]>,
+) {
+    let rows = |out: &mut [f32], x: &[f32]| {
+        for (o, x) in out.chunks_exact_mut(c).zip(x.chunks_exact(c)) {
+            match (scale, shift) {
+                (Some(a), Some(b)) => {
+                    o.iter_mut().zip(x).zip(a.iter().zip(b)).for_each(|((o, &v), (&a, &b))| *o = v * a + b)
+                }
+                (Some(a), None) => o.iter_mut().zip(x).zip(a).for_each(|((o, &v), &a)| *o = v * a),
+                (None, Some(b)) => o.iter_mut().zip(x).zip(b).for_each(|((o, &v), &b)| *o = v + b),
+                (None, None) => o.copy_from_slice(x),
+            }
+            if relu {
+                o.iter_mut().for_each(|v| *v = elementwise::relu(*v));
+            }
+        }
+    };
+    if out.len() >= PAR_MIN {
+        let chunk = CHUNK.div_ceil(c) * c;
+        out.par_chunks_mut(chunk).zip(x.par_chunks(chunk)).for_each(|(o, x)| rows(o, x));
+    } else {
+        rows(out, x);
+    }
+}
+
 /// [`affine_rows`] on elements `start..start + out.len()`, compiled for the widest SIMD
 /// the CPU has. (`coef` runs once per row, outside the vectorised loops.)
 struct AffineRows<'a, F> {
@@ -393,7 +433,7 @@ mod tests {
 
     #[test]
     fn channel_affine_each_option() {
-        for (n, c, inner) in [(2, 3, 5), (1, 1, 1), (3, 4, 1), (2, 16, 1500)] {
+        for (n, c, inner) in [(2, 3, 5), (1, 1, 1), (3, 4, 1), (2, 16, 1500), (5000, 16, 1)] {
             let x = data(n * c * inner, 6);
             let (scale, shift) = (data(c, 7), data(c, 8));
             for (sc, sh, relu) in [
