@@ -67,13 +67,16 @@ fn bin_columns(m: &readi_runtime::plan::Manifest, name: &str, file: &str) -> Res
     }
 }
 
+/// A loaded input: its shape and data.
+pub type Loaded = (Vec<usize>, Vec<f32>);
+
 /// The `--input NAME=FILE` tensors: `.npy` / `.safetensors`, or a `.bin` point cloud read
 /// into the `[P, C]` input's C columns; each at most `max_memory` bytes.
 pub fn load_inputs(
     m: &readi_runtime::plan::Manifest,
     inputs: &[(String, String)],
     max_memory: usize,
-) -> Result<Vec<(String, (Vec<usize>, Vec<f32>))>, String> {
+) -> Result<Vec<(String, Loaded)>, String> {
     let mut loaded = Vec::with_capacity(inputs.len());
     for (name, file) in inputs {
         let path = Path::new(file);
