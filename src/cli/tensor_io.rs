@@ -357,6 +357,12 @@ mod tests {
             std::fs::read_to_string(&json).expect("read back"),
             "{\"idx\":{\"dtype\":\"i64\",\"shape\":[3],\"data\":[4,-1,191]}}\n"
         );
+        // `NAME=FILE.safetensors`: a safetensors file of that output alone, not .npy bytes.
+        let one = dir.join("one.safetensors");
+        write_one(&one, "idx", &i, DType::I64).expect("write one");
+        let bytes = std::fs::read(&one).expect("read back");
+        let st = SafeTensors::deserialize(&bytes).expect("a safetensors file");
+        assert_eq!((st.names(), st.tensor("idx").expect("idx").dtype()), (vec!["idx"], Dtype::I64));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
