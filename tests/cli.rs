@@ -707,8 +707,9 @@ fn a_deployment_file_uses_a_model_file() {
 }
 
 /// A model whose outputs are i64 (top-k indices) and bool (a mask): `readi run` prints
-/// their values as integers and writes them as int64 and bool (`.npy` and
-/// `.safetensors`), not as floats.
+/// their values as integers and writes them as int64 and bool (`.npy`, `.safetensors`
+/// and `.json`), not as floats; the JSON holds the bits of the `.safetensors` file's
+/// floats (shortest round-trip form), NaN as null.
 #[test]
 fn integer_and_bool_outputs_are_printed_and_written_as_such() {
     let dir = std::env::temp_dir().join(format!("readi-cli-int-{}", std::process::id()));
@@ -716,7 +717,7 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
     let spec = dir.join("top.readi");
     let text = "model top {\n  input x: f32[1, 5]\n  let t = topk(x, 3)\n  output idx = t[1]\n  output \
-                pos = x > 0.0\n  output val = t[0]\n}\n";
+                pos = x > 0.0\n  output val = t[0]\n  output s = sigmoid(x) / 3.0\n  output l = log(x)\n}\n";
     std::fs::write(&spec, text).expect("write spec");
     let plan = dir.join("top.plan");
     // The model has no parameters: an empty weights file.
@@ -728,6 +729,7 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
     let input = dir.join("x.npy");
     write_npy(&input, &readi_runtime::exec::Tensor { shape: vec![1, 5], data: vec![0.5, -2.0, 3.0, 1.0, -0.25] });
     let (idx, all) = (dir.join("idx.npy"), dir.join("all.safetensors"));
+    let (json, one) = (dir.join("all.json"), dir.join("s.json"));
     let o = readi(&[
         "run",
         &p(&plan),
@@ -737,6 +739,10 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
         &format!("idx={}", p(&idx)),
         "--output",
         &p(&all),
+        "--output",
+        &p(&json),
+        "--output",
+        &format!("s={}", p(&one)),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
@@ -753,5 +759,53 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
     assert_eq!(st.tensor("pos").expect("pos").data(), &[1u8, 0, 1, 1, 0]);
     assert_eq!(st.tensor("pos").expect("pos").dtype(), Dtype::BOOL);
     assert_eq!(st.tensor("val").expect("val").dtype(), Dtype::F32);
+
+    // JSON: every output, as the .safetensors file has it.
+    let read_json = |path: &std::path::Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(path).expect("read json")).expect("valid JSON")
+    };
+    let doc = read_json(&json);
+    let outputs = doc.as_object().expect("an object");
+    let text = std::fs::read_to_string(&json).expect("read json");
+    let at: Vec<usize> = ["idx", "pos", "val", "s", "l"]
+        .iter()
+        .map(|n| text.find(&format!("\"{n}\":{{\"dtype\"")).unwrap_or_else(|| panic!("{n} in {text}")))
+        .collect();
+    assert!(outputs.len() == 5 && at.is_sorted(), "in output order: {text}");
+    for (name, got) in outputs {
+        let want = st.tensor(name).expect("in the safetensors file");
+        let shape: Vec<usize> = serde_json::from_value(got["shape"].clone()).expect("a shape");
+        assert_eq!(shape, want.shape(), "{name}");
+        let data = got["data"].as_array().expect("data");
+        let b = want.data();
+        match want.dtype() {
+            Dtype::I64 => {
+                assert_eq!(got["dtype"], "i64", "{name}");
+                let ints: Vec<i64> = b.chunks_exact(8).map(|c| i64::from_le_bytes(c.try_into().expect("8"))).collect();
+                assert_eq!(data.iter().map(|v| v.as_i64().expect("an integer")).collect::<Vec<_>>(), ints, "{name}");
+            }
+            Dtype::BOOL => {
+                assert_eq!(got["dtype"], "bool", "{name}");
+                let bools: Vec<bool> = b.iter().map(|&v| v != 0).collect();
+                assert_eq!(data.iter().map(|v| v.as_bool().expect("a bool")).collect::<Vec<_>>(), bools, "{name}");
+            }
+            _ => {
+                assert_eq!(got["dtype"], "f32", "{name}");
+                let floats = b.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4")));
+                for (i, (v, w)) in data.iter().zip(floats).enumerate() {
+                    match v.as_f64() {
+                        Some(v) => assert_eq!((v as f32).to_bits(), w.to_bits(), "{name}[{i}]: {v} vs {w}"),
+                        None => assert!(v.is_null() && !w.is_finite(), "{name}[{i}]: {v} vs {w}"),
+                    }
+                }
+                assert_eq!(data.len(), b.len() / 4, "{name}");
+            }
+        }
+    }
+    assert!(outputs["l"]["data"].as_array().expect("l").iter().any(|v| v.is_null()), "log of a negative: null");
+    // `NAME=FILE.json`: that output alone.
+    let doc = read_json(&one);
+    assert_eq!(doc.as_object().expect("an object").keys().collect::<Vec<_>>(), ["s"]);
+    assert_eq!(doc["s"], outputs["s"]);
     let _ = std::fs::remove_dir_all(&dir);
 }

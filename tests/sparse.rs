@@ -1,7 +1,8 @@
 //! Sparse 3-D convolution (`subm_conv3d`, `sparse_conv3d`, `sparse_out_coords`,
 //! `sparse_to_dense`) against PyTorch's dense conv3d: `tests/fixtures/sparse/sparse.readi`
 //! and `make_sparse_fixtures.py` (the active sites scattered into a dense grid,
-//! `F.conv3d`, gathered at the output sites; no spconv). Also an empty input, and hostile
+//! `F.conv3d`, gathered at the output sites; no spconv), and `subm_conv3d` against readi's
+//! own dense `conv3d` on a grid with every site active. Also an empty input, and hostile
 //! coords and attributes: a run-time error naming the step, a compile error with its
 //! place.
 
@@ -23,13 +24,17 @@ fn fixture(name: &str) -> WeightSet {
 }
 
 fn compile_text(text: &str) -> Result<Plan, String> {
+    compile_with(text, &fixture("sparse.weights.safetensors"))
+}
+
+/// Compiles `text` with `weights`; the rendered diagnostics on failure.
+fn compile_with(text: &str, weights: &WeightSet) -> Result<Plan, String> {
     let (sources, out) = common::compile_text("sparse.readi", text, &[], None);
     if out.diagnostics.has_errors() {
         return Err(sources.render_all(&out.diagnostics, false));
     }
     let module = out.module.expect("module");
-    let w = "sparse.weights.safetensors";
-    backend::compile(&module, &fixture(w), w, &CompileOptions::default())
+    backend::compile(&module, weights, "sparse.weights.safetensors", &CompileOptions::default())
         .map(|(plan, _)| plan)
         .map_err(|d| sources.render_all(&d, false))
 }
@@ -185,5 +190,91 @@ fn bad_attributes_are_compile_errors() {
         assert!(text.contains(from), "{from}");
         let e = compile_text(&text.replacen(from, to, 1)).expect_err(to);
         assert!(e.contains(want) && e.contains("sparse.readi:"), "{to}: {e}");
+    }
+}
+
+/// Submanifold conv with every site of the grid active is the dense `conv3d` with
+/// padding `dilation·(k - 1) / 2` (spconv's centring), the weight `[kD, kH, kW, Cin, Cout]`
+/// read as `[Cout, Cin, kD, kH, kW]`: two independent kernels (the rulebook's
+/// gather-GEMM-scatter and vol2col) cross-checked, on sites listed in shuffled order, a
+/// cubic kernel with a bias and an anisotropic `[1, 1, 3]` one dilated by 2 without one.
+#[test]
+fn subm_conv3d_at_all_active_sites_is_the_dense_conv3d() {
+    const SPEC: &str = "
+model all_active {
+  input features: f32[60, 4]
+  input coords: i64[60, 3]
+  cube_w = parameter([3, 3, 3, 4, 5])
+  cube_b = parameter([5])
+  output subm_cube = sparse_to_dense(subm_conv3d(features, coords, cube_w, [3, 4, 5], bias=cube_b), coords, [3, 4, 5])
+  row_w = parameter([1, 1, 3, 4, 2])
+  output subm_row = sparse_to_dense(subm_conv3d(features, coords, row_w, [3, 4, 5], dilation=2), coords, [3, 4, 5])
+  grid = sparse_to_dense(features, coords, [3, 4, 5])
+  cube = conv3d(grid, 5, kernel=3, padding=1)
+  output dense_cube = cube
+  row = conv3d(grid, 2, kernel=[1, 1, 3], padding=[0, 0, 2], dilation=2, bias=false)
+  output dense_row = row
+}";
+    let (grid, cin) = ([3usize, 4, 5], 4usize);
+    let sites = grid.iter().product::<usize>();
+    // A fixed pseudo-random stream in [-1, 1).
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+    };
+    let mut weights = WeightSet::default();
+    for (sparse, dense, kernel, cout) in
+        [("cube_w", "cube.weight", [3usize, 3, 3], 5usize), ("row_w", "row.weight", [1, 1, 3], 2)]
+    {
+        let taps = kernel.iter().product::<usize>();
+        let w: Vec<f32> = (0..taps * cin * cout).map(|_| next()).collect();
+        // [kD, kH, kW, Cin, Cout] -> [Cout, Cin, kD, kH, kW]
+        let mut torch = vec![0.0f32; w.len()];
+        for t in 0..taps {
+            for i in 0..cin {
+                for o in 0..cout {
+                    torch[(o * cin + i) * taps + t] = w[(t * cin + i) * cout + o];
+                }
+            }
+        }
+        let [kd, kh, kw] = kernel;
+        weights.tensors.insert(sparse.into(), (vec![kd, kh, kw, cin, cout], w));
+        weights.tensors.insert(dense.into(), (vec![cout, cin, kd, kh, kw], torch));
+    }
+    let bias: Vec<f32> = (0..5).map(|_| next()).collect();
+    weights.tensors.insert("cube_b".into(), (vec![5], bias.clone()));
+    weights.tensors.insert("cube.bias".into(), (vec![5], bias));
+    let plan = Arc::new(compile_with(SPEC, &weights).unwrap_or_else(|e| panic!("{e}")));
+    // Every site once, in an order that is not the grid's.
+    let mut order: Vec<usize> = (0..sites).collect();
+    for i in (1..sites).rev() {
+        order.swap(i, ((next() + 1.0) * 0.5 * (i + 1) as f32) as usize % (i + 1));
+    }
+    let coords: Vec<f32> = order
+        .iter()
+        .flat_map(|&s| [s / (grid[1] * grid[2]), s / grid[2] % grid[1], s % grid[2]].map(|c| c as f32))
+        .collect();
+    let features: Vec<f32> = (0..sites * cin).map(|_| next()).collect();
+    let (fs, cs) = ([sites, cin], [sites, 3]);
+    let inputs =
+        [Input { name: "features", data: &features, shape: &fs }, Input { name: "coords", data: &coords, shape: &cs }];
+    for threads in [1, 2] {
+        let out = Session::new(plan.clone(), threads).expect("session").run(&inputs).expect("runs");
+        let get = |name: &str| &out.iter().find(|(n, _)| *n == name).unwrap_or_else(|| panic!("{name}")).1;
+        for (subm, dense) in [("subm_cube", "dense_cube"), ("subm_row", "dense_row")] {
+            let (s, d) = (get(subm), get(dense));
+            assert_eq!(s.shape, d.shape, "{subm} and {dense}");
+            let mut worst = 0.0f32;
+            for (i, (&a, &b)) in s.data.iter().zip(&d.data).enumerate() {
+                let err = (a - b).abs() / b.abs().max(1.0);
+                assert!(err <= 1e-5, "{subm}[{i}] = {a}, {dense}[{i}] = {b} ({threads} threads)");
+                worst = worst.max(err);
+            }
+            assert!(s.data.iter().any(|&v| v != 0.0), "{subm} is all zero");
+            eprintln!("{subm} vs {dense}, {threads} threads: max error {worst:e}");
+        }
     }
 }

@@ -189,8 +189,11 @@ pub enum Command {
         /// An input, `NAME=FILE` (repeatable). Absent `optional` inputs are zeros.
         #[arg(long = "input", value_name = "NAME=FILE", value_parser = parse_set)]
         inputs: Vec<(String, String)>,
-        /// Where to write outputs: a .safetensors file (all outputs), a .npy file (the
-        /// only output), or `NAME=FILE.npy` for one output (repeatable).
+        /// Where to write outputs: a .safetensors or .json file (all outputs), a .npy file
+        /// (the only output), or `NAME=FILE.npy` (or `.json`) for one output (repeatable).
+        /// JSON is `{"NAME": {"dtype": "f32" | "i64" | "bool", "shape": [...], "data": [...]}}`,
+        /// data flat in row-major order, floats in shortest round-trip form, NaN and
+        /// infinities as null.
         #[arg(long = "output", value_name = "FILE")]
         outputs: Vec<String>,
         /// Worker threads, 1 to 256 (default: all cores).

@@ -151,7 +151,7 @@ pub fn run(
         match dest {
             Destination::One(name, file) => {
                 if let Some((_, t)) = result.iter().find(|(n, _)| n == name) {
-                    tensor_io::write_npy(Path::new(file), t, dtype_of(name)).map_err(fail)?;
+                    tensor_io::write_one(Path::new(file), name, t, dtype_of(name)).map_err(fail)?;
                 }
             }
             Destination::All(file) => tensor_io::write_outputs(Path::new(file), &result, &dtypes).map_err(fail)?,
@@ -162,7 +162,7 @@ pub fn run(
 
 /// Where `--output` writes.
 enum Destination<'a> {
-    /// `NAME=FILE.npy`: one output.
+    /// `NAME=FILE.npy` (or `.json`, `.safetensors`): one output.
     One(&'a str, &'a str),
     /// `FILE`: every output (or the only one).
     All(&'a str),

@@ -1,4 +1,5 @@
-//! Reading and writing tensors for `readi run`: `.npy` (NumPy) and `.safetensors`.
+//! Reading and writing tensors for `readi run`: `.npy` (NumPy) and `.safetensors`, and
+//! outputs as `.json` for tools that read no tensor format (a detector's boxes and scores).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -145,16 +146,17 @@ pub fn read_bin(path: &Path, columns: usize, limit: usize) -> Result<Loaded, Str
 
 /// Writes outputs, each of the element type the model gives it (`dtypes[i]` for
 /// `outputs[i]`: an i64 or bool output is f32 holding integers, written as int64 or bool):
-/// all of them to one `.safetensors` file, or one to a `.npy` file.
+/// all of them to one `.safetensors` or `.json` file, or one to a `.npy` file.
 pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]) -> Result<(), String> {
     let shown = path.display();
     let dtype = |i: usize| dtypes.get(i).copied().unwrap_or(DType::F32);
     match extension(path).as_str() {
+        "json" => write_json(path, outputs, dtypes),
         "npy" => {
             let [(_, t)] = outputs else {
                 let names: Vec<String> = outputs.iter().map(|(n, _)| escaped(n).into_owned()).collect();
                 return Err(format!(
-                    "the model has {} outputs ({}); write them to a .safetensors file, or pick one with --output NAME={shown}",
+                    "the model has {} outputs ({}); write them to a .safetensors or .json file, or pick one with --output NAME={shown}",
                     outputs.len(),
                     names.join(", ")
                 ));
@@ -172,7 +174,79 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]
             let data = safetensors::serialize(views, None::<HashMap<String, String>>).map_err(|e| e.to_string())?;
             std::fs::write(path, data).map_err(|e| format!("cannot write {shown}: {e}"))
         }
-        _ => Err(format!("{shown}: outputs are written to .npy or .safetensors files")),
+        _ => Err(format!("{shown}: outputs are written to .npy, .safetensors or .json files")),
+    }
+}
+
+/// The name of the element type an output is written as (`f32`, `i64`, `bool`): what
+/// [`encode`] and [`write_npy`] write it as.
+fn written_dtype(dtype: DType) -> &'static str {
+    match dtype {
+        DType::I64 | DType::I32 => "i64",
+        DType::Bool => "bool",
+        _ => "f32",
+    }
+}
+
+/// The outputs as one JSON object, `{"name": {"dtype", "shape", "data"}}` in output order,
+/// `data` flat in row-major order, streamed (no copy of the data).
+struct JsonOutputs<'a>(&'a [(String, Tensor)], &'a [DType]);
+
+/// One output's values: integers as integers, bools as `true` / `false`, floats in their
+/// shortest round-trip form (serde_json's f32 writer), NaN and infinities as `null`.
+struct JsonData<'a>(&'a [f32], DType);
+
+#[derive(serde::Serialize)]
+struct JsonTensor<'a> {
+    dtype: &'static str,
+    shape: &'a [usize],
+    data: JsonData<'a>,
+}
+
+impl serde::Serialize for JsonOutputs<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        let mut map = s.serialize_map(Some(self.0.len()))?;
+        for (i, (name, t)) in self.0.iter().enumerate() {
+            let dtype = self.1.get(i).copied().unwrap_or(DType::F32);
+            let data = JsonData(&t.data, dtype);
+            map.serialize_entry(name, &JsonTensor { dtype: written_dtype(dtype), shape: &t.shape, data })?;
+        }
+        map.end()
+    }
+}
+
+impl serde::Serialize for JsonData<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeSeq;
+        let mut seq = s.serialize_seq(Some(self.0.len()))?;
+        for &v in self.0 {
+            match self.1 {
+                DType::I64 | DType::I32 => seq.serialize_element(&(v as i64))?,
+                DType::Bool => seq.serialize_element(&(v != 0.0))?,
+                _ => seq.serialize_element(&v)?,
+            }
+        }
+        seq.end()
+    }
+}
+
+/// Writes outputs to a `.json` file as [`JsonOutputs`] lays them out, one line.
+pub fn write_json(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]) -> Result<(), String> {
+    use std::io::Write;
+    let shown = path.display();
+    let file = std::fs::File::create(path).map_err(|e| format!("cannot write {shown}: {e}"))?;
+    let mut w = std::io::BufWriter::new(file);
+    serde_json::to_writer(&mut w, &JsonOutputs(outputs, dtypes)).map_err(|e| format!("cannot write {shown}: {e}"))?;
+    w.write_all(b"\n").and_then(|()| w.flush()).map_err(|e| format!("cannot write {shown}: {e}"))
+}
+
+/// Writes output `name` alone (`--output NAME=FILE`): as `.npy`, or as a `.json` or
+/// `.safetensors` file holding only it.
+pub fn write_one(path: &Path, name: &str, t: &Tensor, dtype: DType) -> Result<(), String> {
+    match extension(path).as_str() {
+        "json" | "safetensors" => write_outputs(path, &[(name.to_string(), t.clone())], &[dtype]),
+        _ => write_npy(path, t, dtype),
     }
 }
 
@@ -262,6 +336,33 @@ mod tests {
         assert_eq!((iv.dtype(), iv.data()), (Dtype::I64, &[4i64, 0, 191].map(i64::to_le_bytes).concat()[..]));
         let bv = st.tensor("b").expect("b");
         assert_eq!((bv.dtype(), bv.data()), (Dtype::BOOL, &[1u8, 0][..]));
+        // JSON: integers as integers, bools as bools, floats shortest, NaN and inf null.
+        let i = Tensor { shape: vec![3], data: vec![4.0, -1.0, 191.0] };
+        let b = Tensor { shape: vec![1, 2], data: vec![1.0, 0.0] };
+        let f = Tensor { shape: vec![2, 3], data: vec![0.1, -2.5, 1e20, f32::NAN, f32::INFINITY, 16777216.0] };
+        let json = dir.join("out.json");
+        let outputs = [("idx".into(), i.clone()), ("mask".into(), b), ("box \"0\"".into(), f)];
+        write_outputs(&json, &outputs, &[DType::I64, DType::Bool]).expect("write json");
+        assert_eq!(
+            std::fs::read_to_string(&json).expect("read back"),
+            concat!(
+                r#"{"idx":{"dtype":"i64","shape":[3],"data":[4,-1,191]},"#,
+                r#""mask":{"dtype":"bool","shape":[1,2],"data":[true,false]},"#,
+                r#""box \"0\"":{"dtype":"f32","shape":[2,3],"data":[0.1,-2.5,1e+20,null,null,16777216.0]}}"#,
+                "\n"
+            )
+        );
+        write_one(&json, "idx", &i, DType::I64).expect("write one");
+        assert_eq!(
+            std::fs::read_to_string(&json).expect("read back"),
+            "{\"idx\":{\"dtype\":\"i64\",\"shape\":[3],\"data\":[4,-1,191]}}\n"
+        );
+        // `NAME=FILE.safetensors`: a safetensors file of that output alone, not .npy bytes.
+        let one = dir.join("one.safetensors");
+        write_one(&one, "idx", &i, DType::I64).expect("write one");
+        let bytes = std::fs::read(&one).expect("read back");
+        let st = SafeTensors::deserialize(&bytes).expect("a safetensors file");
+        assert_eq!((st.names(), st.tensor("idx").expect("idx").dtype()), (vec!["idx"], Dtype::I64));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

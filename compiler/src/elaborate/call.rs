@@ -67,16 +67,16 @@ impl<'a> Elab<'a> {
         }
         let mut d = Diagnostic::error(Code::UnknownName, format!("unknown op or block `{name}`"))
             .with_primary(callee.span, "not an op, block or function");
-        // A PyTorch name gets its own answer, never a nearby name (`relu6` is not `relu`).
+        // A PyTorch (spconv, mmcv) name gets its own answer, never a nearby one (`relu6` is not `relu`).
         match crate::ops::pytorch::lookup(name) {
-            Some(Spelling::Readi(s)) if s.contains(' ') => {
-                return self.error(d.with_note(format!("PyTorch's `{name}` is {s}")));
+            Some((lib, Spelling::Readi(s))) if s.contains(' ') => {
+                return self.error(d.with_note(format!("{lib}'s `{name}` is {s}")));
             }
-            Some(Spelling::Readi(s)) => {
-                return self.error(d.with_note(format!("PyTorch's `{name}` is written `{s}` in readi")));
+            Some((lib, Spelling::Readi(s))) => {
+                return self.error(d.with_note(format!("{lib}'s `{name}` is written `{s}` in readi")));
             }
-            Some(Spelling::Unsupported) => {
-                return self.error(d.with_note(format!("PyTorch's `{name}` is not supported (yet)")));
+            Some((lib, Spelling::Unsupported)) => {
+                return self.error(d.with_note(format!("{lib}'s `{name}` is not supported (yet)")));
             }
             None => {}
         }
