@@ -69,6 +69,15 @@ def models():
     }
     return {
         **zoo,
+        # BEVFusion's parts at the nuScenes config's sizes (models/bevfusion/*.readi, the
+        # plain-PyTorch ports of tests/fixtures/bevfusion/).
+        "bevfusion_swin": ("models/bevfusion/swin.readi", [], bevfusion_swin, {"images": (6, 3, 256, 704)}),
+        "bevfusion_decoder": (
+            "models/bevfusion/decoder.readi",
+            [],
+            bevfusion_decoder,
+            {"camera_bev": (1, 80, 180, 180), "lidar_bev": (1, 256, 180, 180)},
+        ),
         "vit_encoder": (
             "models/vit_encoder.readi",
             [],
@@ -76,6 +85,31 @@ def models():
             {"image": (1, 3, 224, 224)},
         ),
     }
+
+
+def bevfusion_swin():
+    """mmdet's Swin-T as BEVFusion configures it (swin_ref.py)."""
+    sys.path.insert(0, os.path.join(ROOT, "tests", "fixtures", "bevfusion"))
+    from swin_ref import SwinTransformer
+
+    return SwinTransformer(96, [2, 2, 6, 2], [3, 6, 12, 24], 7)
+
+
+def bevfusion_decoder():
+    """ConvFuser, SECOND, SECONDFPN and the TransFusion head (make_bevfusion_fixtures.py),
+    returning readi's outputs in readi's order (without the box coder's)."""
+    sys.path.insert(0, os.path.join(ROOT, "tests", "fixtures", "bevfusion"))
+    import make_bevfusion_fixtures as parts
+
+    class Decoder(parts.Decoder):
+        def forward(self, camera_bev, lidar_bev):
+            fused = self.fuser([camera_bev, lidar_bev])
+            bev = self.decoder["neck"](self.decoder["backbone"](fused))
+            res = self.heads["object"](bev)
+            names = ["dense_heatmap", "center", "height", "dim", "rot", "vel", "heatmap", "query_heatmap_score"]
+            return (fused, bev) + tuple(res[n] for n in names)
+
+    return Decoder(80, 256, 256, [128, 256], [5, 5], [256, 256], 128, 10, 200, 8, 256, 64)
 
 
 def run(cmd):

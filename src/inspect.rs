@@ -341,8 +341,8 @@ fn m_has_no_symbols(m: &Manifest) -> bool {
 }
 
 /// Per-kernel-kind and per-step time from a profiled session (`seconds`, one per step,
-/// summed over `runs`), as the mean per run: the kinds by total time, then the twelve
-/// slowest steps.
+/// summed over `runs`), as the mean per run: the kinds by total time, the layer scopes by
+/// total time, then the twelve slowest steps.
 pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
     render(|out| {
         let total: f64 = seconds.iter().sum();
@@ -362,6 +362,34 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
         writeln!(out, "time per kernel kind (mean per run):")?;
         for (k, t) in &kinds {
             writeln!(out, "  {k:<20} {:8.3} ms  {:5.1}%", ms(*t), 100.0 * t / total.max(1e-12))?;
+        }
+        // Where in the network: each step under its layer path's first three segments, cut
+        // before an index (`layer1.0.conv1` -> `layer1`, `encoders.camera.backbone.stages.0`
+        // -> `encoders.camera.backbone`); a step of an unnamed value counts as `(unnamed)`.
+        let mut scopes: Vec<(String, f64, usize)> = Vec::new();
+        for (st, &t) in m.steps.iter().zip(seconds) {
+            // After a space a step's path says what it absorbed (` (+relu#0)`) or how it
+            // views its input (` [to N, C, L]`).
+            let own = st.path.split(' ').next().unwrap_or_default();
+            let segs: Vec<&str> = own
+                .split('.')
+                .take(3)
+                .take_while(|s| !s.is_empty() && !s.starts_with(|c: char| c.is_ascii_digit()) && !s.contains('#'))
+                .collect();
+            let scope = if segs.is_empty() { "(unnamed)".to_string() } else { segs.join(".") };
+            match scopes.iter_mut().find(|(k, _, _)| *k == scope) {
+                Some(e) => {
+                    e.1 += t;
+                    e.2 += 1;
+                }
+                None => scopes.push((scope, t, 1)),
+            }
+        }
+        scopes.sort_by(|a, b| b.1.total_cmp(&a.1));
+        writeln!(out, "time per layer scope (mean per run):")?;
+        for (k, t, n) in &scopes {
+            let k = escaped(k);
+            writeln!(out, "  {k:<32} {:8.3} ms  {:5.1}%  {n} steps", ms(*t), 100.0 * t / total.max(1e-12))?;
         }
         let mut steps: Vec<(usize, f64)> = seconds.iter().copied().enumerate().collect();
         steps.sort_by(|a, b| b.1.total_cmp(&a.1));
@@ -438,5 +466,23 @@ model two(hidden: int = 8) {
         assert!(steps[0].contains("conv2d[im2col shift relu]"), "{listing}");
         assert!(listing.ends_with('\n'));
         assert_eq!(schedule(&plan.manifest, false), format!("{}\n", listing.lines().next().unwrap_or_default()));
+    }
+
+    /// Scopes sum their steps' times: a conv scope and a head scope of a model whose
+    /// steps are named `net.conv#...`, `net.head...`, each with the share of its steps.
+    #[test]
+    fn profile_sums_steps_per_layer_scope() {
+        let plan = compile(TWO_LAYERS);
+        let m = &plan.manifest;
+        let paths: Vec<&str> = m.steps.iter().map(|s| s.path.as_str()).collect();
+        // One second for the conv's step, three for every other: the conv scope's share is
+        // 1 / (1 + 3 (n - 1)).
+        let conv = paths.iter().position(|p| p.starts_with("conv")).unwrap_or_else(|| panic!("{paths:?}"));
+        let seconds: Vec<f64> = (0..paths.len()).map(|i| if i == conv { 1.0 } else { 3.0 }).collect();
+        let text = profile(m, &seconds, 2);
+        let share = 100.0 / (1.0 + 3.0 * (paths.len() - 1) as f64);
+        let line =
+            text.lines().find(|l| l.trim_start().starts_with("conv ")).unwrap_or_else(|| panic!("{paths:?}\n{text}"));
+        assert!(line.contains(&format!("{share:5.1}%")) && line.contains("500.000 ms"), "{line}\n{text}");
     }
 }
