@@ -20,55 +20,9 @@ fn fixture(name: &str) -> WeightSet {
     WeightSet::from_safetensors(name, &bytes).expect("fixture")
 }
 
-/// make_full_fixtures.py's SIZES.
-const SIZES: &[(&str, &str)] = &[
-    ("cams", "2"),
-    ("img_h", "64"),
-    ("img_w", "96"),
-    ("embed", "4"),
-    ("d2", "2"),
-    ("h0", "1"),
-    ("h1", "2"),
-    ("h2", "2"),
-    ("h3", "4"),
-    ("window", "4"),
-    ("neck_out", "16"),
-    ("bev_ch", "8"),
-    ("x_min", "-8.0"),
-    ("x_max", "8.0"),
-    ("cell", "1.0"),
-    ("z_min", "-2.0"),
-    ("z_max", "2.0"),
-    ("z_cell", "4.0"),
-    ("d_min", "1.0"),
-    ("d_max", "9.0"),
-    ("d_step", "1.0"),
-    ("vx", "0.25"),
-    ("max_points", "4"),
-    ("max_voxels", "400"),
-    ("nx", "64"),
-    ("max_sites", "3000"),
-    ("c0", "4"),
-    ("c1", "6"),
-    ("c2", "8"),
-    ("c3", "8"),
-    ("lidar_out", "6"),
-    ("fused", "16"),
-    ("second_out0", "16"),
-    ("second_out1", "24"),
-    ("layer_num", "2"),
-    ("fpn_out", "16"),
-    ("num_proposals", "12"),
-    ("hidden", "32"),
-    ("ffn", "48"),
-    ("head_conv", "16"),
-    ("range_x_min", "-5.0"),
-    ("range_z_min", "-3.3"),
-];
-
 #[test]
 fn bevfusion_from_points_and_images_to_boxes_matches_pytorch() {
-    let (sources, out) = common::compile("models/bevfusion.readi", SIZES, None);
+    let (sources, out) = common::compile("models/bevfusion.readi", common::BEVFUSION_SMALL, None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     let module = out.module.expect("module");
     let weights = fixture("full.weights.safetensors");

@@ -201,6 +201,61 @@ fn the_bevfusion_demo_picks_each_conditions_variant() {
     assert!(!out.contains("ignored"), "a selection the demo's plan cannot serve: {out}");
 }
 
+/// BEVFusion from files as a user runs it: the fixture sweep as a `.bin` through `readi
+/// simulate --fog`, the views and calibration from a safetensors file, the fog variant
+/// chosen from the metadata, the boxes printed and written as JSON.
+#[test]
+fn a_simulated_sweep_feeds_bevfusion_and_boxes_come_out() {
+    let dir = std::env::temp_dir().join(format!("readi-cli-bevfusion-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let p = |name: &str| dir.join(name).to_str().expect("utf-8").to_string();
+    let fixtures = common::root().join("tests/fixtures/bevfusion");
+    let io = std::fs::read(fixtures.join("full.io.safetensors")).expect("fixture");
+    let io = readi_compiler::backend::WeightSet::from_safetensors("full.io", &io).expect("fixture");
+    let mut inputs = readi_compiler::backend::WeightSet::default();
+    for (name, t) in &io.tensors {
+        match name.strip_prefix("input.") {
+            Some("points") => {
+                let bytes: Vec<u8> = t.1.iter().flat_map(|v| v.to_le_bytes()).collect();
+                std::fs::write(p("sweep.bin"), bytes).expect("write sweep");
+            }
+            Some(input) => {
+                inputs.tensors.insert(input.to_string(), t.clone());
+            }
+            None => {}
+        }
+    }
+    std::fs::write(p("inputs.safetensors"), inputs.to_safetensors().expect("serialises")).expect("write inputs");
+
+    let weights = fixtures.join("full.weights.safetensors");
+    let mut compile: Vec<String> =
+        ["compile", "models/bevfusion.readi", "--weights", weights.to_str().expect("utf-8")].map(String::from).to_vec();
+    compile.extend(["--seeded-variant", "fog=0.06", "-o", &p("bf.plan")].map(String::from));
+    for (k, v) in common::BEVFUSION_SMALL {
+        compile.extend(["--set".to_string(), format!("{k}={v}")]);
+    }
+    let o = readi(&compile.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = readi(&["simulate", &p("sweep.bin"), "--columns", "5", "--fog", "0.06", "-o", &p("fog.bin")]);
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    let mut run = vec!["run".to_string(), p("bf.plan"), "--input".into(), format!("points={}", p("fog.bin"))];
+    for name in ["camera", "camera_intrinsics", "camera2lidar", "img_aug_matrix", "lidar_aug_matrix"] {
+        run.extend(["--input".to_string(), format!("{name}={}", p("inputs.safetensors"))]);
+    }
+    run.extend(["--auto", "--meta", "fog_density=0.06", "--output", &p("out.json")].map(String::from));
+    let o = readi(&run.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("selected variant fog=0.06"), "{out}");
+    assert!(out.contains("sample 0: ") && out.contains(" of 12 boxes kept") && out.contains("label  score"), "{out}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("out.json")).expect("json")).expect("valid JSON");
+    assert_eq!(json["boxes"]["shape"], serde_json::json!([1, 12, 9]), "{json}");
+    assert_eq!(json["labels"]["dtype"], "i64");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Writes seeded weights for a spec to a temp safetensors file; returns (dir, weights path).
 fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (std::path::PathBuf, std::path::PathBuf) {
     let module = common::compile(spec, overrides, None).1.module.expect("module");

@@ -141,6 +141,7 @@ pub fn run(
     for ((name, t), &d) in result.iter().zip(&dtypes) {
         println!("{}: {}", escaped(name), describe(t, d));
     }
+    print!("{}", detections(&result, 10));
     println!(
         "ran variant {} in {:.2} ms on {} threads",
         session.last_variant().map_or("base", |v| plan.variant_key(v)),
@@ -193,4 +194,71 @@ fn destinations<'a>(m: &readi_runtime::plan::Manifest, specs: &'a [String]) -> R
         }
     }
     Ok(out)
+}
+
+/// A detector's boxes as a table: for outputs `boxes [B, K, >= 7]` (x, y, z, l, w, h, yaw,
+/// ...), `scores [B, K]` and `labels [B, K]` (and `keep [B, K]`, else a score above 0 keeps
+/// a box), each sample's kept boxes, the `top` best by score. Empty for other models.
+fn detections(result: &[(String, Tensor)], top: usize) -> String {
+    let get = |n: &str| result.iter().find(|(name, _)| name == n).map(|(_, t)| t);
+    let (Some(boxes), Some(scores), Some(labels)) = (get("boxes"), get("scores"), get("labels")) else {
+        return String::new();
+    };
+    let (&[b, k, width], [sb, sk], [lb, lk]) = (&boxes.shape[..], &scores.shape[..], &labels.shape[..]) else {
+        return String::new();
+    };
+    if width < 7 || (*sb, *sk, *lb, *lk) != (b, k, b, k) {
+        return String::new();
+    }
+    let keep = get("keep").filter(|t| t.shape == scores.shape);
+    let mut out = String::new();
+    for s in 0..b {
+        let mut rows: Vec<usize> =
+            (s * k..(s + 1) * k).filter(|&j| keep.map_or(scores.data[j] > 0.0, |t| t.data[j] != 0.0)).collect();
+        rows.sort_by(|&x, &y| scores.data[y].total_cmp(&scores.data[x]));
+        out += &format!("sample {s}: {} of {k} boxes kept", rows.len());
+        if rows.len() > top {
+            out += &format!(", the {top} best:");
+        }
+        out += "\n      label  score        x        y        z      l      w      h     yaw\n";
+        for &j in rows.iter().take(top) {
+            let v = &boxes.data[j * width..j * width + 7];
+            out += &format!(
+                "  {:>9} {:>6.3} {:>8.2} {:>8.2} {:>8.2} {:>6.2} {:>6.2} {:>6.2} {:>7.3}\n",
+                labels.data[j] as i64, scores.data[j], v[0], v[1], v[2], v[3], v[4], v[5], v[6]
+            );
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t(shape: &[usize], data: Vec<f32>) -> Tensor {
+        Tensor { shape: shape.to_vec(), data }
+    }
+
+    /// Kept boxes only, best first; a model without box outputs prints nothing.
+    #[test]
+    fn detections_lists_the_kept_boxes_by_score() {
+        let mut boxes = vec![0.0; 3 * 9];
+        boxes[0] = 1.0;
+        boxes[9] = 2.0;
+        boxes[18] = 3.0;
+        let result = vec![
+            ("boxes".to_string(), t(&[1, 3, 9], boxes)),
+            ("scores".to_string(), t(&[1, 3], vec![0.2, 0.9, 0.5])),
+            ("labels".to_string(), t(&[1, 3], vec![4.0, 7.0, 1.0])),
+            ("keep".to_string(), t(&[1, 3], vec![1.0, 1.0, 0.0])),
+        ];
+        let text = detections(&result, 10);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "sample 0: 2 of 3 boxes kept", "{text}");
+        assert_eq!(lines.len(), 4, "{text}");
+        assert!(lines[2].trim_start().starts_with("7  0.900     2.00"), "{text}");
+        assert!(lines[3].trim_start().starts_with("4  0.200     1.00"), "{text}");
+        assert_eq!(detections(&result[1..], 10), "");
+    }
 }
