@@ -7,48 +7,8 @@
 
 mod common;
 
-use std::sync::Arc;
-
-use readi_compiler::backend::{self, CompileOptions, WeightSet};
-use readi_runtime::exec::{Input, Session, Tensor};
-use readi_runtime::plan::Plan;
-
-fn fixture(name: &str) -> WeightSet {
-    let path = common::root().join("tests/fixtures/bevfusion").join(name);
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    WeightSet::from_safetensors(name, &bytes).expect("fixture")
-}
-
-/// Compiles a model file with `overrides`, binding `weights`.
-fn compile(rel: &str, overrides: &[(&str, &str)], weights: &str) -> Plan {
-    let (sources, out) = common::compile(rel, overrides, None);
-    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
-    let module = out.module.expect("module");
-    let (plan, _) = backend::compile(&module, &fixture(weights), weights, &CompileOptions::default())
-        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
-    plan
-}
-
-/// Runs `plan` on the fixture's `input.*` tensors at 1 and 2 threads (the same bits at
-/// both) and returns the outputs by name.
-fn run(plan: Plan, io: &WeightSet) -> Vec<(String, Tensor)> {
-    let inputs: Vec<Input<'_>> = io
-        .tensors
-        .iter()
-        .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
-        .collect();
-    let plan = Arc::new(plan);
-    let one = Session::new(Arc::clone(&plan), 1).expect("session").run(&inputs).expect("runs");
-    let two = Session::new(plan, 2).expect("session").run(&inputs).expect("runs");
-    for ((name, a), (_, b)) in one.iter().zip(&two) {
-        assert!(a.data.iter().zip(&b.data).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}: 1 and 2 threads differ");
-    }
-    one
-}
-
-fn output<'a>(outputs: &'a [(String, Tensor)], name: &str) -> &'a Tensor {
-    &outputs.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("no output {name}")).1
-}
+use common::{bevfusion_fixture as fixture, bevfusion_plan as compile, output, run_at_1_and_2_threads as run};
+use readi_runtime::exec::Tensor;
 
 const DECODER: &[(&str, &str)] = &[
     ("bev", "16"),

@@ -9,38 +9,14 @@
 
 mod common;
 
-use std::sync::Arc;
-
-use readi_compiler::backend::{self, CompileOptions, WeightSet};
-use readi_runtime::exec::{Input, Session, Tensor};
-
-fn fixture(name: &str) -> WeightSet {
-    let path = common::root().join("tests/fixtures/bevfusion").join(name);
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    WeightSet::from_safetensors(name, &bytes).expect("fixture")
-}
+use readi_runtime::exec::Tensor;
 
 #[test]
 fn bevfusion_from_points_and_images_to_boxes_matches_pytorch() {
-    let (sources, out) = common::compile("models/bevfusion.readi", common::BEVFUSION_SMALL, None);
-    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
-    let module = out.module.expect("module");
-    let weights = fixture("full.weights.safetensors");
-    let (plan, _) = backend::compile(&module, &weights, "full.weights.safetensors", &CompileOptions::default())
-        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
-    let io = fixture("full.io.safetensors");
-    let inputs: Vec<Input<'_>> = io
-        .tensors
-        .iter()
-        .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
-        .collect();
-    let plan = Arc::new(plan);
-    let one = Session::new(Arc::clone(&plan), 1).expect("session").run(&inputs).expect("runs");
-    let two = Session::new(plan, 2).expect("session").run(&inputs).expect("runs");
-    for ((name, a), (_, b)) in one.iter().zip(&two) {
-        assert!(a.data.iter().zip(&b.data).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}: 1 and 2 threads differ");
-    }
-    let output = |name: &str| -> &Tensor { &one.iter().find(|(n, _)| n == name).expect(name).1 };
+    let plan = common::bevfusion_plan("models/bevfusion.readi", common::BEVFUSION_SMALL, "full.weights.safetensors");
+    let io = common::bevfusion_fixture("full.io.safetensors");
+    let one = common::run_at_1_and_2_threads(plan, &io);
+    let output = |name: &str| -> &Tensor { common::output(&one, name) };
     for name in ["camera_bev", "lidar_bev", "dense_heatmap", "boxes", "scores"] {
         common::close(name, output(name), &io.tensors[name], 1e-4);
     }

@@ -9,14 +9,7 @@ mod common;
 
 use std::sync::Arc;
 
-use readi_compiler::backend::{self, CompileOptions, WeightSet};
 use readi_runtime::exec::{Input, Session};
-
-fn fixture(name: &str) -> WeightSet {
-    let path = common::root().join("tests/fixtures/bevfusion").join(name);
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    WeightSet::from_safetensors(name, &bytes).expect("fixture")
-}
 
 /// The sizes of make_lidar_fixtures.py's `cfg` and `build(5, 4, 6, 8, 8, 6)`.
 const LIDAR: &[(&str, &str)] = &[
@@ -42,13 +35,8 @@ const LIDAR: &[(&str, &str)] = &[
 /// outside the range) and a 150-point one, run one after the other in the same sessions.
 #[test]
 fn lidar_encoder_matches_pytorch() {
-    let (sources, out) = common::compile("models/bevfusion/lidar.readi", LIDAR, None);
-    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
-    let module = out.module.expect("module");
-    let weights = fixture("lidar.weights.safetensors");
-    let (plan, _) = backend::compile(&module, &weights, "lidar.weights.safetensors", &CompileOptions::default())
-        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
-    let io = fixture("lidar.io.safetensors");
+    let plan = common::bevfusion_plan("models/bevfusion/lidar.readi", LIDAR, "lidar.weights.safetensors");
+    let io = common::bevfusion_fixture("lidar.io.safetensors");
     let plan = Arc::new(plan);
     let mut one = Session::new(Arc::clone(&plan), 1).expect("session");
     let mut two = Session::new(plan, 2).expect("session");

@@ -151,3 +151,47 @@ pub const BEVFUSION_SMALL: &[(&str, &str)] = &[
     ("range_x_min", "-5.0"),
     ("range_z_min", "-3.3"),
 ];
+
+/// A fixture of tests/fixtures/bevfusion/ (weights or inputs and outputs).
+pub fn bevfusion_fixture(name: &str) -> readi_compiler::backend::WeightSet {
+    let path = root().join("tests/fixtures/bevfusion").join(name);
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    readi_compiler::backend::WeightSet::from_safetensors(name, &bytes).expect("fixture")
+}
+
+/// Compiles a model file with `overrides`, binding the bevfusion fixture `weights`.
+pub fn bevfusion_plan(rel: &str, overrides: &[(&str, &str)], weights: &str) -> readi_runtime::plan::Plan {
+    use readi_compiler::backend::{self, CompileOptions};
+    let (sources, out) = compile(rel, overrides, None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let module = out.module.expect("module");
+    let (plan, _) = backend::compile(&module, &bevfusion_fixture(weights), weights, &CompileOptions::default())
+        .unwrap_or_else(|d| panic!("{}", sources.render_all(&d, false)));
+    plan
+}
+
+/// Runs `plan` on the fixture's `input.*` tensors at 1 and 2 threads, asserts both give
+/// the same bits, and returns the outputs by name.
+pub fn run_at_1_and_2_threads(
+    plan: readi_runtime::plan::Plan,
+    io: &readi_compiler::backend::WeightSet,
+) -> Vec<(String, readi_runtime::exec::Tensor)> {
+    use readi_runtime::exec::{Input, Session};
+    let inputs: Vec<Input<'_>> = io
+        .tensors
+        .iter()
+        .filter_map(|(k, (shape, data))| k.strip_prefix("input.").map(|name| Input { name, data, shape }))
+        .collect();
+    let plan = std::sync::Arc::new(plan);
+    let one = Session::new(std::sync::Arc::clone(&plan), 1).expect("session").run(&inputs).expect("runs");
+    let two = Session::new(plan, 2).expect("session").run(&inputs).expect("runs");
+    for ((name, a), (_, b)) in one.iter().zip(&two) {
+        assert!(a.data.iter().zip(&b.data).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}: 1 and 2 threads differ");
+    }
+    one
+}
+
+/// The output `name` of a run.
+pub fn output<'a>(outputs: &'a [(String, readi_runtime::exec::Tensor)], name: &str) -> &'a readi_runtime::exec::Tensor {
+    &outputs.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("no output {name}")).1
+}

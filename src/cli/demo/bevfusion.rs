@@ -7,10 +7,8 @@
 //! images in, decoded boxes out), not a trained detector.
 
 use std::process::ExitCode;
-use std::sync::Arc;
 use std::time::Instant;
 
-use readi_compiler::backend::{self, CompileOptions};
 use readi_compiler::passes::{self, Options};
 use readi_compiler::print;
 use readi_grammar::diag::FileId;
@@ -200,17 +198,7 @@ pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCo
 
     let start = Instant::now();
     eprintln!("compiling with seeded weights and {} seeded variants ...", VARIANTS.len());
-    let weights = backend::seeded_weights(&m.graph, 2024);
-    let keys: Vec<String> = VARIANTS.iter().map(|k| k.to_string()).collect();
-    let sources = backend::seeded_variants(&m, &keys, 2025);
-    let copts = CompileOptions { melds: MELDS.iter().map(|k| k.to_string()).collect(), ..Default::default() };
-    let plan = match backend::compile_variants(&m, &weights, "<seeded weights>", &sources, &copts) {
-        Ok((plan, _)) => Arc::new(plan),
-        Err(d) => {
-            s.report(&d);
-            return Err(ExitCode::FAILURE);
-        }
-    };
+    let plan = super::seeded_plan(s, &m, VARIANTS, MELDS)?;
     let mf = &plan.manifest;
     println!(
         "\ncompiled in {:.1} s: {} steps, {} of weights, variants {}",
@@ -267,11 +255,7 @@ pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCo
             selection.key.to_string(),
             kept.len()
         );
-        let why: Vec<&str> =
-            selection.reasons.iter().map(String::as_str).filter(|r| !r.ends_with("-> clear")).collect();
-        if !why.is_empty() {
-            println!("        because {}", why.join("; "));
-        }
+        super::print_reasons(&selection);
     }
     println!(
         "\nseeded weights: the boxes show the path from points and pixels to decoded boxes, not a trained detector;"

@@ -146,6 +146,29 @@ fn describe_model(m: &Module, name: &str, check_ms: f64) {
     }
 }
 
+/// `m` compiled with seeded weights, seeded `variants` and the `melds` of them.
+fn seeded_plan(s: &Frontend, m: &Module, variants: &[&str], melds: &[&str]) -> Result<Arc<Plan>, ExitCode> {
+    let weights = backend::seeded_weights(&m.graph, 2024);
+    let keys: Vec<String> = variants.iter().map(|k| k.to_string()).collect();
+    let sources = backend::seeded_variants(m, &keys, 2025);
+    let opts = CompileOptions { melds: melds.iter().map(|k| k.to_string()).collect(), ..Default::default() };
+    match backend::compile_variants(m, &weights, "<seeded weights>", &sources, &opts) {
+        Ok((plan, _)) => Ok(Arc::new(plan)),
+        Err(d) => {
+            s.report(&d);
+            Err(ExitCode::FAILURE)
+        }
+    }
+}
+
+/// Why a frame's variant was chosen, but for the axes found clear.
+fn print_reasons(selection: &conditions::Selection) {
+    let why: Vec<&str> = selection.reasons.iter().map(String::as_str).filter(|r| !r.ends_with("-> clear")).collect();
+    if !why.is_empty() {
+        println!("        because {}", why.join("; "));
+    }
+}
+
 /// Runs the demo on `model`; `frames` frames of the drive (it repeats when longer).
 pub fn run(s: &mut Frontend, model: DemoModel, threads: usize, frames: usize) -> Result<(), ExitCode> {
     match model {
@@ -171,17 +194,7 @@ fn run_tiny(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitC
     describe_model(&m, name, check_ms);
 
     let start = Instant::now();
-    let weights = backend::seeded_weights(&m.graph, 2024);
-    let keys: Vec<String> = VARIANTS.iter().map(|k| k.to_string()).collect();
-    let sources = backend::seeded_variants(&m, &keys, 2025);
-    let opts = CompileOptions { melds: MELDS.iter().map(|k| k.to_string()).collect(), ..Default::default() };
-    let plan = match backend::compile_variants(&m, &weights, "<seeded weights>", &sources, &opts) {
-        Ok((plan, _)) => Arc::new(plan),
-        Err(d) => {
-            s.report(&d);
-            return Err(ExitCode::FAILURE);
-        }
-    };
+    let plan = seeded_plan(s, &m, VARIANTS, MELDS)?;
     let mf = &plan.manifest;
     let variant_bytes: usize =
         mf.variants.iter().flat_map(|v| &v.replaces).map(|r| mf.tensors[r.with].numel() * 4).sum();
@@ -239,11 +252,7 @@ fn run_tiny(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitC
             ms,
             summary.join(", ")
         );
-        let why: Vec<&str> =
-            selection.reasons.iter().map(String::as_str).filter(|r| !r.ends_with("-> clear")).collect();
-        if !why.is_empty() {
-            println!("        because {}", why.join("; "));
-        }
+        print_reasons(&selection);
     }
     println!("\nnext: `readi ir {name}` for the graph, `readi params {name}` for every tensor");
     Ok(())
