@@ -369,13 +369,15 @@ fn conv_shape(g: &Graph, id: NodeId) -> Option<(Conv2dShape, ConvAlgo)> {
 }
 
 /// The shape a linear layer runs at, as the 1x1 conv over its rows that computes the same
-/// GEMM (rows = the input's elements at batch 1 over its features).
+/// GEMM (rows = the input's elements at batch 1 over its features). Every axis counts at
+/// batch 1, symbols set to 1: a windowed attention's `[N * windows, area, C]` has
+/// `windows * area` rows, not `area`.
 fn linear_shape(g: &Graph, id: NodeId, fin: usize, fout: usize) -> Conv2dShape {
     let rows = g
         .inputs(id)
         .first()
         .and_then(|v| g.value_type(*v))
-        .map(|t| (0..t.rank()).skip(1).filter_map(|a| t.known_dim(a)).product::<i64>().max(1) as usize)
+        .map(|t| t.shape.iter().map(|d| d.coef().max(1)).product::<i64>().max(1) as usize)
         .map_or(1, |n| (n / fin.max(1)).max(1));
     Conv2dShape { h: rows, oh: rows, ..Conv2dShape::square(1, fin, 1, fout, 1, 1, 0, 1) }
 }
@@ -948,4 +950,27 @@ pub fn explain(s: &Strategy) -> String {
 /// The strategy's layers by path, for lookups by name.
 pub fn by_path(s: &Strategy) -> BTreeMap<&str, &LayerChoice> {
     s.layers.iter().map(|l| (l.path.as_str(), l)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A windowed attention's projection over `[N * 6, 49, 16]` runs 6 * 49 rows at batch
+    /// 1, a token linear over `[N, 49, 16]` 49, a static `[3, 49, 16]` 3 * 49.
+    #[test]
+    fn a_linear_runs_over_every_row_at_batch_one() {
+        let text = "model m {\n  input x: f32[N, 6, 49, 16]\n  input s: f32[3, 49, 16]\n  \
+            let w = reshape(x, [-1, 49, 16])\n  win = linear(w, 8)\n  tok = linear(x[:, 0], 8)\n  \
+            fixed = linear(s, 8)\n  output a = win\n  output b = tok\n  output c = fixed\n}\n";
+        let mut sources = readi_grammar::diag::SourceMap::new();
+        let file = sources.add("m.readi", text);
+        let out = crate::passes::run(file, text, &crate::passes::Options::default());
+        assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+        let g = &out.module.expect("module").graph;
+        for (path, rows) in [("win", 6 * 49), ("tok", 49), ("fixed", 3 * 49)] {
+            let id = g.node_ids().find(|&n| g.node(n).path == path).expect(path);
+            assert_eq!(linear_shape(g, id, 16, 8).h, rows, "{path}");
+        }
+    }
 }
