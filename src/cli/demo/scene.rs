@@ -92,7 +92,7 @@ pub fn sweep(cars: &[Car]) -> Vec<f32> {
     out
 }
 
-/// A camera: its yaw in the lidar frame (0 looks along x) and its intrinsics.
+/// A camera, by its yaw in the lidar frame (0 looks along x).
 struct View {
     yaw: f64,
 }
