@@ -148,6 +148,12 @@ pub fn read_bin(path: &Path, columns: usize, limit: usize) -> Result<Loaded, Str
 /// `outputs[i]`: an i64 or bool output is f32 holding integers, written as int64 or bool):
 /// all of them to one `.safetensors` or `.json` file, or one to a `.npy` file.
 pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]) -> Result<(), String> {
+    let named: Vec<(&str, &Tensor)> = outputs.iter().map(|(n, t)| (n.as_str(), t)).collect();
+    write_named(path, &named, dtypes)
+}
+
+/// [`write_outputs`] on borrowed names and tensors.
+fn write_named(path: &Path, outputs: &[(&str, &Tensor)], dtypes: &[DType]) -> Result<(), String> {
     let shown = path.display();
     let dtype = |i: usize| dtypes.get(i).copied().unwrap_or(DType::F32);
     match extension(path).as_str() {
@@ -169,7 +175,7 @@ pub fn write_outputs(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]
             let mut views = Vec::new();
             for ((name, t), (d, b)) in outputs.iter().zip(&encoded) {
                 let view = TensorView::new(*d, t.shape.clone(), b).map_err(|e| format!("{}: {e}", escaped(name)))?;
-                views.push((name.clone(), view));
+                views.push((name.to_string(), view));
             }
             let data = safetensors::serialize(views, None::<HashMap<String, String>>).map_err(|e| e.to_string())?;
             std::fs::write(path, data).map_err(|e| format!("cannot write {shown}: {e}"))
@@ -190,7 +196,7 @@ fn written_dtype(dtype: DType) -> &'static str {
 
 /// The outputs as one JSON object, `{"name": {"dtype", "shape", "data"}}` in output order,
 /// `data` flat in row-major order, streamed (no copy of the data).
-struct JsonOutputs<'a>(&'a [(String, Tensor)], &'a [DType]);
+struct JsonOutputs<'a>(&'a [(&'a str, &'a Tensor)], &'a [DType]);
 
 /// One output's values: integers as integers, bools as `true` / `false`, floats in their
 /// shortest round-trip form (serde_json's f32 writer), NaN and infinities as `null`.
@@ -232,7 +238,7 @@ impl serde::Serialize for JsonData<'_> {
 }
 
 /// Writes outputs to a `.json` file as [`JsonOutputs`] lays them out, one line.
-pub fn write_json(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]) -> Result<(), String> {
+fn write_json(path: &Path, outputs: &[(&str, &Tensor)], dtypes: &[DType]) -> Result<(), String> {
     use std::io::Write;
     let shown = path.display();
     let file = std::fs::File::create(path).map_err(|e| format!("cannot write {shown}: {e}"))?;
@@ -245,7 +251,7 @@ pub fn write_json(path: &Path, outputs: &[(String, Tensor)], dtypes: &[DType]) -
 /// `.safetensors` file holding only it.
 pub fn write_one(path: &Path, name: &str, t: &Tensor, dtype: DType) -> Result<(), String> {
     match extension(path).as_str() {
-        "json" | "safetensors" => write_outputs(path, &[(name.to_string(), t.clone())], &[dtype]),
+        "json" | "safetensors" => write_named(path, &[(name, t)], &[dtype]),
         _ => write_npy(path, t, dtype),
     }
 }
