@@ -196,36 +196,71 @@ fn destinations<'a>(m: &readi_runtime::plan::Manifest, specs: &'a [String]) -> R
     Ok(out)
 }
 
-/// A detector's boxes as a table: for outputs `boxes [B, K, >= 7]` (x, y, z, l, w, h, yaw,
-/// ...), `scores [B, K]` and `labels [B, K]` (and `keep [B, K]`, else a score above 0 keeps
-/// a box), each sample's kept boxes, the `top` best by score. Empty for other models.
-fn detections(result: &[(String, Tensor)], top: usize) -> String {
-    let get = |n: &str| result.iter().find(|(name, _)| name == n).map(|(_, t)| t);
-    let (Some(boxes), Some(scores), Some(labels)) = (get("boxes"), get("scores"), get("labels")) else {
-        return String::new();
-    };
-    let (&[b, k, width], [sb, sk], [lb, lk]) = (&boxes.shape[..], &scores.shape[..], &labels.shape[..]) else {
-        return String::new();
-    };
-    if width < 7 || (*sb, *sk, *lb, *lk) != (b, k, b, k) {
-        return String::new();
+/// A detector's outputs `boxes [B, K, >= 7]` (x, y, z, l, w, h, yaw, ...), `scores [B, K]`,
+/// `labels [B, K]` and, if present, `keep [B, K]` (else a score above 0 keeps a box).
+pub struct Detections<'a> {
+    pub boxes: &'a Tensor,
+    pub scores: &'a Tensor,
+    pub labels: &'a Tensor,
+    keep: Option<&'a Tensor>,
+}
+
+impl<'a> Detections<'a> {
+    /// The detector outputs of a run, or `None` for other models.
+    pub fn of(result: &'a [(String, Tensor)]) -> Option<Detections<'a>> {
+        let get = |n: &str| result.iter().find(|(name, _)| name == n).map(|(_, t)| t);
+        let (boxes, scores, labels) = (get("boxes")?, get("scores")?, get("labels")?);
+        let (&[b, k, width], [sb, sk], [lb, lk]) = (&boxes.shape[..], &scores.shape[..], &labels.shape[..]) else {
+            return None;
+        };
+        if width < 7 || (*sb, *sk, *lb, *lk) != (b, k, b, k) {
+            return None;
+        }
+        let keep = get("keep").filter(|t| t.shape == scores.shape);
+        Some(Detections { boxes, scores, labels, keep })
     }
-    let keep = get("keep").filter(|t| t.shape == scores.shape);
+
+    /// Samples and boxes per sample.
+    pub fn size(&self) -> (usize, usize) {
+        (self.scores.shape[0], self.scores.shape[1])
+    }
+
+    /// Sample `s`'s kept boxes, best score first, as flat row indices.
+    pub fn kept(&self, s: usize) -> Vec<usize> {
+        let k = self.size().1;
+        let keeps = |j: usize| self.keep.map_or(self.scores.data[j] > 0.0, |t| t.data[j] != 0.0);
+        let mut rows: Vec<usize> = (s * k..(s + 1) * k).filter(|&j| keeps(j)).collect();
+        rows.sort_by(|&x, &y| self.scores.data[y].total_cmp(&self.scores.data[x]));
+        rows
+    }
+
+    /// Row `j`'s x, y, z, l, w, h, yaw.
+    pub fn box7(&self, j: usize) -> &[f32] {
+        let width = self.boxes.shape[2];
+        &self.boxes.data[j * width..j * width + 7]
+    }
+}
+
+/// A detector's boxes as a table: each sample's kept boxes, the `top` best by score.
+/// Empty for other models.
+fn detections(result: &[(String, Tensor)], top: usize) -> String {
+    let Some(d) = Detections::of(result) else {
+        return String::new();
+    };
+    let (b, k) = d.size();
     let mut out = String::new();
     for s in 0..b {
-        let mut rows: Vec<usize> =
-            (s * k..(s + 1) * k).filter(|&j| keep.map_or(scores.data[j] > 0.0, |t| t.data[j] != 0.0)).collect();
-        rows.sort_by(|&x, &y| scores.data[y].total_cmp(&scores.data[x]));
+        let rows = d.kept(s);
         out += &format!("sample {s}: {} of {k} boxes kept", rows.len());
         if rows.len() > top {
             out += &format!(", the {top} best:");
         }
         out += "\n      label  score        x        y        z      l      w      h     yaw\n";
         for &j in rows.iter().take(top) {
-            let v = &boxes.data[j * width..j * width + 7];
+            let v = d.box7(j);
             out += &format!(
                 "  {:>9} {:>6.3} {:>8.2} {:>8.2} {:>8.2} {:>6.2} {:>6.2} {:>6.2} {:>7.3}\n",
-                labels.data[j] as i64, scores.data[j], v[0], v[1], v[2], v[3], v[4], v[5], v[6]
+                d.labels.data[j] as i64, d.scores.data[j], v[0], v[1], v[2], v[3], v[4], v[5], v[6]
             );
         }
     }

@@ -13,7 +13,7 @@ use readi_compiler::passes::{self, Options};
 use readi_compiler::print;
 use readi_grammar::diag::FileId;
 use readi_runtime::conditions;
-use readi_runtime::exec::{Input, Session, Tensor};
+use readi_runtime::exec::{Input, Session};
 
 use super::super::frontend::Frontend;
 use super::scene;
@@ -136,24 +136,6 @@ fn sensors(frame: usize, s: &Stretch) -> Result<Sensors, String> {
     Ok((points, views))
 }
 
-/// The kept boxes of a run, best first: (label, score, x, y, yaw).
-fn kept_boxes(outputs: &[(String, Tensor)]) -> Vec<(usize, f32, f32, f32, f32)> {
-    let get = |n: &str| outputs.iter().find(|(name, _)| name == n).map(|(_, t)| t);
-    let (Some(boxes), Some(scores), Some(labels), Some(keep)) =
-        (get("boxes"), get("scores"), get("labels"), get("keep"))
-    else {
-        return Vec::new();
-    };
-    let mut kept: Vec<_> = (0..keep.data.len())
-        .filter(|&j| keep.data[j] == 1.0)
-        .map(|j| {
-            (labels.data[j] as usize, scores.data[j], boxes.data[j * 9], boxes.data[j * 9 + 1], boxes.data[j * 9 + 6])
-        })
-        .collect();
-    kept.sort_by(|a, b| b.1.total_cmp(&a.1));
-    kept
-}
-
 /// Runs the BEVFusion demo; `frames` frames of the drive (it repeats when longer).
 pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCode> {
     let fail = |msg: String| {
@@ -243,11 +225,16 @@ pub fn run(s: &mut Frontend, threads: usize, frames: usize) -> Result<(), ExitCo
         let t = Instant::now();
         let result = session.run(&given).map_err(|e| fail(e.to_string()))?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
-        let kept = kept_boxes(&result);
-        let best = kept.first().map_or(String::from("none"), |&(label, score, x, y, yaw)| {
-            let class = CLASSES.get(label).copied().unwrap_or("?");
-            format!("{class} {score:.2} at ({x:.1}, {y:.1}) m, yaw {yaw:.2}")
-        });
+        let detections = super::super::run::Detections::of(&result);
+        let kept = detections.as_ref().map(|d| d.kept(0)).unwrap_or_default();
+        let best = match (&detections, kept.first()) {
+            (Some(d), Some(&j)) => {
+                let class = CLASSES.get(d.labels.data[j] as usize).copied().unwrap_or("?");
+                let v = d.box7(j);
+                format!("{class} {:.2} at ({:.1}, {:.1}) m, yaw {:.2}", d.scores.data[j], v[0], v[1], v[6])
+            }
+            _ => String::from("none"),
+        };
         let pts = if points.is_some() { point_shape[0].to_string() } else { "-".into() };
         println!(
             "  {frame:<5} {:<18} {pts:>6} {:<22} {switch_us:>6.2} us {ms:>5.0} ms  {}, {best}",
