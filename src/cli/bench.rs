@@ -11,18 +11,13 @@ use super::load_plan;
 
 /// Seeded inputs for every input of a plan at the given batch size.
 fn synthetic_inputs(plan: &Plan, batch: usize, seed: u64) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let mut state = seed;
+    let mut uniform = super::uniform(seed);
     plan.manifest
         .input_shapes(batch)
         .into_iter()
         .map(|(name, shape)| {
             let n = shape.iter().product();
-            let data = (0..n)
-                .map(|_| {
-                    state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                    ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-                })
-                .collect();
+            let data = (0..n).map(|_| uniform() * 2.0 - 1.0).collect();
             (name.to_string(), shape, data)
         })
         .collect()

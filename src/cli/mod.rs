@@ -40,6 +40,16 @@ pub fn session_options(threads: Option<usize>, max_memory: Option<usize>) -> Ses
     }
 }
 
+/// Seeded uniform numbers in [0, 1) (a 64-bit LCG's top 24 bits): the commands' synthetic
+/// inputs and the demos' sensor data, the same every run.
+pub fn uniform(seed: u64) -> impl FnMut() -> f32 {
+    let mut state = seed;
+    move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
 /// Loads a plan file; the error is printed.
 pub fn load_plan(path: &Path) -> Result<Arc<Plan>, ExitCode> {
     match Plan::load(path) {

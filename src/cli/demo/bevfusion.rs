@@ -123,11 +123,9 @@ fn sensors(frame: usize, s: &Stretch) -> Result<Sensors, String> {
         let v = scene::views(&cars, CAMS, H, W);
         let mut v = if s.gamma == 1.0 { v } else { readi::simulate::camera::gamma(&v, s.gamma)? };
         // The sensor's noise (after the exposure, as in a camera): uniform, std 0.05.
-        let mut state = 0x9E37_79B9_7F4A_7C15u64 ^ frame as u64;
+        let mut uniform = super::super::uniform(0x9E37_79B9_7F4A_7C15u64 ^ frame as u64);
         for p in &mut v {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            let u = (state >> 40) as f32 / (1u64 << 24) as f32;
-            *p = (*p + 0.173 * (u - 0.5)).clamp(0.0, 1.0);
+            *p = (*p + 0.173 * (uniform() - 0.5)).clamp(0.0, 1.0);
         }
         Some(v)
     } else {

@@ -77,11 +77,7 @@ const DRIVE: &[Scene] = &[
 /// A camera frame: six views of a seeded, textured scene in [0, 1] seen with `gamma`, and a
 /// lidar BEV grid with about 1% of its cells occupied.
 fn sensors(plan: &Plan, frame: u64, gamma: f32) -> Vec<(String, Vec<usize>, Vec<f32>)> {
-    let mut state = 0x9E37_79B9_7F4A_7C15u64 ^ frame;
-    let mut uniform = move || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (state >> 40) as f32 / (1u64 << 24) as f32
-    };
+    let mut uniform = super::uniform(0x9E37_79B9_7F4A_7C15u64 ^ frame);
     let m = &plan.manifest;
     m.input_shapes(1)
         .into_iter()
