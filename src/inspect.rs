@@ -11,7 +11,7 @@ use std::fmt::{self, Write};
 use std::path::Path;
 
 use readi_compiler::print;
-use readi_runtime::plan::{Kernel, Manifest, Plan, Storage, escaped, show_shape};
+use readi_runtime::plan::{Kernel, Manifest, Plan, Step, Storage, escaped, show_shape};
 
 /// Runs a writer into a new string.
 fn render(f: impl FnOnce(&mut String) -> fmt::Result) -> String {
@@ -340,6 +340,24 @@ fn m_has_no_symbols(m: &Manifest) -> bool {
     m.symbols.is_empty()
 }
 
+/// The steps' `seconds` summed per `key` of a step, with the number of steps: the largest
+/// total first, ties in order of first appearance.
+fn totals(m: &Manifest, seconds: &[f64], key: impl Fn(&Step) -> String) -> Vec<(String, f64, usize)> {
+    let mut groups: Vec<(String, f64, usize)> = Vec::new();
+    for (st, &t) in m.steps.iter().zip(seconds) {
+        let k = key(st);
+        match groups.iter_mut().find(|(g, _, _)| *g == k) {
+            Some(e) => {
+                e.1 += t;
+                e.2 += 1;
+            }
+            None => groups.push((k, t, 1)),
+        }
+    }
+    groups.sort_by(|a, b| b.1.total_cmp(&a.1));
+    groups
+}
+
 /// Per-kernel-kind and per-step time from a profiled session (`seconds`, one per step,
 /// summed over `runs`), as the mean per run: the kinds by total time, the layer scopes by
 /// total time, then the twelve slowest steps.
@@ -347,27 +365,18 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
     render(|out| {
         let total: f64 = seconds.iter().sum();
         let ms = |s: f64| s * 1e3 / runs.max(1) as f64;
-        let mut kinds: Vec<(String, f64)> = Vec::new();
-        for (st, &t) in m.steps.iter().zip(seconds) {
-            let kind = match &st.kernel {
-                Kernel::Conv2d { algo, .. } => format!("conv2d/{algo}"),
-                k => k.name().to_string(),
-            };
-            match kinds.iter_mut().find(|(k, _)| *k == kind) {
-                Some(e) => e.1 += t,
-                None => kinds.push((kind, t)),
-            }
-        }
-        kinds.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let kinds = totals(m, seconds, |st| match &st.kernel {
+            Kernel::Conv2d { algo, .. } => format!("conv2d/{algo}"),
+            k => k.name().to_string(),
+        });
         writeln!(out, "time per kernel kind (mean per run):")?;
-        for (k, t) in &kinds {
+        for (k, t, _) in &kinds {
             writeln!(out, "  {k:<20} {:8.3} ms  {:5.1}%", ms(*t), 100.0 * t / total.max(1e-12))?;
         }
         // Where in the network: each step under its layer path's first three segments, cut
         // before an index (`layer1.0.conv1` -> `layer1`, `encoders.camera.backbone.stages.0`
         // -> `encoders.camera.backbone`); a step of an unnamed value counts as `(unnamed)`.
-        let mut scopes: Vec<(String, f64, usize)> = Vec::new();
-        for (st, &t) in m.steps.iter().zip(seconds) {
+        let scopes = totals(m, seconds, |st| {
             // After a space a step's path says what it absorbed (` (+relu#0)`) or how it
             // views its input (` [to N, C, L]`).
             let own = st.path.split(' ').next().unwrap_or_default();
@@ -376,16 +385,8 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
                 .take(3)
                 .take_while(|s| !s.is_empty() && !s.starts_with(|c: char| c.is_ascii_digit()) && !s.contains('#'))
                 .collect();
-            let scope = if segs.is_empty() { "(unnamed)".to_string() } else { segs.join(".") };
-            match scopes.iter_mut().find(|(k, _, _)| *k == scope) {
-                Some(e) => {
-                    e.1 += t;
-                    e.2 += 1;
-                }
-                None => scopes.push((scope, t, 1)),
-            }
-        }
-        scopes.sort_by(|a, b| b.1.total_cmp(&a.1));
+            if segs.is_empty() { "(unnamed)".to_string() } else { segs.join(".") }
+        });
         writeln!(out, "time per layer scope (mean per run):")?;
         for (k, t, n) in &scopes {
             let k = escaped(k);
@@ -468,8 +469,8 @@ model two(hidden: int = 8) {
         assert_eq!(schedule(&plan.manifest, false), format!("{}\n", listing.lines().next().unwrap_or_default()));
     }
 
-    /// Scopes sum their steps' times: a conv scope and a head scope of a model whose
-    /// steps are named `net.conv#...`, `net.head...`, each with the share of its steps.
+    /// Scopes sum their steps' times: the `conv` scope (its step absorbed a ReLU: `conv
+    /// (+relu#0)`) has its one step's time and share, unnamed values count apart.
     #[test]
     fn profile_sums_steps_per_layer_scope() {
         let plan = compile(TWO_LAYERS);
