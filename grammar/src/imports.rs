@@ -5,8 +5,9 @@
 //! then hold only the adaptation and the conditions for a model written elsewhere
 //! (`use "resnet50.readi"` and an `adapt` section), replacing the model file's own, and a
 //! model can be assembled from the blocks of part files that each keep a model of their
-//! own for testing (`models/bevfusion.readi` uses `models/bevfusion/*.readi`). Paths are relative to the file that writes them; reading them is the
-//! caller's (a [`Load`]), so the parser itself never touches the file system.
+//! own for testing (`models/bevfusion.readi` uses `models/bevfusion/*.readi`). Paths are
+//! relative to the file that writes them; reading them is the caller's (a [`Load`]), so
+//! the parser itself never touches the file system.
 //!
 //! Each file is included once: a file reached twice (two files use a third) or a cycle
 //! adds nothing the second time. Uses nest at most [`MAX_USE_DEPTH`] deep. Diagnostics

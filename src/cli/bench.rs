@@ -60,7 +60,7 @@ pub fn run(
         ExitCode::FAILURE
     };
     let threads = options.threads;
-    let options_max_memory = options.max_memory;
+    let max_memory = options.max_memory;
     let mut session = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
     if let Some(key) = variant {
         session.set_variant(key).map_err(|e| fail(e.to_string()))?;
@@ -69,7 +69,7 @@ pub fn run(
     // refused before the inputs are made.
     session.bind_batch(batch).map_err(|e| fail(format!("{}: batch {batch}: {e}", plan_path.display())))?;
     let mut data = synthetic_inputs(&plan, batch, 42);
-    for (name, (shape, d)) in super::run::load_inputs(&plan.manifest, inputs, options_max_memory).map_err(fail)? {
+    for (name, (shape, d)) in super::run::load_inputs(&plan.manifest, inputs, max_memory).map_err(fail)? {
         match data.iter_mut().find(|(n, _, _)| *n == name) {
             Some(slot) => *slot = (name, shape, d),
             None => return Err(fail(format!("the plan has no input `{}`", escaped(&name)))),
