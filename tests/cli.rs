@@ -439,6 +439,17 @@ fn compile_a_deployment_with_variants() {
     let o = readi(&["bench", &p(&plan), "--runs", "1", "--variant", "gamma=0.3"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("gamma=0.25"), "lists the keys: {}", stderr(&o));
+    // Switching: the switch alone there and back 2000 times per key, then one timed
+    // switch per run; an unknown key fails before anything runs.
+    let o =
+        readi(&["bench", &p(&plan), "--runs", "2", "--warmup", "0", "--variant", "gamma=0.25", "--switch", "blur=5"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("switch gamma=0.25 <-> blur=5: 4000 switches: p50"), "{out}");
+    assert!(out.contains("first run after a switch, against the steady run after it (2 switches)"), "{out}");
+    let o = readi(&["bench", &p(&plan), "--runs", "1", "--switch", "blur=6"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("blur=6") && !stdout(&o).contains("median"), "{}", stderr(&o));
 
     // --auto: a dark, textured image selects gamma=0.25 by its brightness; a dark flat one
     // also reads as blurred, and two camera conditions without a meld rule are an error.

@@ -243,6 +243,11 @@ pub enum Command {
         /// seeded. For models whose work depends on the data (a point cloud's voxels).
         #[arg(long = "input", value_name = "NAME=FILE", value_parser = parse_set)]
         inputs: Vec<(String, String)>,
+        /// Also time switching between the timed variant and this one (repeatable): the
+        /// switch itself (p50, p99) and the first run after a switch against the steady run
+        /// that follows it, `--runs` switches.
+        #[arg(long = "switch", value_name = "KEY")]
+        switch: Vec<String>,
         /// Most memory a run may take (activation buffers, scratch, inputs, outputs): bytes, or
         /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
         #[arg(long, value_name = "BYTES", value_parser = parse_memory)]

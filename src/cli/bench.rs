@@ -5,7 +5,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use readi_runtime::exec::{Input, Session, SessionOptions};
-use readi_runtime::plan::{Plan, escaped};
+use readi_runtime::plan::{BASE_VARIANT, Plan, escaped};
 
 use super::load_plan;
 
@@ -41,6 +41,8 @@ pub struct Timing {
     pub batch: usize,
     /// Whether to print the per-step profile.
     pub profile: bool,
+    /// Variants to switch to and back from after the timed runs ([`switching`]).
+    pub switch: Vec<String>,
 }
 
 /// Times `plan_path` under `variant` (or the base) on seeded inputs, except those `inputs`
@@ -53,7 +55,7 @@ pub fn run(
     variant: Option<&str>,
     inputs: &[(String, String)],
 ) -> Result<(), ExitCode> {
-    let Timing { runs, warmup, batch, profile } = *timing;
+    let Timing { runs, warmup, batch, profile, ref switch } = *timing;
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
         eprintln!("error: {msg}");
@@ -62,7 +64,9 @@ pub fn run(
     let threads = options.threads;
     let max_memory = options.max_memory;
     let mut session = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
-    if let Some(key) = variant {
+    // Every key is looked up before anything runs: a typo fails at once. The timed
+    // variant is set last.
+    for key in switch.iter().map(String::as_str).chain([variant.unwrap_or(BASE_VARIANT)]) {
         session.set_variant(key).map_err(|e| fail(e.to_string()))?;
     }
     // Bound first: a batch too large for the memory limit (or for the address space) is
@@ -104,5 +108,64 @@ pub fn run(
     if let Some(p) = session.profile() {
         print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));
     }
+    if !switch.is_empty() {
+        switching(&mut session, &given, switch, runs).map_err(|e| fail(format!("{shown}: {e}")))?;
+    }
+    Ok(())
+}
+
+/// Switches per key in [`switching`]'s timing of the switch alone.
+const SWITCHES: usize = 2000;
+
+/// Times switching between the session's variant (`home`) and each of `keys`: the switch
+/// alone, [`SWITCHES`] times per key there and back (a key lookup and an atomic store, so
+/// nanoseconds to microseconds); then `runs` switches, alternately to a key and home, each
+/// followed by two runs: the first, which pays whatever a switch defers to the run (a
+/// layer merged on switch is re-merged there), against the steady one after it.
+fn switching(session: &mut Session, given: &[Input<'_>], keys: &[String], runs: usize) -> Result<(), String> {
+    let home = session.variant().to_string();
+    let mut switch_ns = Vec::with_capacity(2 * SWITCHES * keys.len());
+    for _ in 0..SWITCHES {
+        for key in keys.iter().flat_map(|k| [k.as_str(), home.as_str()]) {
+            let t = Instant::now();
+            session.set_variant(key).map_err(|e| e.to_string())?;
+            switch_ns.push(t.elapsed().as_secs_f64() * 1e9);
+        }
+    }
+    switch_ns.sort_by(f64::total_cmp);
+    println!(
+        "switch {} <-> {}: {} switches: p50 {:.0} ns, p99 {:.0} ns, max {:.0} ns",
+        escaped(&home),
+        keys.iter().map(|k| escaped(k).to_string()).collect::<Vec<_>>().join(", "),
+        switch_ns.len(),
+        percentile(&switch_ns, 0.5),
+        percentile(&switch_ns, 0.99),
+        switch_ns.last().copied().unwrap_or(0.0)
+    );
+    let timed = |session: &mut Session| -> Result<f64, String> {
+        let t = Instant::now();
+        session.run(given).map_err(|e| e.to_string())?;
+        Ok(t.elapsed().as_secs_f64() * 1e3)
+    };
+    let (mut extra, mut ratio) = (Vec::with_capacity(runs), Vec::with_capacity(runs));
+    for i in 0..runs {
+        let to = if i % 2 == 0 { keys[(i / 2) % keys.len()].as_str() } else { home.as_str() };
+        session.set_variant(to).map_err(|e| e.to_string())?;
+        let (first, steady) = (timed(session)?, timed(session)?);
+        extra.push(first - steady);
+        ratio.push(first / steady);
+    }
+    session.set_variant(&home).map_err(|e| e.to_string())?;
+    extra.sort_by(f64::total_cmp);
+    ratio.sort_by(f64::total_cmp);
+    println!(
+        "first run after a switch, against the steady run after it ({runs} switches): {:+.3} ms p50, {:+.3} ms p99; \
+         first / steady median {:.3} (range {:.3} to {:.3})",
+        percentile(&extra, 0.5),
+        percentile(&extra, 0.99),
+        percentile(&ratio, 0.5),
+        ratio.first().copied().unwrap_or(0.0),
+        ratio.last().copied().unwrap_or(0.0)
+    );
     Ok(())
 }
