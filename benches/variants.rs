@@ -15,7 +15,7 @@
 //! * a melded variant's latency against its parts';
 //! * the issue's ResNet-18 case: LoRA r = 4 on the 3x3 convs of layer3 and layer4, tuned
 //!   BatchNorm and fc: bytes per variant and latency against the base, merged and as a branch;
-//! * merge on switch under `--lora auto --memory-budget 3 --switch-budget 1`, on both
+//! * merge on switch under `--lora auto --memory-budget 3` (the default switch budget), on both
 //!   models: bytes per variant, latency against the base, the re-merge of a switch timed
 //!   directly (every layer merged on switch, `kernels::merge::switch_pack`, p50/p99), and
 //!   the first run after a switch minus a steady run (p50/p99);
@@ -184,7 +184,7 @@ fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
     v[((v.len() - 1) as f64 * p / 100.0).round() as usize]
 }
 
-/// `--lora auto --memory-budget 3 --switch-budget 1` on `m` with `variants` variants:
+/// `--lora auto --memory-budget 3` (the default switch budget) on `m` with `variants` variants:
 /// what the strategy chose, bytes per variant, latency against `base`, and the switch.
 fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize, usize), quick: bool) {
     use readi_runtime::kernels::{Lora, conv, merge};
@@ -194,12 +194,8 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
     let keys: Vec<String> =
         round_robin(keys.into_iter().map(|k| k.to_string()).collect()).into_iter().take(variants).collect();
     let sources = backend::seeded_variants(m, &keys, 10);
-    let opts = CompileOptions {
-        lora: LoraMode::Auto,
-        memory_budget: Some(3.0),
-        switch_budget: Some(1.0),
-        ..Default::default()
-    };
+    let opts =
+        CompileOptions { lora: LoraMode::Auto, memory_budget: Some(3.0), switch_budget: None, ..Default::default() };
     let (p, warnings, s) = backend::compile_explained(m, &weights, "seeded", &sources, &opts).expect("compiles");
     let p = Arc::new(p);
     let s = s.expect("a strategy");
@@ -207,10 +203,11 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
         s.layers.iter().filter(|l| f(l)).count()
     };
     println!(
-        "strategy: {} layers merged on switch ({:.3} ms predicted per switch, working copies {:.2} MiB per session), {} \
-         branch, {} merged; {:.2}% per variant{}",
+        "strategy: {} layers merged on switch ({:.3} ms predicted per switch of a budget of {:.3} ms, working copies \
+         {:.2} MiB per session), {} branch, {} merged; {:.2}% per variant{}",
         count(&|l| l.switch),
         s.switch_ms(),
+        s.switch_budget_ms,
         s.working_bytes() as f64 / (1024.0 * 1024.0),
         count(&|l| !l.switch && l.lora == Some(LoraMode::Branch)),
         count(&|l| !l.switch && l.lora != Some(LoraMode::Branch)),
@@ -370,7 +367,7 @@ fn main() {
     for (name, p) in [("merged", &merged), ("branch", &branch)] {
         plan_size(name, p);
     }
-    println!("-- bevfusion_tiny, --lora auto --memory-budget 3 --switch-budget 1, 12 variants --");
+    println!("-- bevfusion_tiny, --lora auto --memory-budget 3, 12 variants --");
     merge_on_switch(&m, &base, 12, (rounds, per_round), quick);
 
     // A melded variant against its parts: the meld stores its own values, never extra steps.
@@ -417,7 +414,7 @@ fn main() {
         let t = interleaved(&mut runners, rounds, per_round);
         println!("  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
     }
-    println!("-- --lora auto --memory-budget 3 --switch-budget 1 --");
+    println!("-- --lora auto --memory-budget 3 --");
     merge_on_switch(&m, &base, 2, (rounds, per_round), quick);
 
     // Reloading a whole model copy: what a system without variants does on a switch.

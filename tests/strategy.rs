@@ -245,6 +245,41 @@ fn a_layer_goes_merge_on_switch_when_its_merge_fits_the_switch_budget() {
     assert!(choose_strategy::explain(&s).contains("merge-on-switch"));
 }
 
+/// [`macs`] a thousand times faster: ResNet-18's convs take about 1.8 ms, so a
+/// layer3 merge at [`merge_ms`] (0.3 to 0.6 ms) is a quarter of a run.
+fn fast_macs(s: &Conv2dShape, algo: ConvAlgo) -> f64 {
+    macs(s, algo) * 1e-3
+}
+
+#[test]
+fn the_default_switch_budget_keeps_the_first_run_after_a_switch_within_two_percent() {
+    let m = module("224");
+    let timing = Timing::FixedSwitch(fast_macs, merge_ms);
+    let (_, _, merged) = compile(&m, &CompileOptions { timing, ..opts(LoraMode::Auto, Some(1000.0)) });
+    let merged = merged.expect("a strategy");
+    // The budget layer3.0.conv2 merged on switch would meet (as above).
+    let saved = (36 * 256 * 256 - (4 * 256 * 9 + 256 * 4)) * 4;
+    let need = merged.variant_bytes().into_iter().max().expect("variants") - saved;
+    let pct = need as f64 * 100.0 / merged.base_bytes as f64 + 1e-9;
+    // Given 1 ms, the switch takes it: 0.590 ms of re-merge, a third of this run.
+    let given = CompileOptions { timing, switch_budget: Some(1.0), ..opts(LoraMode::Auto, Some(pct)) };
+    let (_, _, s) = compile(&m, &given);
+    assert_eq!(switched(&s.expect("a strategy")), ["layer3.0.conv2"]);
+    // By default the re-merge may take 2% of the base's conv time (its sum over every conv
+    // at its algorithm, by hand from `fast_macs`): no layer fits, so the budget is met by
+    // a branch instead.
+    let (plan, warnings, s) = compile(&m, &CompileOptions { timing, ..opts(LoraMode::Auto, Some(pct)) });
+    let s = s.expect("a strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    let conv_ms: f64 = s.base_ms.expect("timed");
+    assert!((s.switch_budget_ms - 0.02 * conv_ms).abs() < 1e-12, "{} vs {conv_ms}", s.switch_budget_ms);
+    assert!(s.switch_budget_ms < 0.2, "{}", s.switch_budget_ms);
+    assert_eq!(switched(&s), Vec::<&str>::new());
+    assert!(s.layers.iter().any(|l| l.lora == Some(LoraMode::Branch)));
+    assert!(s.max_pct() <= pct);
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+}
+
 /// Runs every variant of a plan on one seeded image.
 fn outputs(plan: Plan, img: usize) -> Vec<Vec<f32>> {
     let plan = Arc::new(plan);

@@ -144,9 +144,10 @@ pub enum Command {
         /// Implies `--lora auto` unless --lora is given.
         #[arg(long, value_name = "PCT", value_parser = parse_budget)]
         memory_budget: Option<f64>,
-        /// Most re-merge work a variant switch may take, in milliseconds (default 1): the
-        /// layers merged on switch (one shared working copy per layer, re-merged when the
-        /// variant changes; no latency, raw tensors per variant), their measured
+        /// Most re-merge work a variant switch may take, in milliseconds (default 1, and at
+        /// most 2% of the model's measured conv time, which the first run after a switch
+        /// pays): the layers merged on switch (one shared working copy per layer, re-merged
+        /// when the variant changes; no latency, raw tensors per variant), their measured
         /// merge-and-pack times summed. 0: none is merged on switch.
         #[arg(long, value_name = "MS", value_parser = parse_switch_budget)]
         switch_budget: Option<f64>,
