@@ -8,15 +8,20 @@
 //! selects. With `READI_BENCH_ALL_ALGOS=1` every other algorithm that supports a conv
 //! layer is measured too, as `alt-<algo>`. `runtime/benches/ort_kernels.py` runs this and
 //! ONNX Runtime and prints both side by side.
+//!
+//! Under `cargo bench`, after criterion's runs, a summary times each FLOP-bound kernel the
+//! filter selects once more (median of nine calls) and prints its GFLOP/s as a fraction
+//! of the machine's peak at the same thread count, measured by `readi_runtime::peak`.
 
 use std::hint::black_box;
 use std::time::Duration;
 
-use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group};
 use readi_runtime::kernels::Epilogue;
 use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use readi_runtime::kernels::gemm::{MatMut, MatRef, sgemm};
 use readi_runtime::kernels::linear::{WeightLayout, linear};
+use readi_runtime::peak;
 use readi_runtime::testdata::data;
 
 const THREADS: usize = 2;
@@ -126,7 +131,7 @@ fn bench_conv_lora(c: &mut Criterion) {
         let b = data(cout * rank, 8);
         let lora = conv::Lora { a: &packed_a, b: &b, rank };
         let mut scratch = vec![0.0; conv::lora_scratch_len(&s, algo, rank, THREADS)];
-        for threads in [1, THREADS] {
+        for threads in [1, THREADS].into_iter().filter(|_| selected(&format!("conv2d_lora/{name}"))) {
             let run = |with: bool| {
                 let l = with.then_some(&lora);
                 conv::conv2d_lora(&s, algo, &packed, l, &ep, &x, &mut out, &mut scratch, threads);
@@ -217,6 +222,9 @@ fn bench_conv_transpose(c: &mut Criterion) {
                 })
             })
         });
+        if !fastest.is_finite() {
+            continue; // filtered out: criterion did not run it
+        }
         let mut naive = f64::INFINITY;
         let mut want = vec![0.0; out.len()];
         for _ in 0..3 {
@@ -276,6 +284,9 @@ fn bench_conv3d(c: &mut Criterion) {
                 })
             })
         });
+        if !fastest.is_finite() {
+            continue; // filtered out: criterion did not run it
+        }
         let mut naive = f64::INFINITY;
         let mut want = vec![0.0; out.len()];
         for _ in 0..3 {
@@ -455,4 +466,187 @@ criterion_group!(
     bench_unary,
     bench_movement
 );
-criterion_main!(benches);
+
+/// Criterion's runs, then (under `cargo bench`, not `cargo test`) the [`peak_summary`]
+/// of the kernels the filter selects.
+fn main() {
+    benches();
+    Criterion::default().configure_from_args().final_summary();
+    if std::env::args().any(|a| a == "--bench") {
+        peak_summary(&filter());
+    }
+}
+
+/// The name filter given to the bench (`cargo bench --bench kernels -- conv2d`), empty for
+/// none: criterion's own runs match it as a regex, the summaries outside criterion as a
+/// substring.
+fn filter() -> String {
+    std::env::args().skip(1).find(|a| !a.starts_with('-')).unwrap_or_default()
+}
+
+/// Whether a summary outside criterion's runs named `name` passes the [`filter`] (a
+/// substring either way: `conv2d_lora` selects `conv2d_lora/l3_3x3_256`, and so does
+/// `conv2d_lora/l3`).
+fn selected(name: &str) -> bool {
+    let f = filter();
+    name.contains(&f) || f.contains(name)
+}
+
+/// A kernel call the summary times: its name, its FLOPs (multiply-adds x 2) and the call.
+struct Case {
+    name: String,
+    flops: f64,
+    run: Box<dyn FnMut() + Send>,
+}
+
+/// Each FLOP-bound kernel benchmarked above (the chosen conv algorithm only), timed again
+/// outside criterion (two calls untimed, then the median of nine) on a pool of
+/// [`THREADS`], against the machine's peak at [`THREADS`] threads measured by
+/// [`readi_runtime::peak`]: `kernel | ms | GFLOP/s | % of peak`.
+fn peak_summary(filter: &str) {
+    let cases: Vec<Case> =
+        flop_cases().into_iter().filter(|c| c.name.contains(filter) || filter.contains(&c.name)).collect();
+    if cases.is_empty() {
+        return;
+    }
+    let peak = peak::measure(THREADS);
+    let one = peak::measure(1);
+    println!(
+        "\npeak f32 FMA throughput ({} lanes): {:.1} GFLOP/s on 1 thread, {:.1} GFLOP/s on {THREADS} threads",
+        peak.lanes,
+        one.gflops(),
+        peak.gflops()
+    );
+    println!(
+        "(FLOPs counted as a direct conv does them: a Winograd conv multiplies 2.25x to 4x less, so its figure is"
+    );
+    println!("the direct conv's equivalent, and can pass what the machine's multiplies alone would allow)");
+    println!("{:<42} | {:>9} | {:>8} | {:>9}", "kernel", "ms", "GFLOP/s", "% of peak");
+    let pool = pool();
+    for mut case in cases {
+        let median = pool.install(|| median_seconds(&mut case.run));
+        let flops = case.flops / median;
+        println!(
+            "{:<42} | {:>9.3} | {:>8.1} | {:>8.1}%",
+            case.name,
+            median * 1e3,
+            flops * 1e-9,
+            100.0 * peak.fraction(flops)
+        );
+    }
+}
+
+/// The median time of nine calls after two untimed ones.
+fn median_seconds(run: &mut (dyn FnMut() + Send)) -> f64 {
+    run();
+    run();
+    let mut t: Vec<f64> = (0..9)
+        .map(|_| {
+            let t = std::time::Instant::now();
+            run();
+            t.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
+/// The cases of [`peak_summary`], with the shapes and data of the criterion benches.
+fn flop_cases() -> Vec<Case> {
+    let mut cases = Vec::new();
+    let n = 512;
+    let (a, b, mut out) = (data(n * n, 1), data(n * n, 2), vec![0.0; n * n]);
+    cases.push(Case {
+        name: "sgemm/512x512x512".into(),
+        flops: 2.0 * (n * n * n) as f64,
+        run: Box::new(move || {
+            let (a, b) = (MatRef::row_major(&a, n, n), MatRef::row_major(&b, n, n));
+            sgemm(a, b, MatMut::row_major(&mut out, n, n), false, THREADS);
+            black_box(&out);
+        }),
+    });
+    for (name, cin, hw, cout, k, stride, pad) in RESNET18 {
+        let s = Conv2dShape::square(1, cin, hw, cout, k, stride, pad, 1);
+        let algo = conv::choose(&s);
+        let x = data(cin * hw * hw, 3);
+        let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
+        conv::pack_weight(&s, algo, &data(cout * cin * k * k, 4), &mut packed);
+        let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
+        let shift = data(cout, 6);
+        let mut out = vec![0.0; cout * s.oh * s.ow];
+        let mut scratch = vec![0.0; conv::scratch_len(&s, algo, THREADS)];
+        cases.push(Case {
+            name: format!("conv2d/{name}/{}", algo.name()),
+            flops: 2.0 * (cout * s.oh * s.ow * cin * k * k) as f64,
+            run: Box::new(move || {
+                let act = Some(readi_plan::ops::Activation::Relu);
+                let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+                conv::conv2d(&s, algo, &packed, &ep, &x, &mut out, &mut scratch, THREADS);
+                black_box(&out);
+            }),
+        });
+    }
+    cases.extend(transposed_and_3d_cases());
+    let (rows, fin, fout) = (196, 384, 1536);
+    let (x, w, bias) = (data(rows * fin, 7), data(fout * fin, 8), data(fout, 9));
+    let mut out = vec![0.0; rows * fout];
+    cases.push(Case {
+        name: format!("linear/{rows}x{fin}x{fout}"),
+        flops: 2.0 * (rows * fin * fout) as f64,
+        run: Box::new(move || {
+            let ep = Epilogue { scale: None, shift: Some(&bias), act: None };
+            linear(&x, rows, fin, &w, WeightLayout::InOut, fout, &ep, &mut out, THREADS);
+            black_box(&out);
+        }),
+    });
+    cases
+}
+
+/// [`flop_cases`]' `conv_transpose2d` and `conv3d` cases, the shapes of
+/// [`bench_conv_transpose`] and [`bench_conv3d`].
+fn transposed_and_3d_cases() -> Vec<Case> {
+    use readi_plan::ops::{Conv3d, ConvTranspose2d, Window2, Window3};
+    use readi_runtime::kernels::{conv_transpose, conv3d};
+    let relu = Some(readi_plan::ops::Activation::Relu);
+    let mut cases = Vec::new();
+    for (name, c, k, h, w) in [("k2s2_128_128_124x108", 128, 2, 124, 108), ("k4s4_256_256_50x44", 256, 4, 50, 44)] {
+        let window = Window2 { kernel: [k, k], stride: [k, k], padding: [0, 0], dilation: [1, 1] };
+        let op = ConvTranspose2d { in_channels: c, out_channels: c, window, output_padding: [0, 0], groups: 1 };
+        let s = op.shape(1, h, w);
+        let (x, wt, bias) = (data(s.cin * h * w, 3), data(s.weight_len(), 4), data(s.cout, 5));
+        let mut out = vec![0.0; s.cout * s.oh * s.ow];
+        let mut scratch = vec![0.0; conv_transpose::scratch_len(&s, THREADS).expect("fits")];
+        cases.push(Case {
+            name: format!("conv_transpose2d/{name}"),
+            flops: 2.0 * (s.weight_len() * h * w) as f64,
+            run: Box::new(move || {
+                let ep = Epilogue { scale: None, shift: Some(&bias), act: relu };
+                conv_transpose::conv_transpose2d(&s, &wt, &ep, &x, &mut out, &mut scratch, THREADS);
+                black_box(&out);
+            }),
+        });
+    }
+    let shapes = [
+        ("k3p1_16_16_21x40x36", 16, 16, [3; 3], [1; 3], [1; 3], 1, [21, 40, 36]),
+        ("k3s2p1_16_32_21x40x36", 16, 32, [3; 3], [2; 3], [1; 3], 1, [21, 40, 36]),
+        ("k311s211_64_64_11x20x18", 64, 64, [3, 1, 1], [2, 1, 1], [0; 3], 1, [11, 20, 18]),
+        ("dw_k3p1_32_21x40x36", 32, 32, [3; 3], [1; 3], [1; 3], 32, [21, 40, 36]),
+    ];
+    for (name, cin, cout, kernel, stride, padding, groups, [d, h, w]) in shapes {
+        let window = Window3 { kernel, stride, padding, dilation: [1; 3] };
+        let s = Conv3d { in_channels: cin, out_channels: cout, window, groups }.shape(1, d, h, w);
+        let (x, wt, bias) = (data(s.cin * s.in_plane(), 3), data(s.weight_len(), 4), data(s.cout, 5));
+        let mut out = vec![0.0; s.cout * s.out_plane()];
+        let mut scratch = vec![0.0; conv3d::scratch_len(&s, THREADS).expect("fits")];
+        cases.push(Case {
+            name: format!("conv3d/{name}"),
+            flops: 2.0 * (s.weight_len() * s.out_plane()) as f64,
+            run: Box::new(move || {
+                let ep = Epilogue { scale: None, shift: Some(&bias), act: relu };
+                conv3d::conv3d(&s, &wt, &ep, &x, &mut out, &mut scratch, THREADS);
+                black_box(&out);
+            }),
+        });
+    }
+    cases
+}

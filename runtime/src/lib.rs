@@ -4,6 +4,7 @@ pub mod calibrate;
 pub mod conditions;
 pub mod exec;
 pub mod kernels;
+pub mod peak;
 pub mod plan;
 #[doc(hidden)]
 pub mod testdata;
