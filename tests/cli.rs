@@ -322,6 +322,16 @@ fn compile_run_bench_inspect() {
     let o = readi(&["bench", &p(&plan), "--runs", "3", "--warmup", "1", "--threads", "1"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stdout(&o).contains("median") && stdout(&o).contains("p90"), "{}", stdout(&o));
+    // The work of a run, by hand from torchvision's ResNet-18 at 32x32 (multiply-adds:
+    // output elements x products each): conv1 7x7 3->64 to 16x16; after the max pool,
+    // layer1's four 3x3 64->64 convs at 8x8; layers 2 to 4 each a strided 3x3 conv, three
+    // 3x3 convs and a 1x1 downsample, at 4x4, 2x2 and 1x1; fc 512->10.
+    let conv1 = 64 * 16 * 16 * 3 * 49;
+    let layer1 = 4 * 64 * 8 * 8 * 64 * 9;
+    let stage = |c: u64, hw: u64| c * hw * (c / 2) * 9 + 3 * c * hw * c * 9 + c * hw * (c / 2);
+    let want: u64 = conv1 + layer1 + stage(128, 16) + stage(256, 4) + stage(512, 1) + 512 * 10;
+    let line = format!("work: {} multiply-adds a run", readi_compiler::print::thousands(want));
+    assert!(stdout(&o).contains(&line), "want `{line}`:\n{}", stdout(&o));
 
     // A corrupted plan is refused by every command that reads plans.
     let mut bytes = std::fs::read(&plan).expect("plan");

@@ -577,6 +577,29 @@ impl Kernel {
         }
     }
 
+    /// The multiply-adds of one run of the kernel at these concrete shapes: its
+    /// operator's ([`Operator::multiply_adds`]) plus a fused LoRA branch's (`A` at the
+    /// layer's geometry to `rank` channels, then `B` back) and a fused adapter's (down to
+    /// `mid` channels and up again, per output pixel).
+    pub fn multiply_adds(&self, inputs: &[&[usize]], output: &[usize]) -> u64 {
+        let op = self.op().multiply_adds(inputs, output);
+        let elements = crate::ops::count(output);
+        let (per_output, outputs) = match self {
+            Kernel::Conv2d { conv, .. } => {
+                let [cout, cin_g, kh, kw] = conv.weight_shape().map(|d| d.max(1) as u64);
+                (cin_g * kh * kw, cout)
+            }
+            Kernel::Linear { linear, .. } => (linear.in_features.max(1) as u64, linear.out_features.max(1) as u64),
+            _ => return op,
+        };
+        // Per output position (pixel or row): `rank x per_output` for `A`, `outputs x rank`
+        // for `B`; `2 x mid x outputs` for an adapter.
+        let positions = elements / outputs;
+        let lora = self.lora().map_or(0, |l| l.rank as u64 * (per_output + outputs));
+        let adapter = self.adapter().map_or(0, |a| 2 * a.mid as u64 * outputs);
+        op.saturating_add(positions.saturating_mul(lora + adapter))
+    }
+
     /// The kernel's fused LoRA branch, if it has one.
     pub fn lora(&self) -> Option<&LoraSpec> {
         match self {
@@ -658,5 +681,30 @@ mod tests {
         let json = serde_json::to_string(&v3).expect("write");
         assert!(!json.contains("relu"), "{json}");
         assert_eq!(serde_json::from_str::<EpilogueSpec>(&json).expect("read"), v3);
+    }
+
+    // A 3x3 conv 4->6 on 5x5 outputs: 150 outputs x 36 products; per pixel (25) a rank-2
+    // LoRA adds 2 x 36 (A) + 6 x 2 (B), an adapter to 3 channels 2 x 3 x 6. By hand.
+    #[test]
+    fn a_conv_s_multiply_adds_include_its_lora_and_adapter() {
+        use crate::ops::{Conv2d, ConvAlgo, Window2};
+        let window = Window2 { kernel: [3, 3], stride: [1, 1], padding: [1, 1], dilation: [1, 1] };
+        let conv = Conv2d { in_channels: 4, out_channels: 6, window, groups: 1 };
+        let plain = Kernel::Conv2d {
+            conv,
+            algo: ConvAlgo::Im2col,
+            weight: 0,
+            epilogue: EpilogueSpec::default(),
+            lora: None,
+            switch: false,
+            adapter: None,
+        };
+        let (x, y): (&[usize], &[usize]) = (&[1, 4, 5, 5], &[1, 6, 5, 5]);
+        assert_eq!(plain.multiply_adds(&[x], y), 150 * 36);
+        let Kernel::Conv2d { conv, algo, weight, epilogue, .. } = plain else { unreachable!() };
+        let lora = Some(LoraSpec { a: 1, b: 2, rank: 2, a_raw: false });
+        let adapter = Some(AdapterSpec { down: 3, down_bias: 4, up: 5, up_bias: 6, mid: 3, act: Activation::Relu });
+        let both = Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch: false, adapter };
+        assert_eq!(both.multiply_adds(&[x], y), 150 * 36 + 25 * (2 * 36 + 6 * 2) + 25 * (2 * 3 * 6));
     }
 }

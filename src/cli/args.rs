@@ -237,6 +237,10 @@ pub enum Command {
         /// Also print the time of each step (the slowest first) and per kernel kind.
         #[arg(long)]
         profile: bool,
+        /// Also measure this machine's peak f32 FLOP/s at the same thread count (about a
+        /// second) and print the run's GFLOP/s as a fraction of it.
+        #[arg(long)]
+        peak: bool,
         /// The variant to time, by key; default the base model.
         #[arg(long, value_name = "KEY")]
         variant: Option<String>,

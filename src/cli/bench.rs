@@ -4,6 +4,7 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::Instant;
 
+use readi_compiler::print::thousands;
 use readi_runtime::exec::{Input, Session, SessionOptions};
 use readi_runtime::plan::{BASE_VARIANT, Plan, escaped};
 
@@ -41,6 +42,8 @@ pub struct Timing {
     pub batch: usize,
     /// Whether to print the per-step profile.
     pub profile: bool,
+    /// Whether to measure the machine's peak and print the run's fraction of it.
+    pub peak: bool,
     /// Variants to switch to and back from after the timed runs ([`switching`]).
     pub switch: Vec<String>,
 }
@@ -55,7 +58,7 @@ pub fn run(
     variant: Option<&str>,
     inputs: &[(String, String)],
 ) -> Result<(), ExitCode> {
-    let Timing { runs, warmup, batch, profile, ref switch } = *timing;
+    let Timing { runs, warmup, batch, profile, peak, ref switch } = *timing;
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
         eprintln!("error: {msg}");
@@ -105,6 +108,11 @@ pub fn run(
         percentile(&times, 0.9),
         times.first().copied().unwrap_or(0.0)
     );
+    work(
+        session.multiply_adds().unwrap_or(0),
+        percentile(&times, 0.5),
+        peak.then(|| readi_runtime::peak::measure(threads)),
+    );
     if let Some(p) = session.profile() {
         print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));
     }
@@ -112,6 +120,28 @@ pub fn run(
         switching(&mut session, &given, switch, runs).map_err(|e| fail(format!("{shown}: {e}")))?;
     }
     Ok(())
+}
+
+/// Prints a run's work, `macs` multiply-adds (of the convs, linears and matmuls, counted
+/// as the direct algorithm does them), and the GFLOP/s of a run of `median_ms` (an FMA
+/// counts as two FLOPs), with its fraction of `peak` when measured. Faster algorithms
+/// (Winograd) do fewer multiplications than counted, so their GFLOP/s are effective ones.
+fn work(macs: u64, median_ms: f64, peak: Option<readi_runtime::peak::Peak>) {
+    if macs == 0 {
+        return;
+    }
+    let flops = 2.0 * macs as f64 / (median_ms * 1e-3);
+    print!("work: {} multiply-adds a run, {:.1} GFLOP/s at the median", thousands(macs), flops * 1e-9);
+    match peak {
+        Some(p) => println!(
+            ", {:.1}% of this machine's peak ({:.1} GFLOP/s on {} threads, {} f32 lanes, measured now)",
+            100.0 * p.fraction(flops),
+            p.gflops(),
+            p.threads,
+            p.lanes
+        ),
+        None => println!(),
+    }
 }
 
 /// Switches per key in [`switching`]'s timing of the switch alone.

@@ -233,6 +233,12 @@ impl Operator for Conv2d {
         "conv2d"
     }
 
+    /// Each output element sums `in/groups x kh x kw` products.
+    fn multiply_adds(&self, _inputs: &[&[usize]], output: &[usize]) -> u64 {
+        let [_, cin_g, kh, kw] = self.weight_shape().map(|d| d.max(0) as u64);
+        super::count(output).saturating_mul(cin_g * kh * kw)
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = nchw(inputs[0], "conv2d")?;
         let cin =
@@ -287,6 +293,13 @@ impl Operator for Conv2d {
 mod tests {
     use super::super::testutil::{run, t};
     use super::*;
+
+    // Output elements x in/groups x kh x kw, by hand.
+    #[test]
+    fn multiply_adds_count_each_output_s_products() {
+        assert_eq!(conv(8, 8, 3, 1, 1, 1, 8).multiply_adds(&[&[1, 8, 10, 10]], &[1, 8, 10, 10]), 800 * 9);
+        assert_eq!(conv(4, 6, 3, 2, 0, 1, 2).multiply_adds(&[&[1, 4, 9, 8]], &[1, 6, 4, 3]), 72 * 2 * 9);
+    }
 
     fn conv(cin: i64, cout: i64, k: i64, s: i64, p: i64, d: i64, g: i64) -> Conv2d {
         let window = Window2 { kernel: [k, k], stride: [s, s], padding: [p, p], dilation: [d, d] };

@@ -139,6 +139,12 @@ impl Operator for Conv3d {
         "conv3d"
     }
 
+    /// Each output element sums `in/groups x kd x kh x kw` products.
+    fn multiply_adds(&self, _inputs: &[&[usize]], output: &[usize]) -> u64 {
+        let [_, cin_g, kd, kh, kw] = self.weight_shape().map(|d| d.max(0) as u64);
+        super::count(output).saturating_mul(cin_g * kd * kh * kw)
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let name = "conv3d";
         let x = inputs[0];
@@ -211,6 +217,13 @@ impl Operator for Conv3d {
 mod tests {
     use super::super::testutil::{run, t};
     use super::*;
+
+    // Output elements x in/groups x kd x kh x kw, by hand.
+    #[test]
+    fn multiply_adds_count_each_output_s_products() {
+        let c = conv(2, 4, [3; 3], [1; 3], [0; 3], [1; 3], 1);
+        assert_eq!(c.multiply_adds(&[&[1, 2, 5, 5, 5]], &[1, 4, 3, 3, 3]), 108 * 2 * 27);
+    }
 
     fn conv(cin: i64, cout: i64, k: [i64; 3], s: [i64; 3], p: [i64; 3], d: [i64; 3], g: i64) -> Conv3d {
         let window = Window3 { kernel: k, stride: s, padding: p, dilation: d };

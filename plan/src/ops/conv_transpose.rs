@@ -123,6 +123,12 @@ impl Operator for ConvTranspose2d {
         "conv_transpose2d"
     }
 
+    /// Each input element is scattered through `out/groups x kh x kw` products.
+    fn multiply_adds(&self, inputs: &[&[usize]], _output: &[usize]) -> u64 {
+        let [_, cout_g, kh, kw] = self.weight_shape().map(|d| d.max(0) as u64);
+        inputs.first().map_or(0, |x| super::count(x)).saturating_mul(cout_g * kh * kw)
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let name = "conv_transpose2d";
         let x = nchw(inputs[0], name)?;
@@ -203,6 +209,12 @@ impl Operator for ConvTranspose2d {
 mod tests {
     use super::super::testutil::{run, t};
     use super::*;
+
+    // Input elements x out/groups x kh x kw, by hand.
+    #[test]
+    fn multiply_adds_count_each_input_s_products() {
+        assert_eq!(ct(4, 6, 2, 2, 0, 0, 1, 2).multiply_adds(&[&[1, 4, 5, 5]], &[1, 6, 10, 10]), 100 * 3 * 4);
+    }
 
     #[allow(clippy::too_many_arguments)]
     fn ct(cin: i64, cout: i64, k: i64, s: i64, p: i64, op: i64, d: i64, g: i64) -> ConvTranspose2d {

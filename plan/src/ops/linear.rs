@@ -31,6 +31,11 @@ impl Operator for Linear {
         "linear"
     }
 
+    /// Each output element sums `in` products.
+    fn multiply_adds(&self, _inputs: &[&[usize]], output: &[usize]) -> u64 {
+        super::count(output).saturating_mul(self.in_features.max(0) as u64)
+    }
+
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         let x = inputs[0];
         let last = x.rank().checked_sub(1).ok_or_else(|| ShapeError::new("linear needs at least one axis"))?;
@@ -61,6 +66,12 @@ pub struct MatMul;
 impl Operator for MatMul {
     fn kind_name(&self) -> &'static str {
         "matmul"
+    }
+
+    /// Each output element sums as many products as the left side has columns.
+    fn multiply_adds(&self, inputs: &[&[usize]], output: &[usize]) -> u64 {
+        let k = inputs.first().and_then(|a| a.last()).copied().unwrap_or(0) as u64;
+        super::count(output).saturating_mul(k)
     }
 
     fn arity(&self) -> Option<usize> {
@@ -95,6 +106,14 @@ impl Operator for MatMul {
 mod tests {
     use super::super::testutil::{run, t};
     use super::*;
+
+    // Output elements x the reduced length, by hand.
+    #[test]
+    fn multiply_adds_count_each_output_s_products() {
+        let l = Linear { in_features: 5, out_features: 3 };
+        assert_eq!(l.multiply_adds(&[&[2, 7, 5]], &[2, 7, 3]), 42 * 5);
+        assert_eq!(MatMul.multiply_adds(&[&[2, 3, 4, 5], &[3, 5, 6]], &[2, 3, 4, 6]), 144 * 5);
+    }
 
     #[test]
     fn matmul_batches_and_checks_inner_size() {

@@ -201,6 +201,20 @@ pub trait Operator {
     fn any_dtype(&self) -> bool {
         false
     }
+    /// The multiply-adds one run of the operator does on inputs and an output of these
+    /// concrete shapes, counted as the direct (textbook) algorithm does them: what a
+    /// kernel's or a model's GFLOP/s is measured in (`readi bench`). Zero for the
+    /// operators that do no products (elementwise, movement, normalisation), and for those
+    /// whose work depends on the data (a sparse conv's rulebook).
+    fn multiply_adds(&self, inputs: &[&[usize]], output: &[usize]) -> u64 {
+        let _ = (inputs, output);
+        0
+    }
+}
+
+/// Elements of a concrete shape, saturating (a count, not an allocation size).
+pub(crate) fn count(shape: &[usize]) -> u64 {
+    shape.iter().fold(1u64, |n, &d| n.saturating_mul(d as u64))
 }
 
 /// The output type of `op` on inputs of the given types: the operator's own rule after

@@ -363,6 +363,19 @@ impl Session {
         self.bind_current()
     }
 
+    /// The multiply-adds of one run at the bound shapes ([`Kernel::multiply_adds`](crate::plan::Kernel::multiply_adds) over
+    /// the steps; a data-dependent step, such as a sparse conv, counts none), or `None`
+    /// before anything is bound ([`Session::bind_batch`] or a run).
+    pub fn multiply_adds(&self) -> Option<u64> {
+        let bound = self.bound.as_ref()?;
+        let shape = |v: usize| bound.shapes.get(v).map_or(&[][..], Vec::as_slice);
+        let steps = self.plan.manifest.steps.iter();
+        Some(steps.fold(0u64, |sum, st| {
+            let inputs: Vec<&[usize]> = st.inputs.iter().map(|&v| shape(v)).collect();
+            sum.saturating_add(st.kernel.multiply_adds(&inputs, shape(st.output)))
+        }))
+    }
+
     fn bind_current(&mut self) -> Result<&Footprint, RunError> {
         if self.bound.as_ref().is_none_or(|b| b.symbols != self.symbols) {
             bind::rebind(&mut self.bound, &self.plan, &self.symbols, self.threads, self.max_memory)?;
