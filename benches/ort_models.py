@@ -5,9 +5,10 @@ From the workspace root:
 
     python3 benches/ort_models.py                   # ResNet-18, 1x3x224x224, 2 threads
     python3 benches/ort_models.py --threads 1 --rounds 5
-    python3 benches/ort_models.py --models all --threads 1,2 --markdown
+    python3 benches/ort_models.py --models all --threads 1,2 --batch 1,8 --markdown
                                                     # every zoo model with a spec in models/,
-                                                    # at 1 and 2 threads, and the README table
+                                                    # at 1 and 2 threads, batch 1 and 8, and
+                                                    # the README table
 
 For each model it
   1. builds the PyTorch module the spec describes (torchvision's ResNet-18; the ViT
@@ -158,6 +159,7 @@ def ort_median(sess, feeds, runs):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", default="2", help="thread counts, comma-separated: 1,2")
+    ap.add_argument("--batch", default="1", help="batch sizes of the zoo's image models, comma-separated: 1,8")
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument(
@@ -172,9 +174,9 @@ def main():
     if unknown:
         sys.exit(f"unknown model(s) {unknown}: known are {sorted(table)} (a zoo model needs models/<name>.readi)")
     thread_counts = [int(t) for t in args.threads.split(",")]
+    batches = [int(b) for b in args.batch.split(",")]
     rows = []
 
-    import onnxruntime as ort
     from safetensors.torch import save_file
 
     run(["cargo", "build", "--release", "-q", "--bin", "readi"])
@@ -195,60 +197,74 @@ def main():
         plan = os.path.join(tmp, f"{name}.plan")
         run([READI, "compile", spec, "--weights", weights, "-o", plan] + overrides)
 
-        x = {k: torch.randn(*s) for k, s in inputs.items()}
-        onnx_path = os.path.join(tmp, f"{name}.onnx")
-        torch.onnx.export(model, tuple(x.values()), onnx_path, input_names=list(x), dynamo=False)
-        feeds = {k: v.numpy() for k, v in x.items()}
-        npys = []
-        for k, v in feeds.items():
-            p = os.path.join(tmp, f"{k}.npy")
-            np.save(p, v)
-            npys += ["--input", f"{k}={p}"]
         ratios = {}
-        for threads in thread_counts:
-            so = ort.SessionOptions()
-            so.intra_op_num_threads = threads
-            so.inter_op_num_threads = 1
-            so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-            so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-            sess = ort.InferenceSession(onnx_path, so, providers=["CPUExecutionProvider"])
-
-            # Agreement on one input.
-            out_path = os.path.join(tmp, "out.safetensors")
-            run([READI, "run", plan, "--output", out_path, "--threads", str(threads)] + npys)
-            from safetensors.numpy import load_file
-
-            readi_out = load_file(out_path)
-            ort_out = sess.run(None, feeds)
-            errs = [float(np.abs(a - b).max()) for a, b in zip(readi_out.values(), ort_out) if a.shape == b.shape]
-
-            readi_t, ort_t = [], []
-            for _ in range(args.rounds):
-                # The inputs' leading size binds the spec's batch dimension (six views).
-                readi_t.append(readi_median(plan, threads, args.runs, next(iter(inputs.values()))[0]))
-                ort_t.append(ort_median(sess, feeds, args.runs))
-            # Each round is a pair measured back to back, so its ratio shares the
-            # machine's state of the moment; the median of the pairs' ratios is the
-            # figure, the range shows how noisy the run was.
-            pairs = sorted(a / b for a, b in zip(readi_t, ort_t))
-            ratio = statistics.median(pairs)
-            ratios[threads] = ratio
-            r, o = statistics.median(readi_t), statistics.median(ort_t)
-            print(
-                f"{name}: {threads} threads, {args.rounds} rounds x {args.runs} runs: "
-                f"readi/ORT = {ratio:.2f} (pairs {pairs[0]:.2f}..{pairs[-1]:.2f}; "
-                f"medians readi {r:.2f} ms, ORT {o:.2f} ms; "
-                f"max abs error vs ORT {max(errs) if errs else float('nan'):.2e})",
-                flush=True,
-            )
+        # Only the zoo's image models take a batch; BEVFusion's parts keep their shapes.
+        for batch in batches if name in ZOO else [1]:
+            x = {k: torch.randn(batch, *s[1:]) if name in ZOO else torch.randn(*s) for k, s in inputs.items()}
+            ratios.update(compare(name, plan, model, x, tmp, thread_counts, args))
         rows.append((name, ratios))
 
     if args.markdown:
-        heads = " | ".join(f"readi / ORT, {t} thread{'s' if t > 1 else ''}" for t in thread_counts)
-        print(f"\n| model (1x3x224x224) | {heads} |")
-        print("| --- |" + " --- |" * len(thread_counts))
+        cols = [(t, b) for b in batches for t in thread_counts]
+        heads = " | ".join(f"readi / ORT, {t} thread{'s' if t > 1 else ''}, batch {b}" for t, b in cols)
+        print(f"\n| model | {heads} |")
+        print("| --- |" + " --- |" * len(cols))
         for name, ratios in rows:
-            print(f"| {name} | " + " | ".join(f"{ratios[t]:.2f}" for t in thread_counts) + " |")
+            print(f"| {name} | " + " | ".join(f"{ratios[c]:.2f}" if c in ratios else "-" for c in cols) + " |")
+
+
+def compare(name, plan, model, x, tmp, thread_counts, args):
+    """readi / ORT at each thread count on inputs `x` (their leading size is the batch),
+    alternating rounds; {(threads, batch): median ratio}."""
+    import onnxruntime as ort
+    from safetensors.numpy import load_file
+
+    batch = next(iter(x.values())).shape[0]
+    onnx_path = os.path.join(tmp, f"{name}-b{batch}.onnx")
+    torch.onnx.export(model, tuple(x.values()), onnx_path, input_names=list(x), dynamo=False)
+    feeds = {k: v.numpy() for k, v in x.items()}
+    npys = []
+    for k, v in feeds.items():
+        p = os.path.join(tmp, f"{k}.npy")
+        np.save(p, v)
+        npys += ["--input", f"{k}={p}"]
+    ratios = {}
+    for threads in thread_counts:
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        sess = ort.InferenceSession(onnx_path, so, providers=["CPUExecutionProvider"])
+
+        # Agreement on one input.
+        out_path = os.path.join(tmp, "out.safetensors")
+        run([READI, "run", plan, "--output", out_path, "--threads", str(threads)] + npys)
+        readi_out = load_file(out_path)
+        ort_out = sess.run(None, feeds)
+        errs = [float(np.abs(a - b).max()) for a, b in zip(readi_out.values(), ort_out) if a.shape == b.shape]
+
+        readi_t, ort_t = [], []
+        for _ in range(args.rounds):
+            # The inputs' leading size binds the spec's batch dimension (six views).
+            readi_t.append(readi_median(plan, threads, args.runs, batch))
+            ort_t.append(ort_median(sess, feeds, args.runs))
+        # Each round is a pair measured back to back, so its ratio shares the machine's
+        # state of the moment; the median of the pairs' ratios is the figure, the range
+        # shows how noisy the run was.
+        pairs = sorted(a / b for a, b in zip(readi_t, ort_t))
+        ratio = statistics.median(pairs)
+        ratios[(threads, batch)] = ratio
+        r, o = statistics.median(readi_t), statistics.median(ort_t)
+        print(
+            f"{name}: batch {batch}, {threads} threads, {args.rounds} rounds x {args.runs} runs: "
+            f"readi/ORT = {ratio:.2f} (pairs {pairs[0]:.2f}..{pairs[-1]:.2f}; "
+            f"medians readi {r:.2f} ms, ORT {o:.2f} ms; "
+            f"max abs error vs ORT {max(errs) if errs else float('nan'):.2e})",
+            flush=True,
+        )
+    return ratios
+
 
 if __name__ == "__main__":
     main()
