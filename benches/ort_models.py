@@ -145,6 +145,41 @@ def readi_median(plan, threads, runs, batch=1):
     return float(m.group(1))
 
 
+ORT_RUN = """
+import sys, numpy as np, onnxruntime as ort
+so = ort.SessionOptions()
+so.intra_op_num_threads = int(sys.argv[2])
+so.inter_op_num_threads = 1
+so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+feeds = dict(np.load(sys.argv[3]))
+if sys.argv[1] != "-":
+    ort.InferenceSession(sys.argv[1], so, providers=["CPUExecutionProvider"]).run(None, feeds)
+# The peak of this process's memory since its exec (not ru_maxrss: Linux carries the
+# parent's high-water mark through fork and exec).
+print(next(l for l in open("/proc/self/status") if l.startswith("VmHWM:")).split()[1])
+"""
+
+
+def ort_rss_mib(*argv):
+    """The peak resident memory (MiB) of a Python process running ORT_RUN on `argv`."""
+    return int(run([sys.executable, "-c", ORT_RUN, *argv]).split()[-1]) / 1024
+
+
+def peak_memory(plan, onnx_path, feeds, npys, threads, tmp):
+    """Peak resident memory of one readi run (`readi bench --runs 1`, which reports it) and of
+    one ORT session run, each in a process of its own; ORT's less that of a Python that
+    imported onnxruntime and loaded the inputs but made no session (the interpreter's own
+    share)."""
+    feeds_path = os.path.join(tmp, "feeds.npz")
+    np.savez(feeds_path, **feeds)
+    out = run([READI, "bench", plan, "--threads", str(threads), "--runs", "1", "--warmup", "0"] + npys)
+    readi = float(re.search(r"peak resident memory: ([0-9.]+) MiB", out).group(1))
+    ort_rss = ort_rss_mib(onnx_path, str(threads), feeds_path)
+    idle = ort_rss_mib("-", str(threads), feeds_path)
+    return readi, ort_rss - idle
+
+
 def ort_median(sess, feeds, runs):
     for _ in range(3):
         sess.run(None, feeds)
@@ -164,6 +199,9 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument(
         "--models", default="resnet18", help="comma-separated (resnet18,vit_encoder), or `all`: the zoo's specs"
+    )
+    ap.add_argument(
+        "--memory", action="store_true", help="also the peak resident memory of one run of each, in processes of their own"
     )
     ap.add_argument("--keep", action="store_true", help="keep the weights, plans and ONNX files")
     ap.add_argument("--markdown", action="store_true", help="end with the table as markdown")
@@ -197,23 +235,30 @@ def main():
         plan = os.path.join(tmp, f"{name}.plan")
         run([READI, "compile", spec, "--weights", weights, "-o", plan] + overrides)
 
-        ratios = {}
+        ratios, memory = {}, {}
         # Only the zoo's image models take a batch; BEVFusion's parts keep their shapes.
         for batch in batches if name in ZOO else [1]:
             x = {k: torch.randn(batch, *s[1:]) if name in ZOO else torch.randn(*s) for k, s in inputs.items()}
-            ratios.update(compare(name, plan, model, x, tmp, thread_counts, args))
-        rows.append((name, ratios))
+            ratios.update(compare(name, plan, model, x, tmp, thread_counts, args, memory))
+        rows.append((name, ratios, memory))
 
     if args.markdown:
         cols = [(t, b) for b in batches for t in thread_counts]
         heads = " | ".join(f"readi / ORT, {t} thread{'s' if t > 1 else ''}, batch {b}" for t, b in cols)
         print(f"\n| model | {heads} |")
         print("| --- |" + " --- |" * len(cols))
-        for name, ratios in rows:
+        for name, ratios, _ in rows:
             print(f"| {name} | " + " | ".join(f"{ratios[c]:.2f}" if c in ratios else "-" for c in cols) + " |")
+        if args.memory:
+            heads = " | ".join(f"{t} thread{'s' if t > 1 else ''}, batch {b}" for t, b in cols)
+            print(f"\npeak resident memory, readi / ORT (MiB):\n\n| model | {heads} |")
+            print("| --- |" + " --- |" * len(cols))
+            for name, _, memory in rows:
+                cells = [f"{memory[c][0]:.0f} / {memory[c][1]:.0f}" if c in memory else "-" for c in cols]
+                print(f"| {name} | " + " | ".join(cells) + " |")
 
 
-def compare(name, plan, model, x, tmp, thread_counts, args):
+def compare(name, plan, model, x, tmp, thread_counts, args, memory):
     """readi / ORT at each thread count on inputs `x` (their leading size is the batch),
     alternating rounds; {(threads, batch): median ratio}."""
     import onnxruntime as ort
@@ -256,6 +301,11 @@ def compare(name, plan, model, x, tmp, thread_counts, args):
         ratio = statistics.median(pairs)
         ratios[(threads, batch)] = ratio
         r, o = statistics.median(readi_t), statistics.median(ort_t)
+        if args.memory:
+            mem_r, mem_o = peak_memory(plan, onnx_path, feeds, npys, threads, tmp)
+            memory[(threads, batch)] = (mem_r, mem_o)
+            print(f"{name}: batch {batch}, {threads} threads: peak resident memory readi {mem_r:.0f} MiB, "
+                  f"ORT {mem_o:.0f} MiB (over an idle interpreter)", flush=True)
         print(
             f"{name}: batch {batch}, {threads} threads, {args.rounds} rounds x {args.runs} runs: "
             f"readi/ORT = {ratio:.2f} (pairs {pairs[0]:.2f}..{pairs[-1]:.2f}; "

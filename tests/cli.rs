@@ -332,6 +332,7 @@ fn compile_run_bench_inspect() {
     let want: u64 = conv1 + layer1 + stage(128, 16) + stage(256, 4) + stage(512, 1) + 512 * 10;
     let line = format!("work: {} multiply-adds a run", readi_compiler::print::thousands(want));
     assert!(stdout(&o).contains(&line), "want `{line}`:\n{}", stdout(&o));
+    assert_eq!(stdout(&o).contains("peak resident memory: "), cfg!(target_os = "linux"), "{}", stdout(&o));
 
     // A corrupted plan is refused by every command that reads plans.
     let mut bytes = std::fs::read(&plan).expect("plan");

@@ -113,6 +113,9 @@ pub fn run(
         percentile(&times, 0.5),
         peak.then(|| readi_runtime::peak::measure(threads)),
     );
+    if let Some(kib) = peak_resident_kib() {
+        println!("peak resident memory: {:.1} MiB (the process's, so far)", kib as f64 / 1024.0);
+    }
     if let Some(p) = session.profile() {
         print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));
     }
@@ -142,6 +145,14 @@ fn work(macs: u64, median_ms: f64, peak: Option<readi_runtime::peak::Peak>) {
         ),
         None => println!(),
     }
+}
+
+/// The process's peak resident memory in KiB, from `/proc/self/status` (`VmHWM`); `None`
+/// where there is no such file (not Linux) or it says nothing readable.
+fn peak_resident_kib() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find_map(|l| l.strip_prefix("VmHWM:"))?;
+    line.trim().strip_suffix("kB")?.trim().parse().ok()
 }
 
 /// Switches per key in [`switching`]'s timing of the switch alone.
