@@ -45,6 +45,20 @@ const RESNET18: [(&str, usize, usize, usize, usize, usize, usize); 11] = [
     ("ds_1x1s2_256_512", 256, 14, 512, 1, 2, 0),
 ];
 
+/// Depthwise convs of ConvNeXt-T (7x7) and MobileNetV2 (3x3) at 224x224, batch 1 (name,
+/// channels, h·w, k, stride; padding k / 2).
+const DEPTHWISE: [(&str, usize, usize, usize, usize); 9] = [
+    ("dw7x7_96_56", 96, 56, 7, 1),
+    ("dw7x7_192_28", 192, 28, 7, 1),
+    ("dw7x7_384_14", 384, 14, 7, 1),
+    ("dw7x7_768_7", 768, 7, 7, 1),
+    ("dw3x3s2_96_112", 96, 112, 3, 2),
+    ("dw3x3_144_56", 144, 56, 3, 1),
+    ("dw3x3_192_28", 192, 28, 3, 1),
+    ("dw3x3_576_14", 576, 14, 3, 1),
+    ("dw3x3_960_7", 960, 7, 3, 1),
+];
+
 fn bench_sgemm(c: &mut Criterion) {
     let pool = pool();
     let n = 512;
@@ -581,6 +595,25 @@ fn flop_cases() -> Vec<Case> {
             run: Box::new(move || {
                 let act = Some(readi_plan::ops::Activation::Relu);
                 let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+                conv::conv2d(&s, algo, &packed, &ep, &x, &mut out, &mut scratch, THREADS);
+                black_box(&out);
+            }),
+        });
+    }
+    for (name, c, hw, k, stride) in DEPTHWISE {
+        let s = Conv2dShape::square(1, c, hw, c, k, stride, k / 2, c);
+        let algo = conv::choose(&s);
+        let x = data(c * hw * hw, 3);
+        let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
+        conv::pack_weight(&s, algo, &data(c * k * k, 4), &mut packed);
+        let shift = data(c, 6);
+        let mut out = vec![0.0; c * s.oh * s.ow];
+        let mut scratch = vec![0.0; conv::scratch_len(&s, algo, THREADS)];
+        cases.push(Case {
+            name: format!("conv2d/{name}/{}", algo.name()),
+            flops: 2.0 * (c * s.oh * s.ow * k * k) as f64,
+            run: Box::new(move || {
+                let ep = Epilogue { scale: None, shift: Some(&shift), act: None };
                 conv::conv2d(&s, algo, &packed, &ep, &x, &mut out, &mut scratch, THREADS);
                 black_box(&out);
             }),

@@ -142,6 +142,11 @@ fn depthwise_wide_rows() {
     check(&shape(1, 2, (4, 34), 2, (3, 3), (1, 1), (0, 0), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 52), 2, (3, 3), (3, 3), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 1, (20, 40), 1, (18, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Depthwise);
+    // Row and column strides that differ, the column one outside the padded path.
+    check(&shape(1, 2, (6, 40), 2, (3, 3), (2, 3), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (6, 40), 2, (3, 3), (3, 2), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    // A plane too large for the zero-padded copy (a BEV grid's): the border path.
+    check(&shape(1, 1, (130, 131), 1, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Depthwise);
     // Interiors exactly one block of 16 wide, then the 8- and 4-column blocks (14x14 and
     // 7x7 planes, stride 1 and 2), and one too narrow for any block.
     check(&shape(1, 2, (3, 18), 2, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
