@@ -137,10 +137,11 @@ fn work(macs: u64, median_ms: f64, peak: Option<readi_runtime::peak::Peak>) {
     print!("work: {} multiply-adds a run, {:.1} GFLOP/s at the median", thousands(macs), flops * 1e-9);
     match peak {
         Some(p) => println!(
-            ", {:.1}% of this machine's peak ({:.1} GFLOP/s on {} threads, {} f32 lanes, measured now)",
+            ", {:.1}% of this machine's peak ({:.1} GFLOP/s on {} thread{}, {} f32 lanes, measured now)",
             100.0 * p.fraction(flops),
             p.gflops(),
             p.threads,
+            if p.threads == 1 { "" } else { "s" },
             p.lanes
         ),
         None => println!(),
