@@ -83,9 +83,11 @@ fn chunks(s: &Conv2dShape, mid: usize, threads: usize) -> (usize, usize) {
     let plane = s.oh * s.ow;
     let p0 = chunk(s.cout, mid, plane);
     let (t, jobs0) = (threads.max(1), s.n * plane.div_ceil(p0));
-    if t == 1 || jobs0.is_multiple_of(t) {
+    if t == 1 {
         return (p0, plane.div_ceil(p0));
     }
+    // A count the threads divide, then chunks of equal size (a 14x14 image in chunks of
+    // 160 pixels would leave one thread 160 and the other 36).
     let per_image = (jobs0.div_ceil(t) * t).div_ceil(s.n.max(1));
     let p = plane.div_ceil(per_image).div_ceil(16).saturating_mul(16).clamp(1, p0);
     (p, plane.div_ceil(p))
@@ -452,6 +454,8 @@ mod tests {
         assert_eq!(chunks(&shape(1, 8, (7, 7), 512, 3, 1, 1), 256, 2), (32, 2));
         assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 2), (528, 6));
         assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 1), (672, 5));
+        // Two chunks of 14x14 at 256 + 128 channels: 112 and 84 pixels, not 160 and 36.
+        assert_eq!(chunks(&shape(1, 8, (14, 14), 256, 3, 1, 1), 128, 2), (112, 2));
         check(&shape(1, 8, (7, 7), 64, 3, 1, 1), ConvAlgo::Winograd2, 32, Activation::Relu);
     }
 
