@@ -453,3 +453,34 @@ fn lora_check_refuses_bad_branches() {
     let e = super::check(&g, ConvAlgo::Depthwise, 72, 288, 288, [None, None], Some((1, 72, 8))).expect_err("depthwise");
     assert!(e.contains("one group"), "{e}");
 }
+
+#[test]
+fn winograd_packing_is_the_transform_of_each_kernel() {
+    // `pack_winograd` works on blocks of 32 kernels in lanes; 4 x 37 kernels leave a
+    // partial block per output channel. Each packed value must be exactly `G g Gᵀ` of its
+    // own kernel, in f64 with the sums in order (what the packing promises bit for bit).
+    let s = shape(1, 37, (6, 6), 4, (3, 3), (1, 1), (1, 1), (1, 1), 1);
+    let w = data(4 * 37 * 9, 31);
+    for (algo, g) in [(ConvAlgo::Winograd2, &F2_G[..]), (ConvAlgo::Winograd4, &F4_G[..])] {
+        let a = g.len();
+        let mut packed = vec![f32::NAN; packed_weight_len(&s, algo)];
+        pack_weight(&s, algo, &w, &mut packed);
+        for f in 0..4 * 37 {
+            let k = &w[f * 9..][..9];
+            for i in 0..a {
+                for j in 0..a {
+                    // t = G g (row i, column r), then u = t Gᵀ.
+                    let t = |r: usize| {
+                        g[i][0] * f64::from(k[r]) + g[i][1] * f64::from(k[3 + r]) + g[i][2] * f64::from(k[6 + r])
+                    };
+                    let u = (t(0) * g[j][0] + t(1) * g[j][1] + t(2) * g[j][2]) as f32;
+                    assert_eq!(
+                        packed[(i * a + j) * 4 * 37 + f].to_bits(),
+                        u.to_bits(),
+                        "kernel {f}, ({i}, {j}), {algo:?}"
+                    );
+                }
+            }
+        }
+    }
+}

@@ -134,23 +134,59 @@ impl WinoTf<6, 4> for F4 {
 }
 
 /// `U[ξ][co][ci] = (G g Gᵀ)[ξ]` for each 3x3 kernel `g`, computed in f64.
+///
+/// 32 kernels of consecutive input channels at a time, in lanes: each of the `A x A`
+/// outputs is then 32 consecutive floats of its row, where one kernel at a time wrote
+/// `A x A` floats a row apart (rows of `cout · cin` floats: at 256 input channels and 4
+/// output channels, a LoRA `A`, every write hit the same cache set). Run at every switch
+/// for a variant's raw LoRA `A` (`Bound::pack_lora`), so its speed is the first run's.
 pub(super) fn pack_winograd<const A: usize>(s: &Conv2dShape, g_mat: &[[f64; 3]; A], weight: &[f32], out: &mut [f32]) {
-    let cin_g = s.cin_g();
-    let plane = s.cout * cin_g;
-    for co in 0..s.cout {
-        for ci in 0..cin_g {
-            let k = &weight[(co * cin_g + ci) * 9..][..9];
-            // t = G g (A x 3), then u = t Gᵀ (A x A).
-            let mut t = [[0.0f64; 3]; A];
-            for (i, ti) in t.iter_mut().enumerate() {
-                for (j, tij) in ti.iter_mut().enumerate() {
-                    *tij = (0..3).map(|r| g_mat[i][r] * f64::from(k[r * 3 + j])).sum();
+    pulp::Arch::new().dispatch(PackWinograd { s, g_mat, weight, out });
+}
+
+struct PackWinograd<'a, const A: usize> {
+    s: &'a Conv2dShape,
+    g_mat: &'a [[f64; 3]; A],
+    weight: &'a [f32],
+    out: &'a mut [f32],
+}
+
+impl<const A: usize> pulp::WithSimd for PackWinograd<'_, A> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        const L: usize = 32;
+        let PackWinograd { s, g_mat, weight, out } = self;
+        let cin_g = s.cin_g();
+        let plane = s.cout * cin_g;
+        for co in 0..s.cout {
+            for ci0 in (0..cin_g).step_by(L) {
+                let n = L.min(cin_g - ci0);
+                // The nine taps of `n` kernels, lane `l` the kernel of input channel ci0 + l.
+                let mut g = [[0.0f64; L]; 9];
+                for l in 0..n {
+                    let k = &weight[(co * cin_g + ci0 + l) * 9..][..9];
+                    for (tap, &v) in g.iter_mut().zip(k) {
+                        tap[l] = f64::from(v);
+                    }
                 }
-            }
-            for i in 0..A {
-                for j in 0..A {
-                    let u: f64 = (0..3).map(|r| t[i][r] * g_mat[j][r]).sum();
-                    out[(i * A + j) * plane + co * cin_g + ci] = u as f32;
+                // t = G g (A x 3), then u = t Gᵀ (A x A), each sum in the order r = 0, 1, 2.
+                let mut t = [[[0.0f64; L]; 3]; A];
+                for (i, ti) in t.iter_mut().enumerate() {
+                    let gi = g_mat[i];
+                    for (j, tij) in ti.iter_mut().enumerate() {
+                        for l in 0..L {
+                            tij[l] = gi[0] * g[j][l] + gi[1] * g[3 + j][l] + gi[2] * g[6 + j][l];
+                        }
+                    }
+                }
+                for (i, ti) in t.iter().enumerate() {
+                    for (j, gj) in g_mat.iter().enumerate() {
+                        let row = &mut out[(i * A + j) * plane + co * cin_g + ci0..][..n];
+                        for (l, o) in row.iter_mut().enumerate() {
+                            *o = (ti[0][l] * gj[0] + ti[1][l] * gj[1] + ti[2][l] * gj[2]) as f32;
+                        }
+                    }
                 }
             }
         }
