@@ -114,6 +114,29 @@ fn bevfusion_tiny_fused_adapters_match_the_unfused_plan() {
     check("models/bevfusion_tiny.readi", &[], &["gamma=0.25", "fog=0.06"], adapters);
 }
 
+/// A variant runs only the adapters and LoRA branches it gives: the others read the base
+/// model's zero `up` / `B` (`VariantTensors::reads_zero`) and the kernels skip them. On
+/// bevfusion_tiny a lidar variant gives none of the camera branch's, a camera one all.
+#[test]
+fn a_variant_runs_only_the_adaptations_it_gives() {
+    let m = module("models/bevfusion_tiny.readi", &[]);
+    let keys: Vec<String> = ["gamma=0.25", "fog=0.06"].iter().map(|k| k.to_string()).collect();
+    let sources = backend::seeded_variants(&m, &keys, 30);
+    let opts = CompileOptions { lora: backend::LoraMode::Branch, ..Default::default() };
+    let weights = backend::seeded_weights(&m.graph, 1);
+    let p = backend::compile_variants(&m, &weights, "seeded", &sources, &opts).expect("compiles").0;
+    let ups: Vec<usize> = p.manifest.steps.iter().filter_map(|s| s.kernel.adapter()).map(|a| a.up).collect();
+    let bs: Vec<usize> = p.manifest.steps.iter().filter_map(|s| s.kernel.lora()).map(|l| l.b).collect();
+    assert_eq!((ups.len(), bs.len()), (8, 8), "the camera backbone's adapters, the transformer's LoRA branches");
+    let at = |key: &str| p.variant_tensors(p.variant_index(key).expect("a key")).expect("a variant");
+    for t in ups.into_iter().chain(bs) {
+        let name = &p.manifest.tensors[t].name;
+        assert!(p.base_tensors().reads_zero(t), "{name}: the base runs no adaptation");
+        assert!(at("fog=0.06").reads_zero(t), "{name}: not the lidar variant's");
+        assert!(!at("gamma=0.25").reads_zero(t), "{name}: the camera variant's");
+    }
+}
+
 /// An adapter before a BatchNorm of rows of features (`[N, C]`, as a sparse tensor's: the
 /// lidar encoder's residual blocks) is two linears; the variant's output against a naive
 /// evaluation of `bn(h + up(relu(down(h))))`, `h = linear(x)`, from its seeded tensors.

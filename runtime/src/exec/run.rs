@@ -130,9 +130,17 @@ pub(crate) fn run_step(
             if let Some((s, algo)) = conv_params {
                 let a = |l: &LoraSpec| if l.a_raw { b.lora_a[k].as_slice() } else { w.get(l.a) };
                 // Merged on switch: the working copy, `B A` in it (`Bound::pack_lora`).
-                let lora = lora.filter(|_| !switch).map(|l| conv::Lora { a: a(&l), b: w.get(l.b), rank: l.rank });
+                // A branch or an adapter the variant does not give is zero: skipped.
+                let lora = lora.filter(|l| !switch && !w.reads_zero(l.b)).map(|l| conv::Lora {
+                    a: a(&l),
+                    b: w.get(l.b),
+                    rank: l.rank,
+                });
                 let wt = if *switch { b.working[k].as_slice() } else { w.get(*weight) };
-                let adapter = adapter.as_ref().map(|a| conv_adapter(w, a));
+                let adapter = adapter
+                    .as_ref()
+                    .filter(|a| !(w.reads_zero(a.up) && w.reads_zero(a.up_bias)))
+                    .map(|a| conv_adapter(w, a));
                 let e = epilogue(w, ep);
                 conv::conv2d_adapter(s, *algo, wt, lora.as_ref(), adapter.as_ref(), &e, x, out, scratch, threads);
             }
@@ -151,7 +159,11 @@ pub(crate) fn run_step(
             let rows = xs[..xs.len().saturating_sub(1)].iter().product();
             let layout = if *panels { linear::WeightLayout::Panels } else { linear::WeightLayout::InOut };
             let fout = l.out_features as usize;
-            let lora = lora.map(|r| linear::Lora { a: w.get(r.a), b: w.get(r.b), rank: r.rank });
+            let lora = lora.filter(|r| !w.reads_zero(r.b)).map(|r| linear::Lora {
+                a: w.get(r.a),
+                b: w.get(r.b),
+                rank: r.rank,
+            });
             let (wt, e) = (w.get(*weight), epilogue(w, ep));
             linear::linear_lora(x, rows, fin, wt, layout, lora.as_ref(), fout, &e, out, threads);
         }

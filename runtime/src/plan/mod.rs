@@ -174,7 +174,9 @@ impl Plan {
     fn build(manifest: Manifest, weights: Weights, path: &str) -> Result<Plan, PlanError> {
         let mut plan = Plan { manifest, weights, variants: VariantMaps::default() };
         plan.validate(path)?;
-        plan.variants = VariantMaps::build(&plan.manifest);
+        let mut variants = VariantMaps::build(&plan.manifest);
+        variants.mark_zeros(&plan.manifest, |t| plan.tensor(t).iter().all(|&v| v == 0.0));
+        plan.variants = variants;
         Ok(plan)
     }
 

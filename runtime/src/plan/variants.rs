@@ -7,7 +7,7 @@ use std::fmt;
 use readi_plan::VariantKey;
 use readi_plan::format::Manifest;
 
-use super::Plan;
+use super::{Kernel, Plan};
 
 /// Per variant, which stored tensor a step's tensor index resolves to; built once at
 /// construction so runs resolve with one array lookup and switching is a key lookup.
@@ -27,6 +27,11 @@ pub(super) struct VariantMaps {
     /// variants). Tensors from `span` on are never named by a step, so never replaced;
     /// they resolve to themselves without an entry.
     span: usize,
+    /// Per tensor below `span`, whether it is the `up` projection (weight or bias) of a
+    /// fused adapter or the `B` of a LoRA branch and all zeros in the base model: what an
+    /// adaptation rule adds is zero until a variant gives it, and a variant that does not
+    /// reads that zero ([`VariantTensors::reads_zero`]).
+    zero: Box<[bool]>,
 }
 
 impl VariantMaps {
@@ -52,7 +57,35 @@ impl VariantMaps {
         let keys: Box<[Box<str>]> = parsed.iter().map(|k| k.to_string().into_boxed_str()).collect();
         let mut by_key: Vec<u32> = (0..count as u32).collect();
         by_key.sort_by(|&a, &b| key_order(&keys[a as usize], &keys[b as usize]));
-        VariantMaps { keys, parsed, by_key: by_key.into(), maps: maps.into(), span }
+        VariantMaps { keys, parsed, by_key: by_key.into(), maps: maps.into(), span, zero: Box::default() }
+    }
+
+    /// Marks the base model's all-zero adapter up-projections and LoRA `B`s among the
+    /// tensors the steps name (`is_zero(t)`: tensor `t`'s base data are all zeros). Reads
+    /// only those tensors, not the plan.
+    pub(super) fn mark_zeros(&mut self, m: &Manifest, is_zero: impl Fn(usize) -> bool) {
+        let mut zero = vec![false; self.span];
+        let mut mark = |t: usize| {
+            if t < zero.len() && !zero[t] {
+                zero[t] = is_zero(t);
+            }
+        };
+        for step in &m.steps {
+            match &step.kernel {
+                Kernel::Conv2d { lora, adapter, .. } => {
+                    if let Some(a) = adapter {
+                        mark(a.up);
+                        mark(a.up_bias);
+                    }
+                    if let Some(l) = lora {
+                        mark(l.b);
+                    }
+                }
+                Kernel::Linear { lora: Some(l), .. } => mark(l.b),
+                _ => {}
+            }
+        }
+        self.zero = zero.into();
     }
 }
 
@@ -92,6 +125,16 @@ impl<'a> VariantTensors<'a> {
     #[inline]
     pub fn get(&self, t: usize) -> &'a [f32] {
         self.plan.tensor(self.resolve(t))
+    }
+
+    /// Whether this variant reads the base model's value of the adapter up-projection or
+    /// LoRA `B` named `t`, and that value is all zeros: an adapter whose `up` and `up_bias`
+    /// both read zero is the identity, a branch whose `B` does adds zero, so the kernels
+    /// skip them (a variant pays only for the adaptations it has; 0 · ∞ aside, which the
+    /// skipped branch would have turned into NaN, the output is the same).
+    #[inline]
+    pub fn reads_zero(&self, t: usize) -> bool {
+        self.resolve(t) == t && self.plan.variants.zero.get(t).copied().unwrap_or(false)
     }
 }
 
