@@ -1,32 +1,204 @@
 //! [`ConvAlgo::Depthwise`](super::ConvAlgo::Depthwise), one input channel per group: a
-//! direct loop per output plane with the epilogue, parallel over the planes; no GEMM, no
-//! scratch but a zero-padded copy of the plane each thread keeps (see `depthwise_acc`).
+//! direct loop per output plane with the epilogue, parallel over groups of planes; no
+//! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
+//! 5x5 and 7x7 kernels at stride 1 (MobileNet's, EfficientNet's, ConvNeXt's) run in SIMD
+//! registers (`Registers`); the rest through the loops of `depthwise_acc`.
 
 use rayon::prelude::*;
 
 use super::Conv2dShape;
 use crate::kernels::Epilogue;
 
-/// Direct conv for one input channel per group, parallel over output planes.
+/// Direct conv for one input channel per group, parallel over groups of output planes.
 pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], out: &mut [f32], threads: usize) {
     let plane = s.oh * s.ow;
-    let one = |(idx, dst): (usize, &mut [f32])| {
-        let (n, c) = (idx / s.cout, idx % s.cout);
-        let g = c / s.cout_g();
-        let xc = &x[(n * s.cin + g) * s.h * s.w..][..s.h * s.w];
-        let k = &w[c * s.kh * s.kw..][..s.kh * s.kw];
-        depthwise_plane(s, xc, k, c, ep, dst);
+    if plane == 0 {
+        return;
+    }
+    // Planes per task: several, so that a task's setup (a SIMD dispatch, zeroing the
+    // padded copy) is shared by them (MobileNetV2's 7x7 planes took about as long to set
+    // up as to compute), and at least four tasks per thread.
+    let per = (s.n * s.cout / (4 * threads.max(1))).clamp(1, 64);
+    let group = |(i, dst): (usize, &mut [f32])| {
+        if Registers::applies(s) {
+            pulp::Arch::new().dispatch(Registers { s, w, x, ep, first: i * per, dst });
+        } else {
+            for (j, dst) in dst.chunks_mut(plane).enumerate() {
+                let (xc, k, c) = plane_operands(s, w, x, i * per + j);
+                depthwise_loops(s, xc, k, c, ep, dst);
+            }
+        }
     };
     if threads <= 1 {
-        out.chunks_mut(plane).enumerate().for_each(one);
+        out.chunks_mut(per * plane).enumerate().for_each(group);
     } else {
-        out.par_chunks_mut(plane).enumerate().for_each(one);
+        out.par_chunks_mut(per * plane).enumerate().for_each(group);
+    }
+}
+
+/// Output plane `idx` (image `idx / cout`, channel `idx % cout`): its input plane, its
+/// kernel and its channel.
+fn plane_operands<'a>(s: &Conv2dShape, w: &'a [f32], x: &'a [f32], idx: usize) -> (&'a [f32], &'a [f32], usize) {
+    let (n, c) = (idx / s.cout, idx % s.cout);
+    let g = c / s.cout_g();
+    (&x[(n * s.cin + g) * s.h * s.w..][..s.h * s.w], &w[c * s.kh * s.kw..][..s.kh * s.kw], c)
+}
+
+/// The depthwise conv of a group of planes at stride 1, no dilation, square kernels of 3,
+/// 5 or 7, on a zero-padded copy of each input plane: [`ROWS`] output rows at a time in
+/// SIMD vectors (the last vector of a row overlapping the one before it; a row narrower
+/// than a vector read a whole vector wide and stored through the stack), every input row
+/// of the block loaded once per kernel column and multiplied into each output row it
+/// reaches (fused multiply-adds, the taps known at compile time), the sums kept in
+/// registers, the epilogue's scale, shift and ReLU applied as they are stored.
+///
+/// What it replaced (still the path for strides other than 1, dilation and other kernels:
+/// [`depthwise_loops`]) kept one output row per tap in a lane array and reloaded the input
+/// row for every output row it reaches, and set each plane up on its own: on one thread
+/// MobileNetV2's 144-channel 56x56 layer went from 822 to 271 us, ConvNeXt-T's 96-channel
+/// 7x7 from 1676 to 488 us, 960 channels at 7x7 from 328 to 116 us.
+struct Registers<'a> {
+    s: &'a Conv2dShape,
+    w: &'a [f32],
+    x: &'a [f32],
+    ep: &'a Epilogue<'a>,
+    /// The index of the first of `dst`'s planes.
+    first: usize,
+    dst: &'a mut [f32],
+}
+
+impl Registers<'_> {
+    /// Square 3x3, 5x5 or 7x7 kernels at stride 1, no dilation, a padded plane that fits
+    /// [`MAX_PADDED`].
+    fn applies(s: &Conv2dShape) -> bool {
+        let padded = (s.h + 2 * s.pad_h) * (s.w + 2 * s.pad_w);
+        (s.stride_h, s.stride_w, s.dil_h, s.dil_w) == (1, 1, 1, 1)
+            && s.kh == s.kw
+            && matches!(s.kh, 3 | 5 | 7)
+            && padded <= MAX_PADDED
+    }
+}
+
+impl pulp::WithSimd for Registers<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        match self.s.kh {
+            3 => self.planes::<S, 3>(simd),
+            5 => self.planes::<S, 5>(simd),
+            7 => self.planes::<S, 7>(simd),
+            _ => unreachable!("Registers::applies"),
+        }
+    }
+}
+
+impl Registers<'_> {
+    /// Every plane of `dst`, through one padded copy: zeroed once, its interior
+    /// rewritten for each plane (the border stays zero).
+    #[inline(always)]
+    fn planes<S: pulp::Simd, const K: usize>(self, simd: S) {
+        let Registers { s, w, x, ep, first, dst } = self;
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let mut buf = PADDED.take();
+        let (rows, cols) = (s.h + 2 * s.pad_h, s.w + 2 * s.pad_w);
+        buf.clear();
+        // One vector of slack: a row narrower than a vector is read a whole vector wide
+        // (the lanes past the row, the next row's or the slack's, are never stored).
+        buf.resize(rows * cols + lanes, 0.0);
+        for (j, dst) in dst.chunks_mut(s.oh * s.ow).enumerate() {
+            let (xc, k, c) = plane_operands(s, w, x, first + j);
+            for (iy, src) in xc.chunks_exact(s.w).enumerate() {
+                buf[(iy + s.pad_h) * cols + s.pad_w..][..s.w].copy_from_slice(src);
+            }
+            let taps: [[f32; K]; K] = std::array::from_fn(|ky| std::array::from_fn(|kx| k[ky * K + kx]));
+            let scale = ep.scale.map_or(1.0, |v| v[c]);
+            let shift = ep.shift.map_or(0.0, |v| v[c]);
+            let g = Geometry { cols, ow: s.ow, scale, shift, relu: ep.relu() };
+            let full = s.oh / ROWS * ROWS;
+            for oy in (0..full).step_by(ROWS) {
+                g.block::<S, ROWS, K>(simd, &buf, &taps, oy, dst);
+            }
+            for oy in full..s.oh {
+                g.block::<S, 1, K>(simd, &buf, &taps, oy, dst);
+            }
+            ep.finish_act(dst);
+        }
+        PADDED.set(buf);
+    }
+}
+
+/// What [`Registers`] works with: the padded plane's width, the output row's, and the
+/// epilogue's affine and ReLU.
+#[derive(Clone, Copy)]
+struct Geometry {
+    cols: usize,
+    ow: usize,
+    scale: f32,
+    shift: f32,
+    relu: bool,
+}
+
+impl Geometry {
+    /// Output rows `oy0..oy0 + R` of the plane, vector by vector along the row.
+    #[inline(always)]
+    fn block<S: pulp::Simd, const R: usize, const K: usize>(
+        self,
+        simd: S,
+        padded: &[f32],
+        taps: &[[f32; K]; K],
+        oy0: usize,
+        dst: &mut [f32],
+    ) {
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let ow = self.ow;
+        let (scale, shift, zero) = (simd.splat_f32s(self.scale), simd.splat_f32s(self.shift), simd.splat_f32s(0.0));
+        let width = lanes.min(ow);
+        let mut ox = 0;
+        loop {
+            let mut acc = [simd.splat_f32s(0.0); R];
+            // The block's input rows, R - 1 + K of them from row oy0: output row r reads
+            // rows r + ky.
+            for j in 0..R - 1 + K {
+                #[allow(clippy::needless_range_loop)] // kx indexes the row and the taps
+                for kx in 0..K {
+                    let at = (oy0 + j) * self.cols + ox + kx;
+                    let v = S::as_simd_f32s(&padded[at..at + lanes]).0[0];
+                    for (r, a) in acc.iter_mut().enumerate() {
+                        // Row j of the block is kernel row j - r of output row r.
+                        if j >= r && j - r < K {
+                            *a = simd.mul_add_f32s(v, simd.splat_f32s(taps[j - r][kx]), *a);
+                        }
+                    }
+                }
+            }
+            for (r, a) in acc.into_iter().enumerate() {
+                let y = simd.mul_add_f32s(a, scale, shift);
+                let y = if self.relu { simd.max_f32s(y, zero) } else { y };
+                let out = &mut dst[(oy0 + r) * ow + ox..][..width];
+                if width == lanes {
+                    S::as_mut_simd_f32s(out).0[0] = y;
+                } else {
+                    // pulp's partial stores are calls; a row this narrow goes through
+                    // a vector on the stack.
+                    let mut lane = [0.0f32; 16];
+                    let lane = &mut lane[..lanes];
+                    S::as_mut_simd_f32s(lane).0[0] = y;
+                    out.copy_from_slice(&lane[..width]);
+                }
+            }
+            if ox + width >= ow {
+                break;
+            }
+            ox = (ox + width).min(ow - width);
+        }
     }
 }
 
 simd_fn! {
-    /// One output plane (channel `c`) of a depthwise conv, with the epilogue.
-    fn depthwise_plane(s: &Conv2dShape, xc: &[f32], k: &[f32], c: usize, ep: &Epilogue<'_>, dst: &mut [f32]) {
+    /// One output plane (channel `c`) of a depthwise conv with the epilogue, by the loops
+    /// of [`depthwise_acc`], for what [`Registers`] does not take (dilation, other
+    /// strides, non-square kernels, planes too large to copy).
+    fn depthwise_loops(s: &Conv2dShape, xc: &[f32], k: &[f32], c: usize, ep: &Epilogue<'_>, dst: &mut [f32]) {
         depthwise_acc(s, xc, k, dst);
         let acc_scale = ep.scale.map_or(1.0, |v| v[c]);
         let shift = ep.shift.map_or(0.0, |v| v[c]);
@@ -269,6 +441,68 @@ fn depthwise_taps(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32], strid
                         *d += wv * v;
                     }
                 }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::testutil::{assert_close, backends, data};
+    use crate::kernels::{Activation, Epilogue};
+
+    /// [`Registers`] on every SIMD width this CPU has (the kernel picks the widest),
+    /// against the loops it replaced ([`depthwise_loops`]): 3x3, 5x5 and 7x7 kernels,
+    /// planes narrower than a vector, a row a vector and a bit wide, two images, a channel
+    /// multiplier, rows not a multiple of the block's.
+    #[test]
+    fn every_simd_width_matches_the_loops() {
+        for (n, cin, (h, w), cout, k) in [
+            (2, 3, (9, 21), 3, 3),
+            (1, 2, (7, 7), 4, 3),
+            (1, 2, (11, 18), 2, 5),
+            (1, 3, (6, 5), 3, 7),
+            (1, 1, (14, 14), 1, 7),
+        ] {
+            let p = k / 2;
+            let s = Conv2dShape {
+                n,
+                cin,
+                h,
+                w,
+                cout,
+                kh: k,
+                kw: k,
+                stride_h: 1,
+                stride_w: 1,
+                pad_h: p,
+                pad_w: p,
+                dil_h: 1,
+                dil_w: 1,
+                groups: cin,
+                oh: h,
+                ow: w,
+            };
+            assert!(Registers::applies(&s));
+            let x = data(n * cin * h * w, 5);
+            let wt = data(cout * k * k, 6);
+            let (scale, shift) = (data(cout, 7), data(cout, 8));
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
+            let plane = h * w;
+            let mut want = vec![f32::NAN; n * cout * plane];
+            for (i, dst) in want.chunks_mut(plane).enumerate() {
+                let (xc, kc, c) = plane_operands(&s, &wt, &x, i);
+                depthwise_loops(&s, xc, kc, c, &ep, dst);
+            }
+            for b in backends() {
+                let mut got = vec![f32::NAN; want.len()];
+                b.run(Registers { s: &s, w: &wt, x: &x, ep: &ep, first: 0, dst: &mut got });
+                assert_close(&got, &want, 1e-5);
+                // From a later plane on, as a second task would.
+                let mut tail = vec![f32::NAN; want.len() - plane];
+                b.run(Registers { s: &s, w: &wt, x: &x, ep: &ep, first: 1, dst: &mut tail });
+                assert_close(&tail, &want[plane..], 1e-5);
             }
         }
     }
