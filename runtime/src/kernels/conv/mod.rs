@@ -44,7 +44,8 @@
 //!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
-//! paths (Gemm1x1, Im2col), `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
+//! paths (Gemm1x1, Im2col), `direct.rs` the direct conv an im2col layer with at most four
+//! input channels (a stem) runs instead, `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
 //! `tests.rs` the tests of every algorithm against one reference.
 
 use rayon::prelude::*;
@@ -53,6 +54,7 @@ use super::{Activation, Epilogue};
 
 mod adapter;
 mod depthwise;
+mod direct;
 mod im2col;
 mod split;
 mod winograd;
@@ -392,6 +394,9 @@ pub fn conv2d_adapter(
     let conv_ep = Epilogue { act: ep.act.filter(|_| after.is_none()), ..*ep };
     if algo == ConvAlgo::Depthwise {
         depthwise(s, packed_weight, &conv_ep, x, out, threads);
+    } else if algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && direct::applies(s) {
+        // A stem: few input channels, which im2col would unfold into a shallow GEMM.
+        direct::conv(s, packed_weight, &conv_ep, x, out, scratch, threads);
     } else {
         let ep = &conv_ep;
         let per = part_scratch(s, algo, rank) + in_tile.map_or(0, |a| a.mid * gemm_tile(s, algo));
@@ -479,6 +484,10 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
 fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
     match algo {
         ConvAlgo::Gemm1x1 => gemm_tile(s, algo) * (s.cout_g() + rank),
+        // The direct conv of a stem reads one image's padded input from the scratch.
+        ConvAlgo::Im2col if direct::applies(s) => {
+            (gemm_tile(s, algo) * (s.cout_g() + s.k() + rank)).max(direct::scratch_len(s))
+        }
         ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k() + rank),
         ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(rank),
         ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(rank),

@@ -484,3 +484,26 @@ fn winograd_packing_is_the_transform_of_each_kernel() {
         }
     }
 }
+
+/// Im2col layers with at most four input channels run the direct conv (`direct.rs`):
+/// MobileNet's and ResNet's stems (3x3 and 7x7 at stride 2, an odd width, two images,
+/// output channels past a group of eight), 5x5 at stride 1, no padding, rows narrower than
+/// a vector, one input channel.
+#[test]
+fn few_input_channels() {
+    for s in [
+        shape(2, 3, (20, 37), 10, (3, 3), (2, 2), (1, 1), (1, 1), 1),
+        shape(1, 3, (23, 23), 16, (7, 7), (2, 2), (3, 3), (1, 1), 1),
+        shape(1, 1, (9, 40), 3, (5, 5), (1, 1), (2, 2), (1, 1), 1),
+        shape(1, 4, (6, 6), 9, (3, 3), (1, 1), (0, 0), (1, 1), 1),
+        shape(1, 2, (7, 9), 8, (3, 3), (2, 2), (1, 1), (1, 1), 1),
+        shape(1, 3, (12, 18), 5, (5, 5), (2, 2), (1, 1), (1, 1), 1),
+    ] {
+        assert!(direct::applies(&s), "{s:?}");
+        check(&s, ConvAlgo::Im2col);
+    }
+    // Five input channels, dilation, groups: im2col itself.
+    assert!(!direct::applies(&shape(1, 5, (8, 8), 4, (3, 3), (1, 1), (1, 1), (1, 1), 1)));
+    assert!(!direct::applies(&shape(1, 3, (8, 8), 4, (3, 3), (1, 1), (2, 2), (2, 2), 1)));
+    assert!(!direct::applies(&shape(1, 4, (8, 8), 4, (3, 3), (1, 1), (1, 1), (1, 1), 2)));
+}

@@ -1,0 +1,199 @@
+//! A direct conv for layers with few input channels (the stems: MobileNet's, EfficientNet's
+//! and RegNet's 3x3 stride 2 from three channels, ResNet's 7x7 stride 2), run for
+//! [`ConvAlgo::Im2col`](super::ConvAlgo::Im2col) layers it applies to, on the same
+//! PyTorch-layout weight.
+//!
+//! im2col unfolds such a layer into a GEMM whose depth is only `cin · k · k` (27 for a 3x3
+//! stem): the unfolded tile is as large as the output, and the GEMM's packing costs about
+//! what its multiply-adds do (MobileNetV2's stem ran at 30 GFLOP/s on one core, a quarter
+//! of the machine's peak). Here the input of each image is copied once into zero-padded
+//! planes (at stride 2 split into their even and odd columns, so every load is contiguous),
+//! and each output row is computed in SIMD vectors for [`CH`] output channels at once:
+//! every input vector loaded is multiplied into all of them (fused multiply-adds), the
+//! sums stay in registers, and the epilogue's scale, shift and ReLU are applied as they
+//! are stored.
+
+use rayon::prelude::*;
+
+use super::Conv2dShape;
+use crate::kernels::Epilogue;
+
+/// Output channels computed together: each input vector feeds this many accumulators.
+const CH: usize = 8;
+
+/// Most input channels the direct conv takes.
+const MAX_CIN: usize = 4;
+
+/// Whether the direct conv computes this layer: one group of at most [`MAX_CIN`] input
+/// channels, a square 3x3, 5x5 or 7x7 kernel at stride 1 or 2, no dilation.
+pub(super) fn applies(s: &Conv2dShape) -> bool {
+    s.groups == 1
+        && s.cin <= MAX_CIN
+        && s.kh == s.kw
+        && matches!(s.kh, 3 | 5 | 7)
+        && s.stride_h == s.stride_w
+        && matches!(s.stride_w, 1 | 2)
+        && (s.dil_h, s.dil_w) == (1, 1)
+}
+
+/// The padded planes of one image: `stride · cin` phase planes of `rows x cols`, and a
+/// vector's worth of slack (a row narrower than a vector is read a whole vector wide).
+fn geometry(s: &Conv2dShape) -> (usize, usize) {
+    (s.h + 2 * s.pad_h, (s.w + 2 * s.pad_w).div_ceil(s.stride_w))
+}
+
+/// Scratch floats the direct conv needs: one image's padded input planes.
+pub(super) fn scratch_len(s: &Conv2dShape) -> usize {
+    let (rows, cols) = geometry(s);
+    s.stride_w * s.cin * rows * cols + 16
+}
+
+/// `out = epilogue(conv(x, w))` for a layer [`applies`] accepts, `w` in PyTorch's layout,
+/// `scratch` of at least [`scratch_len`] floats; parallel over groups of output channels.
+pub(super) fn conv(
+    s: &Conv2dShape,
+    w: &[f32],
+    ep: &Epilogue,
+    x: &[f32],
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    let (rows, cols) = geometry(s);
+    let plane = s.oh * s.ow;
+    let phases = &mut scratch[..scratch_len(s)];
+    for (n, image) in out.chunks_mut(s.cout * plane).enumerate() {
+        let xn = &x[n * s.cin * s.h * s.w..][..s.cin * s.h * s.w];
+        pad(s, xn, rows, cols, phases);
+        let phases: &[f32] = phases;
+        let group = |(g, dst): (usize, &mut [f32])| {
+            pulp::Arch::new().dispatch(Rows { s, w, ep, phases, rows, cols, c0: g * CH, dst });
+        };
+        if threads <= 1 {
+            image.chunks_mut(CH * plane).enumerate().for_each(group);
+        } else {
+            image.par_chunks_mut(CH * plane).enumerate().for_each(group);
+        }
+    }
+}
+
+/// Copies image `xn` into `phases`: per input channel and column phase, the zero-padded
+/// plane (`rows x cols`); at stride 2 padded column `p` is column `p / 2` of phase `p % 2`.
+fn pad(s: &Conv2dShape, xn: &[f32], rows: usize, cols: usize, phases: &mut [f32]) {
+    phases.fill(0.0);
+    let st = s.stride_w;
+    for (ci, xc) in xn.chunks_exact(s.h * s.w).enumerate() {
+        for (iy, src) in xc.chunks_exact(s.w).enumerate() {
+            let row = |phase: usize| ((ci * st + phase) * rows + iy + s.pad_h) * cols;
+            if st == 1 {
+                phases[row(0) + s.pad_w..][..s.w].copy_from_slice(src);
+                continue;
+            }
+            // The even input columns to one phase, the odd ones to the other, each by a
+            // loop over pairs of its own (one loop writing both stays scalar).
+            let pad = s.pad_w;
+            let (e0, o0) = if pad.is_multiple_of(2) { (row(0), row(1)) } else { (row(1), row(0)) };
+            let (even_at, odd_at) = (e0 + pad / 2, o0 + pad.div_ceil(2));
+            for (d, pair) in phases[even_at..][..s.w.div_ceil(2)].iter_mut().zip(src.chunks_exact(2)) {
+                *d = pair[0];
+            }
+            for (d, pair) in phases[odd_at..][..s.w / 2].iter_mut().zip(src.chunks_exact(2)) {
+                *d = pair[1];
+            }
+            if s.w % 2 == 1 {
+                phases[even_at + s.w / 2] = src[s.w - 1];
+            }
+        }
+    }
+}
+
+/// Output channels `c0..` (as many as `dst` holds planes of, at most [`CH`]) of one image.
+struct Rows<'a> {
+    s: &'a Conv2dShape,
+    w: &'a [f32],
+    ep: &'a Epilogue<'a>,
+    phases: &'a [f32],
+    rows: usize,
+    cols: usize,
+    c0: usize,
+    dst: &'a mut [f32],
+}
+
+impl pulp::WithSimd for Rows<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        match (self.s.stride_w, self.s.kh) {
+            (1, 3) => self.run::<S, 1, 3>(simd),
+            (1, 5) => self.run::<S, 1, 5>(simd),
+            (1, 7) => self.run::<S, 1, 7>(simd),
+            (2, 3) => self.run::<S, 2, 3>(simd),
+            (2, 5) => self.run::<S, 2, 5>(simd),
+            (2, 7) => self.run::<S, 2, 7>(simd),
+            _ => unreachable!("direct::applies"),
+        }
+    }
+}
+
+impl Rows<'_> {
+    #[inline(always)]
+    fn run<S: pulp::Simd, const ST: usize, const K: usize>(self, simd: S) {
+        let Rows { s, w, ep, phases, rows, cols, c0, dst } = self;
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let (plane, ow) = (s.oh * s.ow, s.ow);
+        let chans = dst.len() / plane;
+        let k = s.cin * K * K;
+        // The group's weights, zero for channels past its end, and its affine.
+        let mut taps = [[0.0f32; MAX_CIN * 49]; CH];
+        for (c, t) in taps.iter_mut().enumerate().take(chans) {
+            t[..k].copy_from_slice(&w[(c0 + c) * k..][..k]);
+        }
+        let at = |c: usize, v: Option<&[f32]>, default: f32| v.map_or(default, |v| v[c0 + c.min(chans - 1)]);
+        let scale: [S::f32s; CH] = std::array::from_fn(|c| simd.splat_f32s(at(c, ep.scale, 1.0)));
+        let shift: [S::f32s; CH] = std::array::from_fn(|c| simd.splat_f32s(at(c, ep.shift, 0.0)));
+        let zero = simd.splat_f32s(0.0);
+        let width = lanes.min(ow);
+        for oy in 0..s.oh {
+            let mut ox = 0;
+            loop {
+                let mut acc = [zero; CH];
+                for ci in 0..s.cin {
+                    for ky in 0..K {
+                        for kx in 0..K {
+                            // Padded column ST ox + kx: column ox + kx / ST of phase kx % ST.
+                            let row = ((ci * ST + kx % ST) * rows + ST * oy + ky) * cols;
+                            let i = row + ox + kx / ST;
+                            let v = S::as_simd_f32s(&phases[i..i + lanes]).0[0];
+                            let t = (ci * K + ky) * K + kx;
+                            for (a, tc) in acc.iter_mut().zip(&taps) {
+                                *a = simd.mul_add_f32s(v, simd.splat_f32s(tc[t]), *a);
+                            }
+                        }
+                    }
+                }
+                for (c, a) in acc.into_iter().enumerate().take(chans) {
+                    let y = simd.mul_add_f32s(a, scale[c], shift[c]);
+                    let y = if ep.relu() { simd.max_f32s(y, zero) } else { y };
+                    let out = &mut dst[c * plane + oy * ow + ox..][..width];
+                    if width == lanes {
+                        S::as_mut_simd_f32s(out).0[0] = y;
+                    } else {
+                        // A row narrower than a vector: through the stack (pulp's partial
+                        // stores are calls).
+                        let mut lane = [0.0f32; 16];
+                        let lane = &mut lane[..lanes];
+                        S::as_mut_simd_f32s(lane).0[0] = y;
+                        out.copy_from_slice(&lane[..width]);
+                    }
+                }
+                if ox + width >= ow {
+                    break;
+                }
+                ox = (ox + width).min(ow - width);
+            }
+        }
+        for plane_out in dst.chunks_mut(plane) {
+            ep.finish_act(plane_out);
+        }
+    }
+}
