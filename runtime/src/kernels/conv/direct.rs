@@ -1,17 +1,20 @@
-//! A direct conv for layers with few input channels (the stems: MobileNet's, EfficientNet's
-//! and RegNet's 3x3 stride 2 from three channels, ResNet's 7x7 stride 2), run for
+//! A direct conv for layers with few input channels per group, run for
 //! [`ConvAlgo::Im2col`](super::ConvAlgo::Im2col) layers it applies to, on the same
-//! PyTorch-layout weight.
+//! PyTorch-layout weight: the stems (MobileNet's, EfficientNet's and RegNet's 3x3 stride 2
+//! from three channels, ResNet's 7x7 stride 2) and grouped convs of narrow groups
+//! (RegNet's 3x3 convs, eight channels a group).
 //!
-//! im2col unfolds such a layer into a GEMM whose depth is only `cin · k · k` (27 for a 3x3
-//! stem): the unfolded tile is as large as the output, and the GEMM's packing costs about
-//! what its multiply-adds do (MobileNetV2's stem ran at 30 GFLOP/s on one core, a quarter
-//! of the machine's peak). Here the input of each image is copied once into zero-padded
-//! planes (at stride 2 split into their even and odd columns, so every load is contiguous),
-//! and each output row is computed in SIMD vectors for [`CH`] output channels at once:
-//! every input vector loaded is multiplied into all of them (fused multiply-adds), the
-//! sums stay in registers, and the epilogue's scale, shift and ReLU are applied as they
-//! are stored.
+//! im2col unfolds such a layer into GEMMs whose depth is only `cin/groups · k · k` (27 for
+//! a 3x3 stem, 72 for a RegNet group), one per group and tile: the unfolded tile is as
+//! large as the output, and each GEMM's packing costs about what its multiply-adds do
+//! (MobileNetV2's stem ran at 30 GFLOP/s on one core, a quarter of the machine's peak;
+//! RegNetY-400MF's grouped convs took 39% of its time). Here the input of each image is
+//! copied once into zero-padded planes (at stride 2 split into their even and odd columns,
+//! so every load is contiguous), and each output row is computed in SIMD vectors for
+//! [`CH`] output channels of a group at once: every input vector loaded is multiplied into
+//! all of them (fused multiply-adds), the sums stay in registers, and the epilogue's
+//! scale, shift and ReLU are applied as they are stored. (`readi bench --profile` still
+//! counts these layers as `conv2d/im2col`, their algorithm in the plan.)
 
 use rayon::prelude::*;
 
@@ -21,15 +24,15 @@ use crate::kernels::Epilogue;
 /// Output channels computed together: each input vector feeds this many accumulators.
 const CH: usize = 8;
 
-/// Most input channels the direct conv takes.
-const MAX_CIN: usize = 4;
+/// Most input channels per group the direct conv takes.
+const MAX_CIN: usize = 8;
 
-/// Whether the direct conv computes this layer: one group of at most [`MAX_CIN`] input
-/// channels, a square 3x3, 5x5 or 7x7 kernel at stride 1 or 2, no dilation.
+/// Whether the direct conv computes this layer: at most four input channels in one
+/// group, or at most [`MAX_CIN`] per group in several (one is the depthwise algorithm's);
+/// a square 3x3, 5x5 or 7x7 kernel at stride 1 or 2, no dilation.
 pub(super) fn applies(s: &Conv2dShape) -> bool {
-    s.groups == 1
-        && s.cin <= MAX_CIN
-        && s.kh == s.kw
+    let few = if s.groups == 1 { s.cin <= 4 } else { s.cin_g() <= MAX_CIN };
+    few && s.kh == s.kw
         && matches!(s.kh, 3 | 5 | 7)
         && s.stride_h == s.stride_w
         && matches!(s.stride_w, 1 | 2)
@@ -66,13 +69,19 @@ pub(super) fn conv(
         let xn = &x[n * s.cin * s.h * s.w..][..s.cin * s.h * s.w];
         pad(s, xn, rows, cols, phases);
         let phases: &[f32] = phases;
-        let group = |(g, dst): (usize, &mut [f32])| {
-            pulp::Arch::new().dispatch(Rows { s, w, ep, phases, rows, cols, c0: g * CH, dst });
+        // Per group, its output channels [`CH`] at a time.
+        let cout_g = s.cout_g();
+        let chunk = |g: usize, (j, dst): (usize, &mut [f32])| {
+            pulp::Arch::new().dispatch(Rows { s, w, ep, phases, rows, cols, g, c0: g * cout_g + j * CH, dst });
         };
         if threads <= 1 {
-            image.chunks_mut(CH * plane).enumerate().for_each(group);
+            for (g, planes) in image.chunks_mut(cout_g * plane).enumerate() {
+                planes.chunks_mut(CH * plane).enumerate().for_each(|c| chunk(g, c));
+            }
         } else {
-            image.par_chunks_mut(CH * plane).enumerate().for_each(group);
+            image.par_chunks_mut(cout_g * plane).enumerate().for_each(|(g, planes)| {
+                planes.par_chunks_mut(CH * plane).enumerate().for_each(|c| chunk(g, c));
+            });
         }
     }
 }
@@ -107,7 +116,8 @@ fn pad(s: &Conv2dShape, xn: &[f32], rows: usize, cols: usize, phases: &mut [f32]
     }
 }
 
-/// Output channels `c0..` (as many as `dst` holds planes of, at most [`CH`]) of one image.
+/// Output channels `c0..` of group `g` (as many as `dst` holds planes of, at most [`CH`])
+/// of one image.
 struct Rows<'a> {
     s: &'a Conv2dShape,
     w: &'a [f32],
@@ -115,6 +125,7 @@ struct Rows<'a> {
     phases: &'a [f32],
     rows: usize,
     cols: usize,
+    g: usize,
     c0: usize,
     dst: &'a mut [f32],
 }
@@ -138,11 +149,11 @@ impl pulp::WithSimd for Rows<'_> {
 impl Rows<'_> {
     #[inline(always)]
     fn run<S: pulp::Simd, const ST: usize, const K: usize>(self, simd: S) {
-        let Rows { s, w, ep, phases, rows, cols, c0, dst } = self;
+        let Rows { s, w, ep, phases, rows, cols, g, c0, dst } = self;
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
-        let (plane, ow) = (s.oh * s.ow, s.ow);
+        let (plane, ow, cin_g) = (s.oh * s.ow, s.ow, s.cin_g());
         let chans = dst.len() / plane;
-        let k = s.cin * K * K;
+        let k = cin_g * K * K;
         // The group's weights, zero for channels past its end, and its affine.
         let mut taps = [[0.0f32; MAX_CIN * 49]; CH];
         for (c, t) in taps.iter_mut().enumerate().take(chans) {
@@ -157,11 +168,12 @@ impl Rows<'_> {
             let mut ox = 0;
             loop {
                 let mut acc = [zero; CH];
-                for ci in 0..s.cin {
+                for ci in 0..cin_g {
                     for ky in 0..K {
                         for kx in 0..K {
-                            // Padded column ST ox + kx: column ox + kx / ST of phase kx % ST.
-                            let row = ((ci * ST + kx % ST) * rows + ST * oy + ky) * cols;
+                            // Padded column ST ox + kx: column ox + kx / ST of phase kx % ST,
+                            // of the group's input channel ci.
+                            let row = (((g * cin_g + ci) * ST + kx % ST) * rows + ST * oy + ky) * cols;
                             let i = row + ox + kx / ST;
                             let v = S::as_simd_f32s(&phases[i..i + lanes]).0[0];
                             let t = (ci * K + ky) * K + kx;

@@ -502,8 +502,24 @@ fn few_input_channels() {
         assert!(direct::applies(&s), "{s:?}");
         check(&s, ConvAlgo::Im2col);
     }
-    // Five input channels, dilation, groups: im2col itself.
+    // Five input channels in one group, dilation, sixteen a group: im2col itself.
     assert!(!direct::applies(&shape(1, 5, (8, 8), 4, (3, 3), (1, 1), (1, 1), (1, 1), 1)));
     assert!(!direct::applies(&shape(1, 3, (8, 8), 4, (3, 3), (1, 1), (2, 2), (2, 2), 1)));
-    assert!(!direct::applies(&shape(1, 4, (8, 8), 4, (3, 3), (1, 1), (1, 1), (1, 1), 2)));
+    assert!(!direct::applies(&shape(1, 32, (8, 8), 32, (3, 3), (1, 1), (1, 1), (1, 1), 2)));
+}
+
+/// Grouped convs of narrow groups run the direct conv too: RegNet's (eight channels a
+/// group, stride 1 and 2), groups of six in and twelve out (a group's channels in a chunk
+/// of eight and one of four), two images, a 5x5 kernel.
+#[test]
+fn narrow_groups() {
+    for s in [
+        shape(1, 48, (14, 14), 48, (3, 3), (1, 1), (1, 1), (1, 1), 6),
+        shape(2, 24, (15, 13), 24, (3, 3), (2, 2), (1, 1), (1, 1), 3),
+        shape(1, 18, (9, 20), 36, (3, 3), (1, 1), (1, 1), (1, 1), 3),
+        shape(1, 16, (11, 11), 16, (5, 5), (2, 2), (2, 2), (1, 1), 4),
+    ] {
+        assert!(direct::applies(&s), "{s:?}");
+        check(&s, ConvAlgo::Im2col);
+    }
 }
