@@ -67,7 +67,7 @@ pub(super) fn conv(
     let phases = &mut scratch[..scratch_len(s)];
     for (n, image) in out.chunks_mut(s.cout * plane).enumerate() {
         let xn = &x[n * s.cin * s.h * s.w..][..s.cin * s.h * s.w];
-        pad(s, xn, rows, cols, phases);
+        pad(s, xn, rows, cols, phases, threads);
         let phases: &[f32] = phases;
         // Per group, its output channels [`CH`] at a time.
         let cout_g = s.cout_g();
@@ -88,14 +88,28 @@ pub(super) fn conv(
 
 /// Copies image `xn` into `phases`: per input channel and column phase, the zero-padded
 /// plane (`rows x cols`); at stride 2 padded column `p` is column `p / 2` of phase `p % 2`.
-fn pad(s: &Conv2dShape, xn: &[f32], rows: usize, cols: usize, phases: &mut [f32]) {
-    phases.fill(0.0);
-    let st = s.stride_w;
-    for (ci, xc) in xn.chunks_exact(s.h * s.w).enumerate() {
+/// The channels in parallel.
+fn pad(s: &Conv2dShape, xn: &[f32], rows: usize, cols: usize, phases: &mut [f32], threads: usize) {
+    let per = s.stride_w * rows * cols;
+    let (planes, slack) = phases.split_at_mut(s.cin * per);
+    slack.fill(0.0);
+    let one = |(xc, out): (&[f32], &mut [f32])| pad_channel(s, xc, rows, cols, out);
+    if threads <= 1 {
+        xn.chunks_exact(s.h * s.w).zip(planes.chunks_exact_mut(per)).for_each(one);
+    } else {
+        xn.par_chunks_exact(s.h * s.w).zip(planes.par_chunks_exact_mut(per)).for_each(one);
+    }
+}
+
+simd_fn! {
+    /// One input channel `xc` into its phase planes `out` ([`pad`]).
+    fn pad_channel(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [f32]) {
+        out.fill(0.0);
+        let st = s.stride_w;
         for (iy, src) in xc.chunks_exact(s.w).enumerate() {
-            let row = |phase: usize| ((ci * st + phase) * rows + iy + s.pad_h) * cols;
+            let row = |phase: usize| (phase * rows + iy + s.pad_h) * cols;
             if st == 1 {
-                phases[row(0) + s.pad_w..][..s.w].copy_from_slice(src);
+                out[row(0) + s.pad_w..][..s.w].copy_from_slice(src);
                 continue;
             }
             // The even input columns to one phase, the odd ones to the other, each by a
@@ -103,14 +117,14 @@ fn pad(s: &Conv2dShape, xn: &[f32], rows: usize, cols: usize, phases: &mut [f32]
             let pad = s.pad_w;
             let (e0, o0) = if pad.is_multiple_of(2) { (row(0), row(1)) } else { (row(1), row(0)) };
             let (even_at, odd_at) = (e0 + pad / 2, o0 + pad.div_ceil(2));
-            for (d, pair) in phases[even_at..][..s.w.div_ceil(2)].iter_mut().zip(src.chunks_exact(2)) {
+            for (d, pair) in out[even_at..][..s.w.div_ceil(2)].iter_mut().zip(src.chunks_exact(2)) {
                 *d = pair[0];
             }
-            for (d, pair) in phases[odd_at..][..s.w / 2].iter_mut().zip(src.chunks_exact(2)) {
+            for (d, pair) in out[odd_at..][..s.w / 2].iter_mut().zip(src.chunks_exact(2)) {
                 *d = pair[1];
             }
             if s.w % 2 == 1 {
-                phases[even_at + s.w / 2] = src[s.w - 1];
+                out[even_at + s.w / 2] = src[s.w - 1];
             }
         }
     }
