@@ -6,7 +6,7 @@
 
 use rayon::prelude::*;
 
-use super::Conv2dShape;
+use super::{Conv2dShape, pad_interior, store_vector, vector_starts};
 use crate::kernels::Epilogue;
 
 /// Direct conv for one input channel per group, parallel over groups of output planes.
@@ -107,9 +107,7 @@ impl Registers<'_> {
         buf.resize(rows * cols + lanes, 0.0);
         for (j, dst) in dst.chunks_mut(s.oh * s.ow).enumerate() {
             let (xc, k, c) = plane_operands(s, w, x, first + j);
-            for (iy, src) in xc.chunks_exact(s.w).enumerate() {
-                buf[(iy + s.pad_h) * cols + s.pad_w..][..s.w].copy_from_slice(src);
-            }
+            pad_interior(s, xc, cols, &mut buf);
             let taps: [[f32; K]; K] = std::array::from_fn(|ky| std::array::from_fn(|kx| k[ky * K + kx]));
             let scale = ep.scale.map_or(1.0, |v| v[c]);
             let shift = ep.shift.map_or(0.0, |v| v[c]);
@@ -151,10 +149,9 @@ impl Geometry {
     ) {
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let ow = self.ow;
-        let (scale, shift, zero) = (simd.splat_f32s(self.scale), simd.splat_f32s(self.shift), simd.splat_f32s(0.0));
+        let (scale, shift) = (simd.splat_f32s(self.scale), simd.splat_f32s(self.shift));
         let width = lanes.min(ow);
-        let mut ox = 0;
-        loop {
+        for ox in vector_starts(ow, width) {
             let mut acc = [simd.splat_f32s(0.0); R];
             // The block's input rows, R - 1 + K of them from row oy0: output row r reads
             // rows r + ky.
@@ -172,24 +169,8 @@ impl Geometry {
                 }
             }
             for (r, a) in acc.into_iter().enumerate() {
-                let y = simd.mul_add_f32s(a, scale, shift);
-                let y = if self.relu { simd.max_f32s(y, zero) } else { y };
-                let out = &mut dst[(oy0 + r) * ow + ox..][..width];
-                if width == lanes {
-                    S::as_mut_simd_f32s(out).0[0] = y;
-                } else {
-                    // pulp's partial stores are calls; a row this narrow goes through
-                    // a vector on the stack.
-                    let mut lane = [0.0f32; 16];
-                    let lane = &mut lane[..lanes];
-                    S::as_mut_simd_f32s(lane).0[0] = y;
-                    out.copy_from_slice(&lane[..width]);
-                }
+                store_vector(simd, a, scale, shift, self.relu, &mut dst[(oy0 + r) * ow + ox..][..width]);
             }
-            if ox + width >= ow {
-                break;
-            }
-            ox = (ox + width).min(ow - width);
         }
     }
 }
@@ -288,9 +269,7 @@ fn pad_plane(s: &Conv2dShape, xc: &[f32], buf: &mut Vec<f32>) {
     let pw = s.w + 2 * s.pad_w;
     buf.clear();
     buf.resize((s.h + 2 * s.pad_h) * pw, 0.0);
-    for (src, dst) in xc.chunks_exact(s.w).zip(buf[s.pad_h * pw..].chunks_exact_mut(pw)) {
-        dst[s.pad_w..s.pad_w + s.w].copy_from_slice(src);
-    }
+    pad_interior(s, xc, pw, buf);
 }
 
 /// The accumulation over a zero-padded plane (`pad_plane`): [`ROWS`] output rows at a

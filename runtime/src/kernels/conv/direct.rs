@@ -18,7 +18,7 @@
 
 use rayon::prelude::*;
 
-use super::Conv2dShape;
+use super::{Conv2dShape, pad_interior, store_vector, vector_starts};
 use crate::kernels::Epilogue;
 
 /// Output channels computed together: each input vector feeds this many accumulators.
@@ -39,13 +39,13 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
         && (s.dil_h, s.dil_w) == (1, 1)
 }
 
-/// The padded planes of one image: `stride · cin` phase planes of `rows x cols`, and a
-/// vector's worth of slack (a row narrower than a vector is read a whole vector wide).
+/// The `rows x cols` of each of an image's `stride · cin` padded phase planes.
 fn geometry(s: &Conv2dShape) -> (usize, usize) {
     (s.h + 2 * s.pad_h, (s.w + 2 * s.pad_w).div_ceil(s.stride_w))
 }
 
-/// Scratch floats the direct conv needs: one image's padded input planes.
+/// Scratch floats the direct conv needs: one image's padded input planes and a vector's
+/// worth of slack (a row narrower than a vector is read a whole vector wide).
 pub(super) fn scratch_len(s: &Conv2dShape) -> usize {
     let (rows, cols) = geometry(s);
     s.stride_w * s.cin * rows * cols + 16
@@ -105,13 +105,12 @@ simd_fn! {
     /// One input channel `xc` into its phase planes `out` ([`pad`]).
     fn pad_channel(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [f32]) {
         out.fill(0.0);
-        let st = s.stride_w;
+        if s.stride_w == 1 {
+            pad_interior(s, xc, cols, out);
+            return;
+        }
         for (iy, src) in xc.chunks_exact(s.w).enumerate() {
             let row = |phase: usize| (phase * rows + iy + s.pad_h) * cols;
-            if st == 1 {
-                out[row(0) + s.pad_w..][..s.w].copy_from_slice(src);
-                continue;
-            }
             // The even input columns to one phase, the odd ones to the other, each by a
             // loop over pairs of its own (one loop writing both stays scalar).
             let pad = s.pad_w;
@@ -176,12 +175,10 @@ impl Rows<'_> {
         let at = |c: usize, v: Option<&[f32]>, default: f32| v.map_or(default, |v| v[c0 + c.min(chans - 1)]);
         let scale: [S::f32s; CH] = std::array::from_fn(|c| simd.splat_f32s(at(c, ep.scale, 1.0)));
         let shift: [S::f32s; CH] = std::array::from_fn(|c| simd.splat_f32s(at(c, ep.shift, 0.0)));
-        let zero = simd.splat_f32s(0.0);
         let width = lanes.min(ow);
         for oy in 0..s.oh {
-            let mut ox = 0;
-            loop {
-                let mut acc = [zero; CH];
+            for ox in vector_starts(ow, width) {
+                let mut acc = [simd.splat_f32s(0.0); CH];
                 for ci in 0..cin_g {
                     for ky in 0..K {
                         for kx in 0..K {
@@ -198,24 +195,8 @@ impl Rows<'_> {
                     }
                 }
                 for (c, a) in acc.into_iter().enumerate().take(chans) {
-                    let y = simd.mul_add_f32s(a, scale[c], shift[c]);
-                    let y = if ep.relu() { simd.max_f32s(y, zero) } else { y };
-                    let out = &mut dst[c * plane + oy * ow + ox..][..width];
-                    if width == lanes {
-                        S::as_mut_simd_f32s(out).0[0] = y;
-                    } else {
-                        // A row narrower than a vector: through the stack (pulp's partial
-                        // stores are calls).
-                        let mut lane = [0.0f32; 16];
-                        let lane = &mut lane[..lanes];
-                        S::as_mut_simd_f32s(lane).0[0] = y;
-                        out.copy_from_slice(&lane[..width]);
-                    }
+                    store_vector(simd, a, scale[c], shift[c], ep.relu(), &mut dst[c * plane + oy * ow + ox..][..width]);
                 }
-                if ox + width >= ow {
-                    break;
-                }
-                ox = (ox + width).min(ow - width);
             }
         }
         for plane_out in dst.chunks_mut(plane) {

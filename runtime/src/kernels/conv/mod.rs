@@ -464,6 +464,42 @@ fn check_shape(s: &Conv2dShape) {
     );
 }
 
+/// Where the SIMD vectors of an output row of `ow` values start, `width` (the lanes, at most
+/// `ow`) apart, the last one overlapping the one before it so that it ends with the row:
+/// the row walk of the register paths (`depthwise.rs`, `direct.rs`).
+#[inline(always)]
+fn vector_starts(ow: usize, width: usize) -> impl Iterator<Item = usize> {
+    (0..ow.div_ceil(width)).map(move |i| (i * width).min(ow - width))
+}
+
+/// Stores `acc · scale + shift`, then `max(0, ·)` if `relu`, into `out`: one vector, or the
+/// first `out.len()` lanes of one through the stack for a row narrower than a vector
+/// (pulp's partial stores are calls). The register paths' store.
+#[inline(always)]
+fn store_vector<S: pulp::Simd>(simd: S, acc: S::f32s, scale: S::f32s, shift: S::f32s, relu: bool, out: &mut [f32]) {
+    let y = simd.mul_add_f32s(acc, scale, shift);
+    let y = if relu { simd.max_f32s(y, simd.splat_f32s(0.0)) } else { y };
+    let lanes = size_of::<S::f32s>() / size_of::<f32>();
+    if out.len() == lanes {
+        S::as_mut_simd_f32s(out).0[0] = y;
+    } else {
+        let mut lane = [0.0f32; 16];
+        let lane = &mut lane[..lanes];
+        S::as_mut_simd_f32s(lane).0[0] = y;
+        out.copy_from_slice(&lane[..out.len()]);
+    }
+}
+
+/// Copies input plane `xc` into the interior of its zero-padded copy `out` (rows of `cols =
+/// w + 2 pad_w`, the input's rows from row `pad_h`, column `pad_w`); the border is left as it
+/// is, zero. Every tap of a stride-1 output then lies inside the copy.
+#[inline(always)]
+fn pad_interior(s: &Conv2dShape, xc: &[f32], cols: usize, out: &mut [f32]) {
+    for (iy, src) in xc.chunks_exact(s.w).enumerate() {
+        out[(iy + s.pad_h) * cols + s.pad_w..][..s.w].copy_from_slice(src);
+    }
+}
+
 /// Writes `act(acc · scale[c] + shift[c])` into `dst`.
 #[inline(always)]
 fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
