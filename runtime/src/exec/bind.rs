@@ -601,7 +601,8 @@ impl Bound {
     }
 
     /// Prepares the session's buffers for the variant of `weights`, unless they hold it
-    /// already: packs every raw LoRA `A` ([`LoraSpec::a_raw`]) for its conv's algorithm,
+    /// already: packs every raw LoRA `A` ([`LoraSpec::a_raw`]) of a branch the variant
+    /// gives for its conv's algorithm,
     /// and writes every working copy of a conv merged on switch
     /// (`Kernel::Conv2d::switch`): `pack(W + B A)` from the variant's raw tensors
     /// (`kernels::merge::switch_pack`). Reads the stored tensors, never writes them;
@@ -620,7 +621,10 @@ impl Bound {
                 merge::switch_pack(s, *algo, weights.get(*weight), l.as_ref(), tmp, out);
             } else if let Some(l) = step.kernel.lora()
                 && l.a_raw
+                && !weights.reads_zero(l.b)
             {
+                // A branch the variant does not give is skipped (`run_step`): nothing
+                // reads its `A`, and the next variant that gives it packs again.
                 conv::pack_weight(&conv::lora_a_shape(s, l.rank), *algo, weights.get(l.a), &mut self.lora_a[k]);
             }
         }
