@@ -19,8 +19,9 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     // padded copy) is shared by them (MobileNetV2's 7x7 planes took about as long to set
     // up as to compute), and at least four tasks per thread.
     let per = (s.n * s.cout / (4 * threads.max(1))).clamp(1, 64);
+    let registers = Registers::applies(s);
     let group = |(i, dst): (usize, &mut [f32])| {
-        if Registers::applies(s) {
+        if registers {
             pulp::Arch::new().dispatch(Registers { s, w, x, ep, first: i * per, dst });
         } else {
             for (j, dst) in dst.chunks_mut(plane).enumerate() {
@@ -201,7 +202,8 @@ const MAX_TAP_ROWS: usize = 16;
 /// (into a buffer each thread keeps) and accumulated by [`padded_rows`]: no border columns,
 /// four output rows at a time. On ConvNeXt-T (7x7: three border columns of 49 scalar taps
 /// each side of a 56-column row) the whole model ran 0.83x as long, on MobileNetV2 0.94x
-/// (alternating runs against the border path, 2 threads).
+/// (alternating runs against the border path, 2 threads); both now take [`Registers`],
+/// which leaves this path the stride-1 kernels it does not (dilated, not square).
 ///
 /// Otherwise (larger planes, other strides): the columns whose taps all fall
 /// inside the input row (the interior) go in blocks of 16, 8 or 4 (the widest that fits the
