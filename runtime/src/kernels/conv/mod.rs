@@ -44,9 +44,10 @@
 //!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
-//! paths (Gemm1x1, Im2col), `direct.rs` the direct conv an im2col layer with at most four
-//! input channels (a stem) runs instead, `winograd.rs` Winograd, `depthwise.rs` the direct loop, and
-//! `tests.rs` the tests of every algorithm against one reference.
+//! paths (Gemm1x1, Im2col), `direct.rs` the direct conv an im2col layer with few input
+//! channels per group (a stem, RegNet's grouped convs) runs instead, `winograd.rs`
+//! Winograd, `depthwise.rs` the direct loop, and `tests.rs` the tests of every algorithm
+//! against one reference.
 
 use rayon::prelude::*;
 
@@ -395,7 +396,8 @@ pub fn conv2d_adapter(
     if algo == ConvAlgo::Depthwise {
         depthwise(s, packed_weight, &conv_ep, x, out, threads);
     } else if algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && direct::applies(s) {
-        // A stem: few input channels, which im2col would unfold into a shallow GEMM.
+        // A stem or a grouped conv of narrow groups: few input channels per group, which
+        // im2col would unfold into shallow GEMMs.
         direct::conv(s, packed_weight, &conv_ep, x, out, scratch, threads);
     } else {
         let ep = &conv_ep;
@@ -520,7 +522,8 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
 fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
     match algo {
         ConvAlgo::Gemm1x1 => gemm_tile(s, algo) * (s.cout_g() + rank),
-        // The direct conv of a stem reads one image's padded input from the scratch.
+        // The direct conv (a stem, narrow groups) reads one image's padded input from the
+        // scratch.
         ConvAlgo::Im2col if direct::applies(s) => {
             (gemm_tile(s, algo) * (s.cout_g() + s.k() + rank)).max(direct::scratch_len(s))
         }
