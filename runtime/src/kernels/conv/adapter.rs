@@ -20,7 +20,10 @@
 //!   writes). Before, each chunk was gathered into scratch and scattered back: two copies
 //!   of the activation, and a `Vec` of slices per chunk allocated on every call. On
 //!   several threads the chunks' `down` is shared by chunks and `up` by channels (each
-//!   thread then writes only its own planes), one join between them.
+//!   thread then writes only its own planes), one join between them. An image that fits
+//!   one chunk (a last stage's 7x7) shares `down` by bottleneck rows instead: each thread
+//!   reads only its rows of the weight, and no GEMM is cut to an awkward width (a 7x7
+//!   plane went to two threads as 32 + 17 pixels).
 
 use rayon::prelude::*;
 
@@ -123,10 +126,24 @@ fn apply_strided(
 
 /// `h = act(down · y + down_bias)` for `cout` rows of `tp` pixels of `y`, `stride` apart.
 fn down(ad: &Adapter, y: &[f32], cout: usize, tp: usize, stride: usize, h: &mut [f32]) {
-    let (mid, h) = (ad.mid, &mut h[..ad.mid * tp]);
+    down_rows(ad, 0..ad.mid, y, cout, tp, stride, h);
+}
+
+/// The bottleneck rows `rows` of [`down`] into `h` (`rows.len()` rows of `tp`).
+fn down_rows(
+    ad: &Adapter,
+    rows: std::ops::Range<usize>,
+    y: &[f32],
+    cout: usize,
+    tp: usize,
+    stride: usize,
+    h: &mut [f32],
+) {
+    let (m, h) = (rows.len(), &mut h[..rows.len() * tp]);
     let y = MatRef { data: y, rows: cout, cols: tp, row_stride: stride, col_stride: 1 };
-    sgemm(MatRef::row_major(ad.down, mid, cout), y, MatMut::row_major(h, mid, tp), false, 1);
-    bias_rows(h, ad.down_bias, tp, tp, false);
+    let w = MatRef::row_major(&ad.down[rows.start * cout..][..m * cout], m, cout);
+    sgemm(w, y, MatMut::row_major(h, m, tp), false, 1);
+    bias_rows(h, &ad.down_bias[rows], tp, tp, false);
     // A tile is one thread's work: its activations on this thread.
     elementwise::activation_chunk(ad.act, h);
 }
@@ -175,8 +192,9 @@ simd_fn! {
 /// read and written where it is (two GEMMs on the planes, rows a plane apart; nothing
 /// copied, nothing allocated). On one thread chunk by chunk; on more, per image and per
 /// round of chunks whose bottleneck rows fit `scratch` (at least [`planes_scratch_len`]
-/// floats): every chunk's `down` (the threads sharing the chunks, reading the planes),
-/// then `up` (the threads sharing the channels, each writing its own planes).
+/// floats): every chunk's `down` (the threads sharing the chunks, reading the planes, or,
+/// when the image is one chunk, sharing the bottleneck rows), then `up` (the threads
+/// sharing the channels, each writing its own planes).
 pub(super) fn apply_planes(
     s: &Conv2dShape,
     ad: &Adapter,
@@ -202,11 +220,31 @@ pub(super) fn apply_planes(
         }
         return;
     }
+    // Channels per worker in `up`, in whole vectors of 8 rows of the weight.
+    let per_worker = cout.div_ceil(workers).next_multiple_of(8).min(cout);
+    if plane <= chunk(cout, mid, plane) {
+        // A small image (a last stage's 7x7) in one chunk: `down` shared by bottleneck
+        // rows, so each thread reads only its rows of the weight and works on the whole
+        // plane (chunks of 25 and 24 pixels would be GEMMs of awkward widths).
+        let mid_per = mid.div_ceil(threads.max(1)).next_multiple_of(8).min(mid);
+        for image in out.chunks_mut(cout * plane) {
+            let h = &mut scratch[..mid * plane];
+            let y: &[f32] = image;
+            h.par_chunks_mut(mid_per * plane).enumerate().for_each(|(w, h)| {
+                let rows = w * mid_per..(w * mid_per + mid_per).min(mid);
+                down_rows(ad, rows, y, cout, plane, plane, h);
+            });
+            let h: &[f32] = h;
+            image.par_chunks_mut(per_worker * plane).enumerate().for_each(|(w, planes)| {
+                let c0 = w * per_worker;
+                up(ad, h, planes, c0..(c0 + per_worker).min(cout), plane, plane, act);
+            });
+        }
+        return;
+    }
     // Chunks per round: as many bottleneck chunks as the scratch holds, at least one per
     // worker (the scratch holds `workers · (cout + mid)` chunks' worth).
     let round = (scratch.len() / (mid * p)).clamp(1, per_image);
-    // Channels per worker in `up`, in whole vectors of 8 rows of the weight.
-    let per_worker = cout.div_ceil(workers).next_multiple_of(8).min(cout);
     for image in out.chunks_mut(cout * plane) {
         for j0 in (0..per_image).step_by(round) {
             let js = j0..(j0 + round).min(per_image);
@@ -450,13 +488,21 @@ mod tests {
 
     #[test]
     fn chunks_are_shared_evenly() {
-        // One chunk of a 7x7 image becomes two for two threads; five of 56x56 six.
-        assert_eq!(chunks(&shape(1, 8, (7, 7), 512, 3, 1, 1), 256, 2), (32, 2));
+        // Five chunks of 56x56 become six for two threads.
         assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 2), (528, 6));
         assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 1), (672, 5));
         // Two chunks of 14x14 at 256 + 128 channels: 112 and 84 pixels, not 160 and 36.
         assert_eq!(chunks(&shape(1, 8, (14, 14), 256, 3, 1, 1), 128, 2), (112, 2));
-        check(&shape(1, 8, (7, 7), 64, 3, 1, 1), ConvAlgo::Winograd2, 32, Activation::Relu);
+    }
+
+    #[test]
+    fn a_small_image_shares_the_bottleneck_rows() {
+        // 7x7 at 40 + 20 channels fits one chunk: `down` split by bottleneck rows (16 + 4
+        // on two threads, 8 + 8 + 4 on three), `up` by channels (24 + 16).
+        let s = shape(2, 8, (7, 7), 40, 3, 1, 1);
+        assert!(s.oh * s.ow <= chunk(40, 20, 49));
+        check(&s, ConvAlgo::Winograd2, 20, Activation::Relu);
+        check(&shape(1, 8, (7, 7), 64, 3, 1, 1), ConvAlgo::Winograd2, 32, Activation::Silu);
     }
 
     #[test]
