@@ -360,8 +360,9 @@ fn totals(m: &Manifest, seconds: &[f64], key: impl Fn(&Step) -> String) -> Vec<(
 
 /// Per-kernel-kind and per-step time from a profiled session (`seconds`, one per step,
 /// summed over `runs`), as the mean per run: the kinds by total time, the layer scopes by
-/// total time, then the twelve slowest steps.
-pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
+/// total time, then the `steps` slowest steps (every step when `steps` is 0).
+pub fn profile(m: &Manifest, seconds: &[f64], runs: usize, steps: usize) -> String {
+    let listed = if steps == 0 { usize::MAX } else { steps };
     render(|out| {
         let total: f64 = seconds.iter().sum();
         let ms = |s: f64| s * 1e3 / runs.max(1) as f64;
@@ -392,10 +393,10 @@ pub fn profile(m: &Manifest, seconds: &[f64], runs: usize) -> String {
             let k = escaped(k);
             writeln!(out, "  {k:<32} {:8.3} ms  {:5.1}%  {n} steps", ms(*t), 100.0 * t / total.max(1e-12))?;
         }
-        let mut steps: Vec<(usize, f64)> = seconds.iter().copied().enumerate().collect();
-        steps.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let mut slowest: Vec<(usize, f64)> = seconds.iter().copied().enumerate().collect();
+        slowest.sort_by(|a, b| b.1.total_cmp(&a.1));
         writeln!(out, "slowest steps:")?;
-        for (k, t) in steps.iter().take(12) {
+        for (k, t) in slowest.iter().take(listed) {
             let st = &m.steps[*k];
             writeln!(out, "  {:8.3} ms  {:<14} {}", ms(*t), st.kernel.name(), escaped(&st.path))?;
         }
@@ -480,10 +481,32 @@ model two(hidden: int = 8) {
         // 1 / (1 + 3 (n - 1)).
         let conv = paths.iter().position(|p| p.starts_with("conv")).unwrap_or_else(|| panic!("{paths:?}"));
         let seconds: Vec<f64> = (0..paths.len()).map(|i| if i == conv { 1.0 } else { 3.0 }).collect();
-        let text = profile(m, &seconds, 2);
+        let text = profile(m, &seconds, 2, 12);
         let share = 100.0 / (1.0 + 3.0 * (paths.len() - 1) as f64);
         let line =
             text.lines().find(|l| l.trim_start().starts_with("conv ")).unwrap_or_else(|| panic!("{paths:?}\n{text}"));
         assert!(line.contains(&format!("{share:5.1}%")) && line.contains("500.000 ms"), "{line}\n{text}");
+    }
+
+    /// The listing takes the `steps` slowest, slowest first; 0 lists every step.
+    #[test]
+    fn profile_lists_as_many_steps_as_asked() {
+        let plan = compile(TWO_LAYERS);
+        let m = &plan.manifest;
+        let n = m.steps.len();
+        assert!(n >= 3, "{n} steps");
+        // Step i takes i + 1 seconds: the slowest is the last.
+        let seconds: Vec<f64> = (0..n).map(|i| (i + 1) as f64).collect();
+        let listed = |steps: usize| -> Vec<String> {
+            let text = profile(m, &seconds, 1, steps);
+            let (_, tail) = text.split_once("slowest steps:\n").unwrap_or_else(|| panic!("{text}"));
+            tail.lines().map(str::to_string).collect()
+        };
+        let two = listed(2);
+        assert_eq!(two.len(), 2, "{two:?}");
+        assert!(two[0].contains(&format!("{:.3} ms", n as f64 * 1e3)), "{two:?}");
+        assert!(two[1].contains(&format!("{:.3} ms", (n - 1) as f64 * 1e3)), "{two:?}");
+        assert_eq!(listed(0).len(), n);
+        assert_eq!(listed(n + 5).len(), n);
     }
 }

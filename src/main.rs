@@ -102,9 +102,22 @@ fn run(cli: Cli) -> ExitCode {
             let session = cli::session_options(threads, max_memory);
             cli::run::run(&plan, &inputs, &outputs, session, choice, &drop_views)
         }
-        Command::Bench { plan, threads, runs, warmup, batch, profile, peak, variant, inputs, switch, max_memory } => {
+        Command::Bench {
+            plan,
+            threads,
+            runs,
+            warmup,
+            batch,
+            profile,
+            steps,
+            peak,
+            variant,
+            inputs,
+            switch,
+            max_memory,
+        } => {
             let session = cli::session_options(threads, max_memory);
-            let timing = cli::bench::Timing { runs, warmup, batch, profile, peak, switch };
+            let timing = cli::bench::Timing { runs, warmup, batch, profile, steps, peak, switch };
             cli::bench::run(&plan, session, &timing, variant.as_deref(), &inputs)
         }
         Command::Inspect { plan, verbose, max_memory } => cli::inspect::run(&plan, verbose, max_memory),

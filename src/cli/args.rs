@@ -237,6 +237,10 @@ pub enum Command {
         /// Also print the time of each step (the slowest first) and per kernel kind.
         #[arg(long)]
         profile: bool,
+        /// How many of the slowest steps the profile lists; 0 lists every step (to compare
+        /// a model layer by layer with another runtime's profile).
+        #[arg(long, default_value_t = 12, requires = "profile")]
+        steps: usize,
         /// Also measure this machine's peak f32 FLOP/s at the same thread count (about a
         /// second) and print the run's GFLOP/s as a fraction of it.
         #[arg(long)]

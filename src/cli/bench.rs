@@ -42,6 +42,8 @@ pub struct Timing {
     pub batch: usize,
     /// Whether to print the per-step profile.
     pub profile: bool,
+    /// How many of the slowest steps the profile lists (0: all).
+    pub steps: usize,
     /// Whether to measure the machine's peak and print the run's fraction of it.
     pub peak: bool,
     /// Variants to switch to and back from after the timed runs ([`switching`]).
@@ -58,7 +60,7 @@ pub fn run(
     variant: Option<&str>,
     inputs: &[(String, String)],
 ) -> Result<(), ExitCode> {
-    let Timing { runs, warmup, batch, profile, peak, ref switch } = *timing;
+    let Timing { runs, warmup, batch, profile, steps, peak, ref switch } = *timing;
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
         eprintln!("error: {msg}");
@@ -117,7 +119,7 @@ pub fn run(
         println!("peak resident memory: {:.1} MiB (the process's, so far)", kib as f64 / 1024.0);
     }
     if let Some(p) = session.profile() {
-        print!("{}", readi::inspect::profile(&plan.manifest, p, times.len()));
+        print!("{}", readi::inspect::profile(&plan.manifest, p, times.len(), steps));
     }
     if !switch.is_empty() {
         switching(&mut session, &given, switch, runs).map_err(|e| fail(format!("{shown}: {e}")))?;
