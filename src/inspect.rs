@@ -234,7 +234,8 @@ pub fn variant_tables(m: &Manifest) -> String {
 /// relu]` for a conv (its algorithm and what its epilogue applies), `[shift relu]` for a
 /// linear or channel affine; nothing for other kernels. A fused LoRA branch shows as
 /// `lora(rank=4)` (added before the epilogue), a fused residual adapter as
-/// `adapter(mid=16, act=relu)` (between the shift and the activation). A conv merged on
+/// `adapter(mid=16, act=relu)` (between the shift and the activation), a residual input
+/// (the step's second) as `+residual` (after those, before the activation). A conv merged on
 /// switch (its variant's weight packed into a working copy when the variant changes) says
 /// `switch` after its algorithm, `switch(lora_rank=4)` when the copy merges a LoRA update
 /// (then there is no branch at run time).
@@ -258,6 +259,9 @@ pub fn kernel_detail(k: &Kernel) -> String {
         }
     }
     parts.extend(k.adapter().map(|a| format!("adapter(mid={}, act={})", a.mid, a.act.label())));
+    if let Kernel::Conv2d { residual: true, .. } = k {
+        parts.push("+residual".into());
+    }
     parts.extend(ep.act.map(|a| a.label()));
     format!("[{}]", parts.join(" "))
 }

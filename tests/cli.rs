@@ -649,7 +649,14 @@ fn ir_reaches_every_back_end_pass() {
     // From lower on, the schedule, as readi inspect lists it.
     let o = readi(&["ir", "models/resnet18.readi", "--stop-after", "plan_buffers"]);
     let out = stdout(&o);
-    assert!(out.starts_with("schedule: 40 steps") && out.contains("conv1 (+bn1, relu#0)"), "{out}");
+    assert!(out.starts_with("schedule: 24 steps") && out.contains("conv1 (+bn1, relu#0)"), "{out}");
+    // Each block's residual add and ReLU run in its second conv's epilogue.
+    assert!(
+        out.contains("= conv2d[winograd4 scale shift +residual relu](%3, %2)")
+            && out.contains("layer1.0.conv2 (+layer1.0.bn2, layer1.0.add#0, layer1.0.relu#1)")
+            && !out.contains("= binary("),
+        "{out}"
+    );
     assert!(out.contains("buffers: 3 slots"), "{out}");
     // With seeded variants, the variant tables.
     let o = readi(&[

@@ -490,6 +490,7 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
         lora: None,
         switch: false,
         adapter: None,
+        residual: false,
     };
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
@@ -927,5 +928,35 @@ fn a_crafted_lss_bev_pool_is_refused() {
         let err = run_refused(&dir, &format!("bev{k}.plan"), plan, &[1, 2, 4, 4, 6]);
         assert!(err.contains("the\\u{1b}step") && err.contains(want), "case {k}: {err}");
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
+    use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("residual");
+    let window = Window2 { kernel: [1, 1], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
+    let conv = |out: i64| Kernel::Conv2d {
+        conv: Conv2d { in_channels: 1, out_channels: out, window, groups: 1 },
+        algo: ConvAlgo::Gemm1x1,
+        weight: 0,
+        epilogue: Default::default(),
+        lora: None,
+        switch: false,
+        adapter: None,
+        residual: true,
+    };
+    // Flagged as adding a residual, but with one input.
+    let plan =
+        one_step(&[None, Some(1), Some(3), Some(3)], conv(1), &[None, Some(1), Some(3), Some(3)], &[("w", vec![1])]);
+    let err = run_refused(&dir, "one.plan", plan, &[1, 1, 3, 3]);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains("takes 2 inputs, got 1"), "{err}");
+    // A residual of one channel added to an output of two.
+    let mut plan =
+        one_step(&[None, Some(1), Some(3), Some(3)], conv(2), &[None, Some(2), Some(3), Some(3)], &[("w", vec![2])]);
+    plan.0.steps[0].inputs = vec![0, 0];
+    let err = run_refused(&dir, "shape.plan", plan, &[1, 1, 3, 3]);
+    assert!(err.contains("residual input has shape [N, 1, 3, 3], not its output's [N, 2, 3, 3]"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -474,7 +474,7 @@ fn repair(manifest: &mut Value) {
         let known = |d: &Dim| d.eval(&b).unwrap_or(0);
         let mut sizes: Vec<(usize, usize)> = Vec::new();
         match &step.kernel {
-            Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch, adapter } => {
+            Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch, adapter, .. } => {
                 let x = &inputs[0].shape;
                 let c = usize::try_from(conv.out_channels).unwrap_or(0);
                 if x.len() == 4 {

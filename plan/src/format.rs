@@ -47,7 +47,10 @@ use crate::ops::{
 /// sparse 3-D conv (`SparseOutCoords`, `SparseConv3d`, `SparseToDense`), which a version 7
 /// runtime would refuse as unknown variants deep in the manifest. Versions 2 to 7 read
 /// unchanged.
-pub const FORMAT_VERSION: u32 = 8;
+/// Version 9: a conv may add a residual input in its epilogue (`Kernel::Conv2d {
+/// residual }`, the step's second input), which a version 8 runtime would ignore, computing
+/// the conv without the add. Versions 2 to 8 read unchanged.
+pub const FORMAT_VERSION: u32 = 9;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
 /// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
@@ -500,6 +503,11 @@ pub enum Kernel {
         /// Absent in plans without one (and in those written before it existed).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         adapter: Option<AdapterSpec>,
+        /// The step's second input, of the output's shape, is added after the epilogue's
+        /// scale and shift (and after a fused adapter), before its activation: a residual
+        /// connection `act(bn(conv(x)) + r)` in one pass over the output. Absent: one input.
+        #[serde(default, skip_serializing_if = "is_false")]
+        residual: bool,
     },
     /// Transposed 2-D convolution with a fused per-channel epilogue (bias = shift).
     /// `weight` is PyTorch's `[in, out/groups, kh, kw]`, as it is.
@@ -608,6 +616,14 @@ impl Kernel {
         }
     }
 
+    /// Tensor inputs the step reads: a conv with a residual reads two.
+    pub fn arity(&self) -> Option<usize> {
+        match self {
+            Kernel::Conv2d { residual: true, .. } => Some(2),
+            k => k.op().arity(),
+        }
+    }
+
     /// The conv kernel's fused adapter, if it has one.
     pub fn adapter(&self) -> Option<&AdapterSpec> {
         match self {
@@ -698,13 +714,14 @@ mod tests {
             lora: None,
             switch: false,
             adapter: None,
+            residual: false,
         };
         let (x, y): (&[usize], &[usize]) = (&[1, 4, 5, 5], &[1, 6, 5, 5]);
         assert_eq!(plain.multiply_adds(&[x], y), 150 * 36);
         let Kernel::Conv2d { conv, algo, weight, epilogue, .. } = plain else { unreachable!() };
         let lora = Some(LoraSpec { a: 1, b: 2, rank: 2, a_raw: false });
         let adapter = Some(AdapterSpec { down: 3, down_bias: 4, up: 5, up_bias: 6, mid: 3, act: Activation::Relu });
-        let both = Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch: false, adapter };
+        let both = Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch: false, adapter, residual: false };
         assert_eq!(both.multiply_adds(&[x], y), 150 * 36 + 25 * (2 * 36 + 6 * 2) + 25 * (2 * 3 * 6));
     }
 }

@@ -169,8 +169,24 @@ fn schedule(m: &Manifest) -> Result<(), String> {
         }
         let inputs: Vec<TensorType> = step.inputs.iter().map(|&i| TensorType::f32(m.values[i].shape.clone())).collect();
         let refs: Vec<&TensorType> = inputs.iter().collect();
-        let want = ops::infer(step.kernel.op(), &refs).map_err(|e| format!("{at}: {e}"))?;
         let out = &m.values[step.output].shape;
+        // A conv's residual input is added to its output: the operator sees the first.
+        let residual = matches!(step.kernel, Kernel::Conv2d { residual: true, .. });
+        if residual {
+            match refs.get(1) {
+                Some(r) if refs.len() == 2 && &r.shape == out => {}
+                Some(r) if refs.len() == 2 => {
+                    return Err(format!(
+                        "{at}: its residual input has shape {}, not its output's {}",
+                        crate::show_shape(&r.shape),
+                        crate::show_shape(out)
+                    ));
+                }
+                _ => return Err(format!("{at}: a conv with a residual takes 2 inputs, got {}", refs.len())),
+            }
+        }
+        let operands = if residual { &refs[..1] } else { &refs[..] };
+        let want = ops::infer(step.kernel.op(), operands).map_err(|e| format!("{at}: {e}"))?;
         if &want.shape != out {
             return Err(format!(
                 "{at}: its output has shape {}, but {} of its inputs gives {}",
@@ -211,7 +227,7 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
         Ok(())
     };
     match kernel {
-        Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch, adapter } => {
+        Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch, adapter, .. } => {
             // The shape rule has checked the spatial sizes are known; the batch does not matter.
             let x = &m.values[step.inputs[0]].shape;
             let known = |d: &Dim| d.as_known().and_then(|v| usize::try_from(v).ok()).unwrap_or(0);

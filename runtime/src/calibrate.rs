@@ -177,6 +177,7 @@ impl BnCalibrator {
                     lora: *lora,
                     switch: *switch,
                     adapter: None,
+                    residual: false,
                 },
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {
@@ -341,10 +342,19 @@ fn execute(
                         let gamma = run.plan.tensor(layer.info.weight);
                         let beta = run.plan.tensor(layer.info.bias);
                         let adapted = layer.adapter.zip(b.convs[k].as_ref());
-                        train_mode_batchnorm(layer, adapted.is_none(), out, shape[0], shape[1], gamma, beta).map(|()| {
+                        // A residual conv adds its second input after the BatchNorm (and
+                        // the adapter), before the activation.
+                        let res = matches!(step.kernel, Kernel::Conv2d { residual: true, .. })
+                            .then(|| crate::exec::value_slice(run, b, step.inputs[1]));
+                        let act_now = adapted.is_none() && res.is_none();
+                        train_mode_batchnorm(layer, act_now, out, shape[0], shape[1], gamma, beta).map(|()| {
                             if let Some((a, (s, _))) = adapted {
                                 let ad = crate::exec::adapter_of(run, &a);
-                                crate::kernels::conv::adapter_after(s, &ad, out, layer.act, &mut scratch, threads);
+                                let act = layer.act.filter(|_| res.is_none());
+                                crate::kernels::conv::adapter_after(s, &ad, out, act, &mut scratch, threads);
+                            }
+                            if let Some(r) = res {
+                                crate::kernels::conv::add_residual(out, r, layer.act, threads);
                             }
                         })
                     }),
@@ -369,7 +379,7 @@ const CHUNK: usize = 1 << 14;
 /// accumulators and normalises `x` with them in place: `y = (x - mean) / sqrt(var + eps)
 /// * gamma + beta` with the biased variance, then the step's fused activation if `act`.
 ///
-/// `act` is false for a step whose fused adapter comes between the two.
+/// `act` is false for a step whose fused adapter or residual input comes between the two.
 fn train_mode_batchnorm(
     layer: &mut Layer,
     act: bool,

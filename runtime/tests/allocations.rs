@@ -186,6 +186,7 @@ fn switch_plan() -> Plan {
         lora: Some(LoraSpec { a, b, rank: 2, a_raw: true }),
         switch: true,
         adapter: None,
+        residual: false,
     };
     let manifest = Manifest {
         format_version: FORMAT_VERSION,

@@ -30,6 +30,9 @@ pub struct ConvOp {
     /// Back end: a residual adapter on the output (`fuse_adapters`), between the
     /// epilogue's shift and its ReLU.
     pub adapter: Option<AdapterOp>,
+    /// Back end: a second input of the output's shape added after the epilogue's shift,
+    /// before its activation (`fuse_epilogues`: a residual connection's add).
+    pub residual: bool,
     /// A `conv1d`: the input is `[N, C, L]` and the output `[N, out, L']`, computed as
     /// `conv` (kernel height 1) on `[N, C, 1, L]`; unpacked weights drop the kernel
     /// height (`[out, in/groups, kw]`).
@@ -65,6 +68,7 @@ impl ConvOp {
             lora: None,
             switch: false,
             adapter: None,
+            residual: false,
             one_d: false,
         }
     }
@@ -120,7 +124,17 @@ impl Operator for ConvOp {
     fn kind_name(&self) -> &'static str {
         if self.one_d { "conv1d" } else { self.conv.kind_name() }
     }
+    fn arity(&self) -> Option<usize> {
+        Some(if self.residual { 2 } else { 1 })
+    }
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        if self.residual {
+            let out = self.conv.infer(&inputs[..1])?;
+            if inputs[1].shape != out.shape {
+                return Err(ShapeError::new(format!("a conv's residual {} is not its output {out}", inputs[1])));
+            }
+            return Ok(out);
+        }
         if !self.one_d {
             return self.conv.infer(inputs);
         }
@@ -159,6 +173,9 @@ impl Operator for ConvOp {
         }
         if let Some(a) = &self.adapter {
             v.push(("adapter", format!("mid {} {}", a.mid, a.act.name())));
+        }
+        if self.residual {
+            v.push(("residual", "input 1, before the activation".to_string()));
         }
         v
     }

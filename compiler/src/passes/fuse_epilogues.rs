@@ -11,13 +11,21 @@
 //!   node: a second activation stays a node. (A BatchNorm after a transposed conv or a
 //!   conv3d is not folded into it: it stays a channel affine, which takes the activation.)
 //!
-//! Does nothing when no bias is left and no activation follows such a node. Assumes
-//! `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
+//! * rule `fuse_residual`: an `add` of a conv2d's output and another value of the same
+//!   shape (a residual connection: `bn3(conv3(x)) + identity`), where nothing else reads
+//!   the conv and it has no activation, becomes the conv's second input, added after its
+//!   scale and shift (and its adapter); the add leaves the graph, and the ReLU after it can
+//!   then join the conv by `fuse_activation`. The first operand is taken when both are
+//!   such convs. The other operand does not depend on the conv (the add is the conv's only
+//!   reader), so the graph stays acyclic.
+//!
+//! Does nothing when no bias is left and no activation or residual add follows such a
+//! node. Assumes `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
 
 use readi_grammar::diag::Diagnostics;
 
 use super::{BackendInputs, Output, Patch, rebind};
-use crate::ir::{Activation, Graph, NodeId, Op, Pure, ValueRef};
+use crate::ir::{Activation, BinaryOp, Graph, NodeId, Op, Pure, ValueRef};
 use crate::module::Module;
 use crate::ops::Epilogue;
 
@@ -73,9 +81,38 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             p.fuse.push((x.node, node.path.clone()));
             p.remove.push(id);
             patches.push(p);
+            continue;
+        }
+        if let Op::Pure(Pure::Binary(BinaryOp::Add)) = node.op
+            && let Some((conv, other, new)) = residual_conv(g, id)
+        {
+            let producer = g.node(conv.node);
+            let slots = rebind(&new, &producer.params, &[]);
+            let mut p = Patch::new("fuse_residual");
+            p.rewrite.push((conv.node, new, slots));
+            p.set_inputs.push((conv.node, 1, other));
+            p.replace_uses.push((ValueRef { node: id, port: 0 }, conv));
+            p.fuse.push((conv.node, node.path.clone()));
+            p.remove.push(id);
+            patches.push(p);
         }
     }
     Ok(Output::Patches(patches))
+}
+
+/// For an `add` node: the operand that is a conv2d able to take the other as its residual
+/// (same type as the add's output, read only by the add, no activation, no residual yet,
+/// not a conv1d), the other operand, and the conv's new op.
+fn residual_conv(g: &Graph, add: NodeId) -> Option<(ValueRef, ValueRef, Op)> {
+    let [a, b] = g.inputs(add)[..] else { return None };
+    let out = &g.node(add).outputs[0];
+    let ty = |v: ValueRef| &g.node(v.node).outputs[v.port as usize];
+    [(a, b), (b, a)].into_iter().find_map(|(x, other)| {
+        let Op::Conv2d(c) = &g.node(x.node).op else { return None };
+        let fits = !c.residual && !c.one_d && c.epilogue.act.is_none();
+        (fits && g.uses(x.node) == 1 && ty(x) == out && ty(other) == out)
+            .then(|| (x, other, Op::Conv2d(crate::ops::ConvOp { residual: true, ..c.clone() })))
+    })
 }
 
 /// The op of `producer` with `act` in its epilogue, if it is a conv, linear or channel

@@ -294,8 +294,19 @@ impl<'m> Lowering<'m> {
                     }
                     None => None,
                 };
-                let kernel =
-                    Kernel::Conv2d { conv: c.conv.clone(), algo, weight, epilogue, lora, switch: c.switch, adapter };
+                let kernel = Kernel::Conv2d {
+                    conv: c.conv.clone(),
+                    algo,
+                    weight,
+                    epilogue,
+                    lora,
+                    switch: c.switch,
+                    adapter,
+                    residual: c.residual,
+                };
+                if c.one_d && c.residual {
+                    return Err(ice(format!("conv1d `{}` has a residual", node.path)));
+                }
                 if c.one_d {
                     return self.lower_conv1d(id, kernel, inputs);
                 }

@@ -20,7 +20,7 @@
 //! | `fuse_lora`        | a LoRA branch into its conv's or linear's kernel               | LoRA left as branches    |
 //! | `fold_batchnorm`   | BatchNorm into the conv before it, or a channel affine         | adaptations placed       |
 //! | `fuse_adapters`    | an adapter into the conv producing its input (an epilogue)     | BatchNorms folded        |
-//! | `fuse_epilogues`   | biases into epilogue shifts, ReLUs into their producer         | BatchNorms folded        |
+//! | `fuse_epilogues`   | biases into epilogue shifts, ReLUs into their producer, a residual add into its conv | BatchNorms folded |
 //! | `choose_conv_algo` | an algorithm per conv                                          | epilogues fused          |
 //! | `pack_weights`     | conv weights packed for their algorithm, linear transposed     | algorithms chosen        |
 //! | `lower`            | one kernel step per node: the schedule and the variant tables  | weights packed           |

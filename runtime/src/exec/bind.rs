@@ -664,6 +664,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::Pure(Pure::SparseToDense(_)) => Some(2),
         Kernel::Pure(Pure::Concat(_)) => None,
         Kernel::Pure(Pure::LidarDepthMap(_)) => Some(5),
+        Kernel::Conv2d { residual: true, .. } => Some(2),
         _ => Some(1),
     };
     if step.inputs.is_empty() || arity.is_some_and(|n| step.inputs.len() != n) {
@@ -674,8 +675,11 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let out = shapes[step.output].as_slice();
     let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
     match &step.kernel {
-        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch, adapter } => {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch, adapter, residual } => {
             let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
+            if *residual && input(1) != out {
+                return Err(format!("conv2d residual of shape {:?}, its output is {out:?}", input(1)));
+            }
             if cin != u(c.in_channels)? {
                 return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));
             }

@@ -56,7 +56,7 @@ pub(crate) use bind::Bound;
 pub use bind::Footprint;
 pub use bind::check_pure;
 pub use run::run_pure;
-pub(crate) use run::{Run, adapter_of, run_step};
+pub(crate) use run::{Run, adapter_of, run_step, value_slice};
 pub use switch::VariantSwitch;
 
 /// A dense f32 tensor returned by a run.

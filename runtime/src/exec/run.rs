@@ -32,7 +32,7 @@ pub(crate) struct Run<'a> {
 }
 
 /// The data of a value, stored tensors resolved under the run's variant.
-pub(super) fn value_slice<'a>(run: &Run<'a>, bound: &'a Bound, v: usize) -> &'a [f32] {
+pub(crate) fn value_slice<'a>(run: &Run<'a>, bound: &'a Bound, v: usize) -> &'a [f32] {
     let n: usize = bound.shapes[v].iter().product();
     match run.plan.manifest.values[v].storage {
         Storage::Input(i) => match run.given[i] {
@@ -126,7 +126,7 @@ pub(crate) fn run_step(
     // Every kernel takes at least one input (checked at bind time).
     let (x, xs) = input(0);
     match &step.kernel {
-        Kernel::Conv2d { weight, epilogue: ep, lora, switch, adapter, .. } => {
+        Kernel::Conv2d { weight, epilogue: ep, lora, switch, adapter, residual, .. } => {
             if let Some((s, algo)) = conv_params {
                 let a = |l: &LoraSpec| if l.a_raw { b.lora_a[k].as_slice() } else { w.get(l.a) };
                 // Merged on switch: the working copy, `B A` in it (`Bound::pack_lora`).
@@ -142,7 +142,9 @@ pub(crate) fn run_step(
                     .filter(|a| !(w.reads_zero(a.up) && w.reads_zero(a.up_bias)))
                     .map(|a| conv_adapter(w, a));
                 let e = epilogue(w, ep);
-                conv::conv2d_adapter(s, *algo, wt, lora.as_ref(), adapter.as_ref(), &e, x, out, scratch, threads);
+                // Bind checked the arity: a residual conv reads two inputs.
+                let res = residual.then(|| input(1).0);
+                conv::conv2d_fused(s, *algo, wt, lora.as_ref(), adapter.as_ref(), &e, x, res, out, scratch, threads);
             }
         }
         Kernel::ConvTranspose2d { conv: c, weight, epilogue: ep } => {

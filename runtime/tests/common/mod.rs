@@ -295,6 +295,7 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                 lora: None,
                 switch: false,
                 adapter: None,
+                residual: false,
             },
             inputs: vec![0],
             output: 1,

@@ -505,6 +505,56 @@ mod tests {
         check(&shape(1, 8, (7, 7), 64, 3, 1, 1), ConvAlgo::Winograd2, 32, Activation::Silu);
     }
 
+    /// A residual with an adapter is added after the adapter, then the activation: in the
+    /// tiles (1x1) and after the conv (Winograd), against the reference plus the sum.
+    #[test]
+    fn a_residual_comes_after_the_adapter() {
+        use super::super::conv2d_fused;
+        for (s, algo) in [
+            (shape(2, 8, (9, 7), 16, 1, 1, 1), ConvAlgo::Gemm1x1),
+            (shape(2, 6, (13, 12), 8, 3, 1, 1), ConvAlgo::Winograd2),
+        ] {
+            let (mid, fan_in) = (4, s.cin * s.kh * s.kw);
+            let x = data(s.n * s.cin * s.h * s.w, 41);
+            let w: Vec<f32> = data(fan_in * s.cout, 42).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
+            let (scale, shift) = (data(s.cout, 43), data(s.cout, 44));
+            let (down, up) = (data(mid * s.cout, 45), data(s.cout * mid, 46));
+            let (down_bias, up_bias) = (data(mid, 47), data(s.cout, 48));
+            let ad =
+                Adapter { down: &down, down_bias: &down_bias, up: &up, up_bias: &up_bias, mid, act: Activation::Relu };
+            let res = data(s.n * s.cout * s.oh * s.ow, 49);
+            let mut packed = vec![0.0; packed_weight_len(&s, algo)];
+            pack_weight(&s, algo, &w, &mut packed);
+            let y = reference(&s, &x, &w, &scale, &shift, &ad, None);
+            for act in [Some(Activation::Relu), Some(Activation::Silu)] {
+                let want: Vec<f32> = y
+                    .iter()
+                    .zip(&res)
+                    .map(|(&y, &r)| act64(act.expect("an activation"), f64::from(y) + f64::from(r)) as f32)
+                    .collect();
+                let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+                for threads in [1, 2, 3] {
+                    let mut scratch = vec![f32::NAN; adapter_scratch_len(&s, algo, 0, mid, threads).expect("a size")];
+                    let mut out = vec![f32::NAN; want.len()];
+                    conv2d_fused(
+                        &s,
+                        algo,
+                        &packed,
+                        None,
+                        Some(&ad),
+                        &ep,
+                        &x,
+                        Some(&res),
+                        &mut out,
+                        &mut scratch,
+                        threads,
+                    );
+                    assert_close(&out, &want, 2e-5);
+                }
+            }
+        }
+    }
+
     #[test]
     fn bad_lengths_are_refused() {
         let (d, b) = (vec![0.0; 8], vec![0.0; 4]);

@@ -100,7 +100,8 @@ simd_fn! {
         ep: &Epilogue<'_>,
     ) {
         for (c, acc_row) in chans.zip(acc.chunks(tp)) {
-            finish(&mut part.plane(n, c)[off..], acc_row, c, ep);
+            let res = part.residual(n, c).map(|r| &r[off..]);
+            finish(&mut part.plane(n, c)[off..], acc_row, c, ep, res);
         }
     }
 }

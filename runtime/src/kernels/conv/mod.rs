@@ -350,6 +350,34 @@ pub fn conv2d_adapter(
     scratch: &mut [f32],
     threads: usize,
 ) {
+    conv2d_fused(s, algo, packed_weight, lora, adapter, ep, x, None, out, scratch, threads)
+}
+
+/// [`conv2d_adapter`] with a residual input `res` of the output's shape added after the
+/// scale and shift (and the adapter), before the activation: `out = act(z + res)`, a
+/// ResNet block's `relu(bn(conv(x)) + identity)` in the conv's own epilogue. The GEMM and
+/// Winograd paths add it as they write each output row; the depthwise loop, the direct
+/// conv and a layer with an adapter add it in one pass after.
+///
+/// # Panics
+/// As [`conv2d_adapter`], and if `res` is not the output's length.
+#[allow(clippy::too_many_arguments)]
+pub fn conv2d_fused(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    packed_weight: &[f32],
+    lora: Option<&Lora>,
+    adapter: Option<&Adapter>,
+    ep: &Epilogue,
+    x: &[f32],
+    res: Option<&[f32]>,
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    if let Some(r) = res {
+        assert_eq!(r.len(), out.len(), "conv: residual length");
+    }
     if let Some(a) = adapter
         && let Err(e) = a.check(s.cout)
     {
@@ -389,13 +417,18 @@ pub fn conv2d_adapter(
         return;
     }
     // Where the adapter runs: in the GEMM tiles, or after the conv over its output, the
-    // conv's ReLU then deferred to after the adapter.
+    // conv's ReLU then deferred to after the adapter. Where the residual is added: as the
+    // GEMM and Winograd paths write each row, or in a pass after everything else (the
+    // activation then deferred to that pass).
     let in_tile = adapter.filter(|_| adapter_in_tile(s, algo, threads));
     let after = adapter.filter(|_| in_tile.is_none());
-    let conv_ep = Epilogue { act: ep.act.filter(|_| after.is_none()), ..*ep };
+    let direct = algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && direct::applies(s);
+    let res_in_rows = res.filter(|_| adapter.is_none() && algo != ConvAlgo::Depthwise && !direct);
+    let res_after = res.filter(|_| res_in_rows.is_none());
+    let conv_ep = Epilogue { act: ep.act.filter(|_| after.is_none() && res_after.is_none()), ..*ep };
     if algo == ConvAlgo::Depthwise {
         depthwise(s, packed_weight, &conv_ep, x, out, threads);
-    } else if algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && direct::applies(s) {
+    } else if direct {
         // A stem or a grouped conv of narrow groups: few input channels per group, which
         // im2col would unfold into shallow GEMMs.
         direct::conv(s, packed_weight, &conv_ep, x, out, scratch, threads);
@@ -403,7 +436,7 @@ pub fn conv2d_adapter(
         let ep = &conv_ep;
         let per = part_scratch(s, algo, rank) + in_tile.map_or(0, |a| a.mid * gemm_tile(s, algo));
         let mut jobs: Vec<(Part, &mut [f32])> =
-            split(out, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
+            split(out, res_in_rows, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
         let run = |(part, scratch): &mut (Part, &mut [f32])| match algo {
             ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => {
                 gemm_part(s, algo, packed_weight, lora, in_tile, ep, x, part, scratch)
@@ -419,7 +452,10 @@ pub fn conv2d_adapter(
         }
     }
     if let Some(a) = after {
-        adapter::apply_planes(s, a, out, ep.act, scratch, threads);
+        adapter::apply_planes(s, a, out, ep.act.filter(|_| res_after.is_none()), scratch, threads);
+    }
+    if let Some(r) = res_after {
+        add_residual(out, r, ep.act, threads);
     }
 }
 
@@ -502,19 +538,61 @@ fn pad_interior(s: &Conv2dShape, xc: &[f32], cols: usize, out: &mut [f32]) {
     }
 }
 
-/// Writes `act(acc · scale[c] + shift[c])` into `dst`.
+/// Writes `act(acc · scale[c] + shift[c] + res)` into `dst`, `res` the residual's values
+/// at the same pixels (when the conv adds one).
 #[inline(always)]
-fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue) {
+fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f32]>) {
     let scale = ep.scale.map_or(1.0, |v| v[c]);
     let shift = ep.shift.map_or(0.0, |v| v[c]);
     let dst = &mut dst[..acc.len()];
-    match (ep.scale.is_some(), ep.relu()) {
-        (true, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a * scale + shift).max(0.0)),
-        (true, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a * scale + shift),
-        (false, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a + shift).max(0.0)),
-        (false, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a + shift),
+    if let Some(res) = res {
+        let res = &res[..acc.len()];
+        let it = dst.iter_mut().zip(acc).zip(res);
+        if ep.relu() {
+            it.for_each(|((d, &a), &r)| *d = (a * scale + shift + r).max(0.0));
+        } else {
+            it.for_each(|((d, &a), &r)| *d = a * scale + shift + r);
+        }
+    } else {
+        match (ep.scale.is_some(), ep.relu()) {
+            (true, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a * scale + shift).max(0.0)),
+            (true, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a * scale + shift),
+            (false, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a + shift).max(0.0)),
+            (false, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a + shift),
+        }
     }
     ep.finish_act(dst);
+}
+
+simd_fn! {
+    /// `out = act(out + res)` over one chunk: a residual added after a path that does not
+    /// fuse it (depthwise, the direct conv, an adapter), then the step's activation.
+    fn add_residual_chunk(out: &mut [f32], res: &[f32], act: Option<Activation>) {
+        if act == Some(Activation::Relu) {
+            out.iter_mut().zip(res).for_each(|(o, &r)| *o = (*o + r).max(0.0));
+        } else {
+            out.iter_mut().zip(res).for_each(|(o, &r)| *o += r);
+            if let Some(f) = act {
+                crate::kernels::elementwise::activation_chunk(f, out);
+            }
+        }
+    }
+}
+
+/// [`add_residual_chunk`] over a whole output, in parallel chunks: what a conv step with a
+/// residual does after its conv when the residual is not added as it writes (and what
+/// calibration does after re-normalising such a step's output).
+///
+/// # Panics
+/// If `res` is not `out`'s length.
+pub fn add_residual(out: &mut [f32], res: &[f32], act: Option<Activation>, threads: usize) {
+    assert_eq!(out.len(), res.len(), "conv: residual length");
+    const CHUNK: usize = 1 << 14;
+    if threads <= 1 || out.len() <= CHUNK {
+        add_residual_chunk(out, res, act);
+    } else {
+        out.par_chunks_mut(CHUNK).zip(res.par_chunks(CHUNK)).for_each(|(o, r)| add_residual_chunk(o, r, act));
+    }
 }
 
 /// One part's scratch; `rank` rows more of the tile (of the transformed block) for a

@@ -56,9 +56,15 @@ pub(super) struct Part<'a> {
     /// Planes of images `n0..`, channel-major within an image: `planes[(n − n0)·(c1 − c0)
     /// + c − c0]` holds rows `max(r0 − n·oh, 0)..min(r1 − n·oh, oh)` of that plane.
     planes: Vec<&'a mut [f32]>,
+    /// The conv's residual input (the whole output's shape), when it adds one as it
+    /// writes, and the output's geometry to find a plane's rows in it.
+    residual: Option<&'a [f32]>,
+    cout: usize,
+    oh: usize,
+    ow: usize,
 }
 
-impl Part<'_> {
+impl<'a> Part<'a> {
     /// The rows of image `n` this part owns, as `(first, end)` within the image.
     pub(super) fn rows_of(&self, n: usize, oh: usize) -> (usize, usize) {
         (self.r0.saturating_sub(n * oh).min(oh), self.r1.saturating_sub(n * oh).min(oh))
@@ -70,14 +76,28 @@ impl Part<'_> {
         self.planes[i]
     }
 
+    /// The residual's values at the pixels of [`Part::plane`]`(n, c)`, if the conv adds one.
+    pub(super) fn residual(&self, n: usize, c: usize) -> Option<&'a [f32]> {
+        let (lo, hi) = self.rows_of(n, self.oh);
+        let plane = self.oh * self.ow;
+        self.residual.map(|r| &r[(n * self.cout + c) * plane + lo * self.ow..][..(hi - lo) * self.ow])
+    }
+
     /// The channels of group `g` this part computes.
     pub(super) fn channels_of(&self, g: usize, cout_g: usize) -> std::ops::Range<usize> {
         self.c0.max(g * cout_g)..self.c1.min((g + 1) * cout_g)
     }
 }
 
-/// Splits the output `[n, cout, oh, ow]` into the parts [`split_shape`] asks for.
-pub(super) fn split<'a>(out: &'a mut [f32], s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> Vec<Part<'a>> {
+/// Splits the output `[n, cout, oh, ow]` into the parts [`split_shape`] asks for, each
+/// seeing the residual `res` (of the output's shape) at its own pixels.
+pub(super) fn split<'a>(
+    out: &'a mut [f32],
+    res: Option<&'a [f32]>,
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    threads: usize,
+) -> Vec<Part<'a>> {
     let (row_parts, chan_parts) = split_shape(s, algo, threads);
     let unit = row_unit(algo);
     let per_image = s.oh.div_ceil(unit);
@@ -98,7 +118,18 @@ pub(super) fn split<'a>(out: &'a mut [f32], s: &Conv2dShape, algo: ConvAlgo, thr
     let mut parts: Vec<Part<'a>> = Vec::new();
     for r in rows.windows(2) {
         for c in chans.windows(2) {
-            parts.push(Part { r0: r[0], r1: r[1], c0: c[0], c1: c[1], n0: r[0] / s.oh, planes: Vec::new() });
+            parts.push(Part {
+                r0: r[0],
+                r1: r[1],
+                c0: c[0],
+                c1: c[1],
+                n0: r[0] / s.oh,
+                planes: Vec::new(),
+                residual: res,
+                cout: s.cout,
+                oh: s.oh,
+                ow: s.ow,
+            });
         }
     }
     for (idx, plane) in out.chunks_mut(s.oh * s.ow).enumerate() {

@@ -523,3 +523,82 @@ fn narrow_groups() {
         check(&s, ConvAlgo::Im2col);
     }
 }
+
+/// `act(y + res)` element by element, `y` the conv's output before its activation.
+fn with_residual(y: &[f32], res: &[f32], act: Option<Activation>) -> Vec<f32> {
+    y.iter()
+        .zip(res)
+        .map(|(&y, &r)| {
+            let v = f64::from(y) + f64::from(r);
+            act.map_or(v, |a| a.reference(v)) as f32
+        })
+        .collect()
+}
+
+/// A residual input on every path: added as the rows are written (the GEMM paths, both
+/// Winograds, a split by channels, with a LoRA branch) and in a pass after (depthwise, the
+/// direct conv), before a ReLU, another activation or none, at 1 to 3 threads, against the
+/// references plus the sum.
+#[test]
+fn residual_on_every_path() {
+    let cases = [
+        (shape(2, 8, (9, 7), 16, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(1, 12, (11, 9), 16, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(2, 6, (13, 12), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(2, 6, (13, 12), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
+        (shape(2, 8, (10, 9), 8, (3, 3), (1, 1), (1, 1), (1, 1), 8), ConvAlgo::Depthwise),
+        // A stem: the direct conv.
+        (shape(2, 3, (12, 10), 8, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        // A small image and many channels: split by output channels at 2 and 3 threads.
+        (shape(1, 16, (4, 4), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+    ];
+    assert!(direct::applies(&cases[5].0), "the stem case takes the direct conv");
+    assert_eq!(split_shape(&cases[6].0, ConvAlgo::Im2col, 2), (1, 2), "the last case splits by channels");
+    for (s, algo) in &cases {
+        let (s, algo) = (s, *algo);
+        let x = data(s.n * s.cin * s.h * s.w, 21);
+        let fan_in = s.cin / s.groups * s.kh * s.kw;
+        let w: Vec<f32> = data(fan_in * s.cout, 22).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
+        let (scale, shift) = (data(s.cout, 23), data(s.cout, 24));
+        let res = data(s.n * s.cout * s.oh * s.ow, 25);
+        let mut packed = vec![0.0; packed_weight_len(s, algo)];
+        pack_weight(s, algo, &w, &mut packed);
+        for act in [None, Some(Activation::Relu), Some(Activation::Hardswish)] {
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+            let y = reference(s, &x, &w, &Epilogue { act: None, ..ep });
+            let want = with_residual(&y, &res, act);
+            for threads in [1, 2, 3] {
+                let mut out = vec![f32::NAN; want.len()];
+                let mut scratch = vec![f32::NAN; scratch_len(s, algo, threads)];
+                conv2d_fused(s, algo, &packed, None, None, &ep, &x, Some(&res), &mut out, &mut scratch, threads);
+                assert_close(&out, &want, 1e-4);
+            }
+        }
+    }
+    // With a LoRA branch, whose sum comes before the scale and the residual after it.
+    for algo in [ConvAlgo::Gemm1x1, ConvAlgo::Winograd4] {
+        let k = if algo == ConvAlgo::Gemm1x1 { 1 } else { 3 };
+        let s = shape(2, 9, (10, 11), 12, (k, k), (1, 1), (k / 2, k / 2), (1, 1), 1);
+        let (rank, fan_in) = (3, 9 * k * k);
+        let at_scale = |v: Vec<f32>| -> Vec<f32> { v.iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect() };
+        let (x, w, a) =
+            (data(s.n * s.cin * s.h * s.w, 31), at_scale(data(fan_in * 12, 32)), at_scale(data(fan_in * rank, 33)));
+        let b = data(12 * rank, 34);
+        let (scale, shift, res) = (data(12, 35), data(12, 36), data(s.n * 12 * s.oh * s.ow, 37));
+        let mut packed = vec![0.0; packed_weight_len(&s, algo)];
+        pack_weight(&s, algo, &w, &mut packed);
+        let sa = lora_a_shape(&s, rank);
+        let mut packed_a = vec![0.0; packed_weight_len(&sa, algo)];
+        pack_weight(&sa, algo, &a, &mut packed_a);
+        let lora = Lora { a: &packed_a, b: &b, rank };
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
+        let y = reference_lora(&s, &x, &w, &a, &b, rank, &Epilogue { act: None, ..ep });
+        let want = with_residual(&y, &res, ep.act);
+        for threads in [1, 2] {
+            let mut out = vec![f32::NAN; want.len()];
+            let mut scratch = vec![f32::NAN; lora_scratch_len(&s, algo, rank, threads)];
+            conv2d_fused(&s, algo, &packed, Some(&lora), None, &ep, &x, Some(&res), &mut out, &mut scratch, threads);
+            assert_close(&out, &want, 1e-4);
+        }
+    }
+}

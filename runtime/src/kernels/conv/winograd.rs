@@ -695,6 +695,7 @@ fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
     for (k, gu) in (b0..b0 + tb / tx).enumerate() {
         let (n, ty) = (gu / ty_n, gu % ty_n);
         let (lo, _) = part.rows_of(n, s.oh);
+        let res = part.residual(n, c);
         let plane = part.plane(n, c);
         for r in 0..M {
             let oy = ty * M + r;
@@ -702,7 +703,8 @@ fn output_block<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 break;
             }
             interleave::<M>(&ybuf[r * M * ts + k * tx..], ts, row);
-            finish(&mut plane[(oy - lo) * s.ow..][..s.ow], &row[..s.ow], c, ep);
+            let at = (oy - lo) * s.ow;
+            finish(&mut plane[at..][..s.ow], &row[..s.ow], c, ep, res.map(|r| &r[at..]));
         }
     }
 }
