@@ -105,11 +105,13 @@ pub(super) fn planes_scratch_len(s: &Conv2dShape, mid: usize, threads: usize) ->
 /// shifted), in place, then the step's activation `act`; `h` holds at least `mid · tp`
 /// floats.
 pub(super) fn apply_tile(ad: &Adapter, y: &mut [f32], cout: usize, tp: usize, h: &mut [f32], act: Option<Activation>) {
-    apply_strided(ad, y, cout, tp, tp, h, act);
+    apply_strided(ad, y, cout, tp, tp, h, act, None);
 }
 
 /// [`apply_tile`] on `cout` rows of `tp` pixels `stride` apart (a chunk of an image's
-/// channel planes, read and written where they are).
+/// channel planes, read and written where they are), adding the residual `res` (laid out
+/// as `y`) before the activation.
+#[allow(clippy::too_many_arguments)]
 fn apply_strided(
     ad: &Adapter,
     y: &mut [f32],
@@ -118,10 +120,11 @@ fn apply_strided(
     stride: usize,
     h: &mut [f32],
     act: Option<Activation>,
+    res: Option<&[f32]>,
 ) {
     let h = &mut h[..ad.mid * tp];
     down(ad, y, cout, tp, stride, h);
-    up(ad, h, y, 0..cout, tp, stride, act);
+    up(ad, h, y, 0..cout, tp, stride, act, res);
 }
 
 /// `h = act(down · y + down_bias)` for `cout` rows of `tp` pixels of `y`, `stride` apart.
@@ -148,8 +151,9 @@ fn down_rows(
     elementwise::activation_chunk(ad.act, h);
 }
 
-/// `y[c] += up[c] · h + up_bias[c]`, then `act`, for the channels `chans` of `y` (its
-/// rows `0..chans.len()`, `tp` pixels, `stride` apart).
+/// `y[c] += up[c] · h + up_bias[c] (+ res[c])`, then `act`, for the channels `chans` of `y`
+/// (its rows `0..chans.len()`, `tp` pixels, `stride` apart; `res` laid out as `y`).
+#[allow(clippy::too_many_arguments)]
 fn up(
     ad: &Adapter,
     h: &[f32],
@@ -158,13 +162,17 @@ fn up(
     tp: usize,
     stride: usize,
     act: Option<Activation>,
+    res: Option<&[f32]>,
 ) {
     let (mid, rows) = (ad.mid, chans.len());
     let w = MatRef::row_major(&ad.up[chans.start * mid..][..rows * mid], rows, mid);
     let dst = MatMut { data: &mut *y, rows, cols: tp, row_stride: stride, col_stride: 1 };
     sgemm(w, MatRef::row_major(&h[..mid * tp], mid, tp), dst, true, 1);
     let relu = act == Some(Activation::Relu);
-    bias_rows(y, &ad.up_bias[chans], tp, stride, relu);
+    match res {
+        Some(r) => residual_rows(y, &ad.up_bias[chans], r, tp, stride, relu),
+        None => bias_rows(y, &ad.up_bias[chans], tp, stride, relu),
+    }
     if let Some(f) = act.filter(|_| !relu) {
         for row in y.chunks_mut(stride).take(rows) {
             elementwise::activation_chunk(f, &mut row[..tp]);
@@ -187,19 +195,36 @@ simd_fn! {
     }
 }
 
+simd_fn! {
+    /// [`bias_rows`] plus the residual's rows (laid out as `rows`) before the ReLU.
+    fn residual_rows(rows: &mut [f32], bias: &[f32], res: &[f32], tp: usize, stride: usize, relu: bool) {
+        for ((row, r), &b) in rows.chunks_mut(stride).zip(res.chunks(stride)).zip(bias) {
+            let it = row[..tp].iter_mut().zip(&r[..tp]);
+            if relu {
+                it.for_each(|(v, &r)| *v = (*v + b + r).max(0.0));
+            } else {
+                it.for_each(|(v, &r)| *v += b + r);
+            }
+        }
+    }
+}
+
 /// The adapter on a conv's whole output `[n, cout, oh, ow]` (scaled and shifted), in
-/// place, then the step's activation `act`, per chunk of [`chunk`] pixels of one image,
+/// place, plus the residual `res` (of the output's shape) if given, then the step's
+/// activation `act`, per chunk of [`chunk`] pixels of one image,
 /// read and written where it is (two GEMMs on the planes, rows a plane apart; nothing
 /// copied, nothing allocated). On one thread chunk by chunk; on more, per image and per
 /// round of chunks whose bottleneck rows fit `scratch` (at least [`planes_scratch_len`]
 /// floats): every chunk's `down` (the threads sharing the chunks, reading the planes, or,
 /// when the image is one chunk, sharing the bottleneck rows), then `up` (the threads
 /// sharing the channels, each writing its own planes).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn apply_planes(
     s: &Conv2dShape,
     ad: &Adapter,
     out: &mut [f32],
     act: Option<Activation>,
+    res: Option<&[f32]>,
     scratch: &mut [f32],
     threads: usize,
 ) {
@@ -212,10 +237,11 @@ pub(super) fn apply_planes(
     let chunk_px = |j: usize| (j * p, p.min(plane - j * p));
     if workers <= 1 {
         let h = &mut scratch[..mid * p];
-        for image in out.chunks_mut(cout * plane) {
+        for (i, image) in out.chunks_mut(cout * plane).enumerate() {
+            let r = res.map(|r| &r[i * cout * plane..]);
             for j in 0..per_image {
                 let (p0, tp) = chunk_px(j);
-                apply_strided(ad, &mut image[p0..], cout, tp, plane, h, act);
+                apply_strided(ad, &mut image[p0..], cout, tp, plane, h, act, r.map(|r| &r[p0..]));
             }
         }
         return;
@@ -227,7 +253,8 @@ pub(super) fn apply_planes(
         // rows, so each thread reads only its rows of the weight and works on the whole
         // plane (chunks of 25 and 24 pixels would be GEMMs of awkward widths).
         let mid_per = mid.div_ceil(threads.max(1)).next_multiple_of(8).min(mid);
-        for image in out.chunks_mut(cout * plane) {
+        for (i, image) in out.chunks_mut(cout * plane).enumerate() {
+            let r = res.map(|r| &r[i * cout * plane..]);
             let h = &mut scratch[..mid * plane];
             let y: &[f32] = image;
             h.par_chunks_mut(mid_per * plane).enumerate().for_each(|(w, h)| {
@@ -237,7 +264,8 @@ pub(super) fn apply_planes(
             let h: &[f32] = h;
             image.par_chunks_mut(per_worker * plane).enumerate().for_each(|(w, planes)| {
                 let c0 = w * per_worker;
-                up(ad, h, planes, c0..(c0 + per_worker).min(cout), plane, plane, act);
+                let r = r.map(|r| &r[c0 * plane..]);
+                up(ad, h, planes, c0..(c0 + per_worker).min(cout), plane, plane, act, r);
             });
         }
         return;
@@ -245,7 +273,8 @@ pub(super) fn apply_planes(
     // Chunks per round: as many bottleneck chunks as the scratch holds, at least one per
     // worker (the scratch holds `workers · (cout + mid)` chunks' worth).
     let round = (scratch.len() / (mid * p)).clamp(1, per_image);
-    for image in out.chunks_mut(cout * plane) {
+    for (i, image) in out.chunks_mut(cout * plane).enumerate() {
+        let r = res.map(|r| &r[i * cout * plane..]);
         for j0 in (0..per_image).step_by(round) {
             let js = j0..(j0 + round).min(per_image);
             let hs = &mut scratch[..js.len() * mid * p];
@@ -260,7 +289,8 @@ pub(super) fn apply_planes(
                 let chans = c0..(c0 + per_worker).min(cout);
                 for (h, j) in hs.chunks(mid * p).zip(js.clone()) {
                     let (p0, tp) = chunk_px(j);
-                    up(ad, h, &mut planes[p0..], chans.clone(), tp, plane, act);
+                    let r = r.map(|r| &r[c0 * plane + p0..]);
+                    up(ad, h, &mut planes[p0..], chans.clone(), tp, plane, act, r);
                 }
             });
         }
@@ -465,7 +495,7 @@ mod tests {
         let run = |threads: usize| {
             let mut out = y.clone();
             let mut scratch = vec![f32::NAN; planes_scratch_len(&s, 16, threads)];
-            apply_planes(&s, &ad, &mut out, Some(Activation::Relu), &mut scratch, threads);
+            apply_planes(&s, &ad, &mut out, Some(Activation::Relu), None, &mut scratch, threads);
             out
         };
         let one = run(1);
@@ -506,15 +536,19 @@ mod tests {
     }
 
     /// A residual with an adapter is added after the adapter, then the activation: in the
-    /// tiles (1x1) and after the conv (Winograd), against the reference plus the sum.
+    /// tiles (1x1, then a pass after), and after the conv (Winograd) in the adapter's last
+    /// pass over small images (one of them split by channels) and over an image of several
+    /// chunks, against the reference plus the sum.
     #[test]
     fn a_residual_comes_after_the_adapter() {
         use super::super::conv2d_fused;
-        for (s, algo) in [
-            (shape(2, 8, (9, 7), 16, 1, 1, 1), ConvAlgo::Gemm1x1),
-            (shape(2, 6, (13, 12), 8, 3, 1, 1), ConvAlgo::Winograd2),
+        for (s, algo, mid) in [
+            (shape(2, 8, (9, 7), 16, 1, 1, 1), ConvAlgo::Gemm1x1, 4),
+            (shape(2, 6, (13, 12), 8, 3, 1, 1), ConvAlgo::Winograd2, 4),
+            (shape(2, 8, (7, 7), 40, 3, 1, 1), ConvAlgo::Winograd2, 20),
+            (shape(1, 4, (60, 60), 16, 3, 1, 1), ConvAlgo::Winograd2, 16),
         ] {
-            let (mid, fan_in) = (4, s.cin * s.kh * s.kw);
+            let fan_in = s.cin * s.kh * s.kw;
             let x = data(s.n * s.cin * s.h * s.w, 41);
             let w: Vec<f32> = data(fan_in * s.cout, 42).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
             let (scale, shift) = (data(s.cout, 43), data(s.cout, 44));
@@ -534,6 +568,9 @@ mod tests {
                     .collect();
                 let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
                 for threads in [1, 2, 3] {
+                    if mid == 16 && threads > 1 {
+                        assert!(chunks(&s, mid, threads).1 > 1, "several chunks an image");
+                    }
                     let mut scratch = vec![f32::NAN; adapter_scratch_len(&s, algo, 0, mid, threads).expect("a size")];
                     let mut out = vec![f32::NAN; want.len()];
                     conv2d_fused(

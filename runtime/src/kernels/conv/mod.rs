@@ -356,8 +356,9 @@ pub fn conv2d_adapter(
 /// [`conv2d_adapter`] with a residual input `res` of the output's shape added after the
 /// scale and shift (and the adapter), before the activation: `out = act(z + res)`, a
 /// ResNet block's `relu(bn(conv(x)) + identity)` in the conv's own epilogue. The GEMM and
-/// Winograd paths add it as they write each output row; the depthwise loop, the direct
-/// conv and a layer with an adapter add it in one pass after.
+/// Winograd paths add it as they write each output row, an adapter after the conv in its
+/// own last pass; the depthwise loop, the direct conv and an adapter in the GEMM tiles add
+/// it in one pass after.
 ///
 /// # Panics
 /// As [`conv2d_adapter`], and if `res` is not the output's length.
@@ -424,7 +425,9 @@ pub fn conv2d_fused(
     let after = adapter.filter(|_| in_tile.is_none());
     let direct = algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && direct::applies(s);
     let res_in_rows = res.filter(|_| adapter.is_none() && algo != ConvAlgo::Depthwise && !direct);
-    let res_after = res.filter(|_| res_in_rows.is_none());
+    // An adapter after the conv adds the residual in its own last pass.
+    let res_in_adapter = res.filter(|_| after.is_some());
+    let res_after = res.filter(|_| res_in_rows.is_none() && res_in_adapter.is_none());
     let conv_ep = Epilogue { act: ep.act.filter(|_| after.is_none() && res_after.is_none()), ..*ep };
     if algo == ConvAlgo::Depthwise {
         depthwise(s, packed_weight, &conv_ep, x, out, threads);
@@ -452,7 +455,7 @@ pub fn conv2d_fused(
         }
     }
     if let Some(a) = after {
-        adapter::apply_planes(s, a, out, ep.act.filter(|_| res_after.is_none()), scratch, threads);
+        adapter::apply_planes(s, a, out, ep.act.filter(|_| res_after.is_none()), res_in_adapter, scratch, threads);
     }
     if let Some(r) = res_after {
         add_residual(out, r, ep.act, threads);
@@ -479,7 +482,7 @@ pub fn adapter_after(
     }
     assert_eq!(out.len(), s.n * s.cout * s.oh * s.ow, "conv: output length");
     assert!(scratch.len() >= adapter::planes_scratch_len(s, ad.mid, threads), "conv: adapter scratch");
-    adapter::apply_planes(s, ad, out, act, scratch, threads);
+    adapter::apply_planes(s, ad, out, act, None, scratch, threads);
 }
 
 #[track_caller]
