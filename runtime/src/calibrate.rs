@@ -354,7 +354,7 @@ fn execute(
                                 crate::kernels::conv::adapter_after(s, &ad, out, act, &mut scratch, threads);
                             }
                             if let Some(r) = res {
-                                crate::kernels::conv::add_residual(out, r, layer.act, threads);
+                                crate::kernels::elementwise::add_in_place(out, r, layer.act);
                             }
                         })
                     }),

@@ -139,6 +139,28 @@ pub fn activation_chunk(act: Activation, x: &mut [f32]) {
     map_chunk_in_place(act, x)
 }
 
+/// `out = act(out + r)`, element-wise: a residual added after the kernel that wrote `out`
+/// (a conv step whose path does not add it as it writes, see `conv::conv2d_fused`), then
+/// the step's activation.
+pub fn add_in_place(out: &mut [f32], r: &[f32], act: Option<Activation>) {
+    assert_eq!(out.len(), r.len(), "add: out and r differ in length");
+    par_ranges(out, |start, o| add_chunk_in_place(o, &r[start..start + o.len()], act));
+}
+
+simd_fn! {
+    /// [`add_in_place`] on one chunk, the ReLU in the sum's loop.
+    fn add_chunk_in_place(out: &mut [f32], r: &[f32], act: Option<Activation>) {
+        if act == Some(Activation::Relu) {
+            out.iter_mut().zip(r).for_each(|(o, &r)| *o = (*o + r).max(0.0));
+        } else {
+            out.iter_mut().zip(r).for_each(|(o, &r)| *o += r);
+            if let Some(f) = act {
+                map_chunk_in_place(f, out);
+            }
+        }
+    }
+}
+
 /// Expands `$body` once per activation, with `$f` bound to its function item (a direct
 /// call, inlined), so each loop is compiled on its own.
 macro_rules! per_act {

@@ -146,7 +146,7 @@ fn down_rows(
     let y = MatRef { data: y, rows: cout, cols: tp, row_stride: stride, col_stride: 1 };
     let w = MatRef::row_major(&ad.down[rows.start * cout..][..m * cout], m, cout);
     sgemm(w, y, MatMut::row_major(h, m, tp), false, 1);
-    bias_rows(h, &ad.down_bias[rows], tp, tp, false);
+    bias_rows(h, &ad.down_bias[rows], None, tp, tp, false);
     // A tile is one thread's work: its activations on this thread.
     elementwise::activation_chunk(ad.act, h);
 }
@@ -169,10 +169,7 @@ fn up(
     let dst = MatMut { data: &mut *y, rows, cols: tp, row_stride: stride, col_stride: 1 };
     sgemm(w, MatRef::row_major(&h[..mid * tp], mid, tp), dst, true, 1);
     let relu = act == Some(Activation::Relu);
-    match res {
-        Some(r) => residual_rows(y, &ad.up_bias[chans], r, tp, stride, relu),
-        None => bias_rows(y, &ad.up_bias[chans], tp, stride, relu),
-    }
+    bias_rows(y, &ad.up_bias[chans], res, tp, stride, relu);
     if let Some(f) = act.filter(|_| !relu) {
         for row in y.chunks_mut(stride).take(rows) {
             elementwise::activation_chunk(f, &mut row[..tp]);
@@ -181,29 +178,16 @@ fn up(
 }
 
 simd_fn! {
-    /// The first `tp` values of row `c` of `rows` (rows `stride` apart) plus `bias[c]`,
-    /// then the ReLU if `relu`.
-    fn bias_rows(rows: &mut [f32], bias: &[f32], tp: usize, stride: usize, relu: bool) {
-        for (row, &b) in rows.chunks_mut(stride).zip(bias) {
+    /// The first `tp` values of row `c` of `rows` (rows `stride` apart) plus `bias[c]` and,
+    /// if given, the same values of `res` (laid out as `rows`), then the ReLU if `relu`.
+    fn bias_rows(rows: &mut [f32], bias: &[f32], res: Option<&[f32]>, tp: usize, stride: usize, relu: bool) {
+        for (c, (row, &b)) in rows.chunks_mut(stride).zip(bias).enumerate() {
             let row = &mut row[..tp];
-            if relu {
-                row.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
-            } else {
-                row.iter_mut().for_each(|v| *v += b);
-            }
-        }
-    }
-}
-
-simd_fn! {
-    /// [`bias_rows`] plus the residual's rows (laid out as `rows`) before the ReLU.
-    fn residual_rows(rows: &mut [f32], bias: &[f32], res: &[f32], tp: usize, stride: usize, relu: bool) {
-        for ((row, r), &b) in rows.chunks_mut(stride).zip(res.chunks(stride)).zip(bias) {
-            let it = row[..tp].iter_mut().zip(&r[..tp]);
-            if relu {
-                it.for_each(|(v, &r)| *v = (*v + b + r).max(0.0));
-            } else {
-                it.for_each(|(v, &r)| *v += b + r);
+            match res.map(|r| &r[c * stride..][..tp]) {
+                Some(r) if relu => row.iter_mut().zip(r).for_each(|(v, &r)| *v = (*v + b + r).max(0.0)),
+                Some(r) => row.iter_mut().zip(r).for_each(|(v, &r)| *v += b + r),
+                None if relu => row.iter_mut().for_each(|v| *v = (*v + b).max(0.0)),
+                None => row.iter_mut().for_each(|v| *v += b),
             }
         }
     }
@@ -234,13 +218,14 @@ pub(super) fn apply_planes(
     }
     let (p, per_image) = chunks(s, mid, threads);
     let workers = threads.max(1).min(s.n * per_image);
-    let chunk_px = |j: usize| (j * p, p.min(plane - j * p));
+    // Chunk `j` of `p` pixels: its first pixel and its width.
+    let chunk_px = |p: usize, j: usize| (j * p, p.min(plane - j * p));
     if workers <= 1 {
         let h = &mut scratch[..mid * p];
         for (i, image) in out.chunks_mut(cout * plane).enumerate() {
             let r = res.map(|r| &r[i * cout * plane..]);
             for j in 0..per_image {
-                let (p0, tp) = chunk_px(j);
+                let (p0, tp) = chunk_px(p, j);
                 apply_strided(ad, &mut image[p0..], cout, tp, plane, h, act, r.map(|r| &r[p0..]));
             }
         }
@@ -248,28 +233,13 @@ pub(super) fn apply_planes(
     }
     // Channels per worker in `up`, in whole vectors of 8 rows of the weight.
     let per_worker = cout.div_ceil(workers).next_multiple_of(8).min(cout);
-    if plane <= chunk(cout, mid, plane) {
-        // A small image (a last stage's 7x7) in one chunk: `down` shared by bottleneck
-        // rows, so each thread reads only its rows of the weight and works on the whole
-        // plane (chunks of 25 and 24 pixels would be GEMMs of awkward widths).
-        let mid_per = mid.div_ceil(threads.max(1)).next_multiple_of(8).min(mid);
-        for (i, image) in out.chunks_mut(cout * plane).enumerate() {
-            let r = res.map(|r| &r[i * cout * plane..]);
-            let h = &mut scratch[..mid * plane];
-            let y: &[f32] = image;
-            h.par_chunks_mut(mid_per * plane).enumerate().for_each(|(w, h)| {
-                let rows = w * mid_per..(w * mid_per + mid_per).min(mid);
-                down_rows(ad, rows, y, cout, plane, plane, h);
-            });
-            let h: &[f32] = h;
-            image.par_chunks_mut(per_worker * plane).enumerate().for_each(|(w, planes)| {
-                let c0 = w * per_worker;
-                let r = r.map(|r| &r[c0 * plane..]);
-                up(ad, h, planes, c0..(c0 + per_worker).min(cout), plane, plane, act, r);
-            });
-        }
-        return;
-    }
+    // A small image (a last stage's 7x7) that fits one chunk stays one: its `down` is
+    // shared by bottleneck rows, so each thread reads only its rows of the weight and
+    // works on the whole plane (chunks of 25 and 24 pixels would be GEMMs of awkward
+    // widths). Larger images: `down` shared by chunks.
+    let by_rows = plane <= chunk(cout, mid, plane);
+    let (p, per_image) = if by_rows { (plane, 1) } else { (p, per_image) };
+    let mid_per = mid.div_ceil(workers).next_multiple_of(8).min(mid);
     // Chunks per round: as many bottleneck chunks as the scratch holds, at least one per
     // worker (the scratch holds `workers · (cout + mid)` chunks' worth).
     let round = (scratch.len() / (mid * p)).clamp(1, per_image);
@@ -279,16 +249,23 @@ pub(super) fn apply_planes(
             let js = j0..(j0 + round).min(per_image);
             let hs = &mut scratch[..js.len() * mid * p];
             let y: &[f32] = image;
-            hs.par_chunks_mut(mid * p).zip(js.clone()).for_each(|(h, j)| {
-                let (p0, tp) = chunk_px(j);
-                down(ad, &y[p0..], cout, tp, plane, h);
-            });
+            if by_rows {
+                hs.par_chunks_mut(mid_per * p).enumerate().for_each(|(w, h)| {
+                    let rows = w * mid_per..(w * mid_per + mid_per).min(mid);
+                    down_rows(ad, rows, y, cout, p, plane, h);
+                });
+            } else {
+                hs.par_chunks_mut(mid * p).zip(js.clone()).for_each(|(h, j)| {
+                    let (p0, tp) = chunk_px(p, j);
+                    down(ad, &y[p0..], cout, tp, plane, h);
+                });
+            }
             let hs: &[f32] = hs;
             image.par_chunks_mut(per_worker * plane).enumerate().for_each(|(w, planes)| {
                 let c0 = w * per_worker;
                 let chans = c0..(c0 + per_worker).min(cout);
                 for (h, j) in hs.chunks(mid * p).zip(js.clone()) {
-                    let (p0, tp) = chunk_px(j);
+                    let (p0, tp) = chunk_px(p, j);
                     let r = r.map(|r| &r[c0 * plane + p0..]);
                     up(ad, h, &mut planes[p0..], chans.clone(), tp, plane, act, r);
                 }

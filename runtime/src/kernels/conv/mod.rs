@@ -458,7 +458,7 @@ pub fn conv2d_fused(
         adapter::apply_planes(s, a, out, ep.act.filter(|_| res_after.is_none()), res_in_adapter, scratch, threads);
     }
     if let Some(r) = res_after {
-        add_residual(out, r, ep.act, threads);
+        crate::kernels::elementwise::add_in_place(out, r, ep.act);
     }
 }
 
@@ -565,37 +565,6 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
         }
     }
     ep.finish_act(dst);
-}
-
-simd_fn! {
-    /// `out = act(out + res)` over one chunk: a residual added after a path that does not
-    /// fuse it (depthwise, the direct conv, an adapter), then the step's activation.
-    fn add_residual_chunk(out: &mut [f32], res: &[f32], act: Option<Activation>) {
-        if act == Some(Activation::Relu) {
-            out.iter_mut().zip(res).for_each(|(o, &r)| *o = (*o + r).max(0.0));
-        } else {
-            out.iter_mut().zip(res).for_each(|(o, &r)| *o += r);
-            if let Some(f) = act {
-                crate::kernels::elementwise::activation_chunk(f, out);
-            }
-        }
-    }
-}
-
-/// [`add_residual_chunk`] over a whole output, in parallel chunks: what a conv step with a
-/// residual does after its conv when the residual is not added as it writes (and what
-/// calibration does after re-normalising such a step's output).
-///
-/// # Panics
-/// If `res` is not `out`'s length.
-pub fn add_residual(out: &mut [f32], res: &[f32], act: Option<Activation>, threads: usize) {
-    assert_eq!(out.len(), res.len(), "conv: residual length");
-    const CHUNK: usize = 1 << 14;
-    if threads <= 1 || out.len() <= CHUNK {
-        add_residual_chunk(out, res, act);
-    } else {
-        out.par_chunks_mut(CHUNK).zip(res.par_chunks(CHUNK)).for_each(|(o, r)| add_residual_chunk(o, r, act));
-    }
 }
 
 /// One part's scratch; `rank` rows more of the tile (of the transformed block) for a

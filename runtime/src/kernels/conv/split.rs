@@ -56,12 +56,9 @@ pub(super) struct Part<'a> {
     /// Planes of images `n0..`, channel-major within an image: `planes[(n − n0)·(c1 − c0)
     /// + c − c0]` holds rows `max(r0 − n·oh, 0)..min(r1 − n·oh, oh)` of that plane.
     planes: Vec<&'a mut [f32]>,
-    /// The conv's residual input (the whole output's shape), when it adds one as it
-    /// writes, and the output's geometry to find a plane's rows in it.
-    residual: Option<&'a [f32]>,
-    cout: usize,
-    oh: usize,
-    ow: usize,
+    /// The same rows of the conv's residual input, one slice per entry of `planes`, when
+    /// it adds one as it writes; empty otherwise.
+    residuals: Vec<&'a [f32]>,
 }
 
 impl<'a> Part<'a> {
@@ -78,9 +75,7 @@ impl<'a> Part<'a> {
 
     /// The residual's values at the pixels of [`Part::plane`]`(n, c)`, if the conv adds one.
     pub(super) fn residual(&self, n: usize, c: usize) -> Option<&'a [f32]> {
-        let (lo, hi) = self.rows_of(n, self.oh);
-        let plane = self.oh * self.ow;
-        self.residual.map(|r| &r[(n * self.cout + c) * plane + lo * self.ow..][..(hi - lo) * self.ow])
+        self.residuals.get((n - self.n0) * (self.c1 - self.c0) + c - self.c0).copied()
     }
 
     /// The channels of group `g` this part computes.
@@ -125,21 +120,21 @@ pub(super) fn split<'a>(
                 c1: c[1],
                 n0: r[0] / s.oh,
                 planes: Vec::new(),
-                residual: res,
-                cout: s.cout,
-                oh: s.oh,
-                ow: s.ow,
+                residuals: Vec::new(),
             });
         }
     }
-    for (idx, plane) in out.chunks_mut(s.oh * s.ow).enumerate() {
+    let plane_len = s.oh * s.ow;
+    for (idx, plane) in out.chunks_mut(plane_len).enumerate() {
         let (n, c) = (idx / s.cout, idx % s.cout);
         let mut rest = plane;
+        let res_plane = res.map(|r| &r[idx * plane_len..][..plane_len]);
         for part in parts.iter_mut().filter(|p| (p.c0..p.c1).contains(&c)) {
             let (lo, hi) = part.rows_of(n, s.oh);
             if lo < hi {
                 let (mine, tail) = std::mem::take(&mut rest).split_at_mut((hi - lo) * s.ow);
                 part.planes.push(mine);
+                part.residuals.extend(res_plane.map(|r| &r[lo * s.ow..hi * s.ow]));
                 rest = tail;
             }
         }
