@@ -616,14 +616,6 @@ impl Kernel {
         }
     }
 
-    /// Tensor inputs the step reads: a conv with a residual reads two.
-    pub fn arity(&self) -> Option<usize> {
-        match self {
-            Kernel::Conv2d { residual: true, .. } => Some(2),
-            k => k.op().arity(),
-        }
-    }
-
     /// The conv kernel's fused adapter, if it has one.
     pub fn adapter(&self) -> Option<&AdapterSpec> {
         match self {

@@ -170,23 +170,11 @@ fn schedule(m: &Manifest) -> Result<(), String> {
         let inputs: Vec<TensorType> = step.inputs.iter().map(|&i| TensorType::f32(m.values[i].shape.clone())).collect();
         let refs: Vec<&TensorType> = inputs.iter().collect();
         let out = &m.values[step.output].shape;
-        // A conv's residual input is added to its output: the operator sees the first.
-        let residual = matches!(step.kernel, Kernel::Conv2d { residual: true, .. });
-        if residual {
-            match refs.get(1) {
-                Some(r) if refs.len() == 2 && &r.shape == out => {}
-                Some(r) if refs.len() == 2 => {
-                    return Err(format!(
-                        "{at}: its residual input has shape {}, not its output's {}",
-                        crate::show_shape(&r.shape),
-                        crate::show_shape(out)
-                    ));
-                }
-                _ => return Err(format!("{at}: a conv with a residual takes 2 inputs, got {}", refs.len())),
-            }
+        let want = match &step.kernel {
+            Kernel::Conv2d { conv, residual: true, .. } => conv.infer_with_residual(&refs),
+            k => ops::infer(k.op(), &refs),
         }
-        let operands = if residual { &refs[..1] } else { &refs[..] };
-        let want = ops::infer(step.kernel.op(), operands).map_err(|e| format!("{at}: {e}"))?;
+        .map_err(|e| format!("{at}: {e}"))?;
         if &want.shape != out {
             return Err(format!(
                 "{at}: its output has shape {}, but {} of its inputs gives {}",

@@ -129,11 +129,7 @@ impl Operator for ConvOp {
     }
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
         if self.residual {
-            let out = self.conv.infer(&inputs[..1])?;
-            if inputs[1].shape != out.shape {
-                return Err(ShapeError::new(format!("a conv's residual {} is not its output {out}", inputs[1])));
-            }
-            return Ok(out);
+            return self.conv.infer_with_residual(inputs);
         }
         if !self.one_d {
             return self.conv.infer(inputs);

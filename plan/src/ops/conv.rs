@@ -24,6 +24,24 @@ impl Conv2d {
 }
 
 impl Conv2d {
+    /// The output of the conv adding a residual (`Kernel::Conv2d { residual }`, the
+    /// compiler's `fuse_residual`): `inputs` are its input and the residual, which must
+    /// have the output's shape.
+    pub fn infer_with_residual(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
+        let [x, r] = inputs else {
+            return Err(ShapeError::new(format!("a conv with a residual takes 2 inputs, got {}", inputs.len())));
+        };
+        let out = super::infer(self, &[x])?;
+        if r.shape != out.shape {
+            return Err(ShapeError::new(format!(
+                "its residual input has shape {}, not its output's {}",
+                crate::show_shape(&r.shape),
+                crate::show_shape(&out.shape)
+            )));
+        }
+        Ok(out)
+    }
+
     /// The kernel's view of the layer at an input of `n x in x h x w`: the one place a
     /// [`Conv2dShape`] is built (the compiler packs weights at `n = 1`, the runtime binds
     /// at the batch size). A window that does not fit gives an output size of 0, which
