@@ -126,6 +126,29 @@ impl Epilogue<'_> {
         self.act == Some(Activation::Relu)
     }
 
+    /// The bounds of the activation when it is a clamp (ReLU, ReLU6, clamp), which the
+    /// register-blocked conv paths apply to their vectors as they store them.
+    #[inline(always)]
+    pub fn clamp(&self) -> Option<(f32, f32)> {
+        match self.act? {
+            Activation::Relu => Some((0.0, f32::INFINITY)),
+            Activation::Relu6 => Some((0.0, 6.0)),
+            Activation::Clamp { min, max } => Some((min.unwrap_or(f32::NEG_INFINITY), max.unwrap_or(f32::INFINITY))),
+            _ => None,
+        }
+    }
+
+    /// Applies the activation unless it is a clamp (see [`Epilogue::clamp`]) to `out`, a
+    /// block a register path stored.
+    #[inline]
+    pub fn finish_unclamped(&self, out: &mut [f32]) {
+        if let Some(act) = self.act
+            && self.clamp().is_none()
+        {
+            elementwise::activation_chunk(act, out);
+        }
+    }
+
     /// Applies the activation other than a ReLU (see [`Epilogue::relu`]) to `out`, the
     /// finished affine of a block, on the calling thread.
     #[inline]

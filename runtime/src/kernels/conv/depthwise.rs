@@ -1,12 +1,12 @@
 //! [`ConvAlgo::Depthwise`](super::ConvAlgo::Depthwise), one input channel per group: a
 //! direct loop per output plane with the epilogue, parallel over groups of planes; no
 //! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
-//! 5x5 and 7x7 kernels at stride 1 (MobileNet's, EfficientNet's, ConvNeXt's) run in SIMD
-//! registers (`Registers`); the rest through the loops of `depthwise_acc`.
+//! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
+//! in SIMD registers (`Registers`); the rest through the loops of `depthwise_acc`.
 
 use rayon::prelude::*;
 
-use super::{Conv2dShape, pad_interior, store_vector, vector_starts};
+use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
 
 /// Direct conv for one input channel per group, parallel over groups of output planes.
@@ -45,15 +45,23 @@ fn plane_operands<'a>(s: &Conv2dShape, w: &'a [f32], x: &'a [f32], idx: usize) -
     (&x[(n * s.cin + g) * s.h * s.w..][..s.h * s.w], &w[c * s.kh * s.kw..][..s.kh * s.kw], c)
 }
 
-/// The depthwise conv of a group of planes at stride 1, no dilation, square kernels of 3,
-/// 5 or 7, on a zero-padded copy of each input plane: [`ROWS`] output rows at a time in
-/// SIMD vectors (the last vector of a row overlapping the one before it; a row narrower
-/// than a vector read a whole vector wide and stored through the stack), every input row
-/// of the block loaded once per kernel column and multiplied into each output row it
-/// reaches (fused multiply-adds, the taps known at compile time), the sums kept in
-/// registers, the epilogue's scale, shift and ReLU applied as they are stored.
+/// The depthwise conv of a group of planes at stride 1 or 2, no dilation, square kernels
+/// of 3, 5 or 7, on a zero-padded copy of each input plane (at stride 2 split into its
+/// even and odd columns, so that a row's taps are contiguous loads): [`ROWS`] output rows
+/// at a time in SIMD vectors (the last vector of a row overlapping the one before it),
+/// every input row of the block loaded once per kernel column and multiplied into each
+/// output row it reaches (fused multiply-adds, the taps known at compile time), the sums
+/// kept in registers, the epilogue's scale, shift and clamp (ReLU, ReLU6) applied as they
+/// are stored.
 ///
-/// What it replaced (still the path for strides other than 1, dilation and other kernels:
+/// A row narrower than a vector (7x7 and 14x14 planes) is stored a whole vector wide
+/// while the plane has room past it (the rows stored after it overwrite the extra
+/// lanes), through the stack only for its last rows. With that and ReLU6 applied in the
+/// store instead of a pass over each plane, MobileNetV2's 14x14 and 7x7 layers took
+/// 0.66-0.76x as long on one thread; at stride 2, its 28 to 14 and 14 to 7 layers 0.8x,
+/// EfficientNet-B0's 5x5 ones 0.4-0.5x (they were in the loops).
+///
+/// What it replaced (still the path for other strides, dilation and other kernels:
 /// [`depthwise_loops`]) kept one output row per tap in a lane array and reloaded the input
 /// row for every output row it reaches, and set each plane up on its own: on one thread
 /// MobileNetV2's 144-channel 56x56 layer went from 822 to 271 us, ConvNeXt-T's 96-channel
@@ -69,11 +77,21 @@ struct Registers<'a> {
 }
 
 impl Registers<'_> {
-    /// Square 3x3, 5x5 or 7x7 kernels at stride 1, no dilation, a padded plane that fits
-    /// [`MAX_PADDED`].
+    /// Square 3x3, 5x5 or 7x7 kernels at stride 1 or 2, no dilation, a padded plane that
+    /// fits [`MAX_PADDED`]. At stride 2 a 3x3 kernel only on rows of at most
+    /// [`MAX_STRIDED_3X3`] outputs: on wider ones the loops, which read the input in place,
+    /// measured faster than the copy split by column phase (MobileNetV2's 56 to 28 layer
+    /// took 1.09x as long through the copy, its 112 to 56 one 1.2x).
     fn applies(s: &Conv2dShape) -> bool {
-        let padded = (s.h + 2 * s.pad_h) * (s.w + 2 * s.pad_w);
-        (s.stride_h, s.stride_w, s.dil_h, s.dil_w) == (1, 1, 1, 1)
+        let padded = (s.h + 2 * s.pad_h) * (s.w + 2 * s.pad_w + 1);
+        let stride = match s.stride_w {
+            1 => true,
+            2 => s.kh >= 5 || s.ow <= MAX_STRIDED_3X3,
+            _ => false,
+        };
+        s.stride_h == s.stride_w
+            && stride
+            && (s.dil_h, s.dil_w) == (1, 1)
             && s.kh == s.kw
             && matches!(s.kh, 3 | 5 | 7)
             && padded <= MAX_PADDED
@@ -84,63 +102,83 @@ impl pulp::WithSimd for Registers<'_> {
     type Output = ();
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, simd: S) {
-        match self.s.kh {
-            3 => self.planes::<S, 3>(simd),
-            5 => self.planes::<S, 5>(simd),
-            7 => self.planes::<S, 7>(simd),
+        match (self.s.stride_w, self.s.kh) {
+            (1, 3) => self.planes::<S, 1, 3>(simd),
+            (1, 5) => self.planes::<S, 1, 5>(simd),
+            (1, 7) => self.planes::<S, 1, 7>(simd),
+            (2, 3) => self.planes::<S, 2, 3>(simd),
+            (2, 5) => self.planes::<S, 2, 5>(simd),
+            (2, 7) => self.planes::<S, 2, 7>(simd),
             _ => unreachable!("Registers::applies"),
         }
     }
 }
 
 impl Registers<'_> {
-    /// Every plane of `dst`, through one padded copy: zeroed once, its interior
-    /// rewritten for each plane (the border stays zero).
+    /// Every plane of `dst`, through one padded copy (at stride 2 split into its even and
+    /// odd columns, [`pad_phases`]): zeroed once, its interior rewritten for each plane
+    /// (the border stays zero).
     #[inline(always)]
-    fn planes<S: pulp::Simd, const K: usize>(self, simd: S) {
+    fn planes<S: pulp::Simd, const ST: usize, const K: usize>(self, simd: S) {
         let Registers { s, w, x, ep, first, dst } = self;
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let mut buf = PADDED.take();
-        let (rows, cols) = (s.h + 2 * s.pad_h, s.w + 2 * s.pad_w);
+        let (rows, cols) = (s.h + 2 * s.pad_h, (s.w + 2 * s.pad_w).div_ceil(ST));
         buf.clear();
         // One vector of slack: a row narrower than a vector is read a whole vector wide
         // (the lanes past the row, the next row's or the slack's, are never stored).
-        buf.resize(rows * cols + lanes, 0.0);
+        buf.resize(ST * rows * cols + lanes, 0.0);
+        let clamp = ep.clamp();
         for (j, dst) in dst.chunks_mut(s.oh * s.ow).enumerate() {
             let (xc, k, c) = plane_operands(s, w, x, first + j);
-            pad_interior(s, xc, cols, &mut buf);
+            if ST == 1 {
+                pad_interior(s, xc, cols, &mut buf);
+            } else {
+                pad_phases(s, xc, rows, cols, &mut buf);
+            }
             let taps: [[f32; K]; K] = std::array::from_fn(|ky| std::array::from_fn(|kx| k[ky * K + kx]));
             let scale = ep.scale.map_or(1.0, |v| v[c]);
             let shift = ep.shift.map_or(0.0, |v| v[c]);
-            let g = Geometry { cols, ow: s.ow, scale, shift, relu: ep.relu() };
-            let full = s.oh / ROWS * ROWS;
-            for oy in (0..full).step_by(ROWS) {
-                g.block::<S, ROWS, K>(simd, &buf, &taps, oy, dst);
+            let g = Geometry { rows, cols, ow: s.ow, scale, shift, clamp };
+            // At stride 2 a block of four rows reads 2 * 3 + K input rows: with 5x5 and
+            // 7x7 kernels, two rows a block measured faster (fewer rows in flight).
+            let wide = ST == 2 && K >= 5;
+            let rows_at_once = if wide { 2 } else { ROWS };
+            let full = s.oh / rows_at_once * rows_at_once;
+            for oy in (0..full).step_by(rows_at_once) {
+                if wide {
+                    g.block::<S, 2, K, ST>(simd, &buf, &taps, oy, dst);
+                } else {
+                    g.block::<S, ROWS, K, ST>(simd, &buf, &taps, oy, dst);
+                }
             }
             for oy in full..s.oh {
-                g.block::<S, 1, K>(simd, &buf, &taps, oy, dst);
+                g.block::<S, 1, K, ST>(simd, &buf, &taps, oy, dst);
             }
-            ep.finish_act(dst);
+            ep.finish_unclamped(dst);
         }
         PADDED.set(buf);
     }
 }
 
-/// What [`Registers`] works with: the padded plane's width, the output row's, and the
-/// epilogue's affine and ReLU.
+/// What [`Registers`] works with: the padded plane's rows and columns (a phase's at
+/// stride 2), the output row's, and the epilogue's affine and clamp.
 #[derive(Clone, Copy)]
 struct Geometry {
+    rows: usize,
     cols: usize,
     ow: usize,
     scale: f32,
     shift: f32,
-    relu: bool,
+    clamp: Option<(f32, f32)>,
 }
 
 impl Geometry {
-    /// Output rows `oy0..oy0 + R` of the plane, vector by vector along the row.
+    /// Output rows `oy0..oy0 + R` of the plane `dst`, vector by vector along the row, at
+    /// stride `ST`. A row narrower than a vector is stored a whole vector wide where the
+    /// plane has room past it: the rows stored after it overwrite the extra lanes.
     #[inline(always)]
-    fn block<S: pulp::Simd, const R: usize, const K: usize>(
+    fn block<S: pulp::Simd, const R: usize, const K: usize, const ST: usize>(
         self,
         simd: S,
         padded: &[f32],
@@ -154,23 +192,26 @@ impl Geometry {
         let width = lanes.min(ow);
         for ox in vector_starts(ow, width) {
             let mut acc = [simd.splat_f32s(0.0); R];
-            // The block's input rows, R - 1 + K of them from row oy0: output row r reads
-            // rows r + ky.
-            for j in 0..R - 1 + K {
+            // The block's input rows, ST (R - 1) + K of them from row ST oy0: output row r
+            // reads rows ST r + ky.
+            for j in 0..ST * (R - 1) + K {
                 #[allow(clippy::needless_range_loop)] // kx indexes the row and the taps
                 for kx in 0..K {
-                    let at = (oy0 + j) * self.cols + ox + kx;
+                    // Padded column ST ox + kx: column ox + kx / ST of phase kx % ST.
+                    let at = ((kx % ST) * self.rows + ST * oy0 + j) * self.cols + ox + kx / ST;
                     let v = S::as_simd_f32s(&padded[at..at + lanes]).0[0];
                     for (r, a) in acc.iter_mut().enumerate() {
-                        // Row j of the block is kernel row j - r of output row r.
-                        if j >= r && j - r < K {
-                            *a = simd.mul_add_f32s(v, simd.splat_f32s(taps[j - r][kx]), *a);
+                        // Row j of the block is kernel row j - ST r of output row r.
+                        if j >= ST * r && j - ST * r < K {
+                            *a = simd.mul_add_f32s(v, simd.splat_f32s(taps[j - ST * r][kx]), *a);
                         }
                     }
                 }
             }
             for (r, a) in acc.into_iter().enumerate() {
-                store_vector(simd, a, scale, shift, self.relu, &mut dst[(oy0 + r) * ow + ox..][..width]);
+                let at = (oy0 + r) * ow + ox;
+                let room = if width < lanes { (dst.len() - at).min(lanes) } else { width };
+                store_vector(simd, a, scale, shift, self.clamp, &mut dst[at..][..room]);
             }
         }
     }
@@ -290,6 +331,9 @@ fn padded_rows<const L: usize>(s: &Conv2dShape, p: &[f32], k: &[f32], dst: &mut 
         padded_block::<L, 1>(s, p, k, row, full + i);
     }
 }
+
+/// The widest output row a 3x3 kernel at stride 2 takes [`Registers`] for.
+const MAX_STRIDED_3X3: usize = 16;
 
 /// Output rows to accumulate at once: independent sums, so that a block's adds do not wait
 /// on each other (a single one would be bound by the add latency, four cycles a tap).
@@ -434,19 +478,38 @@ mod tests {
     use crate::kernels::{Activation, Epilogue};
 
     /// [`Registers`] on every SIMD width this CPU has (the kernel picks the widest),
-    /// against the loops it replaced ([`depthwise_loops`]): 3x3, 5x5 and 7x7 kernels,
-    /// planes narrower than a vector, a row a vector and a bit wide, two images, a channel
-    /// multiplier, rows not a multiple of the block's.
+    /// against the loops it replaced ([`depthwise_loops`]): 3x3, 5x5 and 7x7 kernels at
+    /// stride 1 and 2 (odd and even padding and widths, so both column phases start the
+    /// row), planes narrower than a vector, a row a vector and a bit wide, two images, a
+    /// channel multiplier, rows not a multiple of the block's, and each kind of
+    /// activation: none, the clamps applied in the store (ReLU, ReLU6, a clamp) and one
+    /// applied after (Hardswish).
     #[test]
     fn every_simd_width_matches_the_loops() {
-        for (n, cin, (h, w), cout, k) in [
-            (2, 3, (9, 21), 3, 3),
-            (1, 2, (7, 7), 4, 3),
-            (1, 2, (11, 18), 2, 5),
-            (1, 3, (6, 5), 3, 7),
-            (1, 1, (14, 14), 1, 7),
-        ] {
-            let p = k / 2;
+        let acts = [
+            None,
+            Some(Activation::Relu),
+            Some(Activation::Relu6),
+            Some(Activation::Clamp { min: Some(-0.25), max: Some(0.5) }),
+            Some(Activation::Hardswish),
+        ];
+        for (i, (n, cin, (h, w), cout, k, stride, pad)) in [
+            (2, 3, (9, 21), 3, 3, 1, 1),
+            (1, 2, (7, 7), 4, 3, 1, 1),
+            (1, 2, (11, 18), 2, 5, 1, 2),
+            (1, 3, (6, 5), 3, 7, 1, 3),
+            (1, 1, (14, 14), 1, 7, 1, 3),
+            (2, 3, (14, 14), 3, 3, 2, 1),
+            (1, 2, (13, 27), 4, 3, 2, 1),
+            (1, 2, (28, 28), 2, 5, 2, 2),
+            (1, 3, (15, 9), 3, 5, 2, 1),
+            (1, 2, (14, 14), 2, 7, 2, 3),
+            (1, 2, (9, 12), 2, 3, 2, 0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let (oh, ow) = ((h + 2 * pad - k) / stride + 1, (w + 2 * pad - k) / stride + 1);
             let s = Conv2dShape {
                 n,
                 cin,
@@ -455,22 +518,22 @@ mod tests {
                 cout,
                 kh: k,
                 kw: k,
-                stride_h: 1,
-                stride_w: 1,
-                pad_h: p,
-                pad_w: p,
+                stride_h: stride,
+                stride_w: stride,
+                pad_h: pad,
+                pad_w: pad,
                 dil_h: 1,
                 dil_w: 1,
                 groups: cin,
-                oh: h,
-                ow: w,
+                oh,
+                ow,
             };
-            assert!(Registers::applies(&s));
+            assert!(Registers::applies(&s), "{s:?}");
             let x = data(n * cin * h * w, 5);
             let wt = data(cout * k * k, 6);
             let (scale, shift) = (data(cout, 7), data(cout, 8));
-            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
-            let plane = h * w;
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: acts[i % acts.len()] };
+            let plane = oh * ow;
             let mut want = vec![f32::NAN; n * cout * plane];
             for (i, dst) in want.chunks_mut(plane).enumerate() {
                 let (xc, kc, c) = plane_operands(&s, &wt, &x, i);

@@ -18,7 +18,7 @@
 
 use rayon::prelude::*;
 
-use super::{Conv2dShape, pad_interior, store_vector, vector_starts};
+use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
 
 /// Output channels computed together: each input vector feeds this many accumulators.
@@ -109,23 +109,7 @@ simd_fn! {
             pad_interior(s, xc, cols, out);
             return;
         }
-        for (iy, src) in xc.chunks_exact(s.w).enumerate() {
-            let row = |phase: usize| (phase * rows + iy + s.pad_h) * cols;
-            // The even input columns to one phase, the odd ones to the other, each by a
-            // loop over pairs of its own (one loop writing both stays scalar).
-            let pad = s.pad_w;
-            let (e0, o0) = if pad.is_multiple_of(2) { (row(0), row(1)) } else { (row(1), row(0)) };
-            let (even_at, odd_at) = (e0 + pad / 2, o0 + pad.div_ceil(2));
-            for (d, pair) in out[even_at..][..s.w.div_ceil(2)].iter_mut().zip(src.chunks_exact(2)) {
-                *d = pair[0];
-            }
-            for (d, pair) in out[odd_at..][..s.w / 2].iter_mut().zip(src.chunks_exact(2)) {
-                *d = pair[1];
-            }
-            if s.w % 2 == 1 {
-                out[even_at + s.w / 2] = src[s.w - 1];
-            }
-        }
+        pad_phases(s, xc, rows, cols, out);
     }
 }
 
@@ -195,12 +179,19 @@ impl Rows<'_> {
                     }
                 }
                 for (c, a) in acc.into_iter().enumerate().take(chans) {
-                    store_vector(simd, a, scale[c], shift[c], ep.relu(), &mut dst[c * plane + oy * ow + ox..][..width]);
+                    store_vector(
+                        simd,
+                        a,
+                        scale[c],
+                        shift[c],
+                        ep.clamp(),
+                        &mut dst[c * plane + oy * ow + ox..][..width],
+                    );
                 }
             }
         }
         for plane_out in dst.chunks_mut(plane) {
-            ep.finish_act(plane_out);
+            ep.finish_unclamped(plane_out);
         }
     }
 }

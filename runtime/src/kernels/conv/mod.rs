@@ -513,13 +513,26 @@ fn vector_starts(ow: usize, width: usize) -> impl Iterator<Item = usize> {
     (0..ow.div_ceil(width)).map(move |i| (i * width).min(ow - width))
 }
 
-/// Stores `acc · scale + shift`, then `max(0, ·)` if `relu`, into `out`: one vector, or the
-/// first `out.len()` lanes of one through the stack for a row narrower than a vector
-/// (pulp's partial stores are calls). The register paths' store.
+/// Stores `acc · scale + shift`, clamped to `clamp`'s bounds if given (a ReLU, ReLU6 or
+/// clamp: [`Epilogue::clamp`]), into `out`: one vector, or the first `out.len()` lanes of
+/// one through the stack for a row narrower than a vector (pulp's partial stores are
+/// calls). The register paths' store.
 #[inline(always)]
-fn store_vector<S: pulp::Simd>(simd: S, acc: S::f32s, scale: S::f32s, shift: S::f32s, relu: bool, out: &mut [f32]) {
-    let y = simd.mul_add_f32s(acc, scale, shift);
-    let y = if relu { simd.max_f32s(y, simd.splat_f32s(0.0)) } else { y };
+fn store_vector<S: pulp::Simd>(
+    simd: S,
+    acc: S::f32s,
+    scale: S::f32s,
+    shift: S::f32s,
+    clamp: Option<(f32, f32)>,
+    out: &mut [f32],
+) {
+    let mut y = simd.mul_add_f32s(acc, scale, shift);
+    if let Some((lo, hi)) = clamp {
+        y = simd.max_f32s(y, simd.splat_f32s(lo));
+        if hi < f32::INFINITY {
+            y = simd.min_f32s(y, simd.splat_f32s(hi));
+        }
+    }
     let lanes = size_of::<S::f32s>() / size_of::<f32>();
     if out.len() == lanes {
         S::as_mut_simd_f32s(out).0[0] = y;
@@ -538,6 +551,31 @@ fn store_vector<S: pulp::Simd>(simd: S, acc: S::f32s, scale: S::f32s, shift: S::
 fn pad_interior(s: &Conv2dShape, xc: &[f32], cols: usize, out: &mut [f32]) {
     for (iy, src) in xc.chunks_exact(s.w).enumerate() {
         out[(iy + s.pad_h) * cols + s.pad_w..][..s.w].copy_from_slice(src);
+    }
+}
+
+/// Copies input plane `xc` into the interiors of its zero-padded copy split by column
+/// phase for a stride of 2: padded column `p` goes to column `p / 2` of phase `p % 2`, the
+/// phases `rows x cols` planes one after the other in `out`, so that a stride-2 row's
+/// taps are contiguous loads. The border is left as it is, zero.
+#[inline(always)]
+fn pad_phases(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [f32]) {
+    for (iy, src) in xc.chunks_exact(s.w).enumerate() {
+        let row = |phase: usize| (phase * rows + iy + s.pad_h) * cols;
+        // The even input columns to one phase, the odd ones to the other, each by a loop
+        // over pairs of its own (one loop writing both stays scalar).
+        let pad = s.pad_w;
+        let (e0, o0) = if pad.is_multiple_of(2) { (row(0), row(1)) } else { (row(1), row(0)) };
+        let (even_at, odd_at) = (e0 + pad / 2, o0 + pad.div_ceil(2));
+        for (d, pair) in out[even_at..][..s.w.div_ceil(2)].iter_mut().zip(src.chunks_exact(2)) {
+            *d = pair[0];
+        }
+        for (d, pair) in out[odd_at..][..s.w / 2].iter_mut().zip(src.chunks_exact(2)) {
+            *d = pair[1];
+        }
+        if s.w % 2 == 1 {
+            out[even_at + s.w / 2] = src[s.w - 1];
+        }
     }
 }
 
