@@ -134,11 +134,16 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     Ok(Output::Patches(patches))
 }
 
-/// Rows per image at most which a linear's weight goes in panels: at 49 rows (Swin-T's
-/// last stage) the panel product takes 0.78-0.82x the time of `sgemm`, which packs the
-/// weight on every call; at 196 rows about 1.0x, at 3136 1.25x (`cargo run --release -p
-/// readi-runtime --example panel_gemm`, one thread).
-const PANEL_ROWS: i64 = 64;
+/// Rows per image at most which a linear's weight goes in panels. On its own, with the
+/// weight in cache, the panel product takes 0.78-0.82x the time of `sgemm` (which packs
+/// the weight on every call) at 49 rows (Swin-T's last stage), about 1.0x at 196 and 1.25x
+/// at 3136 (`cargo run --release -p readi-runtime --example panel_gemm`, one thread). In
+/// a whole model, where each weight comes from memory once a run, panels pay further:
+/// with the bound raised from 64 to 256 rows ViT-B/16 (197 tokens) ran 0.936x as long at
+/// 1 and 2 threads; to 1024 (784 rows, stage 2) Swin-T 0.979 / 0.966 and ConvNeXt-T
+/// 0.981 / 0.963 (1 / 2 threads); to 4096 (stage 1's 3136 rows) those two 1.01-1.02x the
+/// time at 1024 (`benches/ab.py`, 6 alternating rounds, 2026-12-05).
+const PANEL_ROWS: i64 = 1024;
 
 /// Whether the linear `id` multiplies at most [`PANEL_ROWS`] rows per image: the product
 /// of its input's axes but the last, a symbolic one (the batch) counted by its factor.
