@@ -25,12 +25,22 @@ pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (u
     let units = s.n * s.oh.div_ceil(unit);
     // GEMM columns (pixels or tiles) per thread under a row split.
     let cols = units * s.ow.div_ceil(unit) / threads;
-    if threads > 1 && s.groups == 1 && cols < 64 && s.cout >= 32 * threads {
+    if threads > 1 && s.groups == 1 && cols < CHANNEL_SPLIT_COLS && s.cout >= 32 * threads {
         (1, threads)
     } else {
         (threads.min(units.max(1)), 1)
     }
 }
+
+/// GEMM columns per thread below which a layer with enough output channels is split by
+/// channels. At 64, MobileNetV2's 14x14 expansions (98 pixels a thread) ran 1.1-1.3x
+/// faster on two threads than on one: each thread packed the whole weight for GEMMs of
+/// 98 columns. At 256 (14x14 planes split by channels, 28x28 ones still by rows) six CNNs
+/// of the zoo ran 0.960-0.982x as long on two threads (MobileNetV2 0.977, ResNet-50
+/// 0.978, ResNet-18 0.976, RegNetY-400MF 0.982, EfficientNet-B0 0.977, MobileNetV3-Large
+/// 0.960; `benches/ab.py`, 8 alternating rounds, 2026-12-05); at 512 ResNet-18 and
+/// RegNetY-400MF lost again (1.05, 1.02).
+const CHANNEL_SPLIT_COLS: usize = 256;
 
 /// How many threads share the layer.
 pub(super) fn parts(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
