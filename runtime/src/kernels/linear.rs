@@ -161,6 +161,20 @@ pub fn linear_lora(
     };
     if in_features == 0 {
         block(out, x, threads);
+    } else if layout == WeightLayout::Panels && lora.is_none() && rows == 1 && threads > 1 {
+        // One row (a classifier at batch 1): the threads share the panels, each its own
+        // range of output columns.
+        let per = out_features.div_ceil(panel::PANEL).div_ceil(threads) * panel::PANEL;
+        out.par_chunks_mut(per).zip(weight.par_chunks(per * in_features)).enumerate().for_each(|(i, (o, w))| {
+            let (c0, n) = (i * per, o.len());
+            panel::gemm(x, 1, in_features, w, n, o);
+            let ep = Epilogue {
+                scale: ep.scale.map(|v| &v[c0..c0 + n]),
+                shift: ep.shift.map(|v| &v[c0..c0 + n]),
+                act: ep.act,
+            };
+            epilogue_rows(o, n, &ep);
+        });
     } else if threads > 1 && rows >= 16 * threads {
         // Rows split evenly over the threads, each thread's share in cache-sized blocks.
         let share = rows.div_ceil(threads);
@@ -486,6 +500,34 @@ mod tests {
         assert!(bad((0, 0, 0)).contains("rank 0"));
         assert!(bad((2, 6, 7)).contains("B 7"));
         assert!(bad((2, 5, 8)).contains("A has 5"));
+    }
+
+    /// One row with the weight in panels, its output columns shared by 2 and 3 threads:
+    /// ranges of whole panels, the last one short, with the bias, scale and GELU of each
+    /// range's own columns.
+    #[test]
+    fn one_row_in_panels_splits_its_columns_over_threads() {
+        for (fin, fout) in [(40, 1000), (7, 33), (16, 64), (5, 31)] {
+            let x = data(fin, 1);
+            let w = data(fout * fin, 2);
+            let (scale, shift) = (data(fout, 3), data(fout, 4));
+            let wt: Vec<f32> = (0..fin * fout).map(|i| w[(i % fout) * fin + i / fout]).collect();
+            let base = naive(&x, &wt, 1, fin, fout);
+            let want: Vec<f32> = (0..fout)
+                .map(|j| {
+                    let v = base[j] * f64::from(scale[j]) + f64::from(shift[j]);
+                    Activation::Gelu.reference(v) as f32
+                })
+                .collect();
+            let mut packed = vec![0.0; WeightLayout::Panels.len(fin, fout).expect("fits")];
+            crate::kernels::panel::pack(&w, fin, fout, &mut packed);
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Gelu) };
+            for threads in [1, 2, 3] {
+                let mut out = vec![f32::NAN; fout];
+                linear(&x, 1, fin, &packed, WeightLayout::Panels, fout, &ep, &mut out, threads);
+                assert_close(&out, &want, 1e-4);
+            }
+        }
     }
 
     #[test]
