@@ -528,9 +528,16 @@ fn store_vector<S: pulp::Simd>(
 ) {
     let mut y = simd.mul_add_f32s(acc, scale, shift);
     if let Some((lo, hi)) = clamp {
-        y = simd.max_f32s(y, simd.splat_f32s(lo));
+        // A NaN sum stays NaN, as the element-wise activations keep it: x86's vector max
+        // and min return their second operand when either is NaN, so the bound goes
+        // first; the scalar backend's (`f32::max`) drop NaN, so it compares instead
+        // (slower on vectors: 1.07-1.15x a depthwise layer's time).
+        let vector = size_of::<S::f32s>() > size_of::<f32>();
+        let b = simd.splat_f32s(lo);
+        y = if vector { simd.max_f32s(b, y) } else { simd.select_f32s(simd.less_than_f32s(y, b), b, y) };
         if hi < f32::INFINITY {
-            y = simd.min_f32s(y, simd.splat_f32s(hi));
+            let b = simd.splat_f32s(hi);
+            y = if vector { simd.min_f32s(b, y) } else { simd.select_f32s(simd.greater_than_f32s(y, b), b, y) };
         }
     }
     let lanes = size_of::<S::f32s>() / size_of::<f32>();

@@ -602,3 +602,35 @@ fn residual_on_every_path() {
         }
     }
 }
+
+/// The register paths' store keeps a NaN sum NaN under every clamp (ReLU, ReLU6, a clamp),
+/// as the element-wise activations do, and clamps the other lanes.
+#[test]
+fn a_clamped_store_keeps_nan() {
+    use crate::kernels::testutil::backends;
+    struct Store(Option<(f32, f32)>, Vec<f32>);
+    impl pulp::WithSimd for Store {
+        type Output = Vec<f32>;
+        fn with_simd<S: pulp::Simd>(self, simd: S) -> Vec<f32> {
+            let lanes = size_of::<S::f32s>() / size_of::<f32>();
+            let input: Vec<f32> = (0..lanes).map(|i| self.1[i % self.1.len()]).collect();
+            let acc = S::as_simd_f32s(&input).0[0];
+            let mut out = vec![0.0; lanes];
+            store_vector(simd, acc, simd.splat_f32s(1.0), simd.splat_f32s(0.0), self.0, &mut out);
+            out
+        }
+    }
+    let values = vec![f32::NAN, -3.0, 0.5, 9.0];
+    for clamp in [(0.0, f32::INFINITY), (0.0, 6.0), (-1.0, 1.0)] {
+        for b in backends() {
+            let got = b.run(Store(Some(clamp), values.clone()));
+            for (g, v) in got.iter().zip(values.iter().cycle()) {
+                if v.is_nan() {
+                    assert!(g.is_nan(), "{b:?} {clamp:?}: NaN became {g}");
+                } else {
+                    assert_eq!(*g, v.max(clamp.0).min(clamp.1), "{b:?} {clamp:?}");
+                }
+            }
+        }
+    }
+}
