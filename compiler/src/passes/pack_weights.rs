@@ -138,12 +138,19 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
 /// weight in cache, the panel product takes 0.78-0.82x the time of `sgemm` (which packs
 /// the weight on every call) at 49 rows (Swin-T's last stage), about 1.0x at 196 and 1.25x
 /// at 3136 (`cargo run --release -p readi-runtime --example panel_gemm`, one thread). In
-/// a whole model, where each weight comes from memory once a run, panels pay further:
-/// with the bound raised from 64 to 256 rows ViT-B/16 (197 tokens) ran 0.936x as long at
-/// 1 and 2 threads; to 1024 (784 rows, stage 2) Swin-T 0.979 / 0.966 and ConvNeXt-T
-/// 0.981 / 0.963 (1 / 2 threads); to 4096 (stage 1's 3136 rows) those two 1.01-1.02x the
-/// time at 1024 (`benches/ab.py`, 6 alternating rounds, 2026-12-05).
-const PANEL_ROWS: i64 = 1024;
+/// a whole model, where each weight comes from memory once a run, panels pay further at
+/// batch 1 and lose at batch 8 (`benches/ab.py` and alternating `readi bench --batch 8`
+/// rounds, 2026-12-05, against the bound of 64 before; 1 / 2 threads):
+///
+/// | bound | ViT-B/16, batch 1 | Swin-T, batch 1 | ConvNeXt-T, batch 1 | Swin-T, batch 8 | ConvNeXt-T, batch 8 |
+/// | --- | --- | --- | --- | --- | --- |
+/// | 256 | 0.936 / 0.936 | 0.983 / 0.969 | 0.986 / 0.967 | 1.015 / 1.015 | 1.037 / 1.025 |
+/// | 1024 | | 0.979 / 0.966 | 0.981 / 0.963 | 1.029 / 1.034 | 1.028 / 1.026 |
+///
+/// 256 takes ViT-B/16's 197 tokens (at batch 8 1.016 at two threads, within noise) and
+/// the last two stages of Swin-T and ConvNeXt-T; 4096 (their 3136-row first stage) ran
+/// 1.01-1.02x the time of 1024 at batch 1.
+const PANEL_ROWS: i64 = 256;
 
 /// Whether the linear `id` multiplies at most [`PANEL_ROWS`] rows per image: the product
 /// of its input's axes but the last, a symbolic one (the batch) counted by its factor.
