@@ -131,11 +131,7 @@ impl Registers<'_> {
         let clamp = ep.clamp();
         for (j, dst) in dst.chunks_mut(s.oh * s.ow).enumerate() {
             let (xc, k, c) = plane_operands(s, w, x, first + j);
-            if ST == 1 {
-                pad_interior(s, xc, cols, &mut buf);
-            } else {
-                pad_phases(s, xc, rows, cols, &mut buf);
-            }
+            pad_phases(s, xc, rows, cols, &mut buf);
             let taps: [[f32; K]; K] = std::array::from_fn(|ky| std::array::from_fn(|kx| k[ky * K + kx]));
             let scale = ep.scale.map_or(1.0, |v| v[c]);
             let shift = ep.shift.map_or(0.0, |v| v[c]);

@@ -18,7 +18,7 @@
 
 use rayon::prelude::*;
 
-use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
+use super::{Conv2dShape, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
 
 /// Output channels computed together: each input vector feeds this many accumulators.
@@ -105,10 +105,6 @@ simd_fn! {
     /// One input channel `xc` into its phase planes `out` ([`pad`]).
     fn pad_channel(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [f32]) {
         out.fill(0.0);
-        if s.stride_w == 1 {
-            pad_interior(s, xc, cols, out);
-            return;
-        }
         pad_phases(s, xc, rows, cols, out);
     }
 }

@@ -562,11 +562,16 @@ fn pad_interior(s: &Conv2dShape, xc: &[f32], cols: usize, out: &mut [f32]) {
 }
 
 /// Copies input plane `xc` into the interiors of its zero-padded copy split by column
-/// phase for a stride of 2: padded column `p` goes to column `p / 2` of phase `p % 2`, the
-/// phases `rows x cols` planes one after the other in `out`, so that a stride-2 row's
-/// taps are contiguous loads. The border is left as it is, zero.
+/// phase, so that a row's taps are contiguous loads at the conv's column stride: at stride
+/// 1 one phase, [`pad_interior`]; at stride 2 padded column `p` goes to column `p / 2` of
+/// phase `p % 2`, the phases `rows x cols` planes one after the other in `out`. The
+/// border is left as it is, zero.
 #[inline(always)]
 fn pad_phases(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [f32]) {
+    if s.stride_w == 1 {
+        return pad_interior(s, xc, cols, out);
+    }
+    debug_assert_eq!(s.stride_w, 2, "pad_phases: strides 1 and 2");
     for (iy, src) in xc.chunks_exact(s.w).enumerate() {
         let row = |phase: usize| (phase * rows + iy + s.pad_h) * cols;
         // The even input columns to one phase, the odd ones to the other, each by a loop
