@@ -156,6 +156,7 @@ impl Rows<'_> {
         let scale: [S::f32s; CH] = std::array::from_fn(|c| simd.splat_f32s(at(c, ep.scale, 1.0)));
         let shift: [S::f32s; CH] = std::array::from_fn(|c| simd.splat_f32s(at(c, ep.shift, 0.0)));
         let width = lanes.min(ow);
+        let clamp = ep.clamp();
         for oy in 0..s.oh {
             for ox in vector_starts(ow, width) {
                 let mut acc = [simd.splat_f32s(0.0); CH];
@@ -175,14 +176,7 @@ impl Rows<'_> {
                     }
                 }
                 for (c, a) in acc.into_iter().enumerate().take(chans) {
-                    store_vector(
-                        simd,
-                        a,
-                        scale[c],
-                        shift[c],
-                        ep.clamp(),
-                        &mut dst[c * plane + oy * ow + ox..][..width],
-                    );
+                    store_vector(simd, a, scale[c], shift[c], clamp, &mut dst[c * plane + oy * ow + ox..][..width]);
                 }
             }
         }
