@@ -4,6 +4,10 @@
 //! raw pointers and strides. [`sgemm`] first proves, with explicit checks, that every
 //! element the product can touch lies inside its slice and that no two destination
 //! elements share memory; only then does it call the crate.
+//!
+//! It also holds [`rows_product`], the register micro-kernel of the products written here
+//! (linear layers in panels, `panel.rs`),
+//! which reads its rows unchecked after cutting each to the loop's length.
 
 #![allow(unsafe_code)]
 
@@ -169,6 +173,38 @@ pub fn sgemm(a: MatRef, b: MatRef, c: MatMut, accumulate: bool, threads: usize) 
             parallelism,
         );
     }
+}
+
+/// The `MR x NV`-vector sums of the rows `a` (each `depth = a[0].len()` long) times the
+/// first `depth` rows of `b` (each at least `NV` vectors), in registers: per step `i`,
+/// `a[r][i]` broadcast and multiplied into row `i` of `b`, for every `r`. `b` comes one
+/// row at a time, so its rows may lie anywhere (a packed panel, or planes a plane apart).
+#[inline(always)]
+pub(crate) fn rows_product<'b, S: pulp::Simd, const MR: usize, const NV: usize>(
+    simd: S,
+    a: [&[f32]; MR],
+    b: impl Iterator<Item = &'b [S::f32s]>,
+) -> [[S::f32s; NV]; MR]
+where
+    S::f32s: 'b,
+{
+    let depth = a[0].len();
+    // Every row cut to `depth`: panics here if one is shorter, never in the loop.
+    let a: [&[f32]; MR] = a.map(|row| &row[..depth]);
+    let mut acc = [[simd.splat_f32s(0.0); NV]; MR];
+    for (bi, i) in b.zip(0..depth) {
+        let bi = &bi[..NV];
+        for r in 0..MR {
+            // SAFETY: `i < depth` (the zip ends there) and `a[r].len() == depth` (cut
+            // above). Checked indexing here kept a compare and branch per row per step
+            // and spilled the row pointers: 1.03-1.07x the time of the adapter's tiles.
+            let ai = simd.splat_f32s(unsafe { *a[r].get_unchecked(i) });
+            for v in 0..NV {
+                acc[r][v] = simd.mul_add_f32s(ai, bi[v], acc[r][v]);
+            }
+        }
+    }
+    acc
 }
 
 #[cfg(test)]

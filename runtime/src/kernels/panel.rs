@@ -180,20 +180,7 @@ impl Tiles<'_> {
 /// of `NV` vectors), in registers.
 #[inline(always)]
 fn product<S: Simd, const MR: usize, const NV: usize>(simd: S, a: [&[f32]; MR], b: &[S::f32s]) -> [[S::f32s; NV]; MR] {
-    let depth = a[0].len();
-    let a: [&[f32]; MR] = a.map(|row| &row[..depth]);
-    let mut acc = [[simd.splat_f32s(0.0); NV]; MR];
-    // `i` bounded by `depth`, the length of every row: no bounds check (and no panic path
-    // that would keep the sums in memory) in the loop.
-    for (bi, i) in b.chunks_exact(NV).zip(0..depth) {
-        for r in 0..MR {
-            let ai = simd.splat_f32s(a[r][i]);
-            for v in 0..NV {
-                acc[r][v] = simd.mul_add_f32s(ai, bi[v], acc[r][v]);
-            }
-        }
-    }
-    acc
+    crate::kernels::gemm::rows_product(simd, a, b.chunks_exact(NV))
 }
 
 #[cfg(test)]
