@@ -6,7 +6,7 @@
 //! elements share memory; only then does it call the crate.
 //!
 //! It also holds [`rows_product`], the register micro-kernel of the products written here
-//! (linear layers in panels, `panel.rs`),
+//! (linear layers in panels, `panel.rs`; a conv's bottleneck adapter, `conv/adapter.rs`),
 //! which reads its rows unchecked after cutting each to the loop's length.
 
 #![allow(unsafe_code)]
@@ -173,6 +173,21 @@ pub fn sgemm(a: MatRef, b: MatRef, c: MatMut, accumulate: bool, threads: usize) 
             parallelism,
         );
     }
+}
+
+/// Asks the CPU to bring the cache line holding `v` into the L1 cache (x86-64; nothing
+/// elsewhere): for kernels whose rows lie a plane apart, too many streams for the
+/// hardware prefetcher to follow.
+#[inline(always)]
+pub(crate) fn prefetch(v: &f32) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: SSE, which `_mm_prefetch` needs, is part of x86-64; a prefetch reads
+    // nothing into the program and cannot fault (`v` is a valid reference anyway).
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>((v as *const f32).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = v;
 }
 
 /// The `MR x NV`-vector sums of the rows `a` (each `depth = a[0].len()` long) times the

@@ -2,33 +2,35 @@
 //! ([`Adapter`]): on the conv's output `y` after the epilogue's scale and shift,
 //! `y + up · act(down · y + down_bias) + up_bias`, then the epilogue's ReLU.
 //!
-//! The adapter needs every channel of a pixel, so it runs on chunks of pixels holding all
-//! `cout` channels, two small GEMMs per chunk (`h = down · y` to `mid` rows, `y += up · h`)
-//! while the chunk is in cache:
+//! The adapter needs every channel of a pixel, so it runs on tiles of pixels holding all
+//! `cout` channels, two small products per tile (`h = down · y` to `mid` rows, `y += up ·
+//! h`) while the tile is in cache:
 //!
 //! * the GEMM paths (Gemm1x1, Im2col) under a split by output rows compute every channel
 //!   of a tile of pixels into one accumulator: [`apply_tile`] runs there, between the
 //!   scale/shift and the copy to the output (`im2col.rs`), so the conv's output is
 //!   written once, final;
-//! * Winograd (whose output transform writes the planes directly), the depthwise loop and
-//!   a split by output channels (each thread then holds only some channels of a pixel)
-//!   finish the conv with scale and shift only, then [`apply_planes`] runs the two GEMMs
-//!   on the output planes where they are, per chunk of pixels of one image (sized to stay
-//!   in L2; the GEMMs read rows a plane apart): `down` reads the chunk, `up` adds into it
-//!   and the bias and ReLU follow, instead of the separate steps' seven passes (down reads
-//!   `y`; the add reads `y` and `up`'s output and writes; the ReLU reads and writes; `up`
-//!   writes). Before, each chunk was gathered into scratch and scattered back: two copies
-//!   of the activation, and a `Vec` of slices per chunk allocated on every call. On
-//!   several threads the chunks' `down` is shared by chunks and `up` by channels (each
-//!   thread then writes only its own planes), one join between them. An image that fits
-//!   one chunk (a last stage's 7x7) shares `down` by bottleneck rows instead: each thread
-//!   reads only its rows of the weight, and no GEMM is cut to an awkward width (a 7x7
-//!   plane went to two threads as 32 + 17 pixels).
+//! * everywhere else the conv finishes with scale and shift only, and [`Fused`] runs over
+//!   its output planes where they are, [`TILE`] pixels at a time: `h` by micro-tiles of
+//!   bottleneck rows with the sums in registers (the weight's rows broadcast, the planes'
+//!   pixels read in place as vectors, [`rows_product`]), then `y` by micro-tiles of
+//!   channels with the up bias, the residual and a clamp (ReLU) applied in registers as
+//!   each vector is stored. Under a conv split by rows it runs inside each thread's part,
+//!   right after the conv wrote it ([`apply_part`]); under a split by channels (each
+//!   thread then holds only some channels of a pixel), and after the depthwise loop,
+//!   over the whole output with the threads sharing the pixels ([`apply_fused`]).
+//!
+//! Before, this path made two `gemm` crate GEMMs per chunk of pixels (packing operands on
+//! every call, passes for the biases and the ReLU) with a join between `down` by chunks
+//! and `up` by channels. ResNet-18 with its spec's adapters took 1.095x the time of the
+//! same plan without them at two threads (1.8x the adapters' 5.4% share of the
+//! multiply-adds) and 1.077x at one; with this path 1.067-1.069x and 1.062-1.065x (1.2x
+//! and 1.1-1.2x their share; `benches/ab.py`-style alternating rounds, 2026-12-05).
 
 use rayon::prelude::*;
 
 use super::Conv2dShape;
-use crate::kernels::gemm::{MatMut, MatRef, sgemm};
+use crate::kernels::gemm::{MatMut, MatRef, prefetch, rows_product, sgemm};
 use crate::kernels::{Activation, elementwise};
 
 /// An adapter's tensors: `down` `[mid, cout]` row-major, `down_bias` `[mid]`, `up`
@@ -70,37 +72,6 @@ impl Adapter<'_> {
     }
 }
 
-/// Pixels per chunk of [`apply_planes`]: the chunk of `cout` channels plus its `mid`
-/// bottleneck rows in 256 KiB (half a typical L2), in multiples of 16 pixels (the GEMM's
-/// vector width), at most the plane rounded up.
-pub(super) fn chunk(cout: usize, mid: usize, plane: usize) -> usize {
-    let per = (cout + mid).max(1);
-    let p = (64 * 1024 / per).clamp(16, 4096) / 16 * 16;
-    p.min(plane.div_ceil(16) * 16).max(16)
-}
-
-/// The pixels per chunk [`apply_planes`] uses and the chunks per image: [`chunk`]'s, made
-/// smaller where that gives every thread the same number of chunks (a small image, or a
-/// count of chunks the threads do not divide, would leave a thread idle).
-fn chunks(s: &Conv2dShape, mid: usize, threads: usize) -> (usize, usize) {
-    let plane = s.oh * s.ow;
-    let p0 = chunk(s.cout, mid, plane);
-    let (t, jobs0) = (threads.max(1), s.n * plane.div_ceil(p0));
-    if t == 1 {
-        return (p0, plane.div_ceil(p0));
-    }
-    // A count the threads divide, then chunks of equal size (a 14x14 image in chunks of
-    // 160 pixels would leave one thread 160 and the other 36).
-    let per_image = (jobs0.div_ceil(t) * t).div_ceil(s.n.max(1));
-    let p = plane.div_ceil(per_image).div_ceil(16).saturating_mul(16).clamp(1, p0);
-    (p, plane.div_ceil(p))
-}
-
-/// Scratch floats [`apply_planes`] needs at this thread count.
-pub(super) fn planes_scratch_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
-    threads.max(1) * (s.cout + mid) * chunk(s.cout, mid, s.oh * s.ow)
-}
-
 /// The adapter on one tile `y` (`cout` rows of `tp` pixels, row-major, already scaled and
 /// shifted), in place, then the step's activation `act`; `h` holds at least `mid · tp`
 /// floats.
@@ -129,24 +100,10 @@ fn apply_strided(
 
 /// `h = act(down · y + down_bias)` for `cout` rows of `tp` pixels of `y`, `stride` apart.
 fn down(ad: &Adapter, y: &[f32], cout: usize, tp: usize, stride: usize, h: &mut [f32]) {
-    down_rows(ad, 0..ad.mid, y, cout, tp, stride, h);
-}
-
-/// The bottleneck rows `rows` of [`down`] into `h` (`rows.len()` rows of `tp`).
-fn down_rows(
-    ad: &Adapter,
-    rows: std::ops::Range<usize>,
-    y: &[f32],
-    cout: usize,
-    tp: usize,
-    stride: usize,
-    h: &mut [f32],
-) {
-    let (m, h) = (rows.len(), &mut h[..rows.len() * tp]);
+    let h = &mut h[..ad.mid * tp];
     let y = MatRef { data: y, rows: cout, cols: tp, row_stride: stride, col_stride: 1 };
-    let w = MatRef::row_major(&ad.down[rows.start * cout..][..m * cout], m, cout);
-    sgemm(w, y, MatMut::row_major(h, m, tp), false, 1);
-    bias_rows(h, &ad.down_bias[rows], None, tp, tp, false);
+    sgemm(MatRef::row_major(ad.down, ad.mid, cout), y, MatMut::row_major(h, ad.mid, tp), false, 1);
+    bias_rows(h, ad.down_bias, None, tp, tp, false);
     // A tile is one thread's work: its activations on this thread.
     elementwise::activation_chunk(ad.act, h);
 }
@@ -193,17 +150,25 @@ simd_fn! {
     }
 }
 
-/// The adapter on a conv's whole output `[n, cout, oh, ow]` (scaled and shifted), in
-/// place, plus the residual `res` (of the output's shape) if given, then the step's
-/// activation `act`, per chunk of [`chunk`] pixels of one image,
-/// read and written where it is (two GEMMs on the planes, rows a plane apart; nothing
-/// copied, nothing allocated). On one thread chunk by chunk; on more, per image and per
-/// round of chunks whose bottleneck rows fit `scratch` (at least [`planes_scratch_len`]
-/// floats): every chunk's `down` (the threads sharing the chunks, reading the planes, or,
-/// when the image is one chunk, sharing the bottleneck rows), then `up` (the threads
-/// sharing the channels, each writing its own planes).
-#[allow(clippy::too_many_arguments)]
-pub(super) fn apply_planes(
+/// Pixels per tile of [`Fused`]: every backend's tile is this wide (two AVX-512 vectors,
+/// four AVX2 vectors, eight of 4 lanes, 32 scalars).
+const TILE: usize = crate::kernels::panel::PANEL;
+
+/// Scratch floats of one worker of [`apply_fused`]: a tile's bottleneck rows, and a tail
+/// tile of the output and of the residual.
+pub(super) fn fused_scratch_len(cout: usize, mid: usize) -> usize {
+    (mid + 2 * cout) * TILE
+}
+
+/// The adapter of a conv step on its output `[n, cout, oh, ow]` (scaled and shifted), in
+/// place, plus the residual `res` if given, then the activation `act`: tile by tile of
+/// [`TILE`] pixels, both projections in registers ([`Fused`]). The threads share the
+/// pixels in whole half tiles, each its own run of every channel plane. (Sharing `down`
+/// by tiles and `up` by channels instead, or each thread summing `down` over its own
+/// channels right after the conv and `up` after a join, measured slower in ResNet-18 at
+/// two threads: 0.972 and 1.099 against this path's 0.956 and 1.055 of the old path's
+/// time.)
+pub(super) fn apply_fused(
     s: &Conv2dShape,
     ad: &Adapter,
     out: &mut [f32],
@@ -212,65 +177,362 @@ pub(super) fn apply_planes(
     scratch: &mut [f32],
     threads: usize,
 ) {
-    let (cout, mid, plane) = (s.cout, ad.mid, s.oh * s.ow);
+    let (cout, plane) = (s.cout, s.oh * s.ow);
     if plane == 0 || s.n == 0 {
         return;
     }
-    let (p, per_image) = chunks(s, mid, threads);
-    let workers = threads.max(1).min(s.n * per_image);
-    // Chunk `j` of `p` pixels: its first pixel and its width.
-    let chunk_px = |p: usize, j: usize| (j * p, p.min(plane - j * p));
-    if workers <= 1 {
-        let h = &mut scratch[..mid * p];
-        for (i, image) in out.chunks_mut(cout * plane).enumerate() {
-            let r = res.map(|r| &r[i * cout * plane..]);
-            for j in 0..per_image {
-                let (p0, tp) = chunk_px(p, j);
-                apply_strided(ad, &mut image[p0..], cout, tp, plane, h, act, r.map(|r| &r[p0..]));
-            }
-        }
-        return;
-    }
-    // Channels per worker in `up`, in whole vectors of 8 rows of the weight.
-    let per_worker = cout.div_ceil(workers).next_multiple_of(8).min(cout);
-    // A small image (a last stage's 7x7) that fits one chunk stays one: its `down` is
-    // shared by bottleneck rows, so each thread reads only its rows of the weight and
-    // works on the whole plane (chunks of 25 and 24 pixels would be GEMMs of awkward
-    // widths). Larger images: `down` shared by chunks.
-    let by_rows = plane <= chunk(cout, mid, plane);
-    let (p, per_image) = if by_rows { (plane, 1) } else { (p, per_image) };
-    let mid_per = mid.div_ceil(workers).next_multiple_of(8).min(mid);
-    // Chunks per round: as many bottleneck chunks as the scratch holds, at least one per
-    // worker (the scratch holds `workers · (cout + mid)` chunks' worth).
-    let round = (scratch.len() / (mid * p)).clamp(1, per_image);
+    // The threads share whole half tiles (a 28x28 plane: 25 and 24 of them).
+    let unit = TILE / 2;
+    let tiles = plane.div_ceil(unit);
+    let total = s.n * tiles;
+    let workers = threads.max(1).min(total);
+    let bound = |w: usize| w * total / workers;
+    // Each worker's runs of pixels: per image it touches, one segment of every channel plane.
+    let mut pieces: Vec<Vec<Piece>> = (0..workers).map(|_| Vec::new()).collect();
     for (i, image) in out.chunks_mut(cout * plane).enumerate() {
-        let r = res.map(|r| &r[i * cout * plane..]);
-        for j0 in (0..per_image).step_by(round) {
-            let js = j0..(j0 + round).min(per_image);
-            let hs = &mut scratch[..js.len() * mid * p];
-            let y: &[f32] = image;
-            if by_rows {
-                hs.par_chunks_mut(mid_per * p).enumerate().for_each(|(w, h)| {
-                    let rows = w * mid_per..(w * mid_per + mid_per).min(mid);
-                    down_rows(ad, rows, y, cout, p, plane, h);
-                });
-            } else {
-                hs.par_chunks_mut(mid * p).zip(js.clone()).for_each(|(h, j)| {
-                    let (p0, tp) = chunk_px(p, j);
-                    down(ad, &y[p0..], cout, tp, plane, h);
-                });
+        let (t0, t1) = (i * tiles, (i + 1) * tiles);
+        let mut widths: Vec<(usize, usize)> = Vec::with_capacity(workers);
+        for (w, mine) in pieces.iter_mut().enumerate() {
+            let (a, b) = (bound(w).max(t0) - t0, bound(w + 1).min(t1).saturating_sub(t0));
+            if a < b {
+                let width = (b * unit).min(plane) - a * unit;
+                widths.push((w, width));
+                let res = res.map(|r| &r[i * cout * plane + a * unit..]);
+                mine.push(Piece { rows: Vec::with_capacity(cout), res, tp: width });
             }
-            let hs: &[f32] = hs;
-            image.par_chunks_mut(per_worker * plane).enumerate().for_each(|(w, planes)| {
-                let c0 = w * per_worker;
-                let chans = c0..(c0 + per_worker).min(cout);
-                for (h, j) in hs.chunks(mid * p).zip(js.clone()) {
-                    let (p0, tp) = chunk_px(p, j);
-                    let r = r.map(|r| &r[c0 * plane + p0..]);
-                    up(ad, h, &mut planes[p0..], chans.clone(), tp, plane, act, r);
-                }
-            });
         }
+        for row in image.chunks_mut(plane) {
+            let mut rest = row;
+            for &(w, width) in &widths {
+                let (seg, tail) = std::mem::take(&mut rest).split_at_mut(width);
+                rest = tail;
+                pieces[w].last_mut().expect("a piece per image").rows.push(seg);
+            }
+        }
+    }
+    let per = fused_scratch_len(cout, ad.mid);
+    let run = |(pieces, scratch): (Vec<Piece>, &mut [f32])| {
+        for mut p in pieces {
+            let res = p.res.map(|data| Strided { data, stride: plane, at: 0 });
+            pulp::Arch::new().dispatch(Fused { ad, rows: &mut p.rows, res, tp: p.tp, act, scratch: &mut *scratch });
+        }
+    };
+    if workers == 1 {
+        run((pieces.pop().expect("one worker"), scratch));
+    } else {
+        pieces.into_par_iter().zip(scratch.par_chunks_mut(per)).for_each(run);
+    }
+}
+
+/// The adapter of one part of a conv split by rows (so holding every channel of its
+/// pixels), on the planes its thread just wrote, image by image: [`Fused`] on the part's
+/// rows, plus the residual `res` (the whole output's shape) and the step's activation.
+pub(super) fn apply_part(
+    s: &Conv2dShape,
+    ad: &Adapter,
+    part: &mut super::split::Part,
+    act: Option<Activation>,
+    res: Option<&[f32]>,
+    scratch: &mut [f32],
+) {
+    let (cout, plane, n0) = (s.cout, s.oh * s.ow, part.n0);
+    let rows_of: Vec<(usize, usize)> = (n0..s.n).map(|n| part.rows_of(n, s.oh)).collect();
+    for (i, rows) in part.planes_mut().chunks_mut(cout).enumerate() {
+        let (n, (lo, hi)) = (n0 + i, rows_of[i]);
+        let res = res.map(|r| Strided { data: &r[n * cout * plane + lo * s.ow..], stride: plane, at: 0 });
+        let tp = (hi - lo) * s.ow;
+        pulp::Arch::new().dispatch(Fused { ad, rows, res, tp, act, scratch: &mut *scratch });
+    }
+}
+
+/// One worker's run of `tp` pixels of one image: a segment of each channel plane, and of
+/// the residual's.
+struct Piece<'r> {
+    rows: Vec<&'r mut [f32]>,
+    res: Option<&'r [f32]>,
+    tp: usize,
+}
+
+/// The adapter over `tp` pixels of every channel (`rows`, one segment of `tp` values per
+/// channel), tile by tile: per tile `h = act(down · y + bd)` by micro-tiles of `MR`
+/// bottleneck rows (sums in registers, `y` read in place), stored to a tile of scratch,
+/// then `y = y + up · h + bu (+ res)` by micro-tiles of `MR` channels, the step's
+/// clamp applied as each vector is stored. A tail narrower than a tile goes through
+/// scratch, zero-padded.
+struct Fused<'a, 'r> {
+    ad: &'a Adapter<'a>,
+    rows: &'a mut [&'r mut [f32]],
+    res: Option<Strided<'a>>,
+    tp: usize,
+    act: Option<Activation>,
+    scratch: &'a mut [f32],
+}
+
+impl pulp::WithSimd for Fused<'_, '_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        // Micro-tiles of `MR` rows by `NV` vectors (a tile), or `HV` (half a tile, for a
+        // narrow tail); sums in 16 of the 32 AVX-512 registers, 12 of the 16 AVX2 ones.
+        match size_of::<S::f32s>() / size_of::<f32>() {
+            16 => self.run::<S, 8, 2, 1>(simd),
+            8 => self.run::<S, 3, 4, 2>(simd),
+            4 => self.run::<S, 2, 8, 4>(simd),
+            _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
+        }
+    }
+}
+
+/// Channel rows of one tile: `row(c)` starts at the tile's first pixel.
+trait TileRows {
+    fn row(&self, c: usize) -> &[f32];
+}
+
+/// [`TileRows`] that [`Fused`] also writes.
+trait TileRowsMut: TileRows {
+    fn row_mut(&mut self, c: usize) -> &mut [f32];
+}
+
+/// Writable segments of the channel planes, from pixel `at` on.
+struct SegmentsMut<'s, 'r> {
+    rows: &'s mut [&'r mut [f32]],
+    at: usize,
+}
+
+/// A dense tile, `[rows][TILE]`.
+struct Dense<'s>(&'s mut [f32]);
+
+/// Channel planes `stride` apart (a residual's image, from some pixel on), seen from pixel
+/// `at` on.
+#[derive(Clone, Copy)]
+struct Strided<'s> {
+    data: &'s [f32],
+    stride: usize,
+    at: usize,
+}
+
+impl TileRows for Strided<'_> {
+    #[inline(always)]
+    fn row(&self, c: usize) -> &[f32] {
+        &self.data[c * self.stride + self.at..]
+    }
+}
+
+impl TileRows for SegmentsMut<'_, '_> {
+    #[inline(always)]
+    fn row(&self, c: usize) -> &[f32] {
+        &self.rows[c][self.at..]
+    }
+}
+
+impl TileRowsMut for SegmentsMut<'_, '_> {
+    #[inline(always)]
+    fn row_mut(&mut self, c: usize) -> &mut [f32] {
+        &mut self.rows[c][self.at..]
+    }
+}
+
+impl TileRows for Dense<'_> {
+    #[inline(always)]
+    fn row(&self, c: usize) -> &[f32] {
+        &self.0[c * TILE..][..TILE]
+    }
+}
+
+impl TileRowsMut for Dense<'_> {
+    #[inline(always)]
+    fn row_mut(&mut self, c: usize) -> &mut [f32] {
+        &mut self.0[c * TILE..][..TILE]
+    }
+}
+
+impl Fused<'_, '_> {
+    #[inline(always)]
+    fn run<S: pulp::Simd, const MR: usize, const NV: usize, const HV: usize>(self, simd: S) {
+        let Fused { ad, rows, res, tp, act, scratch } = self;
+        let (cout, mid) = (rows.len(), ad.mid);
+        let k = Kernel::new(ad, cout, act);
+        let (h, rest) = scratch.split_at_mut(mid * TILE);
+        let (ty, rest) = rest.split_at_mut(cout * TILE);
+        let tr = &mut rest[..cout * TILE];
+        let full = tp / TILE * TILE;
+        for at in (0..full).step_by(TILE) {
+            // The next tile's rows, a plane apart: more streams than the hardware
+            // prefetcher follows.
+            if at + 2 * TILE <= tp {
+                for row in rows.iter() {
+                    prefetch(&row[at + TILE]);
+                    prefetch(&row[at + TILE + TILE / 2]);
+                }
+            }
+            let r = res.map(|r| Strided { at, ..r });
+            k.tile::<S, MR, NV, _, _>(simd, &mut SegmentsMut { rows: &mut *rows, at }, r.as_ref(), h);
+        }
+        if full < tp {
+            let rem = tp - full;
+            let pad = |dst: &mut [f32], src: &[f32]| {
+                dst[..rem].copy_from_slice(&src[full..tp]);
+                dst[rem..].fill(0.0);
+            };
+            for (c, row) in rows.iter().enumerate() {
+                pad(&mut ty[c * TILE..][..TILE], row);
+            }
+            if let Some(r) = res {
+                for c in 0..cout {
+                    pad(&mut tr[c * TILE..][..TILE], r.row(c));
+                }
+            }
+            let r = res.map(|_| Dense(&mut *tr));
+            // A tail of at most half a tile in a half tile (`HV` vectors).
+            if rem <= TILE / 2 {
+                k.tile::<S, MR, HV, _, _>(simd, &mut Dense(&mut *ty), r.as_ref(), h);
+            } else {
+                k.tile::<S, MR, NV, _, _>(simd, &mut Dense(&mut *ty), r.as_ref(), h);
+            }
+            for (c, row) in rows.iter_mut().enumerate() {
+                row[full..tp].copy_from_slice(&ty[c * TILE..][..rem]);
+            }
+        }
+        if let Some(f) = act.filter(|_| k.outer.is_none()) {
+            for row in rows.iter_mut() {
+                elementwise::activation_chunk(f, &mut row[..tp]);
+            }
+        }
+    }
+}
+
+/// What every tile of [`Fused`] shares.
+#[derive(Clone, Copy)]
+struct Kernel<'a> {
+    ad: &'a Adapter<'a>,
+    cout: usize,
+    /// The adapter's activation when it is a clamp (applied in registers).
+    inner: Option<(f32, f32)>,
+    /// The step's activation when it is a clamp.
+    outer: Option<(f32, f32)>,
+}
+
+impl<'a> Kernel<'a> {
+    fn new(ad: &'a Adapter<'a>, cout: usize, act: Option<Activation>) -> Kernel<'a> {
+        let clamp = |a: Option<Activation>| crate::kernels::Epilogue { scale: None, shift: None, act: a }.clamp();
+        Kernel { ad, cout, inner: clamp(Some(ad.act)), outer: clamp(act) }
+    }
+
+    /// One tile: `h` (at least `mid · TILE` floats) from `y`, then `y` updated.
+    #[inline(always)]
+    fn tile<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
+        self,
+        simd: S,
+        y: &mut Y,
+        res: Option<&R>,
+        h: &mut [f32],
+    ) {
+        self.down_tile::<S, MR, NV, Y>(simd, y, h);
+        self.up_tile::<S, MR, NV, Y, R>(simd, y, res, h);
+    }
+
+    /// The tile's `h = act(down · y + bd)`, `mid` rows of `NV` vectors in `h`.
+    #[inline(always)]
+    fn down_tile<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(self, simd: S, y: &Y, h: &mut [f32]) {
+        let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
+        let h = &mut h[..mid * width];
+        {
+            let (hv, _) = S::as_mut_simd_f32s(h);
+            let mut m = 0;
+            while m < mid {
+                let left = mid - m;
+                m += if left >= MR {
+                    self.down::<S, MR, NV, Y>(simd, y, m, hv)
+                } else if left >= 4 && MR > 4 {
+                    self.down::<S, 4, NV, Y>(simd, y, m, hv)
+                } else if left >= 2 {
+                    self.down::<S, 2, NV, Y>(simd, y, m, hv)
+                } else {
+                    self.down::<S, 1, NV, Y>(simd, y, m, hv)
+                };
+            }
+        }
+        if self.inner.is_none() {
+            elementwise::activation_chunk(self.ad.act, h);
+        }
+    }
+
+    /// The tile's `y += up · h + bu (+ res)`, clamped.
+    #[inline(always)]
+    fn up_tile<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
+        self,
+        simd: S,
+        y: &mut Y,
+        res: Option<&R>,
+        h: &[f32],
+    ) {
+        let width = NV * size_of::<S::f32s>() / size_of::<f32>();
+        let (hv, _) = S::as_simd_f32s(&h[..self.ad.mid * width]);
+        let mut c = 0;
+        while c < self.cout {
+            let left = self.cout - c;
+            c += if left >= MR {
+                self.up::<S, MR, NV, Y, R>(simd, y, res, c, hv)
+            } else if left >= 4 && MR > 4 {
+                self.up::<S, 4, NV, Y, R>(simd, y, res, c, hv)
+            } else if left >= 2 {
+                self.up::<S, 2, NV, Y, R>(simd, y, res, c, hv)
+            } else {
+                self.up::<S, 1, NV, Y, R>(simd, y, res, c, hv)
+            };
+        }
+    }
+
+    /// Bottleneck rows `m0..m0 + MR` of the tile's `h`.
+    #[inline(always)]
+    fn down<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(
+        self,
+        simd: S,
+        y: &Y,
+        m0: usize,
+        hv: &mut [S::f32s],
+    ) -> usize {
+        let cout = self.cout;
+        let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.down[(m0 + r) * cout..][..cout]);
+        let width = NV * size_of::<S::f32s>() / size_of::<f32>();
+        let acc = rows_product::<S, MR, NV>(simd, a, (0..cout).map(|c| S::as_simd_f32s(&y.row(c)[..width]).0));
+        for (r, sums) in acc.iter().enumerate() {
+            let b = simd.splat_f32s(self.ad.down_bias[m0 + r]);
+            for (d, &v) in hv[(m0 + r) * NV..][..NV].iter_mut().zip(sums) {
+                let z = simd.add_f32s(v, b);
+                *d = self.inner.map_or(z, |cl| super::clamp_vector(simd, z, cl));
+            }
+        }
+        MR
+    }
+
+    /// Channels `c0..c0 + MR` of the tile: `y += up · h + bu (+ res)`, clamped.
+    #[inline(always)]
+    fn up<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
+        self,
+        simd: S,
+        y: &mut Y,
+        res: Option<&R>,
+        c0: usize,
+        hv: &[S::f32s],
+    ) -> usize {
+        let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
+        let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.up[(c0 + r) * mid..][..mid]);
+        let acc = rows_product::<S, MR, NV>(simd, a, hv.chunks_exact(NV));
+        for (r, sums) in acc.iter().enumerate() {
+            let c = c0 + r;
+            let b = simd.splat_f32s(self.ad.up_bias[c]);
+            let rv = res.map(|q| S::as_simd_f32s(&q.row(c)[..width]).0);
+            let (dst, _) = S::as_mut_simd_f32s(&mut y.row_mut(c)[..width]);
+            for v in 0..NV {
+                let mut z = simd.add_f32s(simd.add_f32s(sums[v], b), dst[v]);
+                if let Some(rv) = rv {
+                    z = simd.add_f32s(z, rv[v]);
+                }
+                dst[v] = self.outer.map_or(z, |cl| super::clamp_vector(simd, z, cl));
+            }
+        }
+        MR
     }
 }
 
@@ -447,69 +709,97 @@ mod tests {
     }
 
     #[test]
-    fn planes_of_several_chunks() {
-        // 60x60 = 3600 pixels at 16 + 4 channels: chunks of 3264, two per image.
+    fn large_planes_and_several_images() {
+        // Many tiles a part, split by rows (in the parts) on two and three threads.
         let s = shape(2, 4, (60, 60), 16, 3, 1, 1);
-        assert_eq!(chunk(16, 4, 3600), 3264);
         check(&s, ConvAlgo::Winograd4, 4, Activation::Relu);
-        // Odd chunk counts over two threads.
         let s = shape(3, 4, (30, 30), 16, 3, 1, 1);
         check(&s, ConvAlgo::Winograd2, 4, Activation::Relu);
+        // Split by channels on two threads: after the conv, pixels shared.
+        let s = shape(1, 8, (14, 14), 64, 3, 1, 1);
+        assert_eq!(split_shape(&s, ConvAlgo::Winograd4, 2), (1, 2));
+        check(&s, ConvAlgo::Winograd4, 32, Activation::Relu);
     }
 
-    #[test]
-    fn rounds_of_chunks_and_uneven_channel_shares() {
-        // 100x100 at 16 + 16 channels on two threads: six chunks of 1680 pixels, whose
-        // bottleneck rows (16 x 1680 each) fill the scratch (2 x 32 x 2048) four at a
-        // time: two rounds. Three threads share 20 channels as 8, 8 and 4.
-        let s = shape(1, 4, (100, 100), 16, 3, 1, 1);
-        assert_eq!(chunks(&s, 16, 2), (1680, 6));
-        assert_eq!(planes_scratch_len(&s, 16, 2) / (16 * 1680), 4);
-        let (down, up) = (data(16 * 16, 21), data(16 * 16, 22));
-        let (bd, bu) = (data(16, 23), data(16, 24));
-        let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid: 16, act: Activation::Relu };
-        let y = data(16 * 10_000, 25);
-        let run = |threads: usize| {
-            let mut out = y.clone();
-            let mut scratch = vec![f32::NAN; planes_scratch_len(&s, 16, threads)];
-            apply_planes(&s, &ad, &mut out, Some(Activation::Relu), None, &mut scratch, threads);
-            out
-        };
-        let one = run(1);
-        // One thread against a naive loop at a few pixels, then two threads against one.
-        for p in [0, 1679, 1680, 9999] {
-            for c in [0, 7, 15] {
-                let at = |c: usize| f64::from(y[c * 10_000 + p]);
-                let h: Vec<f64> = (0..16)
+    /// The adapter on planes `[n, cout, plane]` by the definition, in f64, then `act`.
+    fn naive(y: &[f32], n: usize, cout: usize, plane: usize, ad: &Adapter, act: Option<Activation>) -> Vec<f32> {
+        let mut out = vec![0.0f32; y.len()];
+        for i in 0..n {
+            for p in 0..plane {
+                let at = |c: usize| f64::from(y[(i * cout + c) * plane + p]);
+                let h: Vec<f64> = (0..ad.mid)
                     .map(|m| {
-                        ((0..16).map(|k| f64::from(down[m * 16 + k]) * at(k)).sum::<f64>() + f64::from(bd[m])).max(0.0)
+                        let d: f64 = (0..cout).map(|c| f64::from(ad.down[m * cout + c]) * at(c)).sum();
+                        act64(ad.act, d + f64::from(ad.down_bias[m]))
                     })
                     .collect();
-                let z = at(c) + (0..16).map(|m| f64::from(up[c * 16 + m]) * h[m]).sum::<f64>() + f64::from(bu[c]);
-                assert!((f64::from(one[c * 10_000 + p]) - z.max(0.0)).abs() < 1e-4, "pixel {p} channel {c}");
+                for c in 0..cout {
+                    let u: f64 = (0..ad.mid).map(|m| f64::from(ad.up[c * ad.mid + m]) * h[m]).sum();
+                    let z = at(c) + u + f64::from(ad.up_bias[c]);
+                    out[(i * cout + c) * plane + p] = act.map_or(z, |a| a.reference(z)) as f32;
+                }
             }
         }
-        assert_close(&run(2), &one, 1e-6);
-        check(&shape(2, 4, (9, 9), 20, 3, 1, 1), ConvAlgo::Winograd2, 5, Activation::Silu);
+        out
     }
 
+    /// [`apply_fused`] (AdaBN's way in) on planes of whole tiles, a tail of more and of less
+    /// than half a tile, several images, pieces that cross images (3 images on 2 threads)
+    /// and bottlenecks that are not a whole micro-tile, against the definition.
     #[test]
-    fn chunks_are_shared_evenly() {
-        // Five chunks of 56x56 become six for two threads.
-        assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 2), (528, 6));
-        assert_eq!(chunks(&shape(1, 8, (56, 56), 64, 3, 1, 1), 32, 1), (672, 5));
-        // Two chunks of 14x14 at 256 + 128 channels: 112 and 84 pixels, not 160 and 36.
-        assert_eq!(chunks(&shape(1, 8, (14, 14), 256, 3, 1, 1), 128, 2), (112, 2));
+    fn tiles_tails_and_pieces_match_the_definition() {
+        for (n, cout, hw, mid, act) in [
+            (1, 16, (8, 8), 8, Activation::Relu),
+            (1, 16, (7, 7), 5, Activation::Relu),
+            (3, 20, (9, 9), 5, Activation::Sigmoid),
+            (2, 12, (4, 4), 3, Activation::Relu),
+            (1, 19, (10, 5), 11, Activation::Tanh),
+        ] {
+            let s = shape(n, 4, hw, cout, 3, 1, 1);
+            let plane = s.oh * s.ow;
+            let (down, up) = (data(mid * cout, 21), data(cout * mid, 22));
+            let (bd, bu) = (data(mid, 23), data(cout, 24));
+            let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid, act };
+            let y = data(n * cout * plane, 25);
+            for step_act in [None, Some(Activation::Relu), Some(Activation::Silu)] {
+                let want = naive(&y, n, cout, plane, &ad, step_act);
+                for threads in [1, 2, 3] {
+                    let mut out = y.clone();
+                    let mut scratch = vec![f32::NAN; threads * fused_scratch_len(cout, mid)];
+                    super::super::adapter_after(&s, &ad, &mut out, step_act, &mut scratch, threads);
+                    assert_close(&out, &want, 1e-5);
+                }
+            }
+        }
     }
 
+    /// [`Fused`] compiled for every SIMD width the machine has (each its own micro-tile
+    /// and tail), on a plane of two tiles and a tail, with a residual and ReLU.
     #[test]
-    fn a_small_image_shares_the_bottleneck_rows() {
-        // 7x7 at 40 + 20 channels fits one chunk: `down` split by bottleneck rows (16 + 4
-        // on two threads, 8 + 8 + 4 on three), `up` by channels (24 + 16).
-        let s = shape(2, 8, (7, 7), 40, 3, 1, 1);
-        assert!(s.oh * s.ow <= chunk(40, 20, 49));
-        check(&s, ConvAlgo::Winograd2, 20, Activation::Relu);
-        check(&shape(1, 8, (7, 7), 64, 3, 1, 1), ConvAlgo::Winograd2, 32, Activation::Silu);
+    fn every_simd_width_matches_the_definition() {
+        use crate::kernels::testutil::backends;
+        let (cout, mid, plane) = (13, 6, 2 * TILE + 7);
+        let (down, up) = (data(mid * cout, 31), data(cout * mid, 32));
+        let (bd, bu) = (data(mid, 33), data(cout, 34));
+        let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid, act: Activation::Relu };
+        let (y, res) = (data(cout * plane, 35), data(cout * plane, 36));
+        let sum: Vec<f32> = y.iter().zip(&res).map(|(a, b)| a + b).collect();
+        // The residual enters after the adapter: the definition on `y`, plus `res`, ReLU.
+        let want: Vec<f32> = naive(&y, 1, cout, plane, &ad, None)
+            .iter()
+            .zip(&res)
+            .map(|(&z, &r)| (f64::from(z) + f64::from(r)).max(0.0) as f32)
+            .collect();
+        assert!(sum.iter().any(|&v| v < 0.0), "ReLU has work to do");
+        for b in backends() {
+            let mut out = y.clone();
+            let mut rows: Vec<&mut [f32]> = out.chunks_mut(plane).collect();
+            let mut scratch = vec![f32::NAN; fused_scratch_len(cout, mid)];
+            let res = Some(Strided { data: &res, stride: plane, at: 0 });
+            let act = Some(Activation::Relu);
+            b.run(Fused { ad: &ad, rows: &mut rows, res, tp: plane, act, scratch: &mut scratch });
+            assert_close(&out, &want, 1e-5);
+        }
     }
 
     /// A residual with an adapter is added after the adapter, then the activation: in the
@@ -524,6 +814,8 @@ mod tests {
             (shape(2, 6, (13, 12), 8, 3, 1, 1), ConvAlgo::Winograd2, 4),
             (shape(2, 8, (7, 7), 40, 3, 1, 1), ConvAlgo::Winograd2, 20),
             (shape(1, 4, (60, 60), 16, 3, 1, 1), ConvAlgo::Winograd2, 16),
+            // Split by channels on two threads (a 5x5 plane, 64 channels), by rows on three.
+            (shape(1, 8, (5, 5), 64, 3, 1, 1), ConvAlgo::Winograd2, 16),
         ] {
             let fan_in = s.cin * s.kh * s.kw;
             let x = data(s.n * s.cin * s.h * s.w, 41);
@@ -545,8 +837,8 @@ mod tests {
                     .collect();
                 let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
                 for threads in [1, 2, 3] {
-                    if mid == 16 && threads > 1 {
-                        assert!(chunks(&s, mid, threads).1 > 1, "several chunks an image");
+                    if s.cout == 64 {
+                        assert_eq!(split_shape(&s, algo, threads).1 > 1, threads == 2);
                     }
                     let mut scratch = vec![f32::NAN; adapter_scratch_len(&s, algo, 0, mid, threads).expect("a size")];
                     let mut out = vec![f32::NAN; want.len()];

@@ -39,8 +39,9 @@
 //!
 //! A layer may also carry a residual bottleneck adapter on its output ([`Adapter`],
 //! `adapter.rs`): `y + up · act(down · y + bd) + bu` between the epilogue's shift and its
-//! ReLU, computed per chunk of pixels (all channels) while the chunk is in cache: inside
-//! the GEMM paths' tile under a row split, else in one pass over the finished output.
+//! ReLU, computed per tile of pixels (all channels) while the tile is in cache: inside the
+//! GEMM paths' tile under a row split, in each thread's part right after the conv under
+//! another row split, else in one threaded pass over the finished output.
 //!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
@@ -151,13 +152,21 @@ pub fn adapter_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, mid: us
     if mid == 0 {
         return Some(conv);
     }
-    // In the tiles: the bottleneck rows of a tile beside each part's scratch. After the
-    // conv (and for AdaBN's [`adapter_after`]): the pass over the output, which reuses
-    // the conv's scratch.
-    let tile = parts(s, algo, threads).checked_mul(gemm_tile(s, algo))?.checked_mul(mid)?;
-    let in_tile = if adapter_in_tile(s, algo, threads) { conv.checked_add(tile)? } else { conv };
-    let per = s.cout.checked_add(mid)?.checked_mul(adapter::chunk(s.cout, mid, s.oh * s.ow))?;
-    Some(in_tile.max(threads.max(1).checked_mul(per)?))
+    // A tile's worth of work space (cannot overflow within `check`'s bounds): after the
+    // conv, over its output, per thread, reusing the conv's scratch (also AdaBN's
+    // [`adapter_after`]); in a part split by rows, beside the part's conv scratch.
+    let work = adapter::fused_scratch_len(s.cout, mid);
+    let after = conv.max(threads.max(1).checked_mul(work)?);
+    let parts = parts(s, algo, threads);
+    if adapter_in_tile(s, algo, threads) {
+        // The bottleneck rows of a tile beside each part's scratch.
+        let tile = parts.checked_mul(gemm_tile(s, algo))?.checked_mul(mid)?;
+        return Some(after.max(conv.checked_add(tile)?));
+    }
+    if algo == ConvAlgo::Depthwise || split_shape(s, algo, threads).1 > 1 {
+        return Some(after);
+    }
+    Some(after.max(parts.checked_mul(part_scratch(s, algo, rank).checked_add(work)?)?))
 }
 
 /// Whether [`conv2d_adapter`] computes a layer's adapter inside its GEMM tiles: a GEMM
@@ -436,26 +445,44 @@ pub fn conv2d_fused(
         // im2col would unfold into shallow GEMMs.
         direct::conv(s, packed_weight, &conv_ep, x, out, scratch, threads);
     } else {
+        let ad_act = ep.act.filter(|_| res_after.is_none());
         let ep = &conv_ep;
-        let per = part_scratch(s, algo, rank) + in_tile.map_or(0, |a| a.mid * gemm_tile(s, algo));
+        // An adapter after the conv runs in the conv's parts, on the planes each thread
+        // just wrote: whole on a part of every channel (a split by rows), or, split by
+        // channels, its bottleneck sums over the part's channels, then after a join the
+        // part's channels finished from everyone's sums.
+        // An adapter after the conv: in each part split by rows (every channel of its
+        // pixels), on the planes its thread just wrote; split by channels, after the join.
+        let in_parts = after.filter(|_| split_shape(s, algo, threads).1 == 1);
+        let conv_len = part_scratch(s, algo, rank) + in_tile.map_or(0, |a| a.mid * gemm_tile(s, algo));
+        let per = conv_len + in_parts.map_or(0, |a| adapter::fused_scratch_len(s.cout, a.mid));
         let mut jobs: Vec<(Part, &mut [f32])> =
             split(out, res_in_rows, s, algo, threads).into_iter().zip(scratch.chunks_mut(per.max(1))).collect();
-        let run = |(part, scratch): &mut (Part, &mut [f32])| match algo {
-            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => {
-                gemm_part(s, algo, packed_weight, lora, in_tile, ep, x, part, scratch)
+        let run = |(part, scratch): &mut (Part, &mut [f32])| {
+            let (scratch, work) = scratch.split_at_mut(conv_len);
+            match algo {
+                ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => {
+                    gemm_part(s, algo, packed_weight, lora, in_tile, ep, x, part, scratch)
+                }
+                ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, lora, ep, x, part, scratch),
+                ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, lora, ep, x, part, scratch),
+                ConvAlgo::Depthwise => unreachable!("handled above"),
             }
-            ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, lora, ep, x, part, scratch),
-            ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, lora, ep, x, part, scratch),
-            ConvAlgo::Depthwise => unreachable!("handled above"),
+            if let Some(a) = in_parts {
+                adapter::apply_part(s, a, part, ad_act, res_in_adapter, work);
+            }
         };
         if jobs.len() == 1 {
             run(&mut jobs[0]);
         } else {
             jobs.par_iter_mut().for_each(run);
         }
+        if let Some(a) = after.filter(|_| in_parts.is_none()) {
+            adapter::apply_fused(s, a, out, ad_act, res_in_adapter, scratch, threads);
+        }
     }
-    if let Some(a) = after {
-        adapter::apply_planes(s, a, out, ep.act.filter(|_| res_after.is_none()), res_in_adapter, scratch, threads);
+    if let Some(a) = after.filter(|_| algo == ConvAlgo::Depthwise) {
+        adapter::apply_fused(s, a, out, ep.act.filter(|_| res_after.is_none()), res_in_adapter, scratch, threads);
     }
     if let Some(r) = res_after {
         crate::kernels::elementwise::add_in_place(out, r, ep.act);
@@ -481,8 +508,9 @@ pub fn adapter_after(
         panic!("conv: {e}");
     }
     assert_eq!(out.len(), s.n * s.cout * s.oh * s.ow, "conv: output length");
-    assert!(scratch.len() >= adapter::planes_scratch_len(s, ad.mid, threads), "conv: adapter scratch");
-    adapter::apply_planes(s, ad, out, act, None, scratch, threads);
+    let need = threads.max(1) * adapter::fused_scratch_len(s.cout, ad.mid);
+    assert!(scratch.len() >= need, "conv: adapter scratch");
+    adapter::apply_fused(s, ad, out, act, None, scratch, threads);
 }
 
 #[track_caller]
@@ -527,18 +555,8 @@ fn store_vector<S: pulp::Simd>(
     out: &mut [f32],
 ) {
     let mut y = simd.mul_add_f32s(acc, scale, shift);
-    if let Some((lo, hi)) = clamp {
-        // A NaN sum stays NaN, as the element-wise activations keep it: x86's vector max
-        // and min return their second operand when either is NaN, so the bound goes
-        // first; the scalar backend's (`f32::max`) drop NaN, so it compares instead
-        // (slower on vectors: 1.07-1.15x a depthwise layer's time).
-        let vector = size_of::<S::f32s>() > size_of::<f32>();
-        let b = simd.splat_f32s(lo);
-        y = if vector { simd.max_f32s(b, y) } else { simd.select_f32s(simd.less_than_f32s(y, b), b, y) };
-        if hi < f32::INFINITY {
-            let b = simd.splat_f32s(hi);
-            y = if vector { simd.min_f32s(b, y) } else { simd.select_f32s(simd.greater_than_f32s(y, b), b, y) };
-        }
+    if let Some(bounds) = clamp {
+        y = clamp_vector(simd, y, bounds);
     }
     let lanes = size_of::<S::f32s>() / size_of::<f32>();
     if out.len() == lanes {
@@ -549,6 +567,23 @@ fn store_vector<S: pulp::Simd>(
         S::as_mut_simd_f32s(lane).0[0] = y;
         out.copy_from_slice(&lane[..out.len()]);
     }
+}
+
+/// `y` clamped to `lo..=hi` (a ReLU, ReLU6 or clamp: [`Epilogue::clamp`]), NaN kept.
+#[inline(always)]
+fn clamp_vector<S: pulp::Simd>(simd: S, y: S::f32s, (lo, hi): (f32, f32)) -> S::f32s {
+    // A NaN sum stays NaN, as the element-wise activations keep it: x86's vector max and
+    // min return their second operand when either is NaN, so the bound goes first; the
+    // scalar backend's (`f32::max`) drop NaN, so it compares instead (slower on vectors:
+    // 1.07-1.15x a depthwise layer's time).
+    let vector = size_of::<S::f32s>() > size_of::<f32>();
+    let b = simd.splat_f32s(lo);
+    let mut y = if vector { simd.max_f32s(b, y) } else { simd.select_f32s(simd.less_than_f32s(y, b), b, y) };
+    if hi < f32::INFINITY {
+        let b = simd.splat_f32s(hi);
+        y = if vector { simd.min_f32s(b, y) } else { simd.select_f32s(simd.greater_than_f32s(y, b), b, y) };
+    }
+    y
 }
 
 /// Copies input plane `xc` into the interior of its zero-padded copy `out` (rows of `cols =

@@ -88,6 +88,12 @@ impl<'a> Part<'a> {
         self.residuals.get((n - self.n0) * (self.c1 - self.c0) + c - self.c0).copied()
     }
 
+    /// Its slices of the planes, per image it touches and channel within an image (see
+    /// `planes`).
+    pub(super) fn planes_mut(&mut self) -> &mut [&'a mut [f32]] {
+        &mut self.planes
+    }
+
     /// The channels of group `g` this part computes.
     pub(super) fn channels_of(&self, g: usize, cout_g: usize) -> std::ops::Range<usize> {
         self.c0.max(g * cout_g)..self.c1.min((g + 1) * cout_g)
