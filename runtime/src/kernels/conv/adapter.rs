@@ -181,6 +181,9 @@ pub(super) fn apply_fused(
     if plane == 0 || s.n == 0 {
         return;
     }
+    if by_weights(s, ad.mid, threads) {
+        return apply_by_weights(s, ad, out, act, res, scratch, threads);
+    }
     // The threads share whole half tiles (a 28x28 plane: 25 and 24 of them).
     let unit = TILE / 2;
     let tiles = plane.div_ceil(unit);
@@ -221,6 +224,211 @@ pub(super) fn apply_fused(
         run((pieces.pop().expect("one worker"), scratch));
     } else {
         pieces.into_par_iter().zip(scratch.par_chunks_mut(per)).for_each(run);
+    }
+}
+
+/// Scratch floats [`apply_fused`] needs at this thread count.
+pub(super) fn fused_after_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
+    let per_thread = threads.max(1) * fused_scratch_len(s.cout, mid);
+    if by_weights(s, mid, threads) {
+        per_thread.max(mid * (s.oh * s.ow).div_ceil(TILE) * TILE + threads * 2 * s.cout * TILE)
+    } else {
+        per_thread
+    }
+}
+
+/// Whether [`apply_fused`] shares the adapter's weights between the threads instead of
+/// the pixels: when the two weights hold more values than the output (ResNet-18's 14x14
+/// and 7x7 stages), each thread would otherwise stream both whole weights for a few
+/// tiles.
+fn by_weights(s: &Conv2dShape, mid: usize, threads: usize) -> bool {
+    threads > 1 && 2 * mid > s.n * s.oh * s.ow
+}
+
+/// [`apply_fused`] sharing the weights: per image, `h` of every tile by bottleneck rows
+/// (each thread reads its rows of `down`), a join, then `y` by channels (its rows of `up`,
+/// and the planes it writes).
+fn apply_by_weights(
+    s: &Conv2dShape,
+    ad: &Adapter,
+    out: &mut [f32],
+    act: Option<Activation>,
+    res: Option<&[f32]>,
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    let (cout, mid, plane) = (s.cout, ad.mid, s.oh * s.ow);
+    let stride = plane.div_ceil(TILE) * TILE;
+    let (hs, pads) = scratch.split_at_mut(mid * stride);
+    let k = Kernel::new(ad, cout, act);
+    // Whole micro-tiles of rows and channels a thread.
+    let rows_per = mid.div_ceil(threads).next_multiple_of(8).min(mid);
+    let chans_per = cout.div_ceil(threads).next_multiple_of(8).min(cout);
+    let pad_len = 2 * cout * TILE;
+    for (i, image) in out.chunks_mut(cout * plane).enumerate() {
+        let res = res.map(|r| &r[i * cout * plane..][..cout * plane]);
+        let y: &[f32] = image;
+        hs.par_chunks_mut(rows_per * stride).zip(pads.par_chunks_mut(pad_len)).enumerate().for_each(|(w, (h, pad))| {
+            let rows = w * rows_per..((w + 1) * rows_per).min(mid);
+            pulp::Arch::new().dispatch(ByRows { k, y, plane, rows, h, pad });
+        });
+        let h: &[f32] = hs;
+        image.par_chunks_mut(chans_per * plane).zip(pads.par_chunks_mut(pad_len)).enumerate().for_each(
+            |(w, (planes, pad))| {
+                let c0 = w * chans_per;
+                let chans = c0..(c0 + chans_per).min(cout);
+                pulp::Arch::new().dispatch(ByChannels { k, planes, chans, plane, res, h, pad, act });
+            },
+        );
+    }
+}
+
+/// The width [`Fused`] computes the tile at `at` of a plane of `plane` pixels in: a whole
+/// tile, or half of one for a tail that fits it.
+fn tile_width(plane: usize, at: usize) -> usize {
+    if plane - at > TILE / 2 { TILE } else { TILE / 2 }
+}
+
+/// Phase one of [`apply_by_weights`]: bottleneck rows `rows` of every tile of image `y`
+/// into `h` (rows a padded plane apart), a tail tile through `pad`.
+struct ByRows<'a> {
+    k: Kernel<'a>,
+    y: &'a [f32],
+    plane: usize,
+    rows: std::ops::Range<usize>,
+    h: &'a mut [f32],
+    pad: &'a mut [f32],
+}
+
+impl pulp::WithSimd for ByRows<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        match size_of::<S::f32s>() / size_of::<f32>() {
+            16 => self.run::<S, 8, 2, 1>(simd),
+            8 => self.run::<S, 3, 4, 2>(simd),
+            4 => self.run::<S, 2, 8, 4>(simd),
+            _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
+        }
+    }
+}
+
+impl ByRows<'_> {
+    #[inline(always)]
+    fn run<S: pulp::Simd, const MR: usize, const NV: usize, const HV: usize>(self, simd: S) {
+        let ByRows { k, y, plane, rows, h, pad } = self;
+        let stride = plane.div_ceil(TILE) * TILE;
+        for at in (0..plane).step_by(TILE) {
+            let ht = &mut h[at..];
+            if at + TILE <= plane {
+                let y = Strided { data: y, stride: plane, at };
+                k.down_rows::<S, MR, NV, _>(simd, &y, rows.clone(), ht, stride);
+                continue;
+            }
+            let rem = plane - at;
+            let pad = &mut pad[..k.cout * TILE];
+            for (c, d) in pad.chunks_mut(TILE).enumerate() {
+                d[..rem].copy_from_slice(&y[c * plane + at..][..rem]);
+                d[rem..].fill(0.0);
+            }
+            if tile_width(plane, at) < TILE {
+                k.down_rows::<S, MR, HV, _>(simd, &Dense(pad), rows.clone(), ht, stride);
+            } else {
+                k.down_rows::<S, MR, NV, _>(simd, &Dense(pad), rows.clone(), ht, stride);
+            }
+        }
+        if k.inner.is_none() {
+            elementwise::activation_chunk(k.ad.act, h);
+        }
+    }
+}
+
+/// Phase two of [`apply_by_weights`]: channels `chans` (their planes `planes`) of every
+/// tile from every tile's `h`, plus the residual `res` (the image's), then `act`.
+struct ByChannels<'a> {
+    k: Kernel<'a>,
+    planes: &'a mut [f32],
+    chans: std::ops::Range<usize>,
+    plane: usize,
+    res: Option<&'a [f32]>,
+    h: &'a [f32],
+    pad: &'a mut [f32],
+    act: Option<Activation>,
+}
+
+impl pulp::WithSimd for ByChannels<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        match size_of::<S::f32s>() / size_of::<f32>() {
+            16 => self.run::<S, 8, 2, 1>(simd),
+            8 => self.run::<S, 3, 4, 2>(simd),
+            4 => self.run::<S, 2, 8, 4>(simd),
+            _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
+        }
+    }
+}
+
+impl ByChannels<'_> {
+    #[inline(always)]
+    fn run<S: pulp::Simd, const MR: usize, const NV: usize, const HV: usize>(self, simd: S) {
+        let ByChannels { k, planes, chans, plane, res, h, pad, act } = self;
+        let (stride, c0, cout) = (plane.div_ceil(TILE) * TILE, chans.start, k.cout);
+        let (py, pr) = pad.split_at_mut(cout * TILE);
+        for at in (0..plane).step_by(TILE) {
+            let ht = &h[at..];
+            if at + TILE <= plane {
+                let r = res.map(|data| Strided { data, stride: plane, at });
+                let mut y = StridedMut { data: &mut *planes, stride: plane, c0, at };
+                k.up_chans::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), ht, stride);
+                continue;
+            }
+            let rem = plane - at;
+            for c in chans.clone() {
+                let d = &mut py[c * TILE..][..TILE];
+                d[..rem].copy_from_slice(&planes[(c - c0) * plane + at..][..rem]);
+                d[rem..].fill(0.0);
+                if let Some(r) = res {
+                    let d = &mut pr[c * TILE..][..TILE];
+                    d[..rem].copy_from_slice(&r[c * plane + at..][..rem]);
+                    d[rem..].fill(0.0);
+                }
+            }
+            let r = res.map(|_| Dense(&mut *pr));
+            if tile_width(plane, at) < TILE {
+                k.up_chans::<S, MR, HV, _, _>(simd, &mut Dense(&mut *py), r.as_ref(), chans.clone(), ht, stride);
+            } else {
+                k.up_chans::<S, MR, NV, _, _>(simd, &mut Dense(&mut *py), r.as_ref(), chans.clone(), ht, stride);
+            }
+            for c in chans.clone() {
+                planes[(c - c0) * plane + at..][..rem].copy_from_slice(&py[c * TILE..][..rem]);
+            }
+        }
+        if let Some(f) = act.filter(|_| k.outer.is_none()) {
+            elementwise::activation_chunk(f, planes);
+        }
+    }
+}
+
+/// [`Strided`] that [`ByChannels`] writes: channels from `c0` on.
+struct StridedMut<'s> {
+    data: &'s mut [f32],
+    stride: usize,
+    c0: usize,
+    at: usize,
+}
+
+impl TileRows for StridedMut<'_> {
+    #[inline(always)]
+    fn row(&self, c: usize) -> &[f32] {
+        &self.data[(c - self.c0) * self.stride + self.at..]
+    }
+}
+
+impl TileRowsMut for StridedMut<'_> {
+    #[inline(always)]
+    fn row_mut(&mut self, c: usize) -> &mut [f32] {
+        &mut self.data[(c - self.c0) * self.stride + self.at..]
     }
 }
 
@@ -436,24 +644,38 @@ impl<'a> Kernel<'a> {
     fn down_tile<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(self, simd: S, y: &Y, h: &mut [f32]) {
         let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
         let h = &mut h[..mid * width];
-        {
-            let (hv, _) = S::as_mut_simd_f32s(h);
-            let mut m = 0;
-            while m < mid {
-                let left = mid - m;
-                m += if left >= MR {
-                    self.down::<S, MR, NV, Y>(simd, y, m, hv)
-                } else if left >= 4 && MR > 4 {
-                    self.down::<S, 4, NV, Y>(simd, y, m, hv)
-                } else if left >= 2 {
-                    self.down::<S, 2, NV, Y>(simd, y, m, hv)
-                } else {
-                    self.down::<S, 1, NV, Y>(simd, y, m, hv)
-                };
-            }
-        }
+        self.down_rows::<S, MR, NV, Y>(simd, y, 0..mid, h, width);
         if self.inner.is_none() {
             elementwise::activation_chunk(self.ad.act, h);
+        }
+    }
+
+    /// Bottleneck rows `rows` of the tile's `h` (before a non-clamp activation) into `h`,
+    /// its rows `stride` floats apart from `rows.start`.
+    #[inline(always)]
+    fn down_rows<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(
+        self,
+        simd: S,
+        y: &Y,
+        rows: std::ops::Range<usize>,
+        h: &mut [f32],
+        stride: usize,
+    ) {
+        let hs = stride / (size_of::<S::f32s>() / size_of::<f32>());
+        let (hv, _) = S::as_mut_simd_f32s(h);
+        let mut m = rows.start;
+        while m < rows.end {
+            let left = rows.end - m;
+            let at = (m - rows.start) * hs;
+            m += if left >= MR {
+                self.down::<S, MR, NV, Y>(simd, y, m, &mut hv[at..], hs)
+            } else if left >= 4 && MR > 4 {
+                self.down::<S, 4, NV, Y>(simd, y, m, &mut hv[at..], hs)
+            } else if left >= 2 {
+                self.down::<S, 2, NV, Y>(simd, y, m, &mut hv[at..], hs)
+            } else {
+                self.down::<S, 1, NV, Y>(simd, y, m, &mut hv[at..], hs)
+            };
         }
     }
 
@@ -467,23 +689,41 @@ impl<'a> Kernel<'a> {
         h: &[f32],
     ) {
         let width = NV * size_of::<S::f32s>() / size_of::<f32>();
-        let (hv, _) = S::as_simd_f32s(&h[..self.ad.mid * width]);
-        let mut c = 0;
-        while c < self.cout {
-            let left = self.cout - c;
+        self.up_chans::<S, MR, NV, Y, R>(simd, y, res, 0..self.cout, &h[..self.ad.mid * width], width);
+    }
+
+    /// Channels `chans` of the tile: `y += up · h + bu (+ res)`, clamped; `h`'s rows
+    /// `stride` floats apart.
+    #[inline(always)]
+    fn up_chans<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
+        self,
+        simd: S,
+        y: &mut Y,
+        res: Option<&R>,
+        chans: std::ops::Range<usize>,
+        h: &[f32],
+        stride: usize,
+    ) {
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let (hv, _) = S::as_simd_f32s(h);
+        let hs = stride / lanes;
+        let mut c = chans.start;
+        while c < chans.end {
+            let left = chans.end - c;
             c += if left >= MR {
-                self.up::<S, MR, NV, Y, R>(simd, y, res, c, hv)
+                self.up::<S, MR, NV, Y, R>(simd, y, res, c, hv, hs)
             } else if left >= 4 && MR > 4 {
-                self.up::<S, 4, NV, Y, R>(simd, y, res, c, hv)
+                self.up::<S, 4, NV, Y, R>(simd, y, res, c, hv, hs)
             } else if left >= 2 {
-                self.up::<S, 2, NV, Y, R>(simd, y, res, c, hv)
+                self.up::<S, 2, NV, Y, R>(simd, y, res, c, hv, hs)
             } else {
-                self.up::<S, 1, NV, Y, R>(simd, y, res, c, hv)
+                self.up::<S, 1, NV, Y, R>(simd, y, res, c, hv, hs)
             };
         }
     }
 
-    /// Bottleneck rows `m0..m0 + MR` of the tile's `h`.
+    /// Bottleneck rows `m0..m0 + MR` of the tile's `h`, into `hv`'s rows `hs` vectors
+    /// apart.
     #[inline(always)]
     fn down<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(
         self,
@@ -491,6 +731,7 @@ impl<'a> Kernel<'a> {
         y: &Y,
         m0: usize,
         hv: &mut [S::f32s],
+        hs: usize,
     ) -> usize {
         let cout = self.cout;
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.down[(m0 + r) * cout..][..cout]);
@@ -498,7 +739,7 @@ impl<'a> Kernel<'a> {
         let acc = rows_product::<S, MR, NV>(simd, a, (0..cout).map(|c| S::as_simd_f32s(&y.row(c)[..width]).0));
         for (r, sums) in acc.iter().enumerate() {
             let b = simd.splat_f32s(self.ad.down_bias[m0 + r]);
-            for (d, &v) in hv[(m0 + r) * NV..][..NV].iter_mut().zip(sums) {
+            for (d, &v) in hv[r * hs..][..NV].iter_mut().zip(sums) {
                 let z = simd.add_f32s(v, b);
                 *d = self.inner.map_or(z, |cl| super::clamp_vector(simd, z, cl));
             }
@@ -515,10 +756,11 @@ impl<'a> Kernel<'a> {
         res: Option<&R>,
         c0: usize,
         hv: &[S::f32s],
+        hs: usize,
     ) -> usize {
         let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.up[(c0 + r) * mid..][..mid]);
-        let acc = rows_product::<S, MR, NV>(simd, a, hv.chunks_exact(NV));
+        let acc = rows_product::<S, MR, NV>(simd, a, hv.chunks(hs));
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
             let b = simd.splat_f32s(self.ad.up_bias[c]);
@@ -744,8 +986,9 @@ mod tests {
     }
 
     /// [`apply_fused`] (AdaBN's way in) on planes of whole tiles, a tail of more and of less
-    /// than half a tile, several images, pieces that cross images (3 images on 2 threads)
-    /// and bottlenecks that are not a whole micro-tile, against the definition.
+    /// than half a tile, several images, pieces that cross images (3 images on 2 threads),
+    /// bottlenecks that are not a whole micro-tile, and layers whose threads share the
+    /// weights, against the definition.
     #[test]
     fn tiles_tails_and_pieces_match_the_definition() {
         for (n, cout, hw, mid, act) in [
@@ -754,6 +997,9 @@ mod tests {
             (3, 20, (9, 9), 5, Activation::Sigmoid),
             (2, 12, (4, 4), 3, Activation::Relu),
             (1, 19, (10, 5), 11, Activation::Tanh),
+            // Weights larger than the output: shared by bottleneck rows and channels.
+            (1, 32, (4, 5), 16, Activation::Sigmoid),
+            (2, 40, (3, 3), 24, Activation::Relu),
         ] {
             let s = shape(n, 4, hw, cout, 3, 1, 1);
             let plane = s.oh * s.ow;
@@ -761,6 +1007,7 @@ mod tests {
             let (bd, bu) = (data(mid, 23), data(cout, 24));
             let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid, act };
             let y = data(n * cout * plane, 25);
+            assert_eq!(by_weights(&s, mid, 2), 2 * mid > n * plane);
             for step_act in [None, Some(Activation::Relu), Some(Activation::Silu)] {
                 let want = naive(&y, n, cout, plane, &ad, step_act);
                 for threads in [1, 2, 3] {

@@ -156,7 +156,7 @@ pub fn adapter_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, mid: us
     // conv, over its output, per thread, reusing the conv's scratch (also AdaBN's
     // [`adapter_after`]); in a part split by rows, beside the part's conv scratch.
     let work = adapter::fused_scratch_len(s.cout, mid);
-    let after = conv.max(threads.max(1).checked_mul(work)?);
+    let after = conv.max(adapter::fused_after_len(s, mid, threads));
     let parts = parts(s, algo, threads);
     if adapter_in_tile(s, algo, threads) {
         // The bottleneck rows of a tile beside each part's scratch.
@@ -438,6 +438,9 @@ pub fn conv2d_fused(
     let res_in_adapter = res.filter(|_| after.is_some());
     let res_after = res.filter(|_| res_in_rows.is_none() && res_in_adapter.is_none());
     let conv_ep = Epilogue { act: ep.act.filter(|_| after.is_none() && res_after.is_none()), ..*ep };
+    // The activation an adapter after the conv applies (none when a pass after it adds the
+    // residual and applies it).
+    let ad_act = ep.act.filter(|_| res_after.is_none());
     if algo == ConvAlgo::Depthwise {
         depthwise(s, packed_weight, &conv_ep, x, out, threads);
     } else if direct {
@@ -445,12 +448,7 @@ pub fn conv2d_fused(
         // im2col would unfold into shallow GEMMs.
         direct::conv(s, packed_weight, &conv_ep, x, out, scratch, threads);
     } else {
-        let ad_act = ep.act.filter(|_| res_after.is_none());
         let ep = &conv_ep;
-        // An adapter after the conv runs in the conv's parts, on the planes each thread
-        // just wrote: whole on a part of every channel (a split by rows), or, split by
-        // channels, its bottleneck sums over the part's channels, then after a join the
-        // part's channels finished from everyone's sums.
         // An adapter after the conv: in each part split by rows (every channel of its
         // pixels), on the planes its thread just wrote; split by channels, after the join.
         let in_parts = after.filter(|_| split_shape(s, algo, threads).1 == 1);
@@ -482,7 +480,7 @@ pub fn conv2d_fused(
         }
     }
     if let Some(a) = after.filter(|_| algo == ConvAlgo::Depthwise) {
-        adapter::apply_fused(s, a, out, ep.act.filter(|_| res_after.is_none()), res_in_adapter, scratch, threads);
+        adapter::apply_fused(s, a, out, ad_act, res_in_adapter, scratch, threads);
     }
     if let Some(r) = res_after {
         crate::kernels::elementwise::add_in_place(out, r, ep.act);
@@ -508,7 +506,7 @@ pub fn adapter_after(
         panic!("conv: {e}");
     }
     assert_eq!(out.len(), s.n * s.cout * s.oh * s.ow, "conv: output length");
-    let need = threads.max(1) * adapter::fused_scratch_len(s.cout, ad.mid);
+    let need = adapter::fused_after_len(s, ad.mid, threads);
     assert!(scratch.len() >= need, "conv: adapter scratch");
     adapter::apply_fused(s, ad, out, act, None, scratch, threads);
 }
