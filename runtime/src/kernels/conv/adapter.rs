@@ -163,11 +163,12 @@ pub(super) fn fused_scratch_len(cout: usize, mid: usize) -> usize {
 /// The adapter of a conv step on its output `[n, cout, oh, ow]` (scaled and shifted), in
 /// place, plus the residual `res` if given, then the activation `act`: tile by tile of
 /// [`TILE`] pixels, both projections in registers ([`Fused`]). The threads share the
-/// pixels in whole half tiles, each its own run of every channel plane. (Sharing `down`
-/// by tiles and `up` by channels instead, or each thread summing `down` over its own
-/// channels right after the conv and `up` after a join, measured slower in ResNet-18 at
-/// two threads: 0.972 and 1.099 against this path's 0.956 and 1.055 of the old path's
-/// time.)
+/// pixels in whole half tiles, each its own run of every channel plane, except where the
+/// weights outweigh the output ([`apply_by_weights`]). (Sharing `down` by tiles and `up`
+/// by channels instead measured 0.972 of the old two-GEMM path's time in ResNet-18 at two
+/// threads, against this path's 0.956; each thread summing `down` over its own channels
+/// in its conv part, then `up` after a join, 1.099 of the adapter-free plan's time against
+/// 1.055.)
 pub(super) fn apply_fused(
     s: &Conv2dShape,
     ad: &Adapter,
@@ -226,6 +227,28 @@ pub(super) fn apply_fused(
         pieces.into_par_iter().zip(scratch.par_chunks_mut(per)).for_each(run);
     }
 }
+
+/// Implements `pulp::WithSimd` for a pass over tiles with a `run::<S, MR, NV, HV>`
+/// method: micro-tiles of `MR` rows by `NV` vectors (a tile), or `HV` (half a tile, for a
+/// narrow tail); sums in 16 of the 32 AVX-512 registers, 12 of the 16 AVX2 ones.
+macro_rules! tile_pass {
+    ($($t:ty),*) => {$(
+        impl pulp::WithSimd for $t {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: pulp::Simd>(self, simd: S) {
+                match size_of::<S::f32s>() / size_of::<f32>() {
+                    16 => self.run::<S, 8, 2, 1>(simd),
+                    8 => self.run::<S, 3, 4, 2>(simd),
+                    4 => self.run::<S, 2, 8, 4>(simd),
+                    _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
+                }
+            }
+        }
+    )*};
+}
+
+tile_pass!(Fused<'_, '_>, ByRows<'_>, ByChannels<'_>);
 
 /// Scratch floats [`apply_fused`] needs at this thread count.
 pub(super) fn fused_after_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
@@ -300,19 +323,6 @@ struct ByRows<'a> {
     pad: &'a mut [f32],
 }
 
-impl pulp::WithSimd for ByRows<'_> {
-    type Output = ();
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) {
-        match size_of::<S::f32s>() / size_of::<f32>() {
-            16 => self.run::<S, 8, 2, 1>(simd),
-            8 => self.run::<S, 3, 4, 2>(simd),
-            4 => self.run::<S, 2, 8, 4>(simd),
-            _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
-        }
-    }
-}
-
 impl ByRows<'_> {
     #[inline(always)]
     fn run<S: pulp::Simd, const MR: usize, const NV: usize, const HV: usize>(self, simd: S) {
@@ -354,19 +364,6 @@ struct ByChannels<'a> {
     h: &'a [f32],
     pad: &'a mut [f32],
     act: Option<Activation>,
-}
-
-impl pulp::WithSimd for ByChannels<'_> {
-    type Output = ();
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) {
-        match size_of::<S::f32s>() / size_of::<f32>() {
-            16 => self.run::<S, 8, 2, 1>(simd),
-            8 => self.run::<S, 3, 4, 2>(simd),
-            4 => self.run::<S, 2, 8, 4>(simd),
-            _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
-        }
-    }
 }
 
 impl ByChannels<'_> {
@@ -474,21 +471,6 @@ struct Fused<'a, 'r> {
     tp: usize,
     act: Option<Activation>,
     scratch: &'a mut [f32],
-}
-
-impl pulp::WithSimd for Fused<'_, '_> {
-    type Output = ();
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) {
-        // Micro-tiles of `MR` rows by `NV` vectors (a tile), or `HV` (half a tile, for a
-        // narrow tail); sums in 16 of the 32 AVX-512 registers, 12 of the 16 AVX2 ones.
-        match size_of::<S::f32s>() / size_of::<f32>() {
-            16 => self.run::<S, 8, 2, 1>(simd),
-            8 => self.run::<S, 3, 4, 2>(simd),
-            4 => self.run::<S, 2, 8, 4>(simd),
-            _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
-        }
-    }
 }
 
 /// Channel rows of one tile: `row(c)` starts at the tile's first pixel.
