@@ -126,16 +126,11 @@ impl Epilogue<'_> {
         self.act == Some(Activation::Relu)
     }
 
-    /// The bounds of the activation when it is a clamp (ReLU, ReLU6, clamp), which the
+    /// The bounds of the activation when it is a clamp ([`clamp_bounds`]), which the
     /// register-blocked conv paths apply to their vectors as they store them.
     #[inline(always)]
     pub fn clamp(&self) -> Option<(f32, f32)> {
-        match self.act? {
-            Activation::Relu => Some((0.0, f32::INFINITY)),
-            Activation::Relu6 => Some((0.0, 6.0)),
-            Activation::Clamp { min, max } => Some((min.unwrap_or(f32::NEG_INFINITY), max.unwrap_or(f32::INFINITY))),
-            _ => None,
-        }
+        clamp_bounds(self.act?)
     }
 
     /// Applies the activation unless it is a clamp (see [`Epilogue::clamp`]) to `out`, a
@@ -158,5 +153,16 @@ impl Epilogue<'_> {
         {
             elementwise::activation_chunk(act, out);
         }
+    }
+}
+
+/// The bounds of `act` when it is a clamp (ReLU, ReLU6, clamp), else `None`.
+#[inline(always)]
+pub fn clamp_bounds(act: Activation) -> Option<(f32, f32)> {
+    match act {
+        Activation::Relu => Some((0.0, f32::INFINITY)),
+        Activation::Relu6 => Some((0.0, 6.0)),
+        Activation::Clamp { min, max } => Some((min.unwrap_or(f32::NEG_INFINITY), max.unwrap_or(f32::INFINITY))),
+        _ => None,
     }
 }

@@ -31,7 +31,7 @@ use rayon::prelude::*;
 
 use super::Conv2dShape;
 use crate::kernels::gemm::{MatMut, MatRef, prefetch, rows_product, sgemm};
-use crate::kernels::{Activation, elementwise};
+use crate::kernels::{Activation, clamp_bounds, elementwise};
 
 /// An adapter's tensors: `down` `[mid, cout]` row-major, `down_bias` `[mid]`, `up`
 /// `[cout, mid]`, `up_bias` `[cout]`, and the activation between them.
@@ -604,8 +604,7 @@ struct Kernel<'a> {
 
 impl<'a> Kernel<'a> {
     fn new(ad: &'a Adapter<'a>, cout: usize, act: Option<Activation>) -> Kernel<'a> {
-        let clamp = |a: Option<Activation>| crate::kernels::Epilogue { scale: None, shift: None, act: a }.clamp();
-        Kernel { ad, cout, inner: clamp(Some(ad.act)), outer: clamp(act) }
+        Kernel { ad, cout, inner: clamp_bounds(ad.act), outer: act.and_then(clamp_bounds) }
     }
 
     /// One tile: `h` (at least `mid · TILE` floats) from `y`, then `y` updated.
