@@ -163,10 +163,17 @@ pub fn adapter_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, mid: us
         let tile = parts.checked_mul(gemm_tile(s, algo))?.checked_mul(mid)?;
         return Some(after.max(conv.checked_add(tile)?));
     }
-    if algo == ConvAlgo::Depthwise || split_shape(s, algo, threads).1 > 1 {
+    if !adapter_in_parts(s, algo, threads) {
         return Some(after);
     }
     Some(after.max(parts.checked_mul(part_scratch(s, algo, rank).checked_add(work)?)?))
+}
+
+/// Whether [`conv2d_adapter`] computes a layer's adapter (not in its GEMM tiles) inside
+/// each thread's part right after the conv: a split by rows, so that each part holds every
+/// channel of its pixels. Else it runs over the finished output.
+fn adapter_in_parts(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> bool {
+    algo != ConvAlgo::Depthwise && !adapter_in_tile(s, algo, threads) && split_shape(s, algo, threads).1 == 1
 }
 
 /// Whether [`conv2d_adapter`] computes a layer's adapter inside its GEMM tiles: a GEMM
@@ -432,6 +439,9 @@ pub fn conv2d_fused(
     // activation then deferred to that pass).
     let in_tile = adapter.filter(|_| adapter_in_tile(s, algo, threads));
     let after = adapter.filter(|_| in_tile.is_none());
+    // An adapter after the conv: in each part split by rows (every channel of its pixels),
+    // on the planes its thread just wrote; else over the output once the conv is done.
+    let in_parts = after.filter(|_| adapter_in_parts(s, algo, threads));
     let direct = algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && direct::applies(s);
     let res_in_rows = res.filter(|_| adapter.is_none() && algo != ConvAlgo::Depthwise && !direct);
     // An adapter after the conv adds the residual in its own last pass.
@@ -449,9 +459,6 @@ pub fn conv2d_fused(
         direct::conv(s, packed_weight, &conv_ep, x, out, scratch, threads);
     } else {
         let ep = &conv_ep;
-        // An adapter after the conv: in each part split by rows (every channel of its
-        // pixels), on the planes its thread just wrote; split by channels, after the join.
-        let in_parts = after.filter(|_| split_shape(s, algo, threads).1 == 1);
         let conv_len = part_scratch(s, algo, rank) + in_tile.map_or(0, |a| a.mid * gemm_tile(s, algo));
         let per = conv_len + in_parts.map_or(0, |a| adapter::fused_scratch_len(s.cout, a.mid));
         let mut jobs: Vec<(Part, &mut [f32])> =
@@ -475,11 +482,8 @@ pub fn conv2d_fused(
         } else {
             jobs.par_iter_mut().for_each(run);
         }
-        if let Some(a) = after.filter(|_| in_parts.is_none()) {
-            adapter::apply_fused(s, a, out, ad_act, res_in_adapter, scratch, threads);
-        }
     }
-    if let Some(a) = after.filter(|_| algo == ConvAlgo::Depthwise) {
+    if let Some(a) = after.filter(|_| in_parts.is_none()) {
         adapter::apply_fused(s, a, out, ad_act, res_in_adapter, scratch, threads);
     }
     if let Some(r) = res_after {
