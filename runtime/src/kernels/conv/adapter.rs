@@ -306,10 +306,17 @@ fn apply_by_weights(
     }
 }
 
-/// The width [`Fused`] computes the tile at `at` of a plane of `plane` pixels in: a whole
-/// tile, or half of one for a tail that fits it.
+/// The width the tile at `at` of a run of `plane` pixels is computed in: a whole tile, or
+/// half of one for a tail that fits it.
 fn tile_width(plane: usize, at: usize) -> usize {
     if plane - at > TILE / 2 { TILE } else { TILE / 2 }
+}
+
+/// `src` into the start of `dst`, the rest of `dst` zero: a tail tile's row, padded.
+fn pad_row(dst: &mut [f32], src: &[f32]) {
+    let (head, rest) = dst.split_at_mut(src.len());
+    head.copy_from_slice(src);
+    rest.fill(0.0);
 }
 
 /// Phase one of [`apply_by_weights`]: bottleneck rows `rows` of every tile of image `y`
@@ -338,13 +345,13 @@ impl ByRows<'_> {
             let rem = plane - at;
             let pad = &mut pad[..k.cout * TILE];
             for (c, d) in pad.chunks_mut(TILE).enumerate() {
-                d[..rem].copy_from_slice(&y[c * plane + at..][..rem]);
-                d[rem..].fill(0.0);
+                pad_row(d, &y[c * plane + at..][..rem]);
             }
+            let pad = Strided { data: pad, stride: TILE, at: 0 };
             if tile_width(plane, at) < TILE {
-                k.down_rows::<S, MR, HV, _>(simd, &Dense(pad), rows.clone(), ht, stride);
+                k.down_rows::<S, MR, HV, _>(simd, &pad, rows.clone(), ht, stride);
             } else {
-                k.down_rows::<S, MR, NV, _>(simd, &Dense(pad), rows.clone(), ht, stride);
+                k.down_rows::<S, MR, NV, _>(simd, &pad, rows.clone(), ht, stride);
             }
         }
         if k.inner.is_none() {
@@ -382,20 +389,17 @@ impl ByChannels<'_> {
             }
             let rem = plane - at;
             for c in chans.clone() {
-                let d = &mut py[c * TILE..][..TILE];
-                d[..rem].copy_from_slice(&planes[(c - c0) * plane + at..][..rem]);
-                d[rem..].fill(0.0);
+                pad_row(&mut py[c * TILE..][..TILE], &planes[(c - c0) * plane + at..][..rem]);
                 if let Some(r) = res {
-                    let d = &mut pr[c * TILE..][..TILE];
-                    d[..rem].copy_from_slice(&r[c * plane + at..][..rem]);
-                    d[rem..].fill(0.0);
+                    pad_row(&mut pr[c * TILE..][..TILE], &r[c * plane + at..][..rem]);
                 }
             }
-            let r = res.map(|_| Dense(&mut *pr));
+            let r = res.map(|_| Strided { data: &*pr, stride: TILE, at: 0 });
+            let mut y = StridedMut { data: &mut *py, stride: TILE, c0: 0, at: 0 };
             if tile_width(plane, at) < TILE {
-                k.up_chans::<S, MR, HV, _, _>(simd, &mut Dense(&mut *py), r.as_ref(), chans.clone(), ht, stride);
+                k.up_chans::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), ht, stride);
             } else {
-                k.up_chans::<S, MR, NV, _, _>(simd, &mut Dense(&mut *py), r.as_ref(), chans.clone(), ht, stride);
+                k.up_chans::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), ht, stride);
             }
             for c in chans.clone() {
                 planes[(c - c0) * plane + at..][..rem].copy_from_slice(&py[c * TILE..][..rem]);
@@ -407,7 +411,8 @@ impl ByChannels<'_> {
     }
 }
 
-/// [`Strided`] that [`ByChannels`] writes: channels from `c0` on.
+/// [`Strided`] that the kernel writes: channels from `c0` on (a thread's planes, or a
+/// padded tail tile of `TILE`-wide rows).
 struct StridedMut<'s> {
     data: &'s mut [f32],
     stride: usize,
@@ -441,9 +446,10 @@ pub(super) fn apply_part(
     scratch: &mut [f32],
 ) {
     let (cout, plane, n0) = (s.cout, s.oh * s.ow, part.n0);
-    let rows_of: Vec<(usize, usize)> = (n0..s.n).map(|n| part.rows_of(n, s.oh)).collect();
-    for (i, rows) in part.planes_mut().chunks_mut(cout).enumerate() {
-        let (n, (lo, hi)) = (n0 + i, rows_of[i]);
+    for i in 0..part.planes_mut().len() / cout {
+        let n = n0 + i;
+        let (lo, hi) = part.rows_of(n, s.oh);
+        let rows = &mut part.planes_mut()[i * cout..][..cout];
         let res = res.map(|r| Strided { data: &r[n * cout * plane + lo * s.ow..], stride: plane, at: 0 });
         let tp = (hi - lo) * s.ow;
         pulp::Arch::new().dispatch(Fused { ad, rows, res, tp, act, scratch: &mut *scratch });
@@ -489,9 +495,6 @@ struct SegmentsMut<'s, 'r> {
     at: usize,
 }
 
-/// A dense tile, `[rows][TILE]`.
-struct Dense<'s>(&'s mut [f32]);
-
 /// Channel planes `stride` apart (a residual's image, from some pixel on), seen from pixel
 /// `at` on.
 #[derive(Clone, Copy)]
@@ -522,20 +525,6 @@ impl TileRowsMut for SegmentsMut<'_, '_> {
     }
 }
 
-impl TileRows for Dense<'_> {
-    #[inline(always)]
-    fn row(&self, c: usize) -> &[f32] {
-        &self.0[c * TILE..][..TILE]
-    }
-}
-
-impl TileRowsMut for Dense<'_> {
-    #[inline(always)]
-    fn row_mut(&mut self, c: usize) -> &mut [f32] {
-        &mut self.0[c * TILE..][..TILE]
-    }
-}
-
 impl Fused<'_, '_> {
     #[inline(always)]
     fn run<S: pulp::Simd, const MR: usize, const NV: usize, const HV: usize>(self, simd: S) {
@@ -560,24 +549,18 @@ impl Fused<'_, '_> {
         }
         if full < tp {
             let rem = tp - full;
-            let pad = |dst: &mut [f32], src: &[f32]| {
-                dst[..rem].copy_from_slice(&src[full..tp]);
-                dst[rem..].fill(0.0);
-            };
             for (c, row) in rows.iter().enumerate() {
-                pad(&mut ty[c * TILE..][..TILE], row);
-            }
-            if let Some(r) = res {
-                for c in 0..cout {
-                    pad(&mut tr[c * TILE..][..TILE], r.row(c));
+                pad_row(&mut ty[c * TILE..][..TILE], &row[full..tp]);
+                if let Some(r) = res {
+                    pad_row(&mut tr[c * TILE..][..TILE], &r.row(c)[full..tp]);
                 }
             }
-            let r = res.map(|_| Dense(&mut *tr));
-            // A tail of at most half a tile in a half tile (`HV` vectors).
-            if rem <= TILE / 2 {
-                k.tile::<S, MR, HV, _, _>(simd, &mut Dense(&mut *ty), r.as_ref(), h);
+            let r = res.map(|_| Strided { data: &*tr, stride: TILE, at: 0 });
+            let mut y = StridedMut { data: &mut *ty, stride: TILE, c0: 0, at: 0 };
+            if tile_width(tp, full) < TILE {
+                k.tile::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), h);
             } else {
-                k.tile::<S, MR, NV, _, _>(simd, &mut Dense(&mut *ty), r.as_ref(), h);
+                k.tile::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), h);
             }
             for (c, row) in rows.iter_mut().enumerate() {
                 row[full..tp].copy_from_slice(&ty[c * TILE..][..rem]);
