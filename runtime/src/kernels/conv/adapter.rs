@@ -74,77 +74,33 @@ impl Adapter<'_> {
 
 /// The adapter on one tile `y` (`cout` rows of `tp` pixels, row-major, already scaled and
 /// shifted), in place, then the step's activation `act`; `h` holds at least `mid · tp`
-/// floats.
+/// floats. Two GEMMs, for the GEMM paths' tiles (`im2col.rs`).
 pub(super) fn apply_tile(ad: &Adapter, y: &mut [f32], cout: usize, tp: usize, h: &mut [f32], act: Option<Activation>) {
-    apply_strided(ad, y, cout, tp, tp, h, act, None);
-}
-
-/// [`apply_tile`] on `cout` rows of `tp` pixels `stride` apart (a chunk of an image's
-/// channel planes, read and written where they are), adding the residual `res` (laid out
-/// as `y`) before the activation.
-#[allow(clippy::too_many_arguments)]
-fn apply_strided(
-    ad: &Adapter,
-    y: &mut [f32],
-    cout: usize,
-    tp: usize,
-    stride: usize,
-    h: &mut [f32],
-    act: Option<Activation>,
-    res: Option<&[f32]>,
-) {
-    let h = &mut h[..ad.mid * tp];
-    down(ad, y, cout, tp, stride, h);
-    up(ad, h, y, 0..cout, tp, stride, act, res);
-}
-
-/// `h = act(down · y + down_bias)` for `cout` rows of `tp` pixels of `y`, `stride` apart.
-fn down(ad: &Adapter, y: &[f32], cout: usize, tp: usize, stride: usize, h: &mut [f32]) {
-    let h = &mut h[..ad.mid * tp];
-    let y = MatRef { data: y, rows: cout, cols: tp, row_stride: stride, col_stride: 1 };
-    sgemm(MatRef::row_major(ad.down, ad.mid, cout), y, MatMut::row_major(h, ad.mid, tp), false, 1);
-    bias_rows(h, ad.down_bias, None, tp, tp, false);
+    let (mid, h) = (ad.mid, &mut h[..ad.mid * tp]);
+    // h = act(down · y + down_bias)
+    let yt = MatRef::row_major(&y[..cout * tp], cout, tp);
+    sgemm(MatRef::row_major(ad.down, mid, cout), yt, MatMut::row_major(h, mid, tp), false, 1);
+    bias_rows(h, ad.down_bias, tp, false);
     // A tile is one thread's work: its activations on this thread.
     elementwise::activation_chunk(ad.act, h);
-}
-
-/// `y[c] += up[c] · h + up_bias[c] (+ res[c])`, then `act`, for the channels `chans` of `y`
-/// (its rows `0..chans.len()`, `tp` pixels, `stride` apart; `res` laid out as `y`).
-#[allow(clippy::too_many_arguments)]
-fn up(
-    ad: &Adapter,
-    h: &[f32],
-    y: &mut [f32],
-    chans: std::ops::Range<usize>,
-    tp: usize,
-    stride: usize,
-    act: Option<Activation>,
-    res: Option<&[f32]>,
-) {
-    let (mid, rows) = (ad.mid, chans.len());
-    let w = MatRef::row_major(&ad.up[chans.start * mid..][..rows * mid], rows, mid);
-    let dst = MatMut { data: &mut *y, rows, cols: tp, row_stride: stride, col_stride: 1 };
-    sgemm(w, MatRef::row_major(&h[..mid * tp], mid, tp), dst, true, 1);
+    // y += up · h + up_bias, then act
+    let dst = MatMut::row_major(&mut y[..cout * tp], cout, tp);
+    sgemm(MatRef::row_major(ad.up, cout, mid), MatRef::row_major(h, mid, tp), dst, true, 1);
     let relu = act == Some(Activation::Relu);
-    bias_rows(y, &ad.up_bias[chans], res, tp, stride, relu);
+    bias_rows(y, ad.up_bias, tp, relu);
     if let Some(f) = act.filter(|_| !relu) {
-        for row in y.chunks_mut(stride).take(rows) {
-            elementwise::activation_chunk(f, &mut row[..tp]);
-        }
+        elementwise::activation_chunk(f, &mut y[..cout * tp]);
     }
 }
 
 simd_fn! {
-    /// The first `tp` values of row `c` of `rows` (rows `stride` apart) plus `bias[c]` and,
-    /// if given, the same values of `res` (laid out as `rows`), then the ReLU if `relu`.
-    fn bias_rows(rows: &mut [f32], bias: &[f32], res: Option<&[f32]>, tp: usize, stride: usize, relu: bool) {
-        for (c, (row, &b)) in rows.chunks_mut(stride).zip(bias).enumerate() {
-            let row = &mut row[..tp];
-            match res.map(|r| &r[c * stride..][..tp]) {
-                Some(r) if relu => row.iter_mut().zip(r).for_each(|(v, &r)| *v = (*v + b + r).max(0.0)),
-                Some(r) => row.iter_mut().zip(r).for_each(|(v, &r)| *v += b + r),
-                None if relu => row.iter_mut().for_each(|v| *v = (*v + b).max(0.0)),
-                None => row.iter_mut().for_each(|v| *v += b),
+    /// Each row of `tp` values of `rows` plus its `bias[c]`, then the ReLU if `relu`.
+    fn bias_rows(rows: &mut [f32], bias: &[f32], tp: usize, relu: bool) {
+        for (row, &b) in rows.chunks_mut(tp).zip(bias) {
+            if relu {
+                row.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
+            } else {
+                row.iter_mut().for_each(|v| *v += b);
             }
         }
     }
