@@ -24,8 +24,9 @@
 //! every call, passes for the biases and the ReLU) with a join between `down` by chunks
 //! and `up` by channels. ResNet-18 with its spec's adapters took 1.095x the time of the
 //! same plan without them at two threads (1.8x the adapters' 5.4% share of the
-//! multiply-adds) and 1.077x at one; with this path 1.067-1.069x and 1.062-1.065x (1.2x
-//! and 1.1-1.2x their share; `benches/ab.py`-style alternating rounds, 2026-12-05).
+//! multiply-adds) and 1.077x at one; with this path 1.055-1.079x (median 1.067, 1.2x their
+//! share) and 1.062-1.083x (median 1.077, 1.35x), alternating rounds over a day's runs on
+//! a shared host (2026-12-05; the README's variants table).
 
 use rayon::prelude::*;
 
