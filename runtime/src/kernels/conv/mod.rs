@@ -4,7 +4,10 @@
 //! for it ([`pack_weight`]); at run time [`conv2d`] reads that packed weight. Algorithms:
 //!
 //! * [`ConvAlgo::Gemm1x1`]: 1x1, stride 1, no padding: the input already is the GEMM's
-//!   right-hand matrix, so each tile of output pixels is one GEMM, no copy.
+//!   right-hand matrix, so each tile of output pixels is one GEMM, no copy. Planes of up
+//!   to 256 pixels (one group, no LoRA branch or adapter in the tile) skip the GEMM call
+//!   and its packing: register tiles over the input planes in place, a few last pixels
+//!   as dot products (`pointwise.rs`).
 //! * [`ConvAlgo::Im2col`]: any shape: a tile of output pixels is unfolded into a
 //!   `(cin/groups·kh·kw) × tile` matrix, multiplied by the weight in one GEMM.
 //! * [`ConvAlgo::Winograd4`], [`ConvAlgo::Winograd2`]: 3x3, stride 1, no dilation:
@@ -45,7 +48,7 @@
 //!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
-//! paths (Gemm1x1, Im2col), `direct.rs` the direct conv an im2col layer with few input
+//! paths (Gemm1x1, Im2col), `pointwise.rs` the register path of small 1x1 layers, `direct.rs` the direct conv an im2col layer with few input
 //! channels per group (a stem, RegNet's grouped convs) runs instead, `winograd.rs`
 //! Winograd, `depthwise.rs` the direct loop, and `tests.rs` the tests of every algorithm
 //! against one reference.
@@ -58,6 +61,7 @@ mod adapter;
 mod depthwise;
 mod direct;
 mod im2col;
+mod pointwise;
 mod split;
 mod winograd;
 
@@ -466,6 +470,9 @@ pub fn conv2d_fused(
         let run = |(part, scratch): &mut (Part, &mut [f32])| {
             let (scratch, work) = scratch.split_at_mut(conv_len);
             match algo {
+                ConvAlgo::Gemm1x1 if lora.is_none() && in_tile.is_none() && pointwise::applies(s) => {
+                    pointwise::part(s, packed_weight, ep, x, part, scratch)
+                }
                 ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => {
                     gemm_part(s, algo, packed_weight, lora, in_tile, ep, x, part, scratch)
                 }
@@ -658,7 +665,7 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
 /// LoRA branch's `A x`.
 fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
     match algo {
-        ConvAlgo::Gemm1x1 => gemm_tile(s, algo) * (s.cout_g() + rank),
+        ConvAlgo::Gemm1x1 => (gemm_tile(s, algo) * (s.cout_g() + rank)).max(pointwise::scratch_len(s)),
         // The direct conv (a stem, narrow groups) reads one image's padded input from the
         // scratch.
         ConvAlgo::Im2col if direct::applies(s) => {

@@ -535,6 +535,55 @@ fn with_residual(y: &[f32], res: &[f32], act: Option<Activation>) -> Vec<f32> {
         .collect()
 }
 
+/// [`conv2d_fused`] with a residual input on `s` by `algo`, before each activation of
+/// `acts`, at 1 to 3 threads, against the reference plus the sum.
+fn check_residual(s: &Conv2dShape, algo: ConvAlgo, acts: &[Option<Activation>]) {
+    let x = data(s.n * s.cin * s.h * s.w, 21);
+    let fan_in = s.cin / s.groups * s.kh * s.kw;
+    let w: Vec<f32> = data(fan_in * s.cout, 22).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
+    let (scale, shift) = (data(s.cout, 23), data(s.cout, 24));
+    let res = data(s.n * s.cout * s.oh * s.ow, 25);
+    let mut packed = vec![0.0; packed_weight_len(s, algo)];
+    pack_weight(s, algo, &w, &mut packed);
+    for &act in acts {
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+        let y = reference(s, &x, &w, &Epilogue { act: None, ..ep });
+        let want = with_residual(&y, &res, act);
+        for threads in [1, 2, 3] {
+            let mut out = vec![f32::NAN; want.len()];
+            let mut scratch = vec![f32::NAN; scratch_len(s, algo, threads)];
+            conv2d_fused(s, algo, &packed, None, None, &ep, &x, Some(&res), &mut out, &mut scratch, threads);
+            assert_close(&out, &want, 1e-4);
+        }
+    }
+}
+
+/// 1x1 layers of small planes take the register path (`pointwise.rs`): planes that end
+/// in whole tiles, in narrower tiles, in a few pixels (dot products) or in part of a
+/// vector (zero-padded); channel counts that leave micro-tile tails; input channels that
+/// leave vector tails (the dot products); batches split across images and by channels;
+/// with and without a residual, before each kind of activation.
+#[test]
+fn pointwise_tails_batches_and_residuals() {
+    let cases = [
+        (1, 5, (1, 1), 13),
+        (1, 37, (2, 2), 6),
+        (3, 16, (7, 7), 13),
+        (1, 40, (5, 5), 9),
+        (2, 24, (14, 14), 17),
+        (1, 19, (16, 16), 8),
+        (2, 33, (9, 10), 1),
+        (1, 70, (3, 3), 64),
+    ];
+    for (n, cin, hw, cout) in cases {
+        let s = shape(n, cin, hw, cout, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+        assert!(pointwise::applies(&s), "{s:?} takes the register path");
+        check(&s, ConvAlgo::Gemm1x1);
+        check_residual(&s, ConvAlgo::Gemm1x1, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
+    }
+    assert_eq!(split_shape(&shape(1, 70, (3, 3), 64, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1, 2), (1, 2));
+}
+
 /// A residual input on every path: added as the rows are written (the GEMM paths, both
 /// Winograds, a split by channels, with a LoRA branch) and in a pass after (depthwise, the
 /// direct conv), before a ReLU, another activation or none, at 1 to 3 threads, against the
@@ -555,25 +604,7 @@ fn residual_on_every_path() {
     assert!(direct::applies(&cases[5].0), "the stem case takes the direct conv");
     assert_eq!(split_shape(&cases[6].0, ConvAlgo::Im2col, 2), (1, 2), "the last case splits by channels");
     for (s, algo) in &cases {
-        let (s, algo) = (s, *algo);
-        let x = data(s.n * s.cin * s.h * s.w, 21);
-        let fan_in = s.cin / s.groups * s.kh * s.kw;
-        let w: Vec<f32> = data(fan_in * s.cout, 22).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
-        let (scale, shift) = (data(s.cout, 23), data(s.cout, 24));
-        let res = data(s.n * s.cout * s.oh * s.ow, 25);
-        let mut packed = vec![0.0; packed_weight_len(s, algo)];
-        pack_weight(s, algo, &w, &mut packed);
-        for act in [None, Some(Activation::Relu), Some(Activation::Hardswish)] {
-            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
-            let y = reference(s, &x, &w, &Epilogue { act: None, ..ep });
-            let want = with_residual(&y, &res, act);
-            for threads in [1, 2, 3] {
-                let mut out = vec![f32::NAN; want.len()];
-                let mut scratch = vec![f32::NAN; scratch_len(s, algo, threads)];
-                conv2d_fused(s, algo, &packed, None, None, &ep, &x, Some(&res), &mut out, &mut scratch, threads);
-                assert_close(&out, &want, 1e-4);
-            }
-        }
+        check_residual(s, *algo, &[None, Some(Activation::Relu), Some(Activation::Hardswish)]);
     }
     // With a LoRA branch, whose sum comes before the scale and the residual after it.
     for algo in [ConvAlgo::Gemm1x1, ConvAlgo::Winograd4] {
