@@ -3,11 +3,13 @@
 //! into scratch, and the epilogue into the part's output planes. A LoRA branch reads the
 //! same tile: `t = A col` (rank rows) and `acc += B t`, before the epilogue. An adapter
 //! (one group, a row split: the tile holds every channel) runs on the scaled and shifted
-//! tile before it is copied out ([`super::adapter`]).
+//! tile before it is copied out ([`super::adapter`]). Small planes skip the GEMM call:
+//! Gemm1x1 layers in `conv2d_fused`, Im2col tiles here after the unfold
+//! ([`super::pointwise`]).
 
 use super::adapter::{Adapter, apply_tile};
 use super::split::Part;
-use super::{Conv2dShape, ConvAlgo, Lora, finish};
+use super::{Conv2dShape, ConvAlgo, Lora, finish, pointwise};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, sgemm};
 
@@ -41,6 +43,8 @@ pub(super) fn gemm_part(
     let (acc, rest) = scratch.split_at_mut(tile * cout_g);
     let (t, rest) = rest.split_at_mut(tile * rank);
     let (h, col) = rest.split_at_mut(tile * adapter.map_or(0, |a| a.mid));
+    // Small planes of one group skip the GEMM call: register tiles over the unfolded rows.
+    let registers = algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && pointwise::applies_unfolded(s);
     let last = (part.r1 - 1) / s.oh;
     for n in part.n0..=last {
         let (lo, hi) = part.rows_of(n, s.oh);
@@ -58,8 +62,13 @@ pub(super) fn gemm_part(
                 let rhs = if algo == ConvAlgo::Gemm1x1 {
                     MatRef { data: &xg[p0..], rows: cin_g, cols: tp, row_stride: plane_in, col_stride: 1 }
                 } else {
-                    im2col_simd(s, xg, p0, tp, &mut col[..k * tp]);
-                    MatRef::row_major(&col[..k * tp], k, tp)
+                    let (col, tail) = col.split_at_mut(k * tp);
+                    im2col_simd(s, xg, p0, tp, col);
+                    if registers {
+                        pointwise::unfolded(w, ep, col, k, tp, part, n, chans, p0 - p_lo, tail);
+                        continue;
+                    }
+                    MatRef::row_major(col, k, tp)
                 };
                 let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
                 sgemm(lhs, rhs, MatMut::row_major(&mut acc[..mrows * tp], mrows, tp), false, 1);

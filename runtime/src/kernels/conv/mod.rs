@@ -7,7 +7,8 @@
 //!   right-hand matrix, so each tile of output pixels is one GEMM, no copy. Planes of up
 //!   to 256 pixels (one group, no LoRA branch or adapter in the tile) skip the GEMM call
 //!   and its packing: register tiles over the input planes in place, a few last pixels
-//!   as dot products (`pointwise.rs`).
+//!   as dot products (`pointwise.rs`); Im2col layers of 7x7 planes run the same tiles
+//!   over their unfolded rows.
 //! * [`ConvAlgo::Im2col`]: any shape: a tile of output pixels is unfolded into a
 //!   `(cin/groups·kh·kw) × tile` matrix, multiplied by the weight in one GEMM.
 //! * [`ConvAlgo::Winograd4`], [`ConvAlgo::Winograd2`]: 3x3, stride 1, no dilation:
@@ -665,13 +666,17 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
 /// LoRA branch's `A x`.
 fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
     match algo {
-        ConvAlgo::Gemm1x1 => (gemm_tile(s, algo) * (s.cout_g() + rank)).max(pointwise::scratch_len(s)),
+        ConvAlgo::Gemm1x1 => (gemm_tile(s, algo) * (s.cout_g() + rank)).max(pointwise::scratch_len(s.cin)),
         // The direct conv (a stem, narrow groups) reads one image's padded input from the
         // scratch.
         ConvAlgo::Im2col if direct::applies(s) => {
             (gemm_tile(s, algo) * (s.cout_g() + s.k() + rank)).max(direct::scratch_len(s))
         }
-        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k() + rank),
+        // Past the unfolded tile, a padded tail's scratch for the register path.
+        ConvAlgo::Im2col => {
+            gemm_tile(s, algo) * (s.cout_g() + s.k() + rank)
+                + if pointwise::applies_unfolded(s) { pointwise::scratch_len(s.k()) } else { 0 }
+        }
         ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(rank),
         ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(rank),
         ConvAlgo::Depthwise => 0,

@@ -4,11 +4,14 @@
 //! right-hand side already), and the epilogue (scale, shift, residual, a clamp) applied
 //! in registers as each vector is stored.
 //!
-//! The `gemm` crate packs the weight on every call: for the small planes of a network's
-//! last stages (7x7, 14x14) that costs as much as the product. Here nothing is packed: the
-//! weight is read as `MR` row streams, each element broadcast once per tile of pixels.
-//! Pixels left over after the whole tiles run as narrower tiles, then the last fraction
-//! of a vector through scratch, zero-padded.
+//! The `gemm` crate packs the weight on every call and computes a plane in whole vectors
+//! (a 7x7 plane's 49 pixels as 64). Here nothing is packed: the weight is read as `MR`
+//! row streams, each element broadcast once per tile of pixels. Pixels left over after the
+//! whole tiles run as narrower tiles, then a few last ones as dot products over the input
+//! channels, or the last fraction of a vector through scratch, zero-padded.
+//!
+//! The same tiles run over an Im2col layer's unfolded rows ([`unfolded`]) on planes of
+//! one tile and a remainder (7x7: ResNet's strided convs of the last stage).
 
 #[cfg(test)]
 use super::ConvAlgo;
@@ -23,6 +26,12 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
     s.groups == 1 && s.oh * s.ow <= MAX_PLANE
 }
 
+/// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
+/// crate, by the same rule.
+pub(super) fn applies_unfolded(s: &Conv2dShape) -> bool {
+    s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE
+}
+
 /// The largest plane (pixels of one image) [`applies`] takes. On 7x7 planes this path
 /// ran MobileNetV2's and ResNet-50's 1x1 convs in 0.76-0.81x the `gemm` crate's time
 /// (94-110 GFLOP/s against 75-86, one thread, warm), on 14x14 ones in 0.91-1.03x; on
@@ -31,10 +40,17 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
 /// one long tile, this one 6 planes at a time.
 const MAX_PLANE: usize = 256;
 
+/// The largest plane [`applies_unfolded`] takes: one AVX-512 tile and a remainder. On
+/// ResNet-50's 7x7 strided 3x3 (4608 unfolded rows) and 1x1 downsampling, the steps took
+/// 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3 0.85x); its
+/// 14x14 strided 3x3 (2304 rows, 196 pixels) took 1.17x: the tiles re-read an unfolded
+/// matrix larger than L2 once per 6 channels, where the crate blocks it for the cache.
+const MAX_UNFOLDED_PLANE: usize = 64;
+
 /// Scratch floats of one part: a padded tail's input columns and its sums, for the
 /// widest vectors (16 lanes) and micro-tiles (8 rows); or the columns of a few pixels.
-pub(super) fn scratch_len(s: &Conv2dShape) -> usize {
-    (s.cin + 8) * 16
+pub(super) fn scratch_len(depth: usize) -> usize {
+    (depth + 8) * 16
 }
 
 /// A tail of at most a `DOTS`-th of a vector of pixels runs as dot products over the
@@ -70,70 +86,147 @@ impl pulp::WithSimd for Pointwise<'_, '_> {
     }
 }
 
-/// What every micro-tile of one image shares: the image's input planes and where the
-/// part's pixels start.
+/// What every micro-tile over one image's input rows shares: the rows (the image's
+/// input planes, or an unfolded tile's rows), and where a pixel of them lands in the
+/// part's planes.
 #[derive(Clone, Copy)]
 struct Image<'a> {
     w: &'a [f32],
     ep: &'a Epilogue<'a>,
-    /// The input planes of the image.
+    /// `depth` input rows, `stride` apart.
     x: &'a [f32],
-    cin: usize,
-    plane: usize,
+    depth: usize,
+    stride: usize,
     n: usize,
-    /// The part's first pixel in the image's planes.
-    p_lo: usize,
+    /// Pixel `q` of the rows is pixel `q - q0 + o0` of the part's planes of image `n`.
+    q0: usize,
+    o0: usize,
     clamp: Option<(f32, f32)>,
     /// An activation that is not a clamp, applied to each micro-tile once stored.
     post: Option<Activation>,
+}
+
+impl<'a> Image<'a> {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        w: &'a [f32],
+        ep: &'a Epilogue<'a>,
+        x: &'a [f32],
+        depth: usize,
+        stride: usize,
+        n: usize,
+        q0: usize,
+        o0: usize,
+    ) -> Self {
+        let clamp = ep.act.and_then(clamp_bounds);
+        let post = ep.act.filter(|_| clamp.is_none());
+        Image { w, ep, x, depth, stride, n, q0, o0, clamp, post }
+    }
 }
 
 impl Pointwise<'_, '_> {
     #[inline(always)]
     fn run<S: pulp::Simd, const MR: usize, const NV: usize>(self, simd: S) {
         let Pointwise { s, w, ep, x, part, scratch } = self;
-        let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let (cin, plane) = (s.cin, s.oh * s.ow);
         let chans = part.channels_of(0, s.cout);
-        let clamp = ep.act.and_then(clamp_bounds);
-        let post = ep.act.filter(|_| clamp.is_none());
         let last = (part.r1 - 1) / s.oh;
         for n in part.n0..=last {
             let (lo, hi) = part.rows_of(n, s.oh);
             let (p_lo, p_hi) = (lo * s.ow, hi * s.ow);
             let x = &x[n * cin * plane..][..cin * plane];
-            let im = Image { w, ep, x, cin, plane, n, p_lo, clamp, post };
-            let mut p = p_lo;
-            while p + NV * lanes <= p_hi {
-                // The next tile's input rows, a plane apart: more streams than the
-                // hardware prefetcher follows.
-                if p + 2 * NV * lanes <= p_hi {
-                    for ci in 0..cin {
-                        (0..NV).for_each(|v| prefetch(&x[ci * plane + p + (NV + v) * lanes]));
-                    }
-                }
-                im.tile::<S, MR, NV>(simd, part, chans.clone(), p);
-                p += NV * lanes;
-            }
-            // What is left, less than a tile: pairs of vectors, then single ones.
-            while NV > 2 && p + 2 * lanes <= p_hi {
-                im.tile::<S, MR, 2>(simd, part, chans.clone(), p);
-                p += 2 * lanes;
-            }
-            while NV > 1 && p + lanes <= p_hi {
-                im.tile::<S, MR, 1>(simd, part, chans.clone(), p);
-                p += lanes;
-            }
-            if p < p_hi && DOTS * (p_hi - p) <= lanes {
-                im.dots::<S>(simd, part, chans.clone(), p, p_hi, scratch);
-            } else if p < p_hi {
-                im.tail::<S, MR>(simd, part, chans.clone(), p, p_hi, scratch);
-            }
+            let im = Image::new(w, ep, x, cin, plane, n, p_lo, 0);
+            im.range::<S, MR, NV>(simd, part, chans.clone(), p_lo..p_hi, scratch);
         }
     }
 }
 
+/// [`Pointwise`] on one unfolded tile ([`unfolded`]).
+struct Unfolded<'a, 'p> {
+    im: Image<'a>,
+    part: &'a mut Part<'p>,
+    chans: std::ops::Range<usize>,
+    scratch: &'a mut [f32],
+}
+
+impl pulp::WithSimd for Unfolded<'_, '_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let Unfolded { im, part, chans, scratch } = self;
+        let tp = im.stride;
+        match size_of::<S::f32s>() / size_of::<f32>() {
+            16 => im.range::<S, 6, 3>(simd, part, chans, 0..tp, scratch),
+            8 => im.range::<S, 3, 4>(simd, part, chans, 0..tp, scratch),
+            4 => im.range::<S, 2, 8>(simd, part, chans, 0..tp, scratch),
+            _ => im.range::<S, 2, 16>(simd, part, chans, 0..tp, scratch),
+        }
+    }
+}
+
+/// An Im2col tile of one group-1 layer of small planes ([`applies_unfolded`]) instead of
+/// its GEMM: `col`, the unfolded `k x tp` rows of pixels `off..off + tp` of the part's
+/// planes of image `n`, channels `chans`, into those planes; `scratch` holds at least
+/// [`scratch_len`]`(k)` floats.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn unfolded(
+    w: &[f32],
+    ep: &Epilogue,
+    col: &[f32],
+    k: usize,
+    tp: usize,
+    part: &mut Part,
+    n: usize,
+    chans: std::ops::Range<usize>,
+    off: usize,
+    scratch: &mut [f32],
+) {
+    let im = Image::new(w, ep, &col[..k * tp], k, tp, n, 0, off);
+    pulp::Arch::new().dispatch(Unfolded { im, part, chans, scratch });
+}
+
 impl Image<'_> {
+    /// Channels `chans` of pixels `q` of the rows: whole tiles of `NV` vectors, then
+    /// pairs and single vectors, then a few pixels as dot products or one padded vector.
+    #[inline(always)]
+    fn range<S: pulp::Simd, const MR: usize, const NV: usize>(
+        self,
+        simd: S,
+        part: &mut Part,
+        chans: std::ops::Range<usize>,
+        q: std::ops::Range<usize>,
+        scratch: &mut [f32],
+    ) {
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let (x, stride, end) = (self.x, self.stride, q.end);
+        let mut p = q.start;
+        while p + NV * lanes <= end {
+            // The next tile's input rows, a plane apart: more streams than the hardware
+            // prefetcher follows.
+            if p + 2 * NV * lanes <= end {
+                for ci in 0..self.depth {
+                    (0..NV).for_each(|v| prefetch(&x[ci * stride + p + (NV + v) * lanes]));
+                }
+            }
+            self.tile::<S, MR, NV>(simd, part, chans.clone(), p);
+            p += NV * lanes;
+        }
+        // What is left, less than a tile: pairs of vectors, then single ones.
+        while NV > 2 && p + 2 * lanes <= end {
+            self.tile::<S, MR, 2>(simd, part, chans.clone(), p);
+            p += 2 * lanes;
+        }
+        while NV > 1 && p + lanes <= end {
+            self.tile::<S, MR, 1>(simd, part, chans.clone(), p);
+            p += lanes;
+        }
+        if p < end && DOTS * (end - p) <= lanes {
+            self.dots::<S>(simd, part, chans, p, end, scratch);
+        } else if p < end {
+            self.tail::<S, MR>(simd, part, chans, p, end, scratch);
+        }
+    }
+
     /// Channels `chans` of the `NV` vectors of pixels from `p`, by micro-tiles of `MR`
     /// channels (then 4, 2, 1 for the last).
     #[inline(always)]
@@ -169,12 +262,12 @@ impl Image<'_> {
         c0: usize,
         p: usize,
     ) -> usize {
-        let (cin, plane) = (self.cin, self.plane);
+        let (cin, plane) = (self.depth, self.stride);
         let width = NV * size_of::<S::f32s>() / size_of::<f32>();
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.w[(c0 + r) * cin..][..cin]);
         let rows = (0..cin).map(|ci| S::as_simd_f32s(&self.x[ci * plane + p..][..width]).0);
         let acc = rows_product::<S, MR, NV>(simd, a, rows);
-        let off = p - self.p_lo;
+        let off = p - self.q0 + self.o0;
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
             let scale = simd.splat_f32s(self.ep.scale.map_or(1.0, |v| v[c]));
@@ -210,12 +303,12 @@ impl Image<'_> {
         scratch: &mut [f32],
     ) {
         const G: usize = 4;
-        let (cin, plane, r) = (self.cin, self.plane, end - p);
+        let (cin, plane, r) = (self.depth, self.stride, end - p);
         let cols = &mut scratch[..r * cin];
         for (j, col) in cols.chunks_exact_mut(cin).enumerate() {
             col.iter_mut().enumerate().for_each(|(ci, v)| *v = self.x[ci * plane + p + j]);
         }
-        let off = p - self.p_lo;
+        let off = p - self.q0 + self.o0;
         let mut sums = [0.0f32; DOTS * G];
         let mut c = chans.start;
         while c < chans.end {
@@ -258,7 +351,7 @@ impl Image<'_> {
         end: usize,
         scratch: &mut [f32],
     ) {
-        let (cin, plane) = (self.cin, self.plane);
+        let (cin, plane) = (self.depth, self.stride);
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let (xs, rest) = scratch.split_at_mut(cin * lanes);
         let sums = &mut rest[..MR * lanes];
@@ -267,7 +360,7 @@ impl Image<'_> {
             head.copy_from_slice(&self.x[ci * plane + p..ci * plane + end]);
             pad.fill(0.0);
         }
-        let off = p - self.p_lo;
+        let off = p - self.q0 + self.o0;
         let mut c = chans.start;
         while c < chans.end {
             let mr = (chans.end - c).min(MR);
@@ -280,7 +373,7 @@ impl Image<'_> {
             }
             for (r, row) in sums.chunks_exact(lanes).take(mr).enumerate() {
                 let res = part.residual(self.n, c + r).map(|q| &q[off..]);
-                finish(&mut part.plane(self.n, c + r)[off..end - self.p_lo], &row[..end - p], c + r, self.ep, res);
+                finish(&mut part.plane(self.n, c + r)[off..off + end - p], &row[..end - p], c + r, self.ep, res);
             }
             c += mr;
         }
@@ -330,7 +423,7 @@ mod tests {
             let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu6) };
             for b in backends() {
                 let mut out = vec![f32::NAN; cout * plane];
-                let mut scratch = vec![f32::NAN; scratch_len(&s)];
+                let mut scratch = vec![f32::NAN; scratch_len(cin)];
                 let mut parts = split(&mut out, Some(&res), &s, ConvAlgo::Gemm1x1, 1);
                 b.run(Pointwise { s: &s, w: &w, ep: &ep, x: &x, part: &mut parts[0], scratch: &mut scratch });
                 drop(parts);

@@ -582,6 +582,20 @@ fn pointwise_tails_batches_and_residuals() {
         check_residual(&s, ConvAlgo::Gemm1x1, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
     }
     assert_eq!(split_shape(&shape(1, 70, (3, 3), 64, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1, 2), (1, 2));
+    // Im2col layers of small planes run the same tiles over their unfolded rows: strided
+    // 3x3 and 1x1 (ResNet's downsampling), padding, dilation, a 5x5, batches.
+    let unfolded = [
+        shape(1, 12, (14, 14), 10, (3, 3), (2, 2), (1, 1), (1, 1), 1),
+        shape(2, 9, (13, 13), 7, (1, 1), (2, 2), (0, 0), (1, 1), 1),
+        shape(1, 6, (8, 7), 13, (3, 3), (1, 1), (2, 2), (2, 2), 1),
+        shape(3, 5, (7, 7), 6, (5, 5), (1, 1), (2, 2), (1, 1), 1),
+        shape(1, 40, (4, 4), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+    ];
+    for s in &unfolded {
+        assert!(pointwise::applies_unfolded(s) && !direct::applies(s), "{s:?} takes the register path");
+        check(s, ConvAlgo::Im2col);
+        check_residual(s, ConvAlgo::Im2col, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
+    }
 }
 
 /// A residual input on every path: added as the rows are written (the GEMM paths, both
