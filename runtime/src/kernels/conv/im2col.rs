@@ -65,7 +65,7 @@ pub(super) fn gemm_part(
                     let (col, tail) = col.split_at_mut(k * tp);
                     im2col_simd(s, xg, p0, tp, col);
                     if registers {
-                        pointwise::unfolded(w, ep, col, k, tp, part, n, chans, p0 - p_lo, tail);
+                        pointwise::unfolded(s, w, ep, col, tp, part, n, chans, (p0, p_lo), tail);
                         continue;
                     }
                     MatRef::row_major(col, k, tp)

@@ -98,9 +98,12 @@ struct Image<'a> {
     depth: usize,
     stride: usize,
     n: usize,
-    /// Pixel `q` of the rows is pixel `q - q0 + o0` of the part's planes of image `n`.
-    q0: usize,
-    o0: usize,
+    /// Pixel `q` of the rows is pixel `first + q` of the image's planes; the part's
+    /// planes start at its pixel `p_lo`.
+    first: usize,
+    p_lo: usize,
+    /// Pixels of the image's planes.
+    plane: usize,
     clamp: Option<(f32, f32)>,
     /// An activation that is not a clamp, applied to each micro-tile once stored.
     post: Option<Activation>,
@@ -112,15 +115,15 @@ impl<'a> Image<'a> {
         w: &'a [f32],
         ep: &'a Epilogue<'a>,
         x: &'a [f32],
-        depth: usize,
-        stride: usize,
+        (depth, stride): (usize, usize),
         n: usize,
-        q0: usize,
-        o0: usize,
+        first: usize,
+        p_lo: usize,
+        plane: usize,
     ) -> Self {
         let clamp = ep.act.and_then(clamp_bounds);
         let post = ep.act.filter(|_| clamp.is_none());
-        Image { w, ep, x, depth, stride, n, q0, o0, clamp, post }
+        Image { w, ep, x, depth, stride, n, first, p_lo, plane, clamp, post }
     }
 }
 
@@ -135,7 +138,7 @@ impl Pointwise<'_, '_> {
             let (lo, hi) = part.rows_of(n, s.oh);
             let (p_lo, p_hi) = (lo * s.ow, hi * s.ow);
             let x = &x[n * cin * plane..][..cin * plane];
-            let im = Image::new(w, ep, x, cin, plane, n, p_lo, 0);
+            let im = Image::new(w, ep, x, (cin, plane), n, 0, p_lo, plane);
             im.range::<S, MR, NV>(simd, part, chans.clone(), p_lo..p_hi, scratch);
         }
     }
@@ -165,23 +168,24 @@ impl pulp::WithSimd for Unfolded<'_, '_> {
 }
 
 /// An Im2col tile of one group-1 layer of small planes ([`applies_unfolded`]) instead of
-/// its GEMM: `col`, the unfolded `k x tp` rows of pixels `off..off + tp` of the part's
-/// planes of image `n`, channels `chans`, into those planes; `scratch` holds at least
-/// [`scratch_len`]`(k)` floats.
+/// its GEMM: `col`, the unfolded `k x tp` rows of pixels `p0..p0 + tp` of image `n`,
+/// channels `chans`, into the part's planes (which start at pixel `p_lo`); `scratch`
+/// holds at least [`scratch_len`]`(k)` floats.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn unfolded(
+    s: &Conv2dShape,
     w: &[f32],
     ep: &Epilogue,
     col: &[f32],
-    k: usize,
     tp: usize,
     part: &mut Part,
     n: usize,
     chans: std::ops::Range<usize>,
-    off: usize,
+    (p0, p_lo): (usize, usize),
     scratch: &mut [f32],
 ) {
-    let im = Image::new(w, ep, &col[..k * tp], k, tp, n, 0, off);
+    let k = s.k();
+    let im = Image::new(w, ep, &col[..k * tp], (k, tp), n, p0, p_lo, s.oh * s.ow);
     pulp::Arch::new().dispatch(Unfolded { im, part, chans, scratch });
 }
 
@@ -198,7 +202,14 @@ impl Image<'_> {
         scratch: &mut [f32],
     ) {
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
-        let (x, stride, end) = (self.x, self.stride, q.end);
+        // Dot products sum in another order than the tiles, so they take the same pixels
+        // whatever the split: the plane's last few, if a vector's whole multiples leave
+        // at most a `DOTS`-th of one. Every other pixel sums as in a tile (a padded vector
+        // does too), so the bits do not depend on the thread count.
+        let left = self.plane % lanes;
+        let dots_at = if left > 0 && DOTS * left <= lanes { self.plane - left } else { self.plane };
+        let end = q.end.min(dots_at.saturating_sub(self.first)).max(q.start);
+        let (x, stride) = (self.x, self.stride);
         let mut p = q.start;
         while p + NV * lanes <= end {
             // The next tile's input rows, a plane apart: more streams than the hardware
@@ -211,7 +222,8 @@ impl Image<'_> {
             self.tile::<S, MR, NV>(simd, part, chans.clone(), p);
             p += NV * lanes;
         }
-        // What is left, less than a tile: pairs of vectors, then single ones.
+        // What is left, less than a tile: pairs of vectors, then single ones, then a
+        // padded one.
         while NV > 2 && p + 2 * lanes <= end {
             self.tile::<S, MR, 2>(simd, part, chans.clone(), p);
             p += 2 * lanes;
@@ -220,10 +232,11 @@ impl Image<'_> {
             self.tile::<S, MR, 1>(simd, part, chans.clone(), p);
             p += lanes;
         }
-        if p < end && DOTS * (end - p) <= lanes {
-            self.dots::<S>(simd, part, chans, p, end, scratch);
-        } else if p < end {
-            self.tail::<S, MR>(simd, part, chans, p, end, scratch);
+        if p < end {
+            self.tail::<S, MR>(simd, part, chans.clone(), p, end, scratch);
+        }
+        if end < q.end {
+            self.dots::<S>(simd, part, chans, end, q.end, scratch);
         }
     }
 
@@ -267,7 +280,7 @@ impl Image<'_> {
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.w[(c0 + r) * cin..][..cin]);
         let rows = (0..cin).map(|ci| S::as_simd_f32s(&self.x[ci * plane + p..][..width]).0);
         let acc = rows_product::<S, MR, NV>(simd, a, rows);
-        let off = p - self.q0 + self.o0;
+        let off = self.first + p - self.p_lo;
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
             let scale = simd.splat_f32s(self.ep.scale.map_or(1.0, |v| v[c]));
@@ -276,7 +289,10 @@ impl Image<'_> {
             let out = &mut part.plane(self.n, c)[off..][..width];
             let (dst, _) = S::as_mut_simd_f32s(out);
             for v in 0..NV {
-                let mut z = simd.mul_add_f32s(sums[v], scale, shift);
+                // Multiplied, then added, as `finish` does for the tails and dot products:
+                // a fused multiply-add would round differently, and which pixels take
+                // which path depends on the split.
+                let mut z = simd.add_f32s(simd.mul_f32s(sums[v], scale), shift);
                 if let Some(res) = res {
                     z = simd.add_f32s(z, res[v]);
                 }
@@ -308,7 +324,7 @@ impl Image<'_> {
         for (j, col) in cols.chunks_exact_mut(cin).enumerate() {
             col.iter_mut().enumerate().for_each(|(ci, v)| *v = self.x[ci * plane + p + j]);
         }
-        let off = p - self.q0 + self.o0;
+        let off = self.first + p - self.p_lo;
         let mut sums = [0.0f32; DOTS * G];
         let mut c = chans.start;
         while c < chans.end {
@@ -360,7 +376,7 @@ impl Image<'_> {
             head.copy_from_slice(&self.x[ci * plane + p..ci * plane + end]);
             pad.fill(0.0);
         }
-        let off = p - self.q0 + self.o0;
+        let off = self.first + p - self.p_lo;
         let mut c = chans.start;
         while c < chans.end {
             let mr = (chans.end - c).min(MR);

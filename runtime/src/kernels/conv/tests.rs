@@ -598,6 +598,50 @@ fn pointwise_tails_batches_and_residuals() {
     }
 }
 
+/// The register path gives the same bits at every thread count: a split by rows cuts
+/// the planes elsewhere than one thread's tiles do, and only the plane's last pixels sum
+/// in the dot products' order; the epilogue rounds as `finish` does on the tails.
+#[test]
+fn pointwise_bits_do_not_depend_on_the_split() {
+    let cases = [
+        (shape(3, 24, (7, 7), 16, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(5, 20, (14, 14), 8, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(3, 12, (14, 14), 16, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+    ];
+    // And Im2col layers of small planes (strided 1x1 and 3x3, a stride-1 3x3), batches
+    // whose split falls inside an image.
+    let mut cases = cases.to_vec();
+    for (n, hw, cout) in [(1, 7, 16), (3, 8, 40), (6, 13, 96), (5, 3, 8)] {
+        for (k, stride) in [(1, 2), (3, 2), (3, 1)] {
+            let s = shape(n, 24, (hw, hw + 1), cout, (k, k), (stride, stride), (k / 2, k / 2), (1, 1), 1);
+            if pointwise::applies_unfolded(&s) && split_shape(&s, ConvAlgo::Im2col, 2).1 == 1 {
+                cases.push((s, ConvAlgo::Im2col));
+            }
+        }
+    }
+    assert!(cases.len() > 8, "{} cases", cases.len());
+    for (s, algo) in &cases {
+        let x = data(s.n * s.cin * s.h * s.w, 41);
+        let w = data(s.cout * s.k(), 42);
+        let mut packed = vec![0.0; packed_weight_len(s, *algo)];
+        pack_weight(s, *algo, &w, &mut packed);
+        let (scale, shift, res) = (data(s.cout, 43), data(s.cout, 44), data(s.n * s.cout * s.oh * s.ow, 45));
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
+        let runs: Vec<Vec<f32>> = [1, 2, 3]
+            .iter()
+            .map(|&threads| {
+                let mut out = vec![f32::NAN; s.n * s.cout * s.oh * s.ow];
+                let mut scratch = vec![f32::NAN; scratch_len(s, *algo, threads)];
+                conv2d_fused(s, *algo, &packed, None, None, &ep, &x, Some(&res), &mut out, &mut scratch, threads);
+                out
+            })
+            .collect();
+        for run in &runs[1..] {
+            assert!(run.iter().zip(&runs[0]).all(|(a, b)| a.to_bits() == b.to_bits()), "{s:?}: bits differ");
+        }
+    }
+}
+
 /// A residual input on every path: added as the rows are written (the GEMM paths, both
 /// Winograds, a split by channels, with a LoRA branch) and in a pass after (depthwise, the
 /// direct conv), before a ReLU, another activation or none, at 1 to 3 threads, against the
