@@ -27,7 +27,7 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
 }
 
 /// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
-/// crate, by the same rule.
+/// crate: one group and planes of at most [`MAX_UNFOLDED_PLANE`] pixels.
 pub(super) fn applies_unfolded(s: &Conv2dShape) -> bool {
     s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE
 }
@@ -47,15 +47,17 @@ const MAX_PLANE: usize = 256;
 /// matrix larger than L2 once per 6 channels, where the crate blocks it for the cache.
 const MAX_UNFOLDED_PLANE: usize = 64;
 
-/// Scratch floats of one part: a padded tail's input columns and its sums, for the
-/// widest vectors (16 lanes) and micro-tiles (8 rows); or the columns of a few pixels.
+/// Scratch floats of one part over `depth` input rows: a padded tail's input columns and
+/// its sums, for vectors of up to 16 lanes and micro-tiles of up to 8 rows; or the columns
+/// of the dot products' pixels.
 pub(super) fn scratch_len(depth: usize) -> usize {
     (depth + 8) * 16
 }
 
-/// A tail of at most a `DOTS`-th of a vector of pixels runs as dot products over the
-/// input channels ([`Image::dots`]) instead of a zero-padded vector: a 7x7 plane is three
-/// AVX-512 vectors and one pixel, which padded costs a third more than the rest.
+/// A plane whose whole vectors leave at most a `DOTS`-th of one computes those last
+/// pixels as dot products over the input channels ([`Image::dots`]) instead of a
+/// zero-padded vector: a 7x7 plane is three AVX-512 vectors and one pixel, which padded
+/// costs a third more than the rest.
 const DOTS: usize = 4;
 
 /// The conv of one part (its output channels of its rows) into the part's planes.
@@ -72,19 +74,27 @@ struct Pointwise<'a, 'p> {
     scratch: &'a mut [f32],
 }
 
-impl pulp::WithSimd for Pointwise<'_, '_> {
-    type Output = ();
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) {
-        // Sums in 24 of the 32 AVX-512 registers, 12 of the 16 AVX2 ones.
-        match size_of::<S::f32s>() / size_of::<f32>() {
-            16 => self.run::<S, 6, 3>(simd),
-            8 => self.run::<S, 3, 4>(simd),
-            4 => self.run::<S, 2, 8>(simd),
-            _ => self.run::<S, 2, 16>(simd),
+/// Implements `pulp::WithSimd` for a pass with a `run::<S, MR, NV>` method: micro-tiles
+/// of `MR` channels by `NV` vectors, the sums in 18 of the 32 AVX-512 registers (8x3, 24
+/// sums, ran at half the speed: they did not stay in registers), 12 of the 16 AVX2 ones.
+macro_rules! register_pass {
+    ($($t:ty),*) => {$(
+        impl pulp::WithSimd for $t {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: pulp::Simd>(self, simd: S) {
+                match size_of::<S::f32s>() / size_of::<f32>() {
+                    16 => self.run::<S, 6, 3>(simd),
+                    8 => self.run::<S, 3, 4>(simd),
+                    4 => self.run::<S, 2, 8>(simd),
+                    _ => self.run::<S, 2, 16>(simd),
+                }
+            }
         }
-    }
+    )*};
 }
+
+register_pass!(Pointwise<'_, '_>, Unfolded<'_, '_>);
 
 /// What every micro-tile over one image's input rows shares: the rows (the image's
 /// input planes, or an unfolded tile's rows), and where a pixel of them lands in the
@@ -152,18 +162,11 @@ struct Unfolded<'a, 'p> {
     scratch: &'a mut [f32],
 }
 
-impl pulp::WithSimd for Unfolded<'_, '_> {
-    type Output = ();
+impl Unfolded<'_, '_> {
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) {
+    fn run<S: pulp::Simd, const MR: usize, const NV: usize>(self, simd: S) {
         let Unfolded { im, part, chans, scratch } = self;
-        let tp = im.stride;
-        match size_of::<S::f32s>() / size_of::<f32>() {
-            16 => im.range::<S, 6, 3>(simd, part, chans, 0..tp, scratch),
-            8 => im.range::<S, 3, 4>(simd, part, chans, 0..tp, scratch),
-            4 => im.range::<S, 2, 8>(simd, part, chans, 0..tp, scratch),
-            _ => im.range::<S, 2, 16>(simd, part, chans, 0..tp, scratch),
-        }
+        im.range::<S, MR, NV>(simd, part, chans, 0..im.stride, scratch);
     }
 }
 
@@ -191,7 +194,8 @@ pub(super) fn unfolded(
 
 impl Image<'_> {
     /// Channels `chans` of pixels `q` of the rows: whole tiles of `NV` vectors, then
-    /// pairs and single vectors, then a few pixels as dot products or one padded vector.
+    /// pairs and single vectors, then one padded vector, and the plane's last few pixels
+    /// (if in `q`) as dot products.
     #[inline(always)]
     fn range<S: pulp::Simd, const MR: usize, const NV: usize>(
         self,
