@@ -860,6 +860,11 @@ mod tests {
         );
         // Groups: after the conv.
         assert_eq!(check(&shape(1, 8, (7, 6), 8, 3, 1, 2), ConvAlgo::Im2col, 4, Activation::Relu), [false, false]);
+        // A stem-like layer (a direct conv without the adapter) of a 5x5 plane, split by
+        // channels at two threads: the im2col register tiles, then the adapter after.
+        let stem = shape(1, 3, (10, 10), 64, 3, 2, 1);
+        assert!(super::super::direct::applies(&stem) && super::super::pointwise::applies_unfolded(&stem));
+        assert_eq!(check(&stem, ConvAlgo::Im2col, 4, Activation::Relu), [true, false]);
     }
 
     #[test]

@@ -49,10 +49,10 @@
 //!
 //! This file holds the geometry, the choice of algorithm, the weight packing, the
 //! [`conv2d`] dispatch and the epilogue; `split.rs` the thread split, `im2col.rs` the GEMM
-//! paths (Gemm1x1, Im2col), `pointwise.rs` the register path of small 1x1 layers, `direct.rs` the direct conv an im2col layer with few input
-//! channels per group (a stem, RegNet's grouped convs) runs instead, `winograd.rs`
-//! Winograd, `depthwise.rs` the direct loop, and `tests.rs` the tests of every algorithm
-//! against one reference.
+//! paths (Gemm1x1, Im2col), `pointwise.rs` the register tiles of small planes,
+//! `direct.rs` the direct conv an im2col layer with few input channels per group (a stem,
+//! RegNet's grouped convs) runs instead, `winograd.rs` Winograd, `depthwise.rs` the direct
+//! loop, and `tests.rs` the tests of every algorithm against one reference.
 
 use rayon::prelude::*;
 
@@ -665,18 +665,18 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
 /// One part's scratch; `rank` rows more of the tile (of the transformed block) for a
 /// LoRA branch's `A x`.
 fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
+    // Past an im2col tile's unfolded rows, the register tiles' tail scratch, where they
+    // take the layer (also a layer the direct conv takes, when an adapter sends it down
+    // the GEMM path).
+    let registers = if pointwise::applies_unfolded(s) { pointwise::scratch_len(s.k()) } else { 0 };
     match algo {
         ConvAlgo::Gemm1x1 => (gemm_tile(s, algo) * (s.cout_g() + rank)).max(pointwise::scratch_len(s.cin)),
         // The direct conv (a stem, narrow groups) reads one image's padded input from the
         // scratch.
         ConvAlgo::Im2col if direct::applies(s) => {
-            (gemm_tile(s, algo) * (s.cout_g() + s.k() + rank)).max(direct::scratch_len(s))
+            (gemm_tile(s, algo) * (s.cout_g() + s.k() + rank) + registers).max(direct::scratch_len(s))
         }
-        // Past the unfolded tile, a padded tail's scratch for the register path.
-        ConvAlgo::Im2col => {
-            gemm_tile(s, algo) * (s.cout_g() + s.k() + rank)
-                + if pointwise::applies_unfolded(s) { pointwise::scratch_len(s.k()) } else { 0 }
-        }
+        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k() + rank) + registers,
         ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(rank),
         ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(rank),
         ConvAlgo::Depthwise => 0,
