@@ -30,7 +30,7 @@
 
 use rayon::prelude::*;
 
-use super::Conv2dShape;
+use super::{Conv2dShape, pad_row};
 use crate::kernels::gemm::{MatMut, MatRef, prefetch, rows_product, sgemm};
 use crate::kernels::{Activation, clamp_bounds, elementwise};
 
@@ -267,13 +267,6 @@ fn apply_by_weights(
 /// half of one for a tail that fits it.
 fn tile_width(plane: usize, at: usize) -> usize {
     if plane - at > TILE / 2 { TILE } else { TILE / 2 }
-}
-
-/// `src` into the start of `dst`, the rest of `dst` zero: a tail tile's row, padded.
-fn pad_row(dst: &mut [f32], src: &[f32]) {
-    let (head, rest) = dst.split_at_mut(src.len());
-    head.copy_from_slice(src);
-    rest.fill(0.0);
 }
 
 /// Phase one of [`apply_by_weights`]: bottleneck rows `rows` of every tile of image `y`

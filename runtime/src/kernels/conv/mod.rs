@@ -662,6 +662,14 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
     ep.finish_act(dst);
 }
 
+/// `src` into the start of `dst`, the rest of `dst` zero: a tail tile's row, padded
+/// (the adapter's and the register tiles' tails).
+fn pad_row(dst: &mut [f32], src: &[f32]) {
+    let (head, rest) = dst.split_at_mut(src.len());
+    head.copy_from_slice(src);
+    rest.fill(0.0);
+}
+
 /// One part's scratch; `rank` rows more of the tile (of the transformed block) for a
 /// LoRA branch's `A x`.
 fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {

@@ -16,7 +16,7 @@
 #[cfg(test)]
 use super::ConvAlgo;
 use super::split::Part;
-use super::{Conv2dShape, clamp_vector, finish};
+use super::{Conv2dShape, clamp_vector, finish, pad_row};
 use crate::kernels::gemm::{prefetch, rows_product};
 use crate::kernels::{Activation, Epilogue, clamp_bounds, elementwise};
 
@@ -60,41 +60,45 @@ pub(super) fn scratch_len(depth: usize) -> usize {
 /// costs a third more than the rest.
 const DOTS: usize = 4;
 
-/// The conv of one part (its output channels of its rows) into the part's planes.
+/// The conv of one part (its output channels of its rows) into the part's planes, image
+/// by image.
 pub(super) fn part(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], part: &mut Part, scratch: &mut [f32]) {
-    pulp::Arch::new().dispatch(Pointwise { s, w, ep, x, part, scratch });
+    let (cin, plane) = (s.cin, s.oh * s.ow);
+    let chans = part.channels_of(0, s.cout);
+    for n in part.n0..=(part.r1 - 1) / s.oh {
+        let (lo, hi) = part.rows_of(n, s.oh);
+        let x = &x[n * cin * plane..][..cin * plane];
+        let im = Image::new(w, ep, x, (cin, plane), n, 0, lo * s.ow, plane);
+        let q = lo * s.ow..hi * s.ow;
+        pulp::Arch::new().dispatch(Pass { im, part: &mut *part, chans: chans.clone(), q, scratch: &mut *scratch });
+    }
 }
 
-struct Pointwise<'a, 'p> {
-    s: &'a Conv2dShape,
-    w: &'a [f32],
-    ep: &'a Epilogue<'a>,
-    x: &'a [f32],
+/// Pixels `q` of one image's rows, channels `chans`, compiled for the widest SIMD the CPU
+/// has: micro-tiles of `MR` channels by `NV` vectors, the sums in 18 of the 32 AVX-512
+/// registers (8x3, 24 sums, ran at half the speed: they did not stay in registers), 12
+/// of the 16 AVX2 ones.
+struct Pass<'a, 'p> {
+    im: Image<'a>,
     part: &'a mut Part<'p>,
+    chans: std::ops::Range<usize>,
+    q: std::ops::Range<usize>,
     scratch: &'a mut [f32],
 }
 
-/// Implements `pulp::WithSimd` for a pass with a `run::<S, MR, NV>` method: micro-tiles
-/// of `MR` channels by `NV` vectors, the sums in 18 of the 32 AVX-512 registers (8x3, 24
-/// sums, ran at half the speed: they did not stay in registers), 12 of the 16 AVX2 ones.
-macro_rules! register_pass {
-    ($($t:ty),*) => {$(
-        impl pulp::WithSimd for $t {
-            type Output = ();
-            #[inline(always)]
-            fn with_simd<S: pulp::Simd>(self, simd: S) {
-                match size_of::<S::f32s>() / size_of::<f32>() {
-                    16 => self.run::<S, 6, 3>(simd),
-                    8 => self.run::<S, 3, 4>(simd),
-                    4 => self.run::<S, 2, 8>(simd),
-                    _ => self.run::<S, 2, 16>(simd),
-                }
-            }
+impl pulp::WithSimd for Pass<'_, '_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let Pass { im, part, chans, q, scratch } = self;
+        match size_of::<S::f32s>() / size_of::<f32>() {
+            16 => im.range::<S, 6, 3>(simd, part, chans, q, scratch),
+            8 => im.range::<S, 3, 4>(simd, part, chans, q, scratch),
+            4 => im.range::<S, 2, 8>(simd, part, chans, q, scratch),
+            _ => im.range::<S, 2, 16>(simd, part, chans, q, scratch),
         }
-    )*};
+    }
 }
-
-register_pass!(Pointwise<'_, '_>, Unfolded<'_, '_>);
 
 /// What every micro-tile over one image's input rows shares: the rows (the image's
 /// input planes, or an unfolded tile's rows), and where a pixel of them lands in the
@@ -137,39 +141,6 @@ impl<'a> Image<'a> {
     }
 }
 
-impl Pointwise<'_, '_> {
-    #[inline(always)]
-    fn run<S: pulp::Simd, const MR: usize, const NV: usize>(self, simd: S) {
-        let Pointwise { s, w, ep, x, part, scratch } = self;
-        let (cin, plane) = (s.cin, s.oh * s.ow);
-        let chans = part.channels_of(0, s.cout);
-        let last = (part.r1 - 1) / s.oh;
-        for n in part.n0..=last {
-            let (lo, hi) = part.rows_of(n, s.oh);
-            let (p_lo, p_hi) = (lo * s.ow, hi * s.ow);
-            let x = &x[n * cin * plane..][..cin * plane];
-            let im = Image::new(w, ep, x, (cin, plane), n, 0, p_lo, plane);
-            im.range::<S, MR, NV>(simd, part, chans.clone(), p_lo..p_hi, scratch);
-        }
-    }
-}
-
-/// [`Pointwise`] on one unfolded tile ([`unfolded`]).
-struct Unfolded<'a, 'p> {
-    im: Image<'a>,
-    part: &'a mut Part<'p>,
-    chans: std::ops::Range<usize>,
-    scratch: &'a mut [f32],
-}
-
-impl Unfolded<'_, '_> {
-    #[inline(always)]
-    fn run<S: pulp::Simd, const MR: usize, const NV: usize>(self, simd: S) {
-        let Unfolded { im, part, chans, scratch } = self;
-        im.range::<S, MR, NV>(simd, part, chans, 0..im.stride, scratch);
-    }
-}
-
 /// An Im2col tile of one group-1 layer of small planes ([`applies_unfolded`]) instead of
 /// its GEMM: `col`, the unfolded `k x tp` rows of pixels `p0..p0 + tp` of image `n`,
 /// channels `chans`, into the part's planes (which start at pixel `p_lo`); `scratch`
@@ -189,7 +160,7 @@ pub(super) fn unfolded(
 ) {
     let k = s.k();
     let im = Image::new(w, ep, &col[..k * tp], (k, tp), n, p0, p_lo, s.oh * s.ow);
-    pulp::Arch::new().dispatch(Unfolded { im, part, chans, scratch });
+    pulp::Arch::new().dispatch(Pass { im, part, chans, q: 0..tp, scratch });
 }
 
 impl Image<'_> {
@@ -376,9 +347,7 @@ impl Image<'_> {
         let (xs, rest) = scratch.split_at_mut(cin * lanes);
         let sums = &mut rest[..MR * lanes];
         for (ci, dst) in xs.chunks_exact_mut(lanes).enumerate() {
-            let (head, pad) = dst.split_at_mut(end - p);
-            head.copy_from_slice(&self.x[ci * plane + p..ci * plane + end]);
-            pad.fill(0.0);
+            pad_row(dst, &self.x[ci * plane + p..ci * plane + end]);
         }
         let off = self.first + p - self.p_lo;
         let mut c = chans.start;
@@ -445,7 +414,8 @@ mod tests {
                 let mut out = vec![f32::NAN; cout * plane];
                 let mut scratch = vec![f32::NAN; scratch_len(cin)];
                 let mut parts = split(&mut out, Some(&res), &s, ConvAlgo::Gemm1x1, 1);
-                b.run(Pointwise { s: &s, w: &w, ep: &ep, x: &x, part: &mut parts[0], scratch: &mut scratch });
+                let im = Image::new(&w, &ep, &x, (cin, plane), 0, 0, 0, plane);
+                b.run(Pass { im, part: &mut parts[0], chans: 0..cout, q: 0..plane, scratch: &mut scratch });
                 drop(parts);
                 assert_close(&out, &want, 1e-5);
             }
