@@ -6,7 +6,8 @@
 //! elements share memory; only then does it call the crate.
 //!
 //! It also holds [`rows_product`], the register micro-kernel of the products written here
-//! (linear layers in panels, `panel.rs`; a conv's bottleneck adapter, `conv/adapter.rs`),
+//! (linear layers in panels, `panel.rs`; a conv's bottleneck adapter, `conv/adapter.rs`;
+//! the register tiles of small 1x1 and 7x7 im2col layers, `conv/pointwise.rs`),
 //! which reads its rows unchecked after cutting each to the loop's length.
 
 #![allow(unsafe_code)]

@@ -18,7 +18,7 @@ use super::ConvAlgo;
 use super::split::Part;
 use super::{Conv2dShape, clamp_vector, finish, pad_row};
 use crate::kernels::gemm::{prefetch, rows_product};
-use crate::kernels::{Activation, Epilogue, clamp_bounds, elementwise};
+use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer runs here rather than through the `gemm` crate: one group and
 /// planes of at most [`MAX_PLANE`] pixels.
@@ -135,7 +135,7 @@ impl<'a> Image<'a> {
         p_lo: usize,
         plane: usize,
     ) -> Self {
-        let clamp = ep.act.and_then(clamp_bounds);
+        let clamp = ep.clamp();
         let post = ep.act.filter(|_| clamp.is_none());
         Image { w, ep, x, depth, stride, n, first, p_lo, plane, clamp, post }
     }
