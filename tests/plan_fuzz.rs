@@ -70,7 +70,7 @@ const SPECS: &[(&str, LoraMode, usize)] = &[
 /// another.
 const CONV_ALGORITHMS: &str = "\
 model convs {
-  input x: f32[N, 32, 12, 12] @camera
+  input x: f32[N, 32, 24, 24] @camera
   w4 = conv2d(x, 32, kernel=3, padding=1)
   small = maxpool(relu(w4), kernel=2)
   w2 = conv2d(small, 32, kernel=3, padding=1)
@@ -106,7 +106,7 @@ block CB(x: tensor, c: int, k: int, s: int, p: int, g: int) {
   return relu(bn)
 }
 model convs {
-  input x: f32[N, 32, 12, 12] @camera
+  input x: f32[N, 32, 24, 24] @camera
   w4 = CB(x, 32, 3, 1, 1, 1)
   pw = CB(w4, 16, 1, 1, 0, 1)
   dw = CB(pw, 16, 3, 1, 1, 16)

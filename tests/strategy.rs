@@ -36,6 +36,11 @@ fn module(img: &str) -> Module {
     out.module.expect("module")
 }
 
+/// The image size of the budget tests: at 448 pixels ResNet-18's layer3 runs at 28x28 (its
+/// stride-1 convs by Winograd F(4x4)) and layer4 at 14x14 (F(2x2)), so the budgets choose
+/// among every algorithm (at 224, layer3 takes F(2x2) and layer4 im2col).
+const IMG: &str = "448";
+
 const KEYS: [&str; 2] = ["gamma=0.25", "blur=5"];
 
 /// Milliseconds proportional to multiply-adds: Winograd F(4x4) does 4x fewer, F(2x2)
@@ -82,7 +87,7 @@ const LAYER4_WINOGRAD: [&str; 3] = ["layer4.0.conv2", "layer4.1.conv1", "layer4.
 
 #[test]
 fn loose_budget_merges_everything_at_the_default_algorithms() {
-    let m = module("224");
+    let m = module(IMG);
     let (plan, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
     let s = s.expect("a strategy");
     assert!(warnings.is_empty(), "{warnings:?}");
@@ -90,8 +95,8 @@ fn loose_budget_merges_everything_at_the_default_algorithms() {
     for l in &s.layers {
         assert_eq!(l.lora, Some(LoraMode::Merge), "{}", l.path);
     }
-    // Hand-derived: layer3's stride-1 convs at 14x14 are Winograd F(4x4), 36 * 256 * 256
-    // floats; layer4's at 7x7 F(2x2), 16 * 512 * 512; the stride-2 ones im2col, raw.
+    // Hand-derived: layer3's stride-1 convs at 28x28 are Winograd F(4x4), 36 * 256 * 256
+    // floats; layer4's at 14x14 F(2x2), 16 * 512 * 512; the stride-2 ones im2col, raw.
     let by = choose_strategy::by_path(&s);
     assert_eq!(by["layer3.0.conv2"].algo, Some(ConvAlgo::Winograd4));
     assert_eq!(by["layer3.0.conv2"].bytes, vec![36 * 256 * 256 * 4; 2]);
@@ -107,15 +112,15 @@ fn loose_budget_merges_everything_at_the_default_algorithms() {
 
 #[test]
 fn tight_budget_branches_the_largest_layers_first() {
-    let m = module("224");
+    let m = module(IMG);
     let (_, _, merged) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
     let merged = merged.expect("a strategy");
     // Branching layer4.0.conv2 saves its F(2x2) weight, 16 * 512 * 512 floats, for A (stored
     // raw, 9 floats per 3x3; the runtime packs it for F(2x2)) and B, 4 * 512 * 9 + 512 * 4
-    // floats: 16.7 MB for 1.00 ms added (A and B's multiply-adds at
-    // 1e-6 ms each), 16.7 MB/ms, the same for layer4.1's two. Next: layer4.0.conv1, 4.67 MB
-    // for 0.55 ms (8.5 MB/ms); layer3's F(4x4) convs, 9.40 MB for 2.01 ms (4.7 MB/ms);
-    // layer3.0.conv1, 1.16 MB for 1.10 ms (1.1 MB/ms); im2col instead of Winograd saves
+    // floats: 16.7 MB for 4.01 ms added (A and B's multiply-adds at 1e-6 ms each, 14x14
+    // outputs), 4.2 MB/ms, the same for layer4.1's two. Next: layer4.0.conv1, 4.67 MB for
+    // 2.21 ms (2.1 MB/ms); layer3's F(4x4) convs, 9.40 MB for 8.03 ms (1.2 MB/ms);
+    // layer3.0.conv1, 1.16 MB for 4.42 ms (0.26 MB/ms); im2col instead of Winograd saves
     // less for far more. A budget that the three layer4 F(2x2) convs branched just meet:
     let saved = 3 * (16 * 512 * 512 - (4 * 512 * 9 + 512 * 4)) * 4;
     let need = merged.variant_bytes().into_iter().max().expect("variants") - saved;
@@ -142,13 +147,13 @@ fn tight_budget_branches_the_largest_layers_first() {
         (4 * cin * 9 * o * o + cout * 4 * o * o) as f64 * 1e-6
     };
     let added: f64 = s.layers.iter().filter_map(|l| l.added_ms).sum();
-    let want = 3.0 * a_b(512, 512, 7, 1) + a_b(256, 512, 14, 2);
+    let want = 3.0 * a_b(512, 512, 14, 1) + a_b(256, 512, 28, 2);
     assert!((added - want).abs() < 1e-9, "{added} vs {want}");
 }
 
 #[test]
 fn impossible_budget_warns_with_the_smallest_achievable() {
-    let m = module("224");
+    let m = module(IMG);
     let (plan, warnings, s) = compile(&m, &opts(LoraMode::Auto, Some(0.1)));
     let s = s.expect("a strategy");
     assert_eq!(warnings.len(), 1, "{warnings:?}");
@@ -197,7 +202,7 @@ fn switched(s: &Strategy) -> Vec<&str> {
 
 #[test]
 fn a_layer_goes_merge_on_switch_when_its_merge_fits_the_switch_budget() {
-    let m = module("224");
+    let m = module(IMG);
     let (_, _, merged) = compile(&m, &opts(LoraMode::Auto, Some(1000.0)));
     let merged = merged.expect("a strategy");
     // Merging layer3.0.conv2 on switch saves its F(4x4) weight, 36 * 256 * 256 floats, for
@@ -253,7 +258,7 @@ fn fast_macs(s: &Conv2dShape, algo: ConvAlgo) -> f64 {
 
 #[test]
 fn the_default_switch_budget_keeps_the_first_run_after_a_switch_within_two_percent() {
-    let m = module("224");
+    let m = module(IMG);
     let timing = Timing::FixedSwitch(fast_macs, merge_ms);
     let (_, _, merged) = compile(&m, &CompileOptions { timing, ..opts(LoraMode::Auto, Some(1000.0)) });
     let merged = merged.expect("a strategy");
@@ -331,7 +336,7 @@ fn mixed_strategies_compute_what_all_merge_and_all_branch_compute() {
 
 #[test]
 fn explain_table() {
-    let m = module("224");
+    let m = module(IMG);
     // Merges at 1e-6 ms per weight element: layer3.0.conv2 (0.590 ms) and layer3.0.conv1
     // (0.295 ms) fit the 1 ms switch budget.
     let mut o = switch_opts(Some(20.0), 1.0);

@@ -352,7 +352,7 @@ fn unused_adapters_leave_the_schedule() {
 /// Convs of every algorithm with a LoRA branch each, and a linear: Winograd F(4x4) and
 /// F(2x2) at 3x3, the 1x1 GEMM, im2col at stride 2 and dilation 2.
 const FUSED: &str = "model m {
-  input x: f32[N, 32, 14, 14] @camera
+  input x: f32[N, 32, 24, 24] @camera
   w4 = conv2d(x, 32, kernel=3, padding=1, bias=false)
   n4 = batchnorm(w4)
   small = maxpool(relu(n4), kernel=2)
@@ -404,7 +404,7 @@ fn fused_branches_match_merged_lora_on_every_algorithm() {
         .collect();
     assert_eq!(algos, ["winograd4", "winograd2", "gemm1x1", "im2col", "linear"]);
     for batch in [1usize, 3] {
-        let shape = vec![batch, 32, 14, 14];
+        let shape = vec![batch, 32, 24, 24];
         let x = seeded_tensor(5, "x", &shape);
         let input = [Input { name: "x", data: &x, shape: &shape }];
         for threads in [1, 2] {
@@ -469,7 +469,7 @@ fn a_raw_winograd_lora_a_is_packed_for_each_runs_variant() {
     );
 
     // A -> B -> A (and the base) in one session: a fresh session's outputs, bit for bit.
-    let shape = vec![2, 32, 14, 14];
+    let shape = vec![2, 32, 24, 24];
     let x = seeded_tensor(6, "x", &shape);
     let input = [Input { name: "x", data: &x, shape: &shape }];
     let want: Vec<Vec<f32>> = ["base", "fog=0.03", "fog=0.06"].iter().map(|k| fresh_run(&plan, k, &input)).collect();
@@ -533,7 +533,7 @@ fn a_raw_winograd_lora_a_is_packed_for_each_runs_variant() {
 /// [`FUSED`] with a tuned Winograd conv `t4` (no LoRA): each of its variants owns the
 /// conv's weight and bias.
 const SWITCHED: &str = "model m {
-  input x: f32[N, 32, 14, 14] @camera
+  input x: f32[N, 32, 24, 24] @camera
   w4 = conv2d(x, 32, kernel=3, padding=1, bias=false)
   n4 = batchnorm(w4)
   t4 = conv2d(relu(n4), 32, kernel=3, padding=1)
@@ -634,7 +634,7 @@ fn merge_on_switch_is_consistent_exact_and_thread_safe() {
         }
     }
 
-    let shape = vec![2, 32, 14, 14];
+    let shape = vec![2, 32, 24, 24];
     let x = seeded_tensor(6, "x", &shape);
     let input = [Input { name: "x", data: &x, shape: &shape }];
     let keys = ["base", "fog=0.03", "fog=0.06"];
@@ -655,8 +655,8 @@ fn merge_on_switch_is_consistent_exact_and_thread_safe() {
         assert_eq!(s.run(&input).expect("run")[0].1.data, want[k], "variant {k}");
     }
     // Batch 1 rebinds (new buffers): still the right variant.
-    let shape1 = vec![1, 32, 14, 14];
-    let input1 = [Input { name: "x", data: &x[..32 * 14 * 14], shape: &shape1 }];
+    let shape1 = vec![1, 32, 24, 24];
+    let input1 = [Input { name: "x", data: &x[..32 * 24 * 24], shape: &shape1 }];
     let want1 = fresh_run(&plan, "fog=0.06", &input1);
     s.set_variant("fog=0.06").expect("key");
     assert_eq!(s.run(&input1).expect("run")[0].1.data, want1);

@@ -83,11 +83,11 @@ pub fn layer_shape(conv: &readi_plan::ops::Conv2d, n: usize, h: usize, w: usize)
 /// Picks the algorithm for a layer (at compile time; the batch size does not matter).
 ///
 /// For 3x3 stride-1 undilated convs with at least 32 channels in and out per group (with
-/// fewer, the transforms cost about what they save): Winograd F(4x4) when the output is
-/// at least 12 wide and high and its weight (4x the original) stays within 16 MiB, else
-/// F(2x2) when the output is at least 5 wide and high and its weight (1.8x) within
+/// fewer, the transforms cost about what they save): Winograd F(4x4) when an image has at
+/// least [`WINOGRAD_MIN_TILES`] of its 4x4 tiles and its weight (4x the original) stays
+/// within 16 MiB, else F(2x2) when it has that many 2x2 tiles and its weight (1.8x) within
 /// 32 MiB; a plain GEMM for 1x1 stride-1 convs; the direct loop for depthwise convs;
-/// im2col for everything else. (Thresholds measured on ResNet-18's layers, 2 threads.)
+/// im2col for everything else.
 pub fn choose(s: &Conv2dShape) -> ConvAlgo {
     let (cin_g, cout_g) = (s.cin_g(), s.cout_g());
     if cin_g == 1 && s.groups > 1 {
@@ -97,17 +97,29 @@ pub fn choose(s: &Conv2dShape) -> ConvAlgo {
         return ConvAlgo::Gemm1x1;
     }
     if s.is_winograd_shape() && cin_g >= 32 && cout_g >= 32 {
-        let side = s.oh.min(s.ow);
+        let tiles = |m: usize| s.oh.div_ceil(m) * s.ow.div_ceil(m);
         let weight = s.cout * cin_g;
-        if side >= 12 && 36 * weight <= 4 << 20 {
+        if tiles(4) >= WINOGRAD_MIN_TILES && 36 * weight <= 4 << 20 {
             return ConvAlgo::Winograd4;
         }
-        if side >= 5 && 16 * weight <= 8 << 20 {
+        if tiles(2) >= WINOGRAD_MIN_TILES && 16 * weight <= 8 << 20 {
             return ConvAlgo::Winograd2;
         }
     }
     ConvAlgo::Im2col
 }
+
+/// Tiles an image needs for [`choose`] to take a Winograd algorithm: each transformed
+/// position is one GEMM with a column per tile, and with few columns the weight's
+/// transformed copy (1.8x or 4x the original) is read for little work. Measured on
+/// ResNet-18 (2026-12-05, a 2-core Xeon with two AVX-512 FMA units, `readi bench
+/// --profile`, 5 alternating rounds, 1 / 2 threads): its 14x14 layers (16 tiles of 4x4,
+/// 49 of 2x2) ran 0.70 / 0.75x as long by F(2x2) as by F(4x4), its 7x7 ones (16 tiles of
+/// 2x2) 0.86 / 0.85x as long by im2col as by F(2x2); the 28x28 and 56x56 layers (49 and
+/// 196 tiles of 4x4) stayed fastest by F(4x4). The whole model 0.91 / 0.92x. (Before,
+/// the rule asked for 12 and 5 output rows; on the previous host, an AMD EPYC with
+/// half the FMA throughput, the weight traffic weighed less against the arithmetic.)
+pub const WINOGRAD_MIN_TILES: usize = 32;
 
 /// Length of the weight packed for `algo` ([`ConvAlgo::packed_len`]).
 pub fn packed_weight_len(s: &Conv2dShape, algo: ConvAlgo) -> usize {

@@ -25,7 +25,8 @@ pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (u
     let units = s.n * s.oh.div_ceil(unit);
     // GEMM columns (pixels or tiles) per thread under a row split.
     let cols = units * s.ow.div_ceil(unit) / threads;
-    if threads > 1 && s.groups == 1 && cols < CHANNEL_SPLIT_COLS && s.cout >= 32 * threads {
+    let least = if unit > 1 { CHANNEL_SPLIT_TILES } else { CHANNEL_SPLIT_COLS };
+    if threads > 1 && s.groups == 1 && cols < least && s.cout >= 32 * threads {
         (1, threads)
     } else {
         (threads.min(units.max(1)), 1)
@@ -41,6 +42,15 @@ pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (u
 /// 0.960; `benches/ab.py`, 8 alternating rounds, 2026-12-05); at 512 ResNet-18 and
 /// RegNetY-400MF lost again (1.05, 1.02).
 const CHANNEL_SPLIT_COLS: usize = 256;
+
+/// Winograd tiles per thread below which a layer with enough output channels is split by
+/// channels. Each thread then transforms the whole input itself, which on ResNet-18's
+/// 56x56 layers (F(4x4), 98 tiles a thread) cost more than the halved GEMMs saved: split
+/// by rows instead they ran 0.69-0.82x as long on two threads, the model 0.95x (a 2-core
+/// Xeon, 2026-12-05, 5 alternating rounds). At 16 (its 28x28 layers, 24 tiles of 4x4 a
+/// thread, and 14x14 ones, 24 of 2x2, split by rows too) the model took 1.08x as long as
+/// at 32; 64 measured the same as 32.
+const CHANNEL_SPLIT_TILES: usize = 64;
 
 /// How many threads share the layer.
 pub(super) fn parts(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {

@@ -271,8 +271,14 @@ fn names_round_trip_and_choose_supports() {
         (shape(1, 64, (56, 56), 128, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 64, (56, 56), 128, (1, 1), (2, 2), (0, 0), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 64, (56, 56), 256, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
-        (shape(1, 256, (14, 14), 256, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
-        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        // 16 tiles of 4x4, 49 of 2x2; then 16 of 2x2 (fewer than WINOGRAD_MIN_TILES).
+        (shape(1, 256, (14, 14), 256, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        // At the tile bound: 36 tiles of 4x4; 25 of 4x4 and 100 of 2x2; 36 of 2x2; 25 of 2x2.
+        (shape(1, 64, (24, 24), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
+        (shape(1, 64, (20, 20), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 64, (12, 12), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 64, (10, 10), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 512, (28, 28), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
         (shape(1, 512, (4, 4), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 16, (56, 56), 16, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
