@@ -31,7 +31,7 @@
 use rayon::prelude::*;
 
 use super::{Conv2dShape, pad_row};
-use crate::kernels::gemm::{MatMut, MatRef, prefetch, rows_product, sgemm};
+use crate::kernels::gemm::{MatMut, MatRef, prefetch, rows_product, sgemm, strided_rows_product};
 use crate::kernels::{Activation, clamp_bounds, elementwise};
 
 /// An adapter's tensors: `down` `[mid, cout]` row-major, `down_bias` `[mid]`, `up`
@@ -618,20 +618,17 @@ impl<'a> Kernel<'a> {
         h: &[f32],
         stride: usize,
     ) {
-        let lanes = size_of::<S::f32s>() / size_of::<f32>();
-        let (hv, _) = S::as_simd_f32s(h);
-        let hs = stride / lanes;
         let mut c = chans.start;
         while c < chans.end {
             let left = chans.end - c;
             c += if left >= MR {
-                self.up::<S, MR, NV, Y, R>(simd, y, res, c, hv, hs)
+                self.up::<S, MR, NV, Y, R>(simd, y, res, c, h, stride)
             } else if left >= 4 && MR > 4 {
-                self.up::<S, 4, NV, Y, R>(simd, y, res, c, hv, hs)
+                self.up::<S, 4, NV, Y, R>(simd, y, res, c, h, stride)
             } else if left >= 2 {
-                self.up::<S, 2, NV, Y, R>(simd, y, res, c, hv, hs)
+                self.up::<S, 2, NV, Y, R>(simd, y, res, c, h, stride)
             } else {
-                self.up::<S, 1, NV, Y, R>(simd, y, res, c, hv, hs)
+                self.up::<S, 1, NV, Y, R>(simd, y, res, c, h, stride)
             };
         }
     }
@@ -661,7 +658,8 @@ impl<'a> Kernel<'a> {
         MR
     }
 
-    /// Channels `c0..c0 + MR` of the tile: `y += up · h + bu (+ res)`, clamped.
+    /// Channels `c0..c0 + MR` of the tile: `y += up · h + bu (+ res)`, clamped; `h`'s rows
+    /// `stride` floats apart.
     #[inline(always)]
     fn up<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
         self,
@@ -669,12 +667,12 @@ impl<'a> Kernel<'a> {
         y: &mut Y,
         res: Option<&R>,
         c0: usize,
-        hv: &[S::f32s],
-        hs: usize,
+        h: &[f32],
+        stride: usize,
     ) -> usize {
         let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.up[(c0 + r) * mid..][..mid]);
-        let acc = rows_product::<S, MR, NV>(simd, a, hv.chunks(hs));
+        let acc = strided_rows_product::<S, MR, NV>(simd, a, h, stride);
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
             let b = simd.splat_f32s(self.ad.up_bias[c]);

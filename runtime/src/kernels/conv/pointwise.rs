@@ -17,7 +17,7 @@
 use super::ConvAlgo;
 use super::split::Part;
 use super::{Conv2dShape, clamp_vector, finish, pad_row};
-use crate::kernels::gemm::{prefetch, rows_product};
+use crate::kernels::gemm::{prefetch, rows_product, strided_rows_product};
 use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer runs here rather than through the `gemm` crate: one group and
@@ -253,8 +253,7 @@ impl Image<'_> {
         let (cin, plane) = (self.depth, self.stride);
         let width = NV * size_of::<S::f32s>() / size_of::<f32>();
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.w[(c0 + r) * cin..][..cin]);
-        let rows = (0..cin).map(|ci| S::as_simd_f32s(&self.x[ci * plane + p..][..width]).0);
-        let acc = rows_product::<S, MR, NV>(simd, a, rows);
+        let acc = strided_rows_product::<S, MR, NV>(simd, a, &self.x[p..], plane);
         let off = self.first + p - self.p_lo;
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
