@@ -20,29 +20,50 @@ use super::{Conv2dShape, clamp_vector, finish, pad_row};
 use crate::kernels::gemm::{prefetch, rows_product, strided_rows_product};
 use crate::kernels::{Activation, Epilogue, elementwise};
 
-/// Whether a Gemm1x1 layer runs here rather than through the `gemm` crate: one group and
-/// planes of at most [`MAX_PLANE`] pixels.
+/// Whether a Gemm1x1 layer runs here rather than through the `gemm` crate: one group,
+/// planes of at most [`MAX_PLANE`] pixels, and at most [`MAX_STREAMED`] weight floats
+/// streamed per image.
 pub(super) fn applies(s: &Conv2dShape) -> bool {
-    s.groups == 1 && s.oh * s.ow <= MAX_PLANE
+    s.groups == 1 && s.oh * s.ow <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED
 }
 
 /// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
-/// crate: one group and planes of at most [`MAX_UNFOLDED_PLANE`] pixels.
+/// crate: one group, planes of at most [`MAX_UNFOLDED_PLANE`] pixels, and at most
+/// [`MAX_STREAMED`] weight floats streamed per image.
 pub(super) fn applies_unfolded(s: &Conv2dShape) -> bool {
-    s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE
+    s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE && streamed(s, s.k()) <= MAX_STREAMED
 }
 
-/// The largest plane (pixels of one image) [`applies`] takes. On 7x7 planes this path
-/// ran MobileNetV2's and ResNet-50's 1x1 convs in 0.76-0.81x the `gemm` crate's time
-/// (94-110 GFLOP/s against 75-86, one thread, warm), on 14x14 ones in 0.91-1.03x; on
+/// Weight floats the tiles read per image of a layer of `depth` input rows: the whole
+/// weight once per group of 48 pixels (an AVX-512 tile's three vectors).
+fn streamed(s: &Conv2dShape, depth: usize) -> usize {
+    s.cout * depth * (s.oh * s.ow).div_ceil(48)
+}
+
+/// The most weight floats [`applies`] and [`applies_unfolded`] let the tiles stream per
+/// image (1.25 MiB). The tiles broadcast the weight from six rows at a time, once per
+/// group of pixels; the crate packs it once per call. Measured on a 2-core Xeon with a
+/// 2 MiB L2 (2026-12-05, `readi bench --profile`, alternating rounds, one thread, the
+/// crate's time over the tiles'): MobileNetV2's 1x1 layers streaming 123-307 Ki floats
+/// 1.02-1.23 (the tiles win), its 7x7 320 -> 1280 one (400 Ki) 0.93; ResNet-50's 14x14
+/// and 7x7 ones (1-1.25 Mi) 0.75-0.89, ResNet-18's 7x7 3x3 im2col layers (2.3-4.7 Mi)
+/// 0.91-0.92 (its 7x7 1x1 downsampling, 0.26 Mi, 0.91 too, a 0.17 ms step the bound
+/// leaves in the tiles). With the bound, one thread: ResNet-50 0.944 of the time before,
+/// EfficientNet-B0 0.980, MobileNetV2 1.008 (two threads: 0.991, 1.024).
+const MAX_STREAMED: usize = 320 * 1024;
+
+/// The largest plane (pixels of one image) [`applies`] takes. On an AMD EPYC (1 MiB L2,
+/// 2026-12-05), on 7x7 planes this path ran MobileNetV2's and ResNet-50's 1x1 convs in
+/// 0.76-0.81x the `gemm` crate's time (94-110 GFLOP/s against 75-86, one thread, warm),
+/// on 14x14 ones in 0.91-1.03x; on
 /// 28x28 and larger, 0.96-1.10x, and in the model a 112x112 expansion (16 to 96 channels,
 /// bound by writing its output) took 1.17x: the crate's path writes each output row from
 /// one long tile, this one 6 planes at a time.
 const MAX_PLANE: usize = 256;
 
-/// The largest plane [`applies_unfolded`] takes: one AVX-512 tile and a remainder. On
-/// ResNet-50's 7x7 strided 3x3 (4608 unfolded rows) and 1x1 downsampling, the steps took
-/// 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3 0.85x); its
+/// The largest plane [`applies_unfolded`] takes: one AVX-512 tile and a remainder. On the
+/// EPYC, on ResNet-50's 7x7 strided 3x3 (4608 unfolded rows) and 1x1 downsampling, the
+/// steps took 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3 0.85x); its
 /// 14x14 strided 3x3 (2304 rows, 196 pixels) took 1.17x: the tiles re-read an unfolded
 /// matrix larger than L2 once per 6 channels, where the crate blocks it for the cache.
 const MAX_UNFOLDED_PLANE: usize = 64;
