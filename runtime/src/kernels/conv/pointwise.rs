@@ -55,17 +55,17 @@ const MAX_STREAMED: usize = 320 * 1024;
 /// The largest plane (pixels of one image) [`applies`] takes. On an AMD EPYC (1 MiB L2,
 /// 2026-12-05), on 7x7 planes this path ran MobileNetV2's and ResNet-50's 1x1 convs in
 /// 0.76-0.81x the `gemm` crate's time (94-110 GFLOP/s against 75-86, one thread, warm),
-/// on 14x14 ones in 0.91-1.03x; on
-/// 28x28 and larger, 0.96-1.10x, and in the model a 112x112 expansion (16 to 96 channels,
-/// bound by writing its output) took 1.17x: the crate's path writes each output row from
-/// one long tile, this one 6 planes at a time.
+/// on 14x14 ones in 0.91-1.03x; on 28x28 and larger, 0.96-1.10x, and in the model a
+/// 112x112 expansion (16 to 96 channels, bound by writing its output) took 1.17x: the
+/// crate's path writes each output row from one long tile, this one 6 planes at a time.
 const MAX_PLANE: usize = 256;
 
 /// The largest plane [`applies_unfolded`] takes: one AVX-512 tile and a remainder. On the
 /// EPYC, on ResNet-50's 7x7 strided 3x3 (4608 unfolded rows) and 1x1 downsampling, the
-/// steps took 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3 0.85x); its
-/// 14x14 strided 3x3 (2304 rows, 196 pixels) took 1.17x: the tiles re-read an unfolded
-/// matrix larger than L2 once per 6 channels, where the crate blocks it for the cache.
+/// steps took 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3
+/// 0.85x); its 14x14 strided 3x3 (2304 rows, 196 pixels) took 1.17x: the tiles re-read an
+/// unfolded matrix larger than L2 once per 6 channels, where the crate blocks it for the
+/// cache.
 const MAX_UNFOLDED_PLANE: usize = 64;
 
 /// Scratch floats of one part over `depth` input rows: a padded tail's input columns and
