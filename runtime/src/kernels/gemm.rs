@@ -5,10 +5,12 @@
 //! element the product can touch lies inside its slice and that no two destination
 //! elements share memory; only then does it call the crate.
 //!
-//! It also holds [`rows_product`], the register micro-kernel of the products written here
-//! (linear layers in panels, `panel.rs`; a conv's bottleneck adapter, `conv/adapter.rs`;
-//! the register tiles of small 1x1 and 7x7 im2col layers, `conv/pointwise.rs`),
-//! which reads its rows unchecked after cutting each to the loop's length.
+//! It also holds the register micro-kernel of the products written here, which reads its
+//! rows unchecked after cutting each to the loop's length: [`rows_product`] for rows that
+//! lie anywhere (linear layers in panels, `panel.rs`; the down-projection of a conv's
+//! bottleneck adapter, `conv/adapter.rs`), [`strided_rows_product`] for rows a stride
+//! apart in one slice (the register tiles of small 1x1 and 7x7 im2col layers,
+//! `conv/pointwise.rs`; the adapter's up-projection).
 
 #![allow(unsafe_code)]
 
@@ -266,7 +268,7 @@ pub(crate) fn strided_rows_product<S: pulp::Simd, const MR: usize, const NV: usi
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{assert_close, data};
+    use crate::kernels::testutil::{assert_close, backends, data};
 
     /// Element `(i, j)` of a strided view.
     fn at(m: &MatRef, i: usize, j: usize) -> f64 {
@@ -383,7 +385,7 @@ mod tests {
         sgemm(MatRef::row_major(&[0.0; 6], 3, 2), MatRef::row_major(&[0.0; 6], 2, 3), c, false, 2);
     }
 
-    /// The strided product of `MR` rows by `NV` vectors, on every backend, against f64 sums.
+    /// The strided product of 3 rows by 2 vectors against f64 sums.
     struct Strided {
         depth: usize,
         stride: usize,
@@ -400,7 +402,8 @@ mod tests {
             let rows: [&[f32]; 3] = std::array::from_fn(|r| &a[r * depth..][..depth]);
             let acc = strided_rows_product::<S, 3, 2>(simd, rows, &b, stride);
             for (r, sums) in acc.iter().enumerate() {
-                let got: Vec<f32> = sums.iter().flat_map(|v| lanes_of(v, lanes)).collect();
+                let mut got = vec![0.0f32; 2 * lanes];
+                S::as_mut_simd_f32s(&mut got).0.copy_from_slice(sums);
                 let want: Vec<f32> = (0..2 * lanes)
                     .map(|j| {
                         (0..depth).map(|i| f64::from(rows[r][i]) * f64::from(b[i * stride + j])).sum::<f64>() as f32
@@ -411,23 +414,17 @@ mod tests {
         }
     }
 
-    /// A vector's lanes, copied out.
-    fn lanes_of<T: Copy>(v: &T, lanes: usize) -> Vec<f32> {
-        let mut out = vec![0.0f32; lanes];
-        assert_eq!(size_of::<T>(), lanes * size_of::<f32>());
-        // SAFETY: `T` is a SIMD vector of exactly `lanes` f32 (asserted).
-        unsafe { std::ptr::copy_nonoverlapping((v as *const T).cast::<f32>(), out.as_mut_ptr(), lanes) };
-        out
-    }
-
     #[test]
     fn strided_rows_product_sums_rows_a_stride_apart() {
         // The last row ends exactly at the end of `b`, rows wider than their vectors, and a
         // stride that puts every row off the vector alignment; no depth at all.
         for (depth, stride) in [(1, 0), (5, 37), (40, 49), (3, 96), (0, 7)] {
-            let need = |lanes: usize| if depth == 0 { 0 } else { (depth - 1) * stride + 2 * lanes };
-            pulp::Arch::new().dispatch(Strided { depth, stride, b_len: need(16).max(need(8)).max(need(4)) });
-            pulp::Arch::new().dispatch(Strided { depth, stride, b_len: need(16).max(need(8)).max(need(4)) + 3 });
+            // Room for the widest backend's two vectors (16 lanes) past the last row.
+            let need = if depth == 0 { 0 } else { (depth - 1) * stride + 2 * 16 };
+            for b in backends() {
+                b.run(Strided { depth, stride, b_len: need });
+                b.run(Strided { depth, stride, b_len: need + 3 });
+            }
         }
     }
 
