@@ -17,7 +17,7 @@
 use super::ConvAlgo;
 use super::split::Part;
 use super::{Conv2dShape, clamp_vector, finish, pad_row};
-use crate::kernels::gemm::{prefetch, rows_product, strided_rows_product};
+use crate::kernels::gemm::{prefetch, strided_rows_product};
 use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer runs here rather than through the `gemm` crate: one group,
@@ -374,8 +374,7 @@ impl Image<'_> {
         while c < chans.end {
             let mr = (chans.end - c).min(MR);
             let a: [&[f32]; MR] = std::array::from_fn(|r| &self.w[(c + r.min(mr - 1)) * cin..][..cin]);
-            let rows = xs.chunks_exact(lanes).map(|row| S::as_simd_f32s(row).0);
-            let acc = rows_product::<S, MR, 1>(simd, a, rows);
+            let acc = strided_rows_product::<S, MR, 1>(simd, a, xs, lanes);
             let (sv, _) = S::as_mut_simd_f32s(sums);
             for (d, a) in sv.iter_mut().zip(&acc) {
                 *d = a[0];
