@@ -7,10 +7,10 @@
 //!
 //! It also holds the register micro-kernel of the products written here, which reads its
 //! rows unchecked after cutting each to the loop's length: [`rows_product`] for rows that
-//! lie anywhere (linear layers in panels, `panel.rs`; the down-projection of a conv's
-//! bottleneck adapter, `conv/adapter.rs`), [`strided_rows_product`] for rows a stride
-//! apart in one slice (the register tiles of small 1x1 and 7x7 im2col layers,
-//! `conv/pointwise.rs`; the adapter's up-projection).
+//! lie anywhere (linear layers in panels, `panel.rs`), [`strided_rows_product`] for rows a
+//! stride apart in one slice (the register tiles of small 1x1 and 7x7 im2col layers,
+//! `conv/pointwise.rs`; both projections of a conv's bottleneck adapter,
+//! `conv/adapter.rs`).
 
 #![allow(unsafe_code)]
 

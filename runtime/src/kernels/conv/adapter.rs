@@ -12,10 +12,11 @@
 //!   written once, final;
 //! * everywhere else the conv finishes with scale and shift only, and [`Fused`] runs over
 //!   its output planes where they are, [`TILE`] pixels at a time: `h` by micro-tiles of
-//!   bottleneck rows with the sums in registers (the weight's rows broadcast, the planes'
-//!   pixels read in place as vectors, [`rows_product`]), then `y` by micro-tiles of
-//!   channels with the up bias, the residual and a clamp (ReLU) applied in registers as
-//!   each vector is stored. Under a conv split by rows it runs inside each thread's part,
+//!   bottleneck rows with the sums in registers (the weight's rows broadcast, the tile's
+//!   rows copied side by side and read at one stride by [`strided_rows_product`]: read
+//!   in place through an iterator of row slices, ResNet-18's adapted steps took
+//!   1.05-1.13x as long at two threads), then `y` by micro-tiles of channels with the up
+//!   bias, the residual and a clamp (ReLU) applied in registers as each vector is stored. Under a conv split by rows it runs inside each thread's part,
 //!   right after the conv wrote it ([`apply_part`]); under a split by channels (each
 //!   thread then holds only some channels of a pixel), and after the depthwise loop,
 //!   over the whole output with the threads sharing the pixels ([`apply_fused`]).
@@ -31,7 +32,7 @@
 use rayon::prelude::*;
 
 use super::{Conv2dShape, pad_row};
-use crate::kernels::gemm::{MatMut, MatRef, prefetch, rows_product, sgemm, strided_rows_product};
+use crate::kernels::gemm::{MatMut, MatRef, prefetch, sgemm, strided_rows_product};
 use crate::kernels::{Activation, clamp_bounds, elementwise};
 
 /// An adapter's tensors: `down` `[mid, cout]` row-major, `down_bias` `[mid]`, `up`
@@ -288,8 +289,7 @@ impl ByRows<'_> {
         for at in (0..plane).step_by(TILE) {
             let ht = &mut h[at..];
             if at + TILE <= plane {
-                let y = Strided { data: y, stride: plane, at };
-                k.down_rows::<S, MR, NV, _>(simd, &y, rows.clone(), ht, stride);
+                k.down_rows::<S, MR, NV>(simd, (&y[at..], plane), rows.clone(), ht, stride);
                 continue;
             }
             let rem = plane - at;
@@ -297,11 +297,10 @@ impl ByRows<'_> {
             for (c, d) in pad.chunks_mut(TILE).enumerate() {
                 pad_row(d, &y[c * plane + at..][..rem]);
             }
-            let pad = Strided { data: pad, stride: TILE, at: 0 };
             if tile_width(plane, at) < TILE {
-                k.down_rows::<S, MR, HV, _>(simd, &pad, rows.clone(), ht, stride);
+                k.down_rows::<S, MR, HV>(simd, (pad, TILE), rows.clone(), ht, stride);
             } else {
-                k.down_rows::<S, MR, NV, _>(simd, &pad, rows.clone(), ht, stride);
+                k.down_rows::<S, MR, NV>(simd, (pad, TILE), rows.clone(), ht, stride);
             }
         }
         if k.inner.is_none() {
@@ -416,7 +415,7 @@ struct Piece<'r> {
 
 /// The adapter over `tp` pixels of every channel (`rows`, one segment of `tp` values per
 /// channel), tile by tile: per tile `h = act(down · y + bd)` by micro-tiles of `MR`
-/// bottleneck rows (sums in registers, `y` read in place), stored to a tile of scratch,
+/// bottleneck rows (sums in registers, `y` copied to scratch), stored to a tile of scratch,
 /// then `y = y + up · h + bu (+ res)` by micro-tiles of `MR` channels, the step's
 /// clamp applied as each vector is stored. A tail narrower than a tile goes through
 /// scratch, zero-padded.
@@ -495,7 +494,12 @@ impl Fused<'_, '_> {
                 }
             }
             let r = res.map(|r| Strided { at, ..r });
-            k.tile::<S, MR, NV, _, _>(simd, &mut SegmentsMut { rows: &mut *rows, at }, r.as_ref(), h);
+            // The tile's rows side by side, for `down` to read at one stride.
+            for (c, row) in rows.iter().enumerate() {
+                ty[c * TILE..][..TILE].copy_from_slice(&row[at..at + TILE]);
+            }
+            k.down_tile::<S, MR, NV>(simd, (ty, TILE), h);
+            k.up_tile::<S, MR, NV, _, _>(simd, &mut SegmentsMut { rows: &mut *rows, at }, r.as_ref(), h);
         }
         if full < tp {
             let rem = tp - full;
@@ -506,11 +510,17 @@ impl Fused<'_, '_> {
                 }
             }
             let r = res.map(|_| Strided { data: &*tr, stride: TILE, at: 0 });
-            let mut y = StridedMut { data: &mut *ty, stride: TILE, c0: 0, at: 0 };
-            if tile_width(tp, full) < TILE {
-                k.tile::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), h);
+            let half = tile_width(tp, full) < TILE;
+            if half {
+                k.down_tile::<S, MR, HV>(simd, (ty, TILE), h);
             } else {
-                k.tile::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), h);
+                k.down_tile::<S, MR, NV>(simd, (ty, TILE), h);
+            }
+            let mut y = StridedMut { data: &mut *ty, stride: TILE, c0: 0, at: 0 };
+            if half {
+                k.up_tile::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), h);
+            } else {
+                k.up_tile::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), h);
             }
             for (c, row) in rows.iter_mut().enumerate() {
                 row[full..tp].copy_from_slice(&ty[c * TILE..][..rem]);
@@ -540,25 +550,12 @@ impl<'a> Kernel<'a> {
         Kernel { ad, cout, inner: clamp_bounds(ad.act), outer: act.and_then(clamp_bounds) }
     }
 
-    /// One tile: `h` (at least `mid · TILE` floats) from `y`, then `y` updated.
-    #[inline(always)]
-    fn tile<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
-        self,
-        simd: S,
-        y: &mut Y,
-        res: Option<&R>,
-        h: &mut [f32],
-    ) {
-        self.down_tile::<S, MR, NV, Y>(simd, y, h);
-        self.up_tile::<S, MR, NV, Y, R>(simd, y, res, h);
-    }
-
     /// The tile's `h = act(down · y + bd)`, `mid` rows of `NV` vectors in `h`.
     #[inline(always)]
-    fn down_tile<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(self, simd: S, y: &Y, h: &mut [f32]) {
+    fn down_tile<S: pulp::Simd, const MR: usize, const NV: usize>(self, simd: S, y: (&[f32], usize), h: &mut [f32]) {
         let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
         let h = &mut h[..mid * width];
-        self.down_rows::<S, MR, NV, Y>(simd, y, 0..mid, h, width);
+        self.down_rows::<S, MR, NV>(simd, y, 0..mid, h, width);
         if self.inner.is_none() {
             elementwise::activation_chunk(self.ad.act, h);
         }
@@ -567,10 +564,10 @@ impl<'a> Kernel<'a> {
     /// Bottleneck rows `rows` of the tile's `h` (before a non-clamp activation) into `h`,
     /// its rows `stride` floats apart from `rows.start`.
     #[inline(always)]
-    fn down_rows<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(
+    fn down_rows<S: pulp::Simd, const MR: usize, const NV: usize>(
         self,
         simd: S,
-        y: &Y,
+        y: (&[f32], usize),
         rows: std::ops::Range<usize>,
         h: &mut [f32],
         stride: usize,
@@ -582,13 +579,13 @@ impl<'a> Kernel<'a> {
             let left = rows.end - m;
             let at = (m - rows.start) * hs;
             m += if left >= MR {
-                self.down::<S, MR, NV, Y>(simd, y, m, &mut hv[at..], hs)
+                self.down::<S, MR, NV>(simd, y, m, &mut hv[at..], hs)
             } else if left >= 4 && MR > 4 {
-                self.down::<S, 4, NV, Y>(simd, y, m, &mut hv[at..], hs)
+                self.down::<S, 4, NV>(simd, y, m, &mut hv[at..], hs)
             } else if left >= 2 {
-                self.down::<S, 2, NV, Y>(simd, y, m, &mut hv[at..], hs)
+                self.down::<S, 2, NV>(simd, y, m, &mut hv[at..], hs)
             } else {
-                self.down::<S, 1, NV, Y>(simd, y, m, &mut hv[at..], hs)
+                self.down::<S, 1, NV>(simd, y, m, &mut hv[at..], hs)
             };
         }
     }
@@ -636,18 +633,17 @@ impl<'a> Kernel<'a> {
     /// Bottleneck rows `m0..m0 + MR` of the tile's `h`, into `hv`'s rows `hs` vectors
     /// apart.
     #[inline(always)]
-    fn down<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRows>(
+    fn down<S: pulp::Simd, const MR: usize, const NV: usize>(
         self,
         simd: S,
-        y: &Y,
+        (y, ystride): (&[f32], usize),
         m0: usize,
         hv: &mut [S::f32s],
         hs: usize,
     ) -> usize {
         let cout = self.cout;
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.down[(m0 + r) * cout..][..cout]);
-        let width = NV * size_of::<S::f32s>() / size_of::<f32>();
-        let acc = rows_product::<S, MR, NV>(simd, a, (0..cout).map(|c| S::as_simd_f32s(&y.row(c)[..width]).0));
+        let acc = strided_rows_product::<S, MR, NV>(simd, a, y, ystride);
         for (r, sums) in acc.iter().enumerate() {
             let b = simd.splat_f32s(self.ad.down_bias[m0 + r]);
             for (d, &v) in hv[r * hs..][..NV].iter_mut().zip(sums) {
