@@ -19,6 +19,7 @@ use readi_plan::ops::{Operator, Pure};
 
 use crate::plan::{EpilogueSpec, Kernel, LoraSpec, Manifest, Plan, Step, Storage, VariantTensors, show_shape};
 
+use super::arena::Buffer;
 use super::{Input, RunError, bad};
 
 /// Everything that depends on the bound symbol values.
@@ -26,8 +27,9 @@ pub(crate) struct Bound {
     /// The symbol values the buffers were made for, in `manifest.symbols` order.
     pub(super) symbols: Vec<usize>,
     pub(crate) shapes: Vec<Vec<usize>>,
-    pub(crate) slots: Vec<Vec<f32>>,
-    pub(crate) scratch: Vec<f32>,
+    /// The activation slots and the scratch, on huge pages where they are large enough.
+    pub(crate) slots: Vec<Buffer>,
+    pub(crate) scratch: Buffer,
     /// Per step, the conv parameters (for conv steps).
     pub(crate) convs: Vec<Option<(Conv2dShape, ConvAlgo)>>,
     /// Zero-filled buffers for absent optional inputs, by input index.
@@ -537,8 +539,8 @@ fn allocate(symbols: &[usize], layout: Layout) -> Bound {
     Bound {
         symbols: symbols.to_vec(),
         shapes: layout.shapes,
-        slots: layout.slot_len.into_iter().map(|n| vec![0.0; n]).collect(),
-        scratch: vec![0.0; layout.scratch_len],
+        slots: layout.slot_len.into_iter().map(Buffer::zeroed).collect(),
+        scratch: Buffer::zeroed(layout.scratch_len),
         convs: layout.convs,
         zeros: layout.zeros_len.into_iter().map(|n| vec![0.0; n]).collect(),
         lora_a: layout.lora_len.into_iter().map(|n| vec![0.0; n]).collect(),
@@ -572,9 +574,9 @@ impl Bound {
     /// working copies, geometry) stay valid. Otherwise hands `layout` back, for a fresh
     /// binding.
     fn rebind_in_place(&mut self, symbols: &[usize], layout: Layout) -> Result<(), Box<Layout>> {
-        let same = |bufs: &[Vec<f32>], lens: &[usize]| {
+        fn same<B: std::ops::Deref<Target = [f32]>>(bufs: &[B], lens: &[usize]) -> bool {
             bufs.len() == lens.len() && bufs.iter().zip(lens).all(|(b, &n)| b.len() == n)
-        };
+        }
         let same_geometry = self.bev.len() == layout.bev.len()
             && self.bev.iter().zip(&layout.bev).all(|(g, d)| match (g, d) {
                 (None, None) => true,

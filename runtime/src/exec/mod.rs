@@ -40,6 +40,7 @@
 //! * `run.rs`: executing the steps of a bound plan (`Run`, `run_step`);
 //! * `switch.rs`: [`VariantSwitch`] and the variant key lookup.
 
+mod arena;
 mod bind;
 mod run;
 mod switch;
