@@ -1,6 +1,7 @@
 //! How the threads share one conv layer: by ranges of output rows (in whole Winograd tile
 //! rows) or of output channels ([`split_shape`]); [`split`] hands each thread its [`Part`],
-//! its own slices of the output planes, so threads never synchronise within a layer.
+//! its own slices of the output planes, so threads never synchronise over the output (a
+//! Winograd split by channels shares the input transform, `winograd_shared`).
 
 use super::{Conv2dShape, ConvAlgo};
 
@@ -44,12 +45,14 @@ pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (u
 const CHANNEL_SPLIT_COLS: usize = 256;
 
 /// Winograd tiles per thread below which a layer with enough output channels is split by
-/// channels. Each thread then transforms the whole input itself, which on ResNet-18's
-/// 56x56 layers (F(4x4), 98 tiles a thread) cost more than the halved GEMMs saved: split
-/// by rows instead they ran 0.69-0.82x as long on two threads, the model 0.95x (a 2-core
-/// Xeon, 2026-12-05, 5 alternating rounds). At 16 (its 28x28 layers, 24 tiles of 4x4 a
-/// thread, and 14x14 ones, 24 of 2x2, split by rows too) the model took 1.08x as long as
-/// at 32; 64 measured the same as 32.
+/// channels. When each thread of a channel split still transformed the whole input
+/// itself, ResNet-18's 56x56 layers (F(4x4), 98 tiles a thread) ran 0.69-0.82x as long
+/// split by rows on two threads, the model 0.95x (a 2-core Xeon, 2026-12-05, 5
+/// alternating rounds); at 16 (its 28x28 layers, 24 tiles of 4x4 a thread, and 14x14
+/// ones, 24 of 2x2, split by rows too) the model took 1.08x as long as at 32; 64
+/// measured the same as 32. With the threads sharing the input transform
+/// (`winograd_shared`), 128 (the 56x56 layers by channels too) took ResNet-18 1.07x as
+/// long and ResNet-50 1.01x, 32 1.01x and 1.03x (8 rounds): 64 stays.
 const CHANNEL_SPLIT_TILES: usize = 64;
 
 /// How many threads share the layer.

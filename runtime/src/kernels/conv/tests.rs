@@ -662,11 +662,17 @@ fn residual_on_every_path() {
         (shape(2, 8, (10, 9), 8, (3, 3), (1, 1), (1, 1), (1, 1), 8), ConvAlgo::Depthwise),
         // A stem: the direct conv.
         (shape(2, 3, (12, 10), 8, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
-        // A small image and many channels: split by output channels at 2 and 3 threads.
+        // A small image and many channels: split by output channels at 2 and 3 threads
+        // (Winograd's parts then share one input transform).
         (shape(1, 16, (4, 4), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(2, 16, (9, 8), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(2, 16, (9, 8), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
     ];
     assert!(direct::applies(&cases[5].0), "the stem case takes the direct conv");
-    assert_eq!(split_shape(&cases[6].0, ConvAlgo::Im2col, 2), (1, 2), "the last case splits by channels");
+    for (s, algo) in &cases[6..] {
+        assert_eq!(split_shape(s, *algo, 2), (1, 2), "{} splits by channels", algo.name());
+        assert_eq!(split_shape(s, *algo, 3), (1, 3), "{} splits by channels", algo.name());
+    }
     for (s, algo) in &cases {
         check_residual(s, *algo, &[None, Some(Activation::Relu), Some(Activation::Hardswish)]);
     }
