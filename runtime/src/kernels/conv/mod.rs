@@ -22,9 +22,9 @@
 //! Threads split a layer by ranges of output rows, or, for small images with many output
 //! channels, by ranges of output channels (see `split_shape`); each thread owns its slice
 //! of the output planes and runs its GEMMs single-threaded on its own part of the
-//! scratch. Threads synchronise within a layer only where Winograd splits by channels:
-//! per block they first transform the input together, then each multiplies its channels
-//! (`winograd_shared`). Every algorithm applies the epilogue while copying a finished
+//! scratch. Threads synchronise within a layer only under a channel split of im2col or
+//! Winograd: per tile (block) they first unfold (transform) the input together, then
+//! each multiplies its channels (`im2col_shared`, `winograd_shared`). Every algorithm applies the epilogue while copying a finished
 //! tile from its scratch to the output, while the tile is still in cache.
 //!
 //! Only `gemm.rs` may use `unsafe`, so the Winograd transforms are plain Rust written to
@@ -68,7 +68,7 @@ mod split;
 mod winograd;
 
 use self::depthwise::depthwise;
-use self::im2col::{gemm_part, gemm_tile};
+use self::im2col::{gemm_part, gemm_tile, im2col_shared};
 use self::split::{Part, parts, split, split_shape};
 use self::winograd::{F2, F2_G, F4, F4_G, Wino, pack_winograd, winograd_part, winograd_shared};
 
@@ -498,13 +498,17 @@ pub fn conv2d_fused(
                 adapter::apply_part(s, a, part, ad_act, res_in_adapter, work);
             }
         };
-        let winograd = matches!(algo, ConvAlgo::Winograd2 | ConvAlgo::Winograd4);
-        if winograd && lora.is_none() && jobs.len() > 1 && split_shape(s, algo, threads).1 > 1 {
-            // Split by channels: the parts share one input transform.
-            debug_assert!(in_parts.is_none(), "an adapter in parts needs a split by rows");
+        let by_channels = jobs.len() > 1 && split_shape(s, algo, threads).1 > 1 && lora.is_none();
+        if by_channels && algo != ConvAlgo::Gemm1x1 {
+            // The parts share one input transform, or one unfolded tile.
+            debug_assert!(
+                in_parts.is_none() && in_tile.is_none(),
+                "an adapter in parts or tiles needs a split by rows"
+            );
             match algo {
                 ConvAlgo::Winograd2 => winograd_shared::<F2, 4, 2>(s, packed_weight, ep, x, &mut jobs),
-                _ => winograd_shared::<F4, 6, 4>(s, packed_weight, ep, x, &mut jobs),
+                ConvAlgo::Winograd4 => winograd_shared::<F4, 6, 4>(s, packed_weight, ep, x, &mut jobs),
+                _ => im2col_shared(s, packed_weight, ep, x, &mut jobs),
             }
         } else if jobs.len() == 1 {
             run(&mut jobs[0]);

@@ -1,7 +1,8 @@
 //! How the threads share one conv layer: by ranges of output rows (in whole Winograd tile
 //! rows) or of output channels ([`split_shape`]); [`split`] hands each thread its [`Part`],
 //! its own slices of the output planes, so threads never synchronise over the output (a
-//! Winograd split by channels shares the input transform, `winograd_shared`).
+//! split by channels shares the unfolded tile or the Winograd input transform:
+//! `im2col_shared`, `winograd_shared`).
 
 use super::{Conv2dShape, ConvAlgo};
 
