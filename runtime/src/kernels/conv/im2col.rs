@@ -9,7 +9,7 @@
 //! together ([`im2col_shared`]).
 
 use super::adapter::{Adapter, apply_tile};
-use super::split::Part;
+use super::split::{Part, channel_shares, shared_scratch};
 use super::{Conv2dShape, ConvAlgo, Lora, finish, pointwise};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, sgemm};
@@ -151,32 +151,15 @@ pub(super) fn im2col_shared(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32]
     let registers = pointwise::applies_unfolded(s);
     let threads = jobs.len();
     // Each job's accumulator and tail scratch; the first job's unfolding area is shared.
-    let mut shared: &mut [f32] = &mut [];
-    let mut own: Vec<(&mut Part, &mut [f32], &mut [f32])> = Vec::with_capacity(threads);
-    for (i, (part, scratch)) in jobs.iter_mut().enumerate() {
-        let (acc, rest) = scratch.split_at_mut(tile * cout_g);
-        let (col, tail) = rest.split_at_mut(k * tile);
-        if i == 0 {
-            shared = col;
-        }
-        own.push((part, acc, tail));
-    }
-    let bounds: Vec<usize> = (0..=threads).map(|i| i * cin_g / threads).collect();
+    let (shared, mut own) = shared_scratch(jobs, tile * cout_g, k * tile);
     let (plane_in, plane) = (s.h * s.w, s.oh * s.ow);
     for n in 0..s.n {
         let xg = &x[n * s.cin * plane_in..][..cin_g * plane_in];
         for p0 in (0..plane).step_by(tile) {
             let tp = tile.min(plane - p0);
-            {
-                let mut rest = &mut shared[..k * tp];
-                let mut shares = Vec::with_capacity(threads);
-                for b in bounds.windows(2) {
-                    let (mine, tail) = std::mem::take(&mut rest).split_at_mut((b[1] - b[0]) * kk * tp);
-                    rest = tail;
-                    shares.push((b[0]..b[1], mine));
-                }
-                shares.into_par_iter().for_each(|(cis, col)| im2col_simd(s, xg, cis, p0, tp, col));
-            }
+            // Each job unfolds a share of the input channels into its rows of the tile.
+            let shares = channel_shares(&mut shared[..k * tp], cin_g, threads, kk * tp);
+            shares.into_par_iter().for_each(|(cis, col)| im2col_simd(s, xg, cis, p0, tp, col));
             let col: &[f32] = &shared[..k * tp];
             own.par_iter_mut().for_each(|(part, acc, tail)| {
                 let chans = part.channels_of(0, cout_g);

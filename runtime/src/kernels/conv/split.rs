@@ -171,3 +171,45 @@ pub(super) fn split<'a>(
     }
     parts
 }
+
+/// The parts of a split by channels with one work area they share: each part's scratch
+/// cut around `at..at + len`, the first part's cut being the shared area. Returns that
+/// area and, per part, the part with its scratch before and after the cut.
+#[allow(clippy::type_complexity)]
+pub(super) fn shared_scratch<'a, 'p>(
+    jobs: &'a mut [(Part<'p>, &mut [f32])],
+    at: usize,
+    len: usize,
+) -> (&'a mut [f32], Vec<(&'a mut Part<'p>, &'a mut [f32], &'a mut [f32])>) {
+    let mut shared: &mut [f32] = &mut [];
+    let mut own = Vec::with_capacity(jobs.len());
+    for (i, (part, scratch)) in jobs.iter_mut().enumerate() {
+        let (before, rest) = scratch.split_at_mut(at);
+        let (cut, after) = rest.split_at_mut(len);
+        if i == 0 {
+            shared = cut;
+        }
+        own.push((part, before, after));
+    }
+    (shared, own)
+}
+
+/// `area` cut into `parts` runs, one per share of `channels` (as even as the count
+/// allows), `per` floats a channel; each with its channels.
+pub(super) fn channel_shares(
+    area: &mut [f32],
+    channels: usize,
+    parts: usize,
+    per: usize,
+) -> Vec<(std::ops::Range<usize>, &mut [f32])> {
+    let bounds = split_bounds(channels, parts);
+    let mut rest = area;
+    bounds
+        .windows(2)
+        .map(|b| {
+            let (mine, tail) = std::mem::take(&mut rest).split_at_mut((b[1] - b[0]) * per);
+            rest = tail;
+            (b[0]..b[1], mine)
+        })
+        .collect()
+}

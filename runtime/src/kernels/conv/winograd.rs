@@ -19,7 +19,7 @@ use std::marker::PhantomData;
 
 use rayon::prelude::*;
 
-use super::split::Part;
+use super::split::{Part, channel_shares, shared_scratch};
 use super::{Conv2dShape, Lora, finish};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, sgemm};
@@ -393,33 +393,24 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
     let (r0, r1) = (jobs[0].0.r0, jobs[0].0.r1);
     assert!(jobs.iter().all(|(p, _)| (p.r0, p.r1) == (r0, r1)), "winograd_shared: a split by channels");
     // Each job's scratch: its own V region (the first job's is the shared V), `mt`, work.
-    let mut v_shared: &mut [f32] = &mut [];
-    let mut own: Vec<(&mut Part, &mut [f32], &mut [f32])> = Vec::with_capacity(threads);
-    for (i, (part, scratch)) in jobs.iter_mut().enumerate() {
-        let (v, rest) = scratch.split_at_mut(cin_g * cs);
-        let (mt, work) = rest.split_at_mut(cout_g * cs);
-        if i == 0 {
-            v_shared = v;
-        }
-        own.push((part, mt, &mut work[..wz.work()]));
-    }
+    let (v_shared, own) = shared_scratch(jobs, 0, cin_g * cs);
+    let mut own: Vec<_> = own
+        .into_iter()
+        .map(|(part, _, rest)| {
+            let (mt, work) = rest.split_at_mut(cout_g * cs);
+            (part, mt, &mut work[..wz.work()])
+        })
+        .collect();
     let ty_n = s.oh.div_ceil(M);
     let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
     let (u0, u1) = (tile_row(r0), tile_row(r1));
-    // The input channels each job transforms, and its rows of V.
-    let bounds: Vec<usize> = (0..=threads).map(|i| i * cin_g / threads).collect();
     let mut b0 = u0;
     while b0 < u1 {
         let b1 = (b0 + wz.rows).min(u1);
         let tb = (b1 - b0) * wz.tx;
         {
-            let mut rest = &mut *v_shared;
-            let mut shares = Vec::with_capacity(threads);
-            for w in bounds.windows(2) {
-                let (mine, tail) = std::mem::take(&mut rest).split_at_mut((w[1] - w[0]) * cs);
-                rest = tail;
-                shares.push((w[0]..w[1], mine));
-            }
+            // Each job transforms a share of the input channels into its rows of V.
+            let shares = channel_shares(v_shared, cin_g, threads, cs);
             shares.into_par_iter().zip(own.par_iter_mut()).for_each(|((cis, v), (_, _, work))| {
                 pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
                     s,
