@@ -16,10 +16,11 @@
 //!   rows copied side by side and read at one stride by [`strided_rows_product`]: read
 //!   in place through an iterator of row slices, ResNet-18's adapted steps took
 //!   1.05-1.13x as long at two threads), then `y` by micro-tiles of channels with the up
-//!   bias, the residual and a clamp (ReLU) applied in registers as each vector is stored. Under a conv split by rows it runs inside each thread's part,
-//!   right after the conv wrote it ([`apply_part`]); under a split by channels (each
-//!   thread then holds only some channels of a pixel), and after the depthwise loop,
-//!   over the whole output with the threads sharing the pixels ([`apply_fused`]).
+//!   bias, the residual and a clamp (ReLU) applied in registers as each vector is
+//!   stored. Under a conv split by rows it runs inside each thread's part, right after
+//!   the conv wrote it ([`apply_part`]); under a split by channels (each thread then
+//!   holds only some channels of a pixel), and after the depthwise loop, over the whole
+//!   output with the threads sharing the pixels ([`apply_fused`]).
 //!
 //! Before, this path made two `gemm` crate GEMMs per chunk of pixels (packing operands on
 //! every call, passes for the biases and the ReLU) with a join between `down` by chunks

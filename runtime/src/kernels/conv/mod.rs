@@ -24,8 +24,9 @@
 //! of the output planes and runs its GEMMs single-threaded on its own part of the
 //! scratch. Threads synchronise within a layer only under a channel split of im2col or
 //! Winograd: per tile (block) they first unfold (transform) the input together, then
-//! each multiplies its channels (`im2col_shared`, `winograd_shared`). Every algorithm applies the epilogue while copying a finished
-//! tile from its scratch to the output, while the tile is still in cache.
+//! each multiplies its channels (`im2col_shared`, `winograd_shared`). Every algorithm
+//! applies the epilogue while copying a finished tile from its scratch to the output,
+//! while the tile is still in cache.
 //!
 //! Only `gemm.rs` may use `unsafe`, so the Winograd transforms are plain Rust written to
 //! auto-vectorise (fixed-size lane arrays), compiled for the widest SIMD the CPU has
