@@ -20,7 +20,7 @@
 use std::ops::{Deref, DerefMut};
 
 /// A huge page's size, and the smallest buffer mapped on them.
-pub(crate) const HUGE: usize = 2 << 20;
+const HUGE: usize = 2 << 20;
 
 /// A zero-filled buffer of `f32`.
 pub(crate) enum Buffer {

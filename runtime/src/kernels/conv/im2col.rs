@@ -71,29 +71,51 @@ pub(super) fn gemm_part(
                     }
                     MatRef::row_major(col, k, tp)
                 };
-                let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
-                sgemm(lhs, rhs, MatMut::row_major(&mut acc[..mrows * tp], mrows, tp), false, 1);
-                if let Some(l) = lora {
-                    // One group (checked): the tile is the whole input's.
-                    let t = &mut t[..rank * tp];
-                    sgemm(MatRef::row_major(l.a, rank, k), rhs, MatMut::row_major(t, rank, tp), false, 1);
-                    let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
-                    let acc = MatMut::row_major(&mut acc[..mrows * tp], mrows, tp);
-                    sgemm(b, MatRef::row_major(t, rank, tp), acc, true, 1);
-                }
-                if let Some(ad) = adapter {
-                    // Every channel of the tile (one group, a row split): scale and shift
-                    // in place, the adapter and the ReLU, then a plain copy out.
-                    let acc = &mut acc[..mrows * tp];
-                    finish_in_place(acc, tp, &Epilogue { act: None, ..*ep });
-                    apply_tile(ad, acc, mrows, tp, h, ep.act);
-                    finish_tile(part, n, chans, p0 - p_lo, acc, tp, &Epilogue::default());
-                } else {
-                    finish_tile(part, n, chans, p0 - p_lo, acc, tp, ep);
-                }
+                let scratch = (&mut *acc, &mut *t, &mut *h);
+                multiply_tile(s, w, lora, adapter, ep, rhs, part, (n, chans, p0 - p_lo), scratch);
             }
             p0 += tp;
         }
+    }
+}
+
+/// What the GEMM paths do with a tile once its right-hand side `rhs` is ready (the input
+/// in place, or its unfolded rows): channels `chans` of image `n` at the `rhs.cols`
+/// pixels `off` from the part's first, one GEMM into `acc`, a LoRA branch's two small
+/// ones (through `t`), then the epilogue into the part's planes, through the adapter
+/// (and `h`) if there is one.
+#[allow(clippy::too_many_arguments)]
+fn multiply_tile(
+    s: &Conv2dShape,
+    w: &[f32],
+    lora: Option<&Lora>,
+    adapter: Option<&Adapter>,
+    ep: &Epilogue,
+    rhs: MatRef,
+    part: &mut Part,
+    (n, chans, off): (usize, std::ops::Range<usize>, usize),
+    (acc, t, h): (&mut [f32], &mut [f32], &mut [f32]),
+) {
+    let (k, tp, mrows) = (s.k(), rhs.cols, chans.len());
+    let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
+    let acc = &mut acc[..mrows * tp];
+    sgemm(lhs, rhs, MatMut::row_major(acc, mrows, tp), false, 1);
+    if let Some(l) = lora {
+        // One group (checked): the tile is the whole input's.
+        let rank = l.rank;
+        let t = &mut t[..rank * tp];
+        sgemm(MatRef::row_major(l.a, rank, k), rhs, MatMut::row_major(t, rank, tp), false, 1);
+        let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
+        sgemm(b, MatRef::row_major(t, rank, tp), MatMut::row_major(acc, mrows, tp), true, 1);
+    }
+    if let Some(ad) = adapter {
+        // Every channel of the tile (one group, a row split): scale and shift in place,
+        // the adapter and the ReLU, then a plain copy out.
+        finish_in_place(acc, tp, &Epilogue { act: None, ..*ep });
+        apply_tile(ad, acc, mrows, tp, h, ep.act);
+        finish_tile(part, n, chans, off, acc, tp, &Epilogue::default());
+    } else {
+        finish_tile(part, n, chans, off, acc, tp, ep);
     }
 }
 
@@ -146,7 +168,6 @@ pub(super) fn im2col_shared(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32]
     use rayon::prelude::*;
     let (cin_g, cout_g, k, kk) = (s.cin_g(), s.cout_g(), s.k(), s.kh * s.kw);
     assert_eq!(s.groups, 1, "im2col_shared: one group");
-    assert!(jobs.iter().all(|(p, _)| (p.r0, p.r1) == (0, s.n * s.oh)), "im2col_shared: a split by channels");
     let tile = gemm_tile(s, ConvAlgo::Im2col);
     let registers = pointwise::applies_unfolded(s);
     let threads = jobs.len();
@@ -163,18 +184,15 @@ pub(super) fn im2col_shared(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32]
             let col: &[f32] = &shared[..k * tp];
             own.par_iter_mut().for_each(|(part, acc, tail)| {
                 let chans = part.channels_of(0, cout_g);
-                let mrows = chans.len();
-                if mrows == 0 {
+                if chans.is_empty() {
                     return;
                 }
                 if registers {
                     pointwise::unfolded(s, w, ep, col, tp, part, n, chans, (p0, 0), tail);
                     return;
                 }
-                let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
-                let acc = &mut acc[..mrows * tp];
-                sgemm(lhs, MatRef::row_major(col, k, tp), MatMut::row_major(acc, mrows, tp), false, 1);
-                finish_tile(part, n, chans, p0, acc, tp, ep);
+                let rhs = MatRef::row_major(col, k, tp);
+                multiply_tile(s, w, None, None, ep, rhs, part, (n, chans, p0), (acc, &mut [], &mut []));
             });
         }
     }

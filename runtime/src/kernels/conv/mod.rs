@@ -499,7 +499,8 @@ pub fn conv2d_fused(
                 adapter::apply_part(s, a, part, ad_act, res_in_adapter, work);
             }
         };
-        let by_channels = jobs.len() > 1 && split_shape(s, algo, threads).1 > 1 && lora.is_none();
+        // A split by channels (so more than one part) of a layer with an input to prepare.
+        let by_channels = split_shape(s, algo, threads).1 > 1 && lora.is_none();
         if by_channels && algo != ConvAlgo::Gemm1x1 {
             // The parts share one input transform, or one unfolded tile.
             debug_assert!(

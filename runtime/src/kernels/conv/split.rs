@@ -175,12 +175,17 @@ pub(super) fn split<'a>(
 /// The parts of a split by channels with one work area they share: each part's scratch
 /// cut around `at..at + len`, the first part's cut being the shared area. Returns that
 /// area and, per part, the part with its scratch before and after the cut.
+///
+/// # Panics
+/// If the parts do not all own the same rows (a split by rows).
 #[allow(clippy::type_complexity)]
 pub(super) fn shared_scratch<'a, 'p>(
     jobs: &'a mut [(Part<'p>, &mut [f32])],
     at: usize,
     len: usize,
 ) -> (&'a mut [f32], Vec<(&'a mut Part<'p>, &'a mut [f32], &'a mut [f32])>) {
+    let rows = jobs.first().map(|(p, _)| (p.r0, p.r1));
+    assert!(jobs.iter().all(|(p, _)| Some((p.r0, p.r1)) == rows), "shared scratch: a split by rows");
     let mut shared: &mut [f32] = &mut [];
     let mut own = Vec::with_capacity(jobs.len());
     for (i, (part, scratch)) in jobs.iter_mut().enumerate() {
@@ -202,14 +207,14 @@ pub(super) fn channel_shares(
     parts: usize,
     per: usize,
 ) -> Vec<(std::ops::Range<usize>, &mut [f32])> {
-    let bounds = split_bounds(channels, parts);
+    // As `split_bounds` cuts, without its list.
+    let bound = |i: usize| i * channels / parts;
     let mut rest = area;
-    bounds
-        .windows(2)
-        .map(|b| {
-            let (mine, tail) = std::mem::take(&mut rest).split_at_mut((b[1] - b[0]) * per);
+    (0..parts)
+        .map(|i| {
+            let (mine, tail) = std::mem::take(&mut rest).split_at_mut((bound(i + 1) - bound(i)) * per);
             rest = tail;
-            (b[0]..b[1], mine)
+            (bound(i)..bound(i + 1), mine)
         })
         .collect()
 }

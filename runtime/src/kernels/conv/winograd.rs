@@ -389,18 +389,11 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
     let (cin_g, cout_g, cs) = (s.cin_g(), s.cout_g(), wz.chan());
     assert_eq!(s.groups, 1, "winograd_shared: one group");
     let threads = jobs.len();
-    // Every part's rows are the whole output's.
+    // Every part's rows are the whole output's (checked by `shared_scratch`).
     let (r0, r1) = (jobs[0].0.r0, jobs[0].0.r1);
-    assert!(jobs.iter().all(|(p, _)| (p.r0, p.r1) == (r0, r1)), "winograd_shared: a split by channels");
-    // Each job's scratch: its own V region (the first job's is the shared V), `mt`, work.
-    let (v_shared, own) = shared_scratch(jobs, 0, cin_g * cs);
-    let mut own: Vec<_> = own
-        .into_iter()
-        .map(|(part, _, rest)| {
-            let (mt, work) = rest.split_at_mut(cout_g * cs);
-            (part, mt, &mut work[..wz.work()])
-        })
-        .collect();
+    // Each job's scratch: its own V region (the first job's is the shared V), then `mt`
+    // and the transforms' work space.
+    let (v_shared, mut own) = shared_scratch(jobs, 0, cin_g * cs);
     let ty_n = s.oh.div_ceil(M);
     let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
     let (u0, u1) = (tile_row(r0), tile_row(r1));
@@ -411,7 +404,8 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
         {
             // Each job transforms a share of the input channels into its rows of V.
             let shares = channel_shares(v_shared, cin_g, threads, cs);
-            shares.into_par_iter().zip(own.par_iter_mut()).for_each(|((cis, v), (_, _, work))| {
+            shares.into_par_iter().zip(own.par_iter_mut()).for_each(|((cis, v), (_, _, rest))| {
+                let work = &mut rest[cout_g * cs..];
                 pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
                     s,
                     wz: &wz,
@@ -427,7 +421,8 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
             });
         }
         let v: &[f32] = v_shared;
-        own.par_iter_mut().for_each(|(part, mt, work)| {
+        own.par_iter_mut().for_each(|(part, _, rest)| {
+            let (mt, work) = rest.split_at_mut(cout_g * cs);
             let chans = part.channels_of(0, cout_g);
             if !chans.is_empty() {
                 gemms_and_output::<T, A, M>(s, &wz, u, v, mt, chans, (b0, tb), part, ep, None, work);
