@@ -93,10 +93,8 @@ fn plan_size(name: &str, p: &Plan) {
     let mf = &p.manifest;
     let with: std::collections::HashSet<usize> =
         mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.with)).collect();
-    let base_bytes: usize =
-        (0..mf.tensors.len()).filter(|t| !with.contains(t)).map(|t| mf.tensors[t].numel() * 4).sum();
-    let deltas: usize =
-        mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| mf.tensors[r.with].numel() * 4)).sum();
+    let base_bytes: usize = (0..mf.tensors.len()).filter(|t| !with.contains(t)).map(|t| mf.tensors[t].bytes()).sum();
+    let deltas: usize = mf.variants.iter().flat_map(|v| v.replaces.iter().map(|r| mf.tensors[r.with].bytes())).sum();
     let n = mf.variants.len().max(1);
     println!(
         "plan size ({name}): {:.2} MiB = base {:.2} MiB + {:.2} MiB stored for {} variants (sum of deltas {:.2} MiB; one variant {:.1}% of the base)",
@@ -184,9 +182,10 @@ fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
     v[((v.len() - 1) as f64 * p / 100.0).round() as usize]
 }
 
-/// `--lora auto --memory-budget 3` (the default switch budget) on `m` with `variants` variants:
-/// what the strategy chose, bytes per variant, latency against `base`, and the switch.
-fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize, usize), quick: bool) {
+/// `--lora auto --memory-budget 3` (the default switch budget; with `half`,
+/// `--variant-f16`) on `m` with `variants` variants: what the strategy chose, bytes per
+/// variant, latency against `base`, and the switch.
+fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize, usize), quick: bool, half: bool) {
     use readi_runtime::kernels::{Lora, conv, merge};
     use readi_runtime::plan::Kernel;
     let weights = backend::seeded_weights(&m.graph, 1);
@@ -194,11 +193,21 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
     let keys: Vec<String> =
         round_robin(keys.into_iter().map(|k| k.to_string()).collect()).into_iter().take(variants).collect();
     let sources = backend::seeded_variants(m, &keys, 10);
-    let opts =
-        CompileOptions { lora: LoraMode::Auto, memory_budget: Some(3.0), switch_budget: None, ..Default::default() };
+    let opts = CompileOptions {
+        lora: LoraMode::Auto,
+        memory_budget: Some(3.0),
+        switch_budget: None,
+        variant_f16: half,
+        ..Default::default()
+    };
     let (p, warnings, s) = backend::compile_explained(m, &weights, "seeded", &sources, &opts).expect("compiles");
     let p = Arc::new(p);
     let s = s.expect("a strategy");
+    if let Some(h) =
+        backend::half_summary(m, &weights, "seeded", &sources, &opts, p.clone()).expect("compiles without f16")
+    {
+        println!("{}", h.line());
+    }
     let count = |f: &dyn Fn(&readi_compiler::passes::choose_strategy::LayerChoice) -> bool| {
         s.layers.iter().filter(|l| f(l)).count()
     };
@@ -237,6 +246,15 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
     let mut tmp = vec![0.0f32; tmp_len];
     let mut working: Vec<Vec<f32>> =
         layers.iter().map(|(sh, a, _, _)| vec![0.0f32; conv::packed_weight_len(sh, *a)]).collect();
+    // And the f16 tensors of variant 1 decoded into copies like the session's.
+    use half::slice::HalfFloatSliceExt;
+    let halves: Vec<usize> = mf.variants[0]
+        .replaces
+        .iter()
+        .map(|r| r.with)
+        .filter(|&t| mf.tensors[t].dtype == readi_plan::DType::F16)
+        .collect();
+    let mut decoded: Vec<Vec<f32>> = halves.iter().map(|&t| vec![0.0f32; mf.tensors[t].numel()]).collect();
     let n = if quick { 50 } else { 300 };
     let remerge: Vec<f64> = (0..n)
         .map(|_| {
@@ -245,12 +263,16 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
                 let l = l.map(|(la, lb, rank)| Lora { a: p.tensor(la), b: p.tensor(lb), rank });
                 merge::switch_pack(sh, *a, p.tensor(*w), l.as_ref(), &mut tmp, out);
             }
+            for (&h, out) in halves.iter().zip(&mut decoded) {
+                p.tensor_f16(h).expect("an f16 tensor").convert_to_f32_slice(out);
+            }
             t.elapsed().as_secs_f64() * 1e3
         })
         .collect();
     println!(
-        "  re-merge per switch ({} layers, timed directly): p50 {:.3} ms, p99 {:.3} ms",
+        "  re-merge ({} layers) and f16 decode ({} tensors) per switch, timed directly: p50 {:.3} ms, p99 {:.3} ms",
         layers.len(),
+        halves.len(),
         percentile(remerge.clone(), 50.0),
         percentile(remerge, 99.0)
     );
@@ -368,7 +390,7 @@ fn main() {
         plan_size(name, p);
     }
     println!("-- bevfusion_tiny, --lora auto --memory-budget 3, 12 variants --");
-    merge_on_switch(&m, &base, 12, (rounds, per_round), quick);
+    merge_on_switch(&m, &base, 12, (rounds, per_round), quick, false);
 
     // A melded variant against its parts: the meld stores its own values, never extra steps.
     let meld = "fog=0.06+gamma=0.5";
@@ -415,7 +437,9 @@ fn main() {
         println!("  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
     }
     println!("-- --lora auto --memory-budget 3 --");
-    merge_on_switch(&m, &base, 2, (rounds, per_round), quick);
+    merge_on_switch(&m, &base, 2, (rounds, per_round), quick, false);
+    println!("-- --lora auto --memory-budget 3 --variant-f16 --");
+    merge_on_switch(&m, &base, 2, (rounds, per_round), quick, true);
 
     // Reloading a whole model copy: what a system without variants does on a switch.
     let path = std::env::temp_dir().join(format!("readi-bench-{}.plan", std::process::id()));

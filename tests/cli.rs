@@ -893,3 +893,64 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
     assert_eq!(doc["s"], outputs["s"]);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `readi compile --variant-f16` without a budget stores the variants' values of every
+/// weight no strategy changes at f16 and says so with the measured output difference (both
+/// plans run); `--explain` lists them; the plan file holds them as F16 tensors.
+#[test]
+fn compile_variant_f16_reports_what_it_stored() {
+    let dir = std::env::temp_dir().join(format!("readi-cli-f16-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
+    let overrides = [("num_classes", "10"), ("img", "32")];
+    let (_, weights) = seeded_weights_file("models/resnet18.readi", &overrides, "f16");
+    let plan = dir.join("h.plan");
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "-o",
+        &p(&plan),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=32",
+        "--seeded-variant",
+        "gamma=0.5",
+        "--variant-f16",
+        "--explain",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let line = out.lines().find(|l| l.starts_with("stored the variants'")).unwrap_or_else(|| panic!("{out}"));
+    // Seventeen weights, the largest (layer4's adapters) named first.
+    assert!(line.contains("variants' layer4.0.bn2.adapter.down.weight, ") && line.contains(" and 13 more"), "{line}");
+    assert!(line.contains("outputs differ by at most"), "{line}");
+    assert!(out.contains("fc.weight stored f16:"), "the explain table lists it: {out}");
+    let loaded = readi_runtime::plan::Plan::load(&plan).expect("loads");
+    let half: Vec<&str> =
+        loaded.manifest.tensors.iter().filter(|t| t.dtype == readi_plan::DType::F16).map(|t| t.name.as_str()).collect();
+    // The classifier and the spec's adapters (1x1 convs of one algorithm), one per
+    // variant each; nothing of the base.
+    assert!(half.iter().all(|n| n.ends_with("#gamma=0.5")), "{half:?}");
+    assert!(half.contains(&"fc.weight@t#gamma=0.5"), "{half:?}");
+    assert_eq!(half.iter().filter(|n| n.contains(".adapter.")).count(), 16, "{half:?}");
+    // Without the flag: none.
+    let o = readi(&[
+        "compile",
+        "models/resnet18.readi",
+        "--weights",
+        &p(&weights),
+        "-o",
+        &p(&plan),
+        "--set",
+        "num_classes=10",
+        "--set",
+        "img=32",
+        "--seeded-variant",
+        "gamma=0.5",
+    ]);
+    assert!(o.status.success() && !stdout(&o).contains("stored the variants'"), "{}", stdout(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}

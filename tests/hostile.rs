@@ -256,7 +256,7 @@ fn one_step(
         ],
         steps: vec![Step { path: "the\u{1b}step".into(), kernel, inputs: vec![0], output: 1 }],
         slots: 1,
-        tensors: tensors.iter().map(|(n, s)| TensorSpec { name: n.to_string(), shape: s.clone() }).collect(),
+        tensors: tensors.iter().map(|(n, s)| TensorSpec::f32(n.to_string(), s.clone())).collect(),
         params: Vec::new(),
         variants: Vec::new(),
         conditions: None,

@@ -26,12 +26,17 @@ const ADAPT: &str = "adapt {
 
 /// ResNet-18 with [`ADAPT`] for its `adapt` section, at `img` pixels and 10 classes.
 fn module(img: &str) -> Module {
+    module_of(img, "10")
+}
+
+/// The same with `classes` classes.
+fn module_of(img: &str, classes: &str) -> Module {
     let text = std::fs::read_to_string(common::root().join("models/resnet18.readi")).expect("spec");
     let start = text.find("adapt {").expect("adapt section");
     let end = start + text[start..].find("\n}").expect("end of adapt") + 2;
     let text = format!("{}{ADAPT}{}", &text[..start], &text[end..]);
     let (sources, out) =
-        common::compile_text("resnet18_lora.readi", &text, &[("num_classes", "10"), ("img", img)], None);
+        common::compile_text("resnet18_lora.readi", &text, &[("num_classes", classes), ("img", img)], None);
     assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
     out.module.expect("module")
 }
@@ -73,7 +78,7 @@ fn plan_variant_bytes(m: &Manifest) -> Vec<u64> {
         .iter()
         .map(|v| {
             let own: HashSet<usize> = v.replaces.iter().map(|r| r.with).collect();
-            own.iter().map(|&t| m.tensors[t].numel() as u64 * 4).sum()
+            own.iter().map(|&t| m.tensors[t].bytes() as u64).sum()
         })
         .collect()
 }
@@ -378,4 +383,118 @@ fn a_budget_that_is_not_a_percentage_is_refused_by_name() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--memory-budget") && err.contains("not a percentage"), "{err}");
+}
+
+/// `--variant-f16` stores the tuned classifier's variant values at half precision only when
+/// the budget needs it: at ImageNet's 1000 classes the fc alone is over a budget that
+/// every layer's smallest option meets otherwise. The strategy's bytes are the plan's.
+#[test]
+fn variant_f16_halves_the_head_only_where_the_budget_needs_it() {
+    let m = module_of("96", "1000");
+    let (_, _, least) = compile(&m, &opts(LoraMode::Branch, None));
+    let least = least.expect("strategy");
+    let fc = (512 * 1000 * 4) as f64 * 100.0 / least.base_bytes as f64;
+    // Between the smallest exact assignment and that with the fc at half size.
+    let budget = least.max_pct() - fc / 4.0;
+    let f16 = |budget: Option<f64>| CompileOptions { variant_f16: true, ..opts(LoraMode::Auto, budget) };
+
+    let (_, warnings, _) = compile(&m, &opts(LoraMode::Auto, Some(budget)));
+    assert!(warnings.iter().any(|w| w.contains("cannot be met")), "{warnings:?}");
+    let (plan, warnings, s) = compile(&m, &f16(Some(budget)));
+    let s = s.expect("strategy");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    let halves: Vec<&str> = s.half.iter().map(|h| h.param.as_str()).collect();
+    assert_eq!(halves, ["fc.weight"]);
+    assert!(s.max_pct() <= budget, "{} > {budget}", s.max_pct());
+    assert_eq!(s.variant_bytes(), plan_variant_bytes(&plan.manifest));
+    let half: Vec<&str> = plan
+        .manifest
+        .tensors
+        .iter()
+        .filter(|t| t.dtype == readi_plan::DType::F16)
+        .map(|t| t.name.split('#').next().unwrap_or_default())
+        .collect();
+    assert_eq!(half, ["fc.weight@panels", "fc.weight@panels"], "one per variant");
+
+    // A budget the fastest assignment meets at f32: no f16. (Between that and the
+    // smallest, precision goes before latency: the user asked for f16 to be used.)
+    let (_, _, fastest) = compile(&m, &opts(LoraMode::Merge, None));
+    let (plan, _, s) = compile(&m, &f16(Some(fastest.expect("strategy").max_pct() + 0.5)));
+    assert!(s.expect("strategy").half.is_empty());
+    assert!(plan.manifest.tensors.iter().all(|t| t.dtype == readi_plan::DType::F32));
+}
+
+/// A plan that stores the head's variant values f16 computes exactly what the same model
+/// computes with those values rounded to f16 first and stored f32, for every variant, in
+/// any order of switches (the session's decoded copy follows the variant), and within
+/// f16's rounding of the exact plan.
+#[test]
+fn a_head_stored_f16_computes_what_its_rounded_values_compute() {
+    let m = module_of("64", "1000");
+    let weights = backend::seeded_weights(&m.graph, 11);
+    let keys: Vec<String> = KEYS.iter().map(|k| k.to_string()).collect();
+    let variants = backend::seeded_variants(&m, &keys, 12);
+    let merge = opts(LoraMode::Merge, None);
+    let f16 = CompileOptions { variant_f16: true, ..merge.clone() };
+    let (half, _, s) = backend::compile_explained(&m, &weights, "<seeded>", &variants, &f16).expect("compiles");
+    assert_eq!(s.expect("strategy").half.len(), 1, "the fc, the only weight no choice changes");
+    assert!(half.manifest.tensors.iter().any(|t| t.dtype == readi_plan::DType::F16));
+    // Round the variants' fc to f16 by hand: the nearest f16, ties to even: 11
+    // significant bits, an ulp of 2^(e - 10) for an exponent e of at least -14 (below,
+    // the subnormals' fixed 2^-24); the seeded values are far inside f16's range.
+    let round = |x: f32| -> f32 {
+        let e = (x.abs().log2().floor() as i32).max(-14);
+        let ulp = 2f32.powi(e - 10);
+        let q = x / ulp;
+        let r = q.round();
+        let r = if (q - q.trunc()).abs() == 0.5 && r % 2.0 != 0.0 { r - q.signum() } else { r };
+        r * ulp
+    };
+    let mut rounded = variants.clone();
+    for v in &mut rounded {
+        let (_, data) = v.weights.tensors.get_mut("fc.weight").expect("the variant tunes fc");
+        for x in data.iter_mut() {
+            assert!(x.abs() < 60000.0, "inside f16's range: {x}");
+            *x = round(*x);
+        }
+    }
+    let (want, _, _) = backend::compile_explained(&m, &weights, "<seeded>", &rounded, &merge).expect("compiles");
+    let (exact, _, _) = backend::compile_explained(&m, &weights, "<seeded>", &variants, &merge).expect("compiles");
+    let (half, want, exact) = (Arc::new(half), Arc::new(want), Arc::new(exact));
+    let shape = [1, 3, 64, 64];
+    let data = backend::seeded_tensor(5, "image", &shape);
+    let mut sh = Session::new(half.clone(), 2).expect("session");
+    let mut sw = Session::new(want, 2).expect("session");
+    let mut se = Session::new(exact, 1).expect("session");
+    // Back and forth, the base between, so the copy is decoded again and again.
+    for key in ["gamma=0.25", "blur=5", "base", "blur=5", "gamma=0.25", "gamma=0.25", "base"] {
+        let run = |s: &mut Session| {
+            s.set_variant(key).expect("key");
+            s.run(&[Input { name: "image", data: &data, shape: &shape }]).expect("runs")[0].1.data.clone()
+        };
+        let (h, w, e) = (run(&mut sh), run(&mut sw), run(&mut se));
+        assert_eq!(h, w, "{key}: the f16 plan against the rounded one");
+        let err = h.iter().zip(&e).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+        let scale = e.iter().map(|x| x.abs()).fold(0.0, f32::max);
+        assert!(err <= 1e-2 * scale, "{key}: {err} against the exact plan's scale {scale}");
+        if key == "base" {
+            assert_eq!(err, 0.0, "the base reads no f16 tensor");
+        }
+    }
+    // The plan file keeps the f16 tensors, and a loaded plan runs the same.
+    let dir = std::env::temp_dir().join(format!("readi-f16-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("half.plan");
+    half.write(&path).expect("write");
+    let loaded = Arc::new(Plan::load(&path).expect("loads"));
+    assert!(loaded.is_mapped());
+    assert_eq!(loaded.tensor_bytes(), half.tensor_bytes());
+    let mut sl = Session::new(loaded, 2).expect("session");
+    for key in ["blur=5", "gamma=0.25"] {
+        sh.set_variant(key).expect("key");
+        sl.set_variant(key).expect("key");
+        let input = [Input { name: "image", data: &data, shape: &shape }];
+        assert_eq!(sl.run(&input).expect("runs"), sh.run(&input).expect("runs"), "{key}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -81,6 +81,74 @@ impl PruneSummary {
     }
 }
 
+/// What `--variant-f16` did to a plan: the weights whose variant values it stores at
+/// half precision, the bytes that saved, and how far the outputs move.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HalfSummary {
+    /// The parameters stored f16 (`fc.weight`), the largest first.
+    pub params: Vec<String>,
+    /// Bytes of the f16 tensors in the plan, and what they would take at f32.
+    pub stored: (u64, u64),
+    /// Per output, the largest absolute difference between the plan and the same model
+    /// compiled without `--variant-f16`, over the base and every variant, on seeded
+    /// inputs ([`PRUNE_INPUT_SEED`]).
+    pub output_difference: Vec<(String, f32)>,
+}
+
+impl HalfSummary {
+    /// One line for `readi compile`.
+    pub fn line(&self) -> String {
+        let worst = self.output_difference.iter().map(|(_, d)| *d).fold(0.0f32, f32::max);
+        const SHOWN: usize = 4;
+        let mut names = self.params.iter().take(SHOWN).cloned().collect::<Vec<_>>().join(", ");
+        if self.params.len() > SHOWN {
+            names += &format!(" and {} more", self.params.len() - SHOWN);
+        }
+        format!(
+            "stored the variants' {names} at f16: {} instead of {}; outputs differ by at most {worst:.2e} from f32 on \
+             seeded inputs",
+            crate::print::bytes(self.stored.0),
+            crate::print::bytes(self.stored.1)
+        )
+    }
+}
+
+/// The effect of `--variant-f16` on `plan`, which [`compile_variants`] built from these
+/// arguments: `None` when it stores no f16 tensor; else the output difference against
+/// the module compiled again without it.
+pub fn half_summary(
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+    plan: std::sync::Arc<Plan>,
+) -> Result<Option<HalfSummary>, Diagnostics> {
+    use readi_plan::DType;
+    let half: Vec<&readi_plan::format::TensorSpec> =
+        plan.manifest.tensors.iter().filter(|t| t.dtype == DType::F16).collect();
+    if half.is_empty() {
+        return Ok(None);
+    }
+    let stored = half.iter().map(|t| t.bytes() as u64).sum::<u64>();
+    // Largest first; `fc.weight@panels#fog=0.03`: the parameter is the name before `@`/`#`.
+    let mut sized: Vec<(String, usize)> = Vec::new();
+    for t in &half {
+        let p = t.name.split(['#', '@']).next().unwrap_or(&t.name);
+        match sized.iter_mut().find(|(n, _)| n == p) {
+            Some((_, b)) => *b += t.bytes(),
+            None => sized.push((p.to_string(), t.bytes())),
+        }
+    }
+    sized.sort_by_key(|(_, b)| std::cmp::Reverse(*b));
+    let params = sized.into_iter().map(|(p, _)| p).collect();
+    let exact_opts = CompileOptions { variant_f16: false, ..opts.clone() };
+    let (exact, _) = compile_variants(module, base, base_name, sources, &exact_opts)?;
+    let output_difference = output_difference(plan, std::sync::Arc::new(exact), PRUNE_INPUT_SEED)
+        .map_err(|e| ice(module, format!("running the plans to compare them: {e}")))?;
+    Ok(Some(HalfSummary { params, stored: (stored, stored * 2), output_difference }))
+}
+
 /// One line per melded variant: how many of its layers were taken whole from one part
 /// and how many interpolated (the `meld` pass's record). Empty without melds.
 pub fn meld_summary(

@@ -14,7 +14,7 @@
 use readi_plan::format::Manifest;
 
 use crate::ir::Graph;
-use crate::weights::tensors::{Data, TensorTable};
+use crate::weights::tensors::TensorTable;
 use readi_plan::conditions::Conditions as VariantSpec;
 
 use crate::adapt::AdaptPlan;
@@ -47,5 +47,7 @@ impl Module {
 #[derive(Clone, Debug)]
 pub struct Lowered {
     pub manifest: Manifest,
-    pub data: Vec<Data>,
+    /// Per manifest tensor, its data: f32, or f16 for a variant's replacement the
+    /// strategy stores at half precision.
+    pub data: Vec<readi_runtime::plan::TensorData>,
 }

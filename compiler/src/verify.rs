@@ -256,8 +256,8 @@ fn lowered(module: &Module, problems: &mut Vec<VerifyError>) {
         problems.push(VerifyError { node: None, message: format!("the lowered plan is invalid: {e}") });
     }
     let m = &l.manifest;
-    let lengths_ok =
-        l.data.len() == m.tensors.len() && m.tensors.iter().zip(&l.data).all(|(t, d)| t.numel() == d.len());
+    let lengths_ok = l.data.len() == m.tensors.len()
+        && m.tensors.iter().zip(&l.data).all(|(t, d)| t.numel() == d.len() && t.dtype == d.dtype());
     if !lengths_ok {
         problems
             .push(VerifyError { node: None, message: "the lowered plan's tensor data do not fit its tensors".into() });

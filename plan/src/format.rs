@@ -208,14 +208,32 @@ pub enum Storage {
     Tensor(usize),
 }
 
-/// A stored tensor: its name in the container and its shape.
+/// A stored tensor: its name in the container, its shape and its element type.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TensorSpec {
     pub name: String,
     pub shape: Vec<usize>,
+    /// `F32`, or `F16` for a variant's replacement stored at half precision (`readi
+    /// compile --variant-f16`): only a [`Replacement::with`] may be, never a tensor a
+    /// step, a value or a BatchNorm record names (validation), so the base model is
+    /// always f32 and a session decodes the active variant's f16 tensors into f32 working
+    /// copies when the variant changes.
+    #[serde(default = "f32_dtype", skip_serializing_if = "is_f32")]
+    pub dtype: DType,
 }
 
 impl TensorSpec {
+    /// An f32 tensor.
+    pub fn f32(name: impl Into<String>, shape: Vec<usize>) -> TensorSpec {
+        TensorSpec { name: name.into(), shape, dtype: DType::F32 }
+    }
+
+    /// Bytes of the stored data: 4 per element, 2 for an f16 tensor (saturating).
+    pub fn bytes(&self) -> usize {
+        let size = if self.dtype == DType::F16 { 2 } else { 4 };
+        self.numel().saturating_mul(size)
+    }
+
     /// Elements of the shape; saturates at `usize::MAX` (which no stored tensor has, so a
     /// manifest declaring such a shape is refused when its data is compared).
     pub fn numel(&self) -> usize {

@@ -19,7 +19,9 @@
 //!    scale and a shift, with unique names, a finite eps and tensors of the scale's shape;
 //! 6. variant tables: keys unique and not `base`, replacements of tensors some step reads,
 //!    at most once each, by tensors of exactly their shape (so checking the base covers
-//!    every variant);
+//!    every variant); every stored tensor is f32 but a replacement's, which may be f16
+//!    (and then is nothing else: not named by a step, a value, a BatchNorm record or as
+//!    a replaced base);
 //! 7. the conditions block, which variant selection reads without further checks: axes
 //!    with unique identifier names, a modality and distinct finite levels; one selector
 //!    at most per declared axis, reading an input the plan has (or a named metadata
@@ -42,7 +44,7 @@ use crate::format::{
     AdapterSpec, BASE_VARIANT, EpilogueSpec, Kernel, LoraSpec, MAX_LORA_RANK, Manifest, Step, Storage, escaped,
 };
 use crate::key::{KeyPart, MISSING_AXIS};
-use crate::ops::{self, Conv2dShape, ConvAlgo, TensorType};
+use crate::ops::{self, Conv2dShape, ConvAlgo, DType, TensorType};
 
 /// Most entries the runtime's variant maps may take together (variants x mapped
 /// tensors): 256 MiB. A real plan needs a few thousand; the bound keeps a small crafted
@@ -468,6 +470,7 @@ pub fn map_span(m: &Manifest) -> usize {
 /// 6.
 fn variants(m: &Manifest) -> Result<(), String> {
     let n = m.tensors.len();
+    half_only_as_replacements(m)?;
     if m.variants.is_empty() {
         return Ok(());
     }
@@ -515,6 +518,42 @@ fn variants(m: &Manifest) -> Result<(), String> {
             if std::mem::replace(&mut replaced[r.base], i) == i {
                 return Err(format!("{at} replaces tensor {} (`{}`) twice", r.base, name(r.base)));
             }
+        }
+    }
+    Ok(())
+}
+
+/// Every stored tensor is f32 but a variant's replacement, which may be f16 and then is
+/// read only through the variant tables (a session decodes it into a working copy): no
+/// step, value or BatchNorm record names it and no variant replaces it.
+fn half_only_as_replacements(m: &Manifest) -> Result<(), String> {
+    let mut other = read_tensors(m);
+    let bn = m.steps.iter().filter_map(|s| s.kernel.epilogue()?.bn.as_ref()).flat_map(|b| b.tensors());
+    let bases = m.variants.iter().flat_map(|v| v.replaces.iter().map(|r| r.base));
+    for t in bn.chain(bases) {
+        if let Some(o) = other.get_mut(t) {
+            *o = true;
+        }
+    }
+    let mut replacement = vec![false; m.tensors.len()];
+    for r in m.variants.iter().flat_map(|v| &v.replaces) {
+        if let Some(w) = replacement.get_mut(r.with) {
+            *w = true;
+        }
+    }
+    for (t, spec) in m.tensors.iter().enumerate() {
+        let at = || format!("tensor {t} (`{}`)", escaped(&spec.name));
+        match spec.dtype {
+            DType::F32 => {}
+            DType::F16 if replacement[t] && !other[t] => {}
+            DType::F16 => {
+                return Err(format!(
+                    "{} is stored as f16, which only a variant's replacement may be (the base model and what \
+                     its steps name are f32)",
+                    at()
+                ));
+            }
+            d => return Err(format!("{} is stored as {}; a plan stores f32 (and f16 replacements)", at(), d.as_str())),
         }
     }
     Ok(())

@@ -48,7 +48,7 @@ fn plan() -> Plan {
     let mut tensors = Vec::new();
     let mut add = |name: String, shape: Vec<usize>, seed: u64| {
         tensors.push(data(shape.iter().product(), seed));
-        specs.push(TensorSpec { name, shape });
+        specs.push(TensorSpec::f32(name, shape));
         specs.len() - 1
     };
     let named =

@@ -29,7 +29,7 @@ use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use readi_runtime::kernels::{merge, select};
 use readi_runtime::plan::{
     EpilogueSpec, FORMAT_VERSION, InputSpec, Kernel, Manifest, OutputSpec, Plan, Replacement, Step, Storage,
-    TensorSpec, ValueSpec, VariantTable,
+    TensorData, TensorSpec, ValueSpec, VariantTable,
 };
 use readi_runtime::testdata::data;
 use stats_alloc::{INSTRUMENTED_SYSTEM, Region, StatsAlloc};
@@ -45,13 +45,21 @@ fn shape(n: bool, rest: &[usize]) -> Vec<Dim> {
 /// `x: [N, 4, 8, 8]` and an optional `z: [N, 2, 8, 8]` through a three-way concat (of
 /// both inputs, one twice), a channel affine, max pooling, global average pooling, a
 /// reshape, a layernorm, a residual addition, a GELU and a softmax; two outputs. Twelve
-/// variants each replace the affine's shift and the layernorm's weight and bias.
+/// variants each replace the affine's shift and the layernorm's weight and bias, the odd
+/// ones by f16 tensors (which a session decodes at a switch).
 fn plan() -> Plan {
-    let mut specs = Vec::new();
-    let mut tensors = Vec::new();
+    let mut specs: Vec<TensorSpec> = Vec::new();
+    let mut tensors: Vec<TensorData> = Vec::new();
     let mut add = |name: String, shape: Vec<usize>, seed: u64| {
-        tensors.push(data(shape.iter().product(), seed));
-        specs.push(TensorSpec { name, shape });
+        let d = data(shape.iter().product(), seed);
+        let mut spec = TensorSpec::f32(name, shape);
+        if seed >= 10 && seed % 2 == 1 {
+            spec.dtype = readi_plan::DType::F16;
+            tensors.push(d.iter().map(|&x| half::f16::from_f32(x)).collect::<Vec<_>>().into());
+        } else {
+            tensors.push(d.into());
+        }
+        specs.push(spec);
         specs.len() - 1
     };
     let aff_s = add("bn@scale".into(), vec![10], 3);
@@ -157,7 +165,7 @@ fn switch_plan() -> Plan {
     let mut tensors = Vec::new();
     let mut add = |name: String, shape: Vec<usize>, seed: u64| {
         tensors.push(data(shape.iter().product(), seed));
-        specs.push(TensorSpec { name, shape });
+        specs.push(TensorSpec::f32(name, shape));
         specs.len() - 1
     };
     let w = add("conv.weight".into(), vec![4, 64, 3, 3], 1);
@@ -607,7 +615,7 @@ fn points_plan() -> Plan {
             step("mean2", Kernel::Pure(Pure::GlobalAvgPool(GlobalAvgPool)), vec![3], 4),
         ],
         slots: 2,
-        tensors: vec![TensorSpec { name: "offsets".into(), shape: vec![1, 4, 128, 128] }],
+        tensors: vec![TensorSpec::f32("offsets", vec![1, 4, 128, 128])],
         params: Vec::new(),
         variants: Vec::new(),
         conditions: None,
@@ -670,8 +678,8 @@ fn sparse_plan() -> Plan {
         steps,
         slots: 4,
         tensors: vec![
-            TensorSpec { name: "subm.weight".into(), shape: vec![3, 3, 3, 4, 8] },
-            TensorSpec { name: "down.weight".into(), shape: vec![3, 3, 3, 4, 6] },
+            TensorSpec::f32("subm.weight", vec![3, 3, 3, 4, 8]),
+            TensorSpec::f32("down.weight", vec![3, 3, 3, 4, 6]),
         ],
         params: Vec::new(),
         variants: Vec::new(),

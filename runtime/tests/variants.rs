@@ -461,3 +461,84 @@ fn a_plan_without_variants_has_only_the_base() {
     assert_close(&y, &mlp_reference(&x, 4, 3, &w), "base");
     assert_eq!(s.last_variant(), Some(0));
 }
+
+// ---------------------------------------------------------------------------------------
+// (e) Replacements stored at half precision
+// ---------------------------------------------------------------------------------------
+
+/// The MLP with the tensors whose names end in one of `suffixes` (a variant's) stored f16.
+fn mlp_with_half(m: &Mlp, suffixes: &[&str]) -> Result<Plan, PlanError> {
+    use readi_runtime::plan::TensorData;
+    let mut manifest = m.plan.manifest.clone();
+    let mut tensors = Vec::new();
+    for (i, spec) in manifest.tensors.iter_mut().enumerate() {
+        let d = m.plan.tensor(i);
+        if suffixes.iter().any(|s| spec.name.ends_with(s)) {
+            spec.dtype = readi_plan::DType::F16;
+            tensors.push(TensorData::from(d.iter().map(|&x| half::f16::from_f32(x)).collect::<Vec<_>>()));
+        } else {
+            tensors.push(TensorData::from(d.to_vec()));
+        }
+    }
+    Plan::new(manifest, tensors)
+}
+
+/// `w` with what variant A or B replaces (W, gamma, p; W, bias, beta, p) rounded to f16.
+fn rounded(w: &MlpWeights, key: &str) -> MlpWeights {
+    let r = |v: &[f32]| v.iter().map(|&x| half::f16::from_f32(x).to_f32()).collect();
+    match key {
+        "fog=1" => MlpWeights { w: r(&w.w), gamma: r(&w.gamma), p: r(&w.p), ..w.clone() },
+        _ => MlpWeights { w: r(&w.w), bias: r(&w.bias), beta: r(&w.beta), p: r(&w.p), ..w.clone() },
+    }
+}
+
+#[test]
+fn a_variant_stored_f16_reads_its_values_decoded() {
+    let m = mlp(24, 16);
+    let plan = Arc::new(mlp_with_half(&m, &["~A", "~B"]).expect("a valid plan"));
+    let (a, b) = (24 * 16 + 16 + 16, 24 * 16 + 3 * 16);
+    assert_eq!(plan.tensor_bytes(), m.plan.tensor_bytes() - (a + b) * 2);
+    let x = data(3 * m.fin, 7);
+    let mut s = Session::new(Arc::clone(&plan), 2).expect("session");
+    // A's and B's tensors are f16: one decoded copy per replaced base tensor, which A
+    // and B both write (W, p); C reads A's W (the same stored tensor).
+    let want = |key: &str| match key {
+        "fog=1" | "fog=2" => rounded(&m.weights[key], key),
+        "fog=3" => MlpWeights { w: rounded(&m.weights[key], "fog=1").w, ..m.weights[key].clone() },
+        _ => m.weights[key].clone(),
+    };
+    for key in ["fog=1", "fog=2", "fog=1", "fog=3", BASE_VARIANT, "fog=3", "fog=2", "fog=2", "fog=1"] {
+        s.set_variant(key).expect("known key");
+        let y = run(&mut s, &x, &[3, m.fin]);
+        assert_close(&y, &mlp_reference(&x, m.fin, m.fout, &want(key)), key);
+    }
+    // Through a file: the f16 tensors stay f16 and read the same.
+    let dir = std::env::temp_dir().join(format!("readi-half-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("mlp.plan");
+    plan.write(&path).expect("write");
+    let loaded = Arc::new(Plan::load(&path).expect("loads"));
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(loaded.manifest.tensors.iter().any(|t| t.dtype == readi_plan::DType::F16));
+    let mut l = Session::new(loaded, 1).expect("session");
+    for key in ["fog=3", "fog=1"] {
+        s.set_variant(key).expect("key");
+        l.set_variant(key).expect("key");
+        assert_eq!(run(&mut l, &x, &[3, m.fin]), run(&mut s, &x, &[3, m.fin]), "{key}");
+    }
+}
+
+#[test]
+fn only_a_replacement_may_be_stored_f16() {
+    let m = mlp(8, 4);
+    // The base's W, which the linear step names.
+    let err = mlp_with_half(&m, &["fc.weight@t"]).expect_err("a base tensor stored f16").to_string();
+    assert!(err.contains("`fc.weight@t`") && err.contains("only a variant's replacement"), "{err}");
+    // A manifest that says f16 for data given as f32.
+    let mut manifest = m.plan.manifest.clone();
+    let at = manifest.tensors.iter().position(|t| t.name == "p~A").expect("p~A");
+    manifest.tensors[at].dtype = readi_plan::DType::F16;
+    let tensors: Vec<Vec<f32>> = (0..manifest.tensors.len()).map(|i| m.plan.tensor(i).to_vec()).collect();
+    let err = Plan::new(manifest, tensors).expect_err("f32 data for an f16 tensor").to_string();
+    assert!(err.contains("`p~A`") && err.contains("f16"), "{err}");
+}

@@ -151,6 +151,12 @@ pub enum Command {
         /// merge-and-pack times summed. 0: none is merged on switch.
         #[arg(long, value_name = "MS", value_parser = parse_switch_budget)]
         switch_budget: Option<f64>,
+        /// Let the variants' values of the weights no strategy changes (a tuned head's)
+        /// be stored at half precision, the largest first, where --memory-budget needs it
+        /// (all of them without a budget). Lossy: the compile reports how far the outputs
+        /// move on seeded inputs.
+        #[arg(long)]
+        variant_f16: bool,
         /// Print the per-layer strategy: merge or branch, algorithm, bytes per variant,
         /// predicted and measured latency, and the totals.
         #[arg(long)]

@@ -22,6 +22,7 @@ pub struct CompileArgs {
     pub lora: Option<LoraArg>,
     pub memory_budget: Option<f64>,
     pub switch_budget: Option<f64>,
+    pub variant_f16: bool,
     pub explain: bool,
     pub seeded_variants: Vec<String>,
     pub strict: bool,
@@ -126,6 +127,7 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         memory_budget: args.memory_budget,
         switch_budget: args.switch_budget,
         explain: args.explain,
+        variant_f16: args.variant_f16,
         ..CompileOptions::default()
     };
     let (plan, warnings, strategy) =
@@ -161,6 +163,11 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         println!("{line}");
     }
     let plan = std::sync::Arc::new(plan);
+    let half = backend::half_summary(&module, &set, &wname, &sources, &opts, std::sync::Arc::clone(&plan))
+        .map_err(|d| report(s, d))?;
+    if let Some(h) = half {
+        println!("{}", h.line());
+    }
     let summary = backend::prune_summary(&module, &set, &wname, &sources, &opts, plan).map_err(|d| report(s, d))?;
     if let Some(p) = summary {
         print!("{}", prune_text(&p, args.verbose));

@@ -37,6 +37,14 @@
 //! saved per millisecond of latency added first. Then give back latency (the largest
 //! gain first) while both budgets hold, since one large move may overshoot.
 //!
+//! Half precision (`--variant-f16`, opt-in because it is lossy): the variants' values of
+//! the weights no choice changes (a tuned linear head's, a tuned conv's that has one
+//! algorithm) may be stored as f16, which a session decodes into one f32 working copy per
+//! weight at a switch. Under a budget, after the moves that cost nothing (merge on
+//! switch), the largest such weights go to f16 until the budget holds, before any move
+//! that adds latency; after the give-back, the smallest go back to f32 while the budget
+//! still holds. Without a budget every one of them is stored f16.
+//!
 //! An unreachable budget: when even every layer's smallest option exceeds it, latency
 //! would be paid for a budget missed anyway, so the pass keeps the fastest assignment
 //! that saves what costs no latency (merge on switch within the switch budget) and warns
@@ -57,8 +65,8 @@ use readi_runtime::kernels::{Epilogue, conv, merge};
 
 use super::bind_variants::{not_bound, same_bits};
 use super::choose_conv_algo::spatial;
-use super::fuse_lora;
 use super::{BackendInputs, LoraMode, Output};
+use super::{fuse_lora, pack_weights};
 use crate::adapt::Injection;
 use crate::ir::{Graph, NodeId, Op};
 use crate::module::Module;
@@ -112,6 +120,20 @@ pub struct Strategy {
     pub switch_budget_ms: f64,
     /// With [`Strategy::unmet`]: the latency the smallest assignment would have added.
     pub unmet_added_ms: Option<f64>,
+    /// The weights whose variant values are stored at half precision (`--variant-f16`);
+    /// `fixed_bytes` counts them at their stored (half) size.
+    pub half: Vec<HalfChoice>,
+}
+
+/// A weight whose variant values the plan stores as f16.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HalfChoice {
+    /// The layer's path.
+    pub path: String,
+    /// The parameter (`fc.weight`): every stored tensor derived from it alone is f16.
+    pub param: String,
+    /// Per variant, its bytes at f32 (0 where the variant does not own it); stored, half.
+    pub bytes: Vec<u64>,
 }
 
 /// One layer's decision.
@@ -198,7 +220,7 @@ pub fn run(module: &Module, inputs: &BackendInputs<'_>, warnings: &mut Diagnosti
         m => Some(m),
     };
     let mut timer = Timer::new(opts.timing);
-    let budgets = Budgets { memory_pct: opts.memory_budget, switch_ms: opts.switch_budget };
+    let budgets = Budgets { memory_pct: opts.memory_budget, switch_ms: opts.switch_budget, half: opts.variant_f16 };
     let s = choose(module, table, forced, budgets, opts.explain, &mut timer);
     let Some(s) = s else { return Ok(Output::Patches(Vec::new())) };
     if let Some(least) = s.unmet {
@@ -234,6 +256,8 @@ pub struct Budgets {
     /// `--switch-budget`, ms of re-merge work per switch; `None`: the default
     /// ([`DEFAULT_SWITCH_BUDGET_MS`], [`DEFAULT_SWITCH_SHARE`]).
     pub switch_ms: Option<f64>,
+    /// `--variant-f16`: the weights no choice changes may be stored at half precision.
+    pub half: bool,
 }
 
 /// Caches kernel timings per (algorithm, shape) within one compile.
@@ -510,6 +534,7 @@ pub fn choose(
     let mut order: Vec<NodeId> = g.topo_order().unwrap_or_else(|| g.node_ids().collect());
     order.retain(|n| g.contains(*n));
     let mut items: Vec<Item> = Vec::new();
+    let mut halves: Vec<HalfChoice> = Vec::new();
     let mut fixed = vec![0u64; nv];
     let mut base_bytes = 0u64;
     for &id in &order {
@@ -546,11 +571,21 @@ pub fn choose(
             fixed[v - 1] += fixed_node_bytes(g, table, id, v, has_choice);
         }
         if !has_choice {
+            // A weight a variant owns, to store at half precision if allowed.
+            let elems = match (&node.op, conv) {
+                (Op::Linear(l), _) => pack_weights::linear_weight_len(g, id, l).map(|n| n as u64),
+                (Op::Conv2d(_), Some((s, a))) => Some(a.packed_len(&s) as u64),
+                _ => None,
+            };
+            if let (true, Some(n), Some(w)) = (budgets.half && owned_anywhere, elems, weight.as_deref()) {
+                let bytes = variants.clone().map(|v| if owned_w(v) { n * 4 } else { 0 }).collect();
+                halves.push(HalfChoice { path: node.path.clone(), param: w.to_string(), bytes });
+            }
             continue;
         }
         let w_elems = |algo: Option<ConvAlgo>| match (conv, algo) {
             (Some((s, _)), Some(a)) => a.packed_len(&s) as u64,
-            _ => weight.as_deref().map_or(0, |w| numel(table, w)),
+            _ => node.params.iter().find(|s| s.name == "weight").map_or(0, |s| stored_numel(g, table, id, s)),
         };
         // The branch's `A` and `B` a variant owns, as the plan stores them: raw (packing
         // `A` for the GEMM paths keeps its layout; the runtime packs a Winograd `A`).
@@ -618,14 +653,21 @@ pub fn choose(
         let rank = branch.and_then(|(a, _)| conv_shape(g, a)).map_or(0, |(sa, _)| sa.cout);
         items.push(Item { path: node.path.clone(), node: id, branch, rank, opts, start: 0 });
     }
-    if items.is_empty() {
+    if items.is_empty() && halves.is_empty() {
         return None;
     }
 
     let budget = budgets.memory_pct.map(|p| (p / 100.0 * base_bytes as f64).floor() as u64);
-    let mut c =
-        Costs { g, items: &items, fixed: &fixed, switch_budget: budgets.switch_ms.unwrap_or(DEFAULT_SWITCH_BUDGET_MS) };
+    let mut c = Costs { g, items: &items, fixed, switch_budget: budgets.switch_ms.unwrap_or(DEFAULT_SWITCH_BUDGET_MS) };
     let mut at: Vec<usize> = items.iter().map(|i| i.start).collect();
+    // Largest first; which of them are stored f16.
+    halves.sort_by_key(|h| std::cmp::Reverse(h.bytes.iter().copied().max().unwrap_or(0)));
+    let mut half = vec![budget.is_none(); halves.len()];
+    if budget.is_none() {
+        for h in &halves {
+            c.halve(h, true);
+        }
+    }
     let mut timed = explain;
     let (mut unmet, mut unmet_added_ms) = (None, None);
     if let Some(budget) = budget
@@ -635,8 +677,31 @@ pub fn choose(
         if budgets.switch_ms.is_none() {
             c.switch_budget = c.switch_budget.min(DEFAULT_SWITCH_SHARE * conv_ms(g, &order, &branch_nodes, timer));
         }
+        if !halves.is_empty() {
+            // The moves that cost nothing, then precision, before any latency.
+            c.shrink(&mut at, budget, true, timer);
+            for (k, h) in halves.iter().enumerate() {
+                if c.total(&at) <= budget {
+                    break;
+                }
+                c.halve(h, true);
+                half[k] = true;
+            }
+        }
         c.shrink(&mut at, budget, false, timer);
         c.give_back(&mut at, budget, timer);
+        // Precision back where the budget allows, the smallest weight first.
+        for (k, h) in halves.iter().enumerate().rev() {
+            if !half[k] {
+                continue;
+            }
+            c.halve(h, false);
+            if c.total(&at) <= budget {
+                half[k] = false;
+            } else {
+                c.halve(h, true);
+            }
+        }
         if c.total(&at) > budget {
             // Unreachable: the smallest assignment (switch aside: a branch or im2col
             // stores as little), and what it would cost; then keep only the free savings.
@@ -691,13 +756,14 @@ pub fn choose(
     Some(Strategy {
         layers,
         base_bytes,
-        fixed_bytes: fixed,
+        fixed_bytes: c.fixed.clone(),
         keys: table.variants.iter().map(|v| v.key.to_string()).collect(),
         budget_pct: budgets.memory_pct,
         unmet,
         base_ms,
         switch_budget_ms,
         unmet_added_ms,
+        half: halves.into_iter().zip(half).filter_map(|(h, on)| on.then_some(h)).collect(),
     })
 }
 
@@ -716,11 +782,19 @@ fn conv_ms(g: &Graph, order: &[NodeId], branch_nodes: &std::collections::HashSet
 struct Costs<'a> {
     g: &'a Graph,
     items: &'a [Item],
-    fixed: &'a [u64],
+    /// Per variant, the bytes no layer choice changes (the weights stored f16 at half).
+    fixed: Vec<u64>,
     switch_budget: f64,
 }
 
 impl Costs<'_> {
+    /// Counts the weight `h` at half precision (`on`) or back at f32.
+    fn halve(&mut self, h: &HalfChoice, on: bool) {
+        for (f, b) in self.fixed.iter_mut().zip(&h.bytes) {
+            *f = if on { *f - b / 2 } else { *f + b / 2 };
+        }
+    }
+
     /// The largest variant's bytes.
     fn total(&self, at: &[usize]) -> u64 {
         (0..self.fixed.len())
@@ -841,7 +915,7 @@ fn base_node_bytes(g: &Graph, table: &TensorTable, id: NodeId) -> u64 {
             w + if c.bias { c.conv.out_channels.max(0) as u64 } else { 0 }
         }
         Op::BatchNorm(b) => 4 * b.channels.max(0) as u64,
-        _ => node.params.iter().map(|s| numel(table, &node.param_name(s))).sum(),
+        _ => node.params.iter().map(|s| stored_numel(g, table, id, s)).sum(),
     };
     elems * 4
 }
@@ -872,12 +946,23 @@ fn fixed_node_bytes(g: &Graph, table: &TensorTable, id: NodeId, v: usize, has_ch
             .params
             .iter()
             .filter(|s| !(has_choice && s.name == "weight"))
-            .map(|s| node.param_name(s))
-            .filter(|n| own(table, n, v))
-            .map(|n| numel(table, &n))
+            .filter(|s| own(table, &node.param_name(s), v))
+            .map(|s| stored_numel(g, table, id, s))
             .sum(),
     };
     elems * 4
+}
+
+/// The floats the plan stores for parameter `slot` of node `id`: a linear's weight as
+/// `pack_weights` packs it (panels are padded), any other as it is.
+fn stored_numel(g: &Graph, table: &TensorTable, id: NodeId, slot: &crate::ir::ParamSlot) -> u64 {
+    let node = g.node(id);
+    match &node.op {
+        Op::Linear(l) if slot.name == "weight" => {
+            pack_weights::linear_weight_len(g, id, l).map_or_else(|| numel(table, &node.param_name(slot)), |n| n as u64)
+        }
+        _ => numel(table, &node.param_name(slot)),
+    }
 }
 
 /// The `--explain` table: one row per layer with a choice (its largest variant's bytes;
@@ -925,6 +1010,10 @@ pub fn explain(s: &Strategy) -> String {
         bytes(s.base_bytes),
         bytes(fixed)
     );
+    for h in &s.half {
+        let b = h.bytes.iter().copied().max().unwrap_or(0);
+        let _ = writeln!(out, "  {} stored f16: {} instead of {} per variant", h.param, bytes(b / 2), bytes(b));
+    }
     if s.keys.len() > 1 {
         let each: Vec<String> =
             s.keys.iter().zip(&totals).map(|(k, b)| format!("{k} {:.2}%", pct(*b, s.base_bytes))).collect();

@@ -38,7 +38,8 @@ use crate::module::{Lowered, Module};
 use crate::ops::Epilogue;
 use crate::weights::tensors::{Data, TensorTable};
 use readi_plan::Dim;
-use readi_plan::ops::{Pure, Reshape};
+use readi_plan::ops::{DType, Pure, Reshape};
+use readi_runtime::plan::TensorData;
 
 pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Result<Output, Diagnostics> {
     let table = module.tensors.as_ref().ok_or_else(not_bound)?;
@@ -82,7 +83,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
     let Lowering { values, steps, names, records, .. } = l;
     let tensors: Vec<TensorSpec> = names
         .iter()
-        .map(|n| TensorSpec { name: n.clone(), shape: table.get(n).map(|t| t.shape.clone()).unwrap_or_default() })
+        .map(|n| TensorSpec::f32(n.clone(), table.get(n).map(|t| t.shape.clone()).unwrap_or_default()))
         .collect();
     let data: Vec<Data> = names
         .iter()
@@ -131,6 +132,9 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             .map(|(_, o)| o.shape.iter().product::<usize>() as u64)
             .sum()
     };
+    // The parameters whose variant values `choose_strategy` stores at half precision
+    // (`--variant-f16`): every tensor derived from them alone is stored f16.
+    let half: HashSet<&str> = module.strategy.iter().flat_map(|s| &s.half).map(|h| h.param.as_str()).collect();
     for (i, info) in table.variants.iter().enumerate() {
         let mut replaces = Vec::new();
         for (t, name) in names.iter().enumerate() {
@@ -139,7 +143,11 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             if !read[t] || same_bits(value, &tensor.base) {
                 continue;
             }
-            let with = store.add(format!("{name}#{}", info.key), &tensor.shape, value.clone());
+            let is_half = !half.is_empty()
+                && (half.contains(name.as_str())
+                    || (!tensor.sources.is_empty() && tensor.sources.iter().all(|s| half.contains(s.as_str()))));
+            let dtype = if is_half { DType::F16 } else { DType::F32 };
+            let with = store.add(format!("{name}#{}", info.key), &tensor.shape, value.clone(), dtype);
             let is_added = tensor.sources.iter().any(|s| added.contains(s.as_str()));
             replaces.push(Replacement { base: t, with, added: is_added });
         }
@@ -152,8 +160,17 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             fallback: info.fallback.clone(),
         });
     }
+    let data = store
+        .data
+        .into_iter()
+        .zip(&store.specs)
+        .map(|(d, spec)| match spec.dtype {
+            DType::F16 => TensorData::F16(d.iter().map(|&x| half::f16::from_f32(x)).collect()),
+            _ => TensorData::F32(d),
+        })
+        .collect();
     manifest.tensors = store.specs;
-    Ok(Output::Lowered(Box::new(Lowered { manifest, data: store.data })))
+    Ok(Output::Lowered(Box::new(Lowered { manifest, data })))
 }
 
 /// The scoped `adapt` sections whose rules the variant `key` owns (`camera`,
@@ -455,18 +472,20 @@ impl Store {
         Store { specs, data, by_hash }
     }
 
-    /// The index of a stored tensor of this shape with `value`'s bits, stored as `name`
-    /// when there is none yet.
-    fn add(&mut self, name: String, shape: &[usize], value: Data) -> usize {
+    /// The index of a stored tensor of this shape and type with `value`'s bits, stored as
+    /// `name` when there is none yet (`dtype` f16: converted when the plan is built).
+    fn add(&mut self, name: String, shape: &[usize], value: Data, dtype: DType) -> usize {
         let shape = shape.to_vec();
         let h = bits_hash(&shape, &value);
         let found = self.by_hash.get(&h).and_then(|c| {
-            c.iter().copied().find(|&j| self.specs[j].shape == shape && same_bits(&self.data[j], &value))
+            c.iter().copied().find(|&j| {
+                self.specs[j].shape == shape && self.specs[j].dtype == dtype && same_bits(&self.data[j], &value)
+            })
         });
         if let Some(j) = found {
             return j;
         }
-        self.specs.push(TensorSpec { name, shape });
+        self.specs.push(TensorSpec { name, shape, dtype });
         self.data.push(value);
         let j = self.data.len() - 1;
         self.by_hash.entry(h).or_default().push(j);

@@ -537,6 +537,11 @@ pub struct CompileOptions {
     pub timing: choose_strategy::Timing,
     /// Keep adapters as separate steps (`fuse_adapters` does nothing): for comparisons.
     pub unfused_adapters: bool,
+    /// `--variant-f16`: `choose_strategy` may store the variants' values of the weights
+    /// no choice changes (a tuned head's, a tuned conv's with one algorithm) at half
+    /// precision, the largest first, where the memory budget needs it (all of them
+    /// without a budget). Lossy: `readi compile` reports how far the outputs move.
+    pub variant_f16: bool,
 }
 
 /// What the back end compiles a module with.

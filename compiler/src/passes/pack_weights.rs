@@ -91,7 +91,7 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             }
             Op::Linear(l) if !l.packed => {
                 let (fin, fout) = (l.linear.in_features.max(0) as usize, l.linear.out_features.max(0) as usize);
-                let p = if few_rows(g, id) && fout.div_ceil(PANEL) * PANEL * 8 <= fout * 9 {
+                let p = if in_panels(g, id, fout) {
                     let len =
                         l.linear.panel_len().ok_or_else(|| internal(format!("linear `{}` too large", node.path)))?;
                     let packed = table
@@ -132,6 +132,17 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         }
     }
     Ok(Output::Patches(patches))
+}
+
+/// Whether rule `pack_linear` packs the weight of linear `id` (of `fout` outputs) in panels.
+fn in_panels(g: &Graph, id: NodeId, fout: usize) -> bool {
+    few_rows(g, id) && fout.div_ceil(PANEL) * PANEL * 8 <= fout * 9
+}
+
+/// The floats the plan stores for the weight of linear `id`: padded panels or `[in, out]`.
+pub fn linear_weight_len(g: &Graph, id: NodeId, l: &LinearOp) -> Option<usize> {
+    let (fin, fout) = (l.linear.in_features.max(0) as usize, l.linear.out_features.max(0) as usize);
+    if in_panels(g, id, fout) { l.linear.panel_len() } else { fin.checked_mul(fout) }
 }
 
 /// Rows per image at most which a linear's weight goes in panels. On its own, with the

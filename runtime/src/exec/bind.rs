@@ -173,7 +173,8 @@ pub struct Footprint {
     /// The LoRA `A`s the session packs for a conv's algorithm (stored raw in the plan).
     pub lora: usize,
     /// The working copies of the convs merged on switch (each packed for its algorithm)
-    /// and the raw buffer a merge packs from.
+    /// and the raw buffer a merge packs from, and the f32 copies of the variants' f16
+    /// replacements (one per replaced tensor).
     pub working: usize,
     /// The inputs at these shapes (the caller's memory).
     pub inputs: usize,
@@ -404,6 +405,11 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
     if working > 0 {
         parts.push(("the working copies of the convs merged on switch".into(), working));
     }
+    let decoded = crate::plan::Decoded::bytes(plan);
+    if decoded > 0 {
+        parts.push(("the decoded copies of the variants' f16 tensors".into(), decoded));
+    }
+    let working = sum([working, decoded], "the working copies")?;
     if geometry > 0 {
         parts.push(("the geometry caches of the lss_bev_pool steps and the sparse conv rulebooks".into(), geometry));
     }

@@ -25,7 +25,9 @@
 //! one variant. A conv whose LoRA `A` the plan stores raw (a Winograd layer's) reads it
 //! from a session-owned buffer, packed for its algorithm at the start of a run whose
 //! variant differs from the one the buffer holds (`Bound::pack_lora`; microseconds for a
-//! few small `A`s, nothing allocated).
+//! few small `A`s, nothing allocated). A variant's replacement stored as f16 is read the
+//! same way, from a session-owned f32 copy (one per replaced tensor, allocated with the
+//! session) decoded at the start of a run whose variant differs from the copy's.
 //!
 //! An `lss_bev_pool` step (BEVFusion's view transform) keeps, per session, where its
 //! frustum points land in the BEV grid (`Bound::bev`, sized at bind time): computed from
@@ -51,7 +53,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use readi_plan::VariantKey;
 
-use crate::plan::{Plan, escaped};
+use crate::plan::{Decoded, Plan, escaped};
 
 pub(crate) use bind::Bound;
 pub use bind::Footprint;
@@ -280,6 +282,8 @@ pub struct Session {
     /// The variant the last successful run used.
     last_variant: Option<usize>,
     bound: Option<Bound>,
+    /// The f32 copies of the active variant's f16 replacements.
+    decoded: Decoded,
     /// Per plan input, the position in the caller's list of the input of that name.
     /// Refilled by every run; kept so that a run does not allocate it.
     given: Vec<Option<usize>>,
@@ -313,6 +317,7 @@ impl Session {
             .map_err(|e| RunError::Threads(e.to_string()))?;
         let given = Vec::with_capacity(plan.manifest.inputs.len());
         let symbols = vec![0; plan.manifest.symbols.len()];
+        let decoded = Decoded::new(&plan);
         Ok(Session {
             plan,
             pool,
@@ -321,6 +326,7 @@ impl Session {
             active: Arc::new(AtomicUsize::new(0)),
             last_variant: None,
             bound: None,
+            decoded,
             given,
             symbols,
             profile: None,
@@ -436,9 +442,12 @@ impl Session {
             .variant_tensors(variant)
             .ok_or(RunError::VariantIndex { index: variant, count: plan.variant_count() })?;
         self.prepare(&plan, inputs)?;
+        // Before any step, on this thread, and only when the variant differs from the
+        // last: its f16 replacements decoded, then the raw LoRA `A`s packed for it and
+        // the working copies of the layers merged on switch written.
+        self.decoded.refresh(&plan, variant);
+        let weights = weights.with_decoded(self.decoded.copies());
         let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
-        // Before any step, on this thread: the raw LoRA `A`s packed for this variant (a
-        // few small tensors, and only when the variant differs from the last packed).
         bound.pack_lora(&plan, weights);
         let run = Run { plan: &plan, weights, inputs, given: &self.given };
         let threads = self.threads;

@@ -1,7 +1,8 @@
 //! The plan file: what the compiler emits and the runtime maps into memory.
 //!
 //! A plan is a [safetensors] file. Its tensors are the stored weights (f32, each stored
-//! once); its metadata holds three keys:
+//! once; a variant's replacement may be f16, [`TensorSpec::dtype`]); its metadata holds
+//! three keys:
 //!
 //! * `readi.format_version`: [`FORMAT_VERSION`], checked first;
 //! * `readi.manifest`: the [`Manifest`] as JSON: inputs, outputs, the schedule of steps,
@@ -34,13 +35,16 @@ use std::ops::Range;
 use std::path::Path;
 use std::sync::Arc;
 
+use half::f16;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 pub use readi_plan::format::*;
+use readi_plan::ops::DType;
 pub use readi_plan::{Dim, show_shape};
 
 mod variants;
 
+pub(crate) use variants::Decoded;
 use variants::VariantMaps;
 pub use variants::VariantTensors;
 
@@ -130,10 +134,57 @@ impl fmt::Display for PlanError {
 
 impl std::error::Error for PlanError {}
 
+/// The data of one stored tensor, as the compiler hands it to [`Plan::new`]: f32, or f16
+/// for a variant's replacement stored at half precision.
+#[derive(Clone, Debug)]
+pub enum TensorData {
+    F32(Arc<[f32]>),
+    F16(Arc<[f16]>),
+}
+
+impl TensorData {
+    /// Elements.
+    pub fn len(&self) -> usize {
+        match self {
+            TensorData::F32(d) => d.len(),
+            TensorData::F16(d) => d.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The element type.
+    pub fn dtype(&self) -> DType {
+        match self {
+            TensorData::F32(_) => DType::F32,
+            TensorData::F16(_) => DType::F16,
+        }
+    }
+}
+
+impl From<Arc<[f32]>> for TensorData {
+    fn from(d: Arc<[f32]>) -> TensorData {
+        TensorData::F32(d)
+    }
+}
+
+impl From<Vec<f32>> for TensorData {
+    fn from(d: Vec<f32>) -> TensorData {
+        TensorData::F32(d.into())
+    }
+}
+
+impl From<Vec<f16>> for TensorData {
+    fn from(d: Vec<f16>) -> TensorData {
+        TensorData::F16(d.into())
+    }
+}
+
 /// Where the tensor bytes are.
 enum Weights {
     /// Straight from the compiler.
-    Owned(Vec<Arc<[f32]>>),
+    Owned(Vec<TensorData>),
     /// Borrowed from a memory-mapped file: byte range of each tensor.
     Mapped { map: memmap2::Mmap, ranges: Vec<Range<usize>> },
 }
@@ -163,7 +214,7 @@ impl Plan {
     /// manifest order (shared data, such as the compiler's `Arc<[f32]>`, is not copied).
     /// Records the plan's footprint at batch 1 on one thread in
     /// [`Manifest::footprint`] (`None` if it does not fit in memory at all).
-    pub fn new<T: Into<Arc<[f32]>>>(manifest: Manifest, tensors: Vec<T>) -> Result<Plan, PlanError> {
+    pub fn new<T: Into<TensorData>>(manifest: Manifest, tensors: Vec<T>) -> Result<Plan, PlanError> {
         let tensors = tensors.into_iter().map(Into::into).collect();
         let mut plan = Plan::build(manifest, Weights::Owned(tensors), "<compiled plan>")?;
         plan.manifest.footprint = crate::exec::compiled_footprint(&plan);
@@ -176,16 +227,50 @@ impl Plan {
         plan.validate(path)?;
         let mut variants = VariantMaps::build(&plan.manifest);
         variants.mark_zeros(&plan.manifest, |t| plan.tensor(t).iter().all(|&v| v == 0.0));
+        variants.mark_half(&plan.manifest);
         plan.variants = variants;
         Ok(plan)
     }
 
-    /// The data of stored tensor `i`.
+    /// The data of stored tensor `i`, an f32 tensor; empty for an f16 one (a variant's
+    /// replacement, which a session reads decoded: [`Plan::tensor_f16`]).
     pub fn tensor(&self, i: usize) -> &[f32] {
+        if self.manifest.tensors[i].dtype != DType::F32 {
+            return &[];
+        }
         match &self.weights {
-            Weights::Owned(t) => &t[i],
+            Weights::Owned(t) => match &t[i] {
+                TensorData::F32(d) => d,
+                TensorData::F16(_) => &[],
+            },
             // Alignment and length were checked at load.
             Weights::Mapped { map, ranges } => bytemuck::cast_slice(&map[ranges[i].clone()]),
+        }
+    }
+
+    /// The data of stored tensor `i` if it is f16 (a variant's replacement stored at half
+    /// precision), else `None`.
+    pub fn tensor_f16(&self, i: usize) -> Option<&[f16]> {
+        if self.manifest.tensors[i].dtype != DType::F16 {
+            return None;
+        }
+        match &self.weights {
+            Weights::Owned(t) => match &t[i] {
+                TensorData::F16(d) => Some(d),
+                TensorData::F32(_) => None,
+            },
+            Weights::Mapped { map, ranges } => Some(bytemuck::cast_slice(&map[ranges[i].clone()])),
+        }
+    }
+
+    /// The stored bytes of tensor `i`, as the file holds them.
+    fn tensor_raw(&self, i: usize) -> &[u8] {
+        match &self.weights {
+            Weights::Owned(t) => match &t[i] {
+                TensorData::F32(d) => bytemuck::cast_slice(d),
+                TensorData::F16(d) => bytemuck::cast_slice(d),
+            },
+            Weights::Mapped { map, ranges } => &map[ranges[i].clone()],
         }
     }
 
@@ -196,7 +281,7 @@ impl Plan {
 
     /// Total bytes of the stored tensors.
     pub fn tensor_bytes(&self) -> usize {
-        self.manifest.tensors.iter().map(|t| t.numel() * 4).sum()
+        self.manifest.tensors.iter().map(TensorSpec::bytes).sum()
     }
 
     fn checksum(manifest_json: &str, tensors: impl Iterator<Item = impl AsRef<[u8]>>) -> u32 {
@@ -212,11 +297,12 @@ impl Plan {
     pub fn to_bytes(&self) -> Result<Vec<u8>, PlanError> {
         let err = |detail: String| PlanError::Manifest { path: "<plan>".into(), detail };
         let json = serde_json::to_string(&self.manifest).map_err(|e| err(e.to_string()))?;
-        let data: Vec<&[u8]> = (0..self.manifest.tensors.len()).map(|i| bytemuck::cast_slice(self.tensor(i))).collect();
+        let data: Vec<&[u8]> = (0..self.manifest.tensors.len()).map(|i| self.tensor_raw(i)).collect();
         let checksum = Plan::checksum(&json, data.iter());
         let mut views = Vec::with_capacity(data.len());
         for (spec, bytes) in self.manifest.tensors.iter().zip(&data) {
-            let view = TensorView::new(Dtype::F32, spec.shape.clone(), bytes).map_err(|e| PlanError::Tensor {
+            let dtype = if spec.dtype == DType::F16 { Dtype::F16 } else { Dtype::F32 };
+            let view = TensorView::new(dtype, spec.shape.clone(), bytes).map_err(|e| PlanError::Tensor {
                 path: "<plan>".into(),
                 name: spec.name.clone(),
                 detail: e.to_string(),
@@ -282,8 +368,13 @@ impl Plan {
         for spec in &manifest.tensors {
             let terr = |detail: String| PlanError::Tensor { path: path.into(), name: spec.name.clone(), detail };
             let view = st.tensor(&spec.name).map_err(|e| terr(e.to_string()))?;
-            if view.dtype() != Dtype::F32 {
-                return Err(terr(format!("stored as {:?}, expected F32", view.dtype())));
+            // The manifest's type (validation: f32, or f16 for a replacement).
+            let (want, align) = match spec.dtype {
+                DType::F16 => (Dtype::F16, 2),
+                _ => (Dtype::F32, 4),
+            };
+            if view.dtype() != want {
+                return Err(terr(format!("stored as {:?}, the manifest says {:?}", view.dtype(), want)));
             }
             if view.shape() != spec.shape.as_slice() {
                 return Err(terr(format!(
@@ -293,8 +384,8 @@ impl Plan {
                 )));
             }
             let start = view.data().as_ptr() as usize - base;
-            if start < data_start || !(base + start).is_multiple_of(4) {
-                return Err(terr("is not 4-byte aligned in the file".into()));
+            if start < data_start || !(base + start).is_multiple_of(align) {
+                return Err(terr(format!("is not {align}-byte aligned in the file")));
             }
             ranges.push(start..start + view.data().len());
         }
@@ -319,6 +410,14 @@ impl Plan {
                 return bad(format!("{} tensors for {} manifest entries", t.len(), m.tensors.len()));
             }
             for (spec, data) in m.tensors.iter().zip(t) {
+                if data.dtype() != spec.dtype {
+                    return bad(format!(
+                        "tensor `{}` is {} data, the manifest says {}",
+                        spec.name,
+                        data.dtype().as_str(),
+                        spec.dtype.as_str()
+                    ));
+                }
                 if data.len() != spec.numel() {
                     return bad(format!(
                         "tensor `{}` has {} elements, its shape {:?} needs {}",

@@ -4,8 +4,10 @@
 
 use std::fmt;
 
+use half::slice::HalfFloatSliceExt;
 use readi_plan::VariantKey;
 use readi_plan::format::Manifest;
+use readi_plan::ops::DType;
 
 use super::{Kernel, Plan};
 
@@ -32,7 +34,17 @@ pub(super) struct VariantMaps {
     /// adaptation rule adds is zero until a variant gives it, and a variant that does not
     /// reads that zero ([`VariantTensors::reads_zero`]).
     zero: Box<[bool]>,
+    /// Per stored tensor, whether it is f16 (a variant's replacement); empty when none is.
+    half: Box<[bool]>,
+    /// Per tensor below `span`, the decoded copy ([`Decoded`]) a variant that replaces it
+    /// with an f16 tensor reads, [`NO_COPY`] for the others; empty when no tensor is f16.
+    copy_of: Box<[u32]>,
+    /// Per decoded copy, the base tensor it stands for.
+    copies: Box<[u32]>,
 }
+
+/// [`VariantMaps::copy_of`] of a tensor no variant replaces by an f16 one.
+const NO_COPY: u32 = u32::MAX;
 
 impl VariantMaps {
     /// Builds the maps of a validated manifest.
@@ -57,7 +69,38 @@ impl VariantMaps {
         let keys: Box<[Box<str>]> = parsed.iter().map(|k| k.to_string().into_boxed_str()).collect();
         let mut by_key: Vec<u32> = (0..count as u32).collect();
         by_key.sort_by(|&a, &b| key_order(&keys[a as usize], &keys[b as usize]));
-        VariantMaps { keys, parsed, by_key: by_key.into(), maps: maps.into(), span, zero: Box::default() }
+        VariantMaps {
+            keys,
+            parsed,
+            by_key: by_key.into(),
+            maps: maps.into(),
+            span,
+            zero: Box::default(),
+            half: Box::default(),
+            copy_of: Box::default(),
+            copies: Box::default(),
+        }
+    }
+
+    /// Records the f16 tensors and gives every base tensor some variant replaces by one a
+    /// decoded copy.
+    pub(super) fn mark_half(&mut self, m: &Manifest) {
+        if m.tensors.iter().all(|t| t.dtype == DType::F32) {
+            return;
+        }
+        let half: Box<[bool]> = m.tensors.iter().map(|t| t.dtype == DType::F16).collect();
+        let mut copy_of = vec![NO_COPY; self.span];
+        let mut copies = Vec::new();
+        for r in m.variants.iter().flat_map(|v| &v.replaces) {
+            // Validation: `base` is below `span`, `with` a stored tensor.
+            if half[r.with] && copy_of[r.base] == NO_COPY {
+                copy_of[r.base] = copies.len() as u32;
+                copies.push(r.base as u32);
+            }
+        }
+        self.half = half;
+        self.copy_of = copy_of.into();
+        self.copies = copies.into();
     }
 
     /// Marks the base model's all-zero adapter up-projections and LoRA `B`s among the
@@ -97,11 +140,61 @@ fn key_order(a: &str, b: &str) -> std::cmp::Ordering {
 
 /// The stored tensors as one variant sees them: where a step names tensor `t`, the
 /// variant reads [`resolve(t)`](VariantTensors::resolve). Cheap to copy.
+///
+/// A replacement stored as f16 is read from the session's decoded copy of it
+/// ([`Decoded`]); without one ([`Plan::variant_tensors`] alone) it reads as empty.
 #[derive(Clone, Copy)]
 pub struct VariantTensors<'a> {
     plan: &'a Plan,
     map: &'a [u32],
     index: usize,
+    decoded: &'a [Vec<f32>],
+}
+
+/// A session's f32 copies of the active variant's f16 replacements: one per base tensor
+/// some variant replaces by an f16 tensor (whatever the number of variants), written
+/// when a run's variant differs from the one they hold, on the running thread before any
+/// step, so a run never sees a half-written copy. Allocated with the session; a switch
+/// writes into them and allocates nothing.
+pub(crate) struct Decoded {
+    variant: Option<usize>,
+    copies: Vec<Vec<f32>>,
+}
+
+impl Decoded {
+    /// The copies a session of `plan` keeps, zeroed (none for a plan without f16 tensors).
+    pub(crate) fn new(plan: &Plan) -> Decoded {
+        let len = |&b: &u32| plan.manifest.tensors[b as usize].numel();
+        Decoded { variant: None, copies: plan.variants.copies.iter().map(|b| vec![0.0; len(b)]).collect() }
+    }
+
+    /// Decodes variant `variant`'s f16 replacements, unless the copies hold them already.
+    pub(crate) fn refresh(&mut self, plan: &Plan, variant: usize) {
+        let maps = &plan.variants;
+        if maps.copies.is_empty() || self.variant == Some(variant) {
+            return;
+        }
+        let Some(tensors) = plan.variant_tensors(variant) else { return };
+        for (copy, &base) in self.copies.iter_mut().zip(&maps.copies) {
+            // A variant that keeps the base's tensor, or replaces it by an f32 one, reads
+            // that tensor directly, not the copy.
+            if let Some(half) = plan.tensor_f16(tensors.resolve(base as usize)) {
+                half.convert_to_f32_slice(copy);
+            }
+        }
+        self.variant = Some(variant);
+    }
+
+    /// Bytes of the copies a session of `plan` keeps.
+    pub(crate) fn bytes(plan: &Plan) -> usize {
+        let len = |&b: &u32| plan.manifest.tensors[b as usize].numel();
+        plan.variants.copies.iter().map(len).fold(0usize, |a, n| a.saturating_add(n.saturating_mul(4)))
+    }
+
+    /// The copies, for [`VariantTensors::with_decoded`].
+    pub(crate) fn copies(&self) -> &[Vec<f32>] {
+        &self.copies
+    }
 }
 
 impl<'a> VariantTensors<'a> {
@@ -124,7 +217,18 @@ impl<'a> VariantTensors<'a> {
     /// The data read where a step names tensor `t`.
     #[inline]
     pub fn get(&self, t: usize) -> &'a [f32] {
-        self.plan.tensor(self.resolve(t))
+        let s = self.resolve(t);
+        if self.plan.variants.half.get(s).copied().unwrap_or(false) {
+            let copy = self.plan.variants.copy_of.get(t).copied().unwrap_or(NO_COPY);
+            return self.decoded.get(copy as usize).map_or(&[], Vec::as_slice);
+        }
+        self.plan.tensor(s)
+    }
+
+    /// The same tensors, reading the f16 replacements from `copies` (a session's
+    /// [`Decoded`], refreshed for this variant).
+    pub(crate) fn with_decoded(self, copies: &'a [Vec<f32>]) -> VariantTensors<'a> {
+        VariantTensors { decoded: copies, ..self }
     }
 
     /// Whether this variant reads the base model's value of the adapter up-projection or
@@ -184,12 +288,12 @@ impl Plan {
         }
         let span = self.variants.span;
         let map = self.variants.maps.get(i * span..(i + 1) * span)?;
-        Some(VariantTensors { plan: self, map, index: i })
+        Some(VariantTensors { plan: self, map, index: i, decoded: &[] })
     }
 
     /// The base model's tensors (variant 0).
     pub fn base_tensors(&self) -> VariantTensors<'_> {
         let span = self.variants.span;
-        VariantTensors { plan: self, map: &self.variants.maps[..span], index: 0 }
+        VariantTensors { plan: self, map: &self.variants.maps[..span], index: 0, decoded: &[] }
     }
 }

@@ -29,7 +29,7 @@ pub struct Store {
 impl Store {
     fn add(&mut self, name: &str, shape: &[usize], data: Vec<f32>) -> usize {
         assert_eq!(data.len(), shape.iter().product::<usize>(), "{name}");
-        self.specs.push(TensorSpec { name: name.into(), shape: shape.to_vec() });
+        self.specs.push(TensorSpec::f32(name, shape.to_vec()));
         self.data.push(data);
         self.specs.len() - 1
     }
