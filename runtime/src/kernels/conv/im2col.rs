@@ -12,7 +12,7 @@ use super::adapter::{Adapter, apply_tile};
 use super::split::{Part, channel_shares, shared_scratch};
 use super::{Conv2dShape, ConvAlgo, Lora, finish, pointwise};
 use crate::kernels::Epilogue;
-use crate::kernels::gemm::{MatMut, MatRef, sgemm};
+use crate::kernels::gemm::{MatMut, MatRef, few_rows_product, sgemm};
 
 /// Pixels per GEMM tile: the unfolded tile plus the result tile fill up to 1.5 MiB, in
 /// multiples of 16 pixels (the GEMM's vector width). Larger than L2, but each GEMM call
@@ -71,8 +71,14 @@ pub(super) fn gemm_part(
                     }
                     MatRef::row_major(col, k, tp)
                 };
-                let scratch = (&mut *acc, &mut *t, &mut *h);
-                multiply_tile(s, w, lora, adapter, ep, rhs, part, (n, chans, p0 - p_lo), scratch);
+                // One group (checked) for a LoRA branch: the tile is the whole input's.
+                let branch = lora.map(|l| {
+                    let t = &mut t[..l.rank * tp];
+                    few_rows_product(MatRef::row_major(l.a, l.rank, k), rhs, MatMut::row_major(t, l.rank, tp));
+                    (l.b, l.rank, &*t)
+                });
+                let scratch = (&mut *acc, &mut *h);
+                multiply_tile(s, w, branch, adapter, ep, rhs, part, (n, chans, p0 - p_lo), scratch);
             }
             p0 += tp;
         }
@@ -81,32 +87,28 @@ pub(super) fn gemm_part(
 
 /// What the GEMM paths do with a tile once its right-hand side `rhs` is ready (the input
 /// in place, or its unfolded rows): channels `chans` of image `n` at the `rhs.cols`
-/// pixels `off` from the part's first, one GEMM into `acc`, a LoRA branch's two small
-/// ones (through `t`), then the epilogue into the part's planes, through the adapter
-/// (and `h`) if there is one.
+/// pixels `off` from the part's first, one GEMM into `acc`, a LoRA branch's `B t` (`B`
+/// of every channel, `rank`, and `t = A rhs`, rank rows of the tile), then the epilogue
+/// into the part's planes, through the adapter (and `h`) if there is one.
 #[allow(clippy::too_many_arguments)]
 fn multiply_tile(
     s: &Conv2dShape,
     w: &[f32],
-    lora: Option<&Lora>,
+    branch: Option<(&[f32], usize, &[f32])>,
     adapter: Option<&Adapter>,
     ep: &Epilogue,
     rhs: MatRef,
     part: &mut Part,
     (n, chans, off): (usize, std::ops::Range<usize>, usize),
-    (acc, t, h): (&mut [f32], &mut [f32], &mut [f32]),
+    (acc, h): (&mut [f32], &mut [f32]),
 ) {
     let (k, tp, mrows) = (s.k(), rhs.cols, chans.len());
     let lhs = MatRef::row_major(&w[chans.start * k..][..mrows * k], mrows, k);
     let acc = &mut acc[..mrows * tp];
     sgemm(lhs, rhs, MatMut::row_major(acc, mrows, tp), false, 1);
-    if let Some(l) = lora {
-        // One group (checked): the tile is the whole input's.
-        let rank = l.rank;
-        let t = &mut t[..rank * tp];
-        sgemm(MatRef::row_major(l.a, rank, k), rhs, MatMut::row_major(t, rank, tp), false, 1);
-        let b = MatRef::row_major(&l.b[chans.start * rank..][..mrows * rank], mrows, rank);
-        sgemm(b, MatRef::row_major(t, rank, tp), MatMut::row_major(acc, mrows, tp), true, 1);
+    if let Some((b, rank, t)) = branch {
+        let b = MatRef::row_major(&b[chans.start * rank..][..mrows * rank], mrows, rank);
+        sgemm(b, MatRef::row_major(&t[..rank * tp], rank, tp), MatMut::row_major(acc, mrows, tp), true, 1);
     }
     if let Some(ad) = adapter {
         // Every channel of the tile (one group, a row split): scale and shift in place,
@@ -155,33 +157,61 @@ simd_fn! {
 }
 
 /// Im2col over parts that split a layer of one group by output channels (each part owns
-/// every pixel), no LoRA branch or adapter in the tiles: per image and tile of pixels, the
-/// parts first unfold the tile together, each its share of the input channels into one
-/// matrix (in the first part's scratch), then each multiplies its channels (a GEMM, or
-/// the register tiles of small planes) and writes them with the epilogue. Through
-/// [`gemm_part`] each part would unfold the whole tile itself: ResNet-50's 28 -> 14
-/// strided 3x3 (2304 unfolded rows of 196 pixels) scaled 1.39x from one thread to two;
-/// shared, that step took 0.83x as long at two threads, its 14 -> 7 one 0.87x, the 1x1
-/// downsampling ones 0.91-0.95x (6 alternating rounds).
+/// every pixel), no adapter in the tiles: per image and tile of pixels, the parts first
+/// unfold the tile together, each its share of the input channels into one matrix (in the
+/// first part's scratch), then each multiplies its channels (a GEMM, or the register
+/// tiles of small planes) and writes them with the epilogue. Through [`gemm_part`] each
+/// part would unfold the whole tile itself: ResNet-50's 28 -> 14 strided 3x3 (2304
+/// unfolded rows of 196 pixels) scaled 1.39x from one thread to two; shared, that step
+/// took 0.83x as long at two threads, its 14 -> 7 one 0.87x, the 1x1 downsampling ones
+/// 0.91-0.95x (6 alternating rounds). A LoRA branch's `t = A col` sums every input
+/// channel: each part sums its share's rows while they are hot (into its scratch), and
+/// every part adds the shares up (rank rows of the tile per part).
 /// `jobs` are the parts with their scratch, each at least `part_scratch` floats.
-pub(super) fn im2col_shared(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], jobs: &mut [(Part, &mut [f32])]) {
+pub(super) fn im2col_shared(
+    s: &Conv2dShape,
+    w: &[f32],
+    lora: Option<&Lora>,
+    ep: &Epilogue,
+    x: &[f32],
+    jobs: &mut [(Part, &mut [f32])],
+) {
     use rayon::prelude::*;
     let (cin_g, cout_g, k, kk) = (s.cin_g(), s.cout_g(), s.k(), s.kh * s.kw);
     assert_eq!(s.groups, 1, "im2col_shared: one group");
     let tile = gemm_tile(s, ConvAlgo::Im2col);
-    let registers = pointwise::applies_unfolded(s);
+    let registers = lora.is_none() && pointwise::applies_unfolded(s);
+    let rank = lora.map_or(0, |l| l.rank);
     let threads = jobs.len();
-    // Each job's accumulator and tail scratch; the first job's unfolding area is shared.
-    let (shared, mut own) = shared_scratch(jobs, tile * cout_g, k * tile);
+    // Each job's accumulator and tail scratch (its share of `t`, then `t`, then the
+    // register tiles' scratch); the first job's unfolding area is shared.
+    let (shared, own) = shared_scratch(jobs, tile * cout_g, k * tile);
+    let (mut shares_t, mut own): (Vec<&mut [f32]>, Vec<_>) = own
+        .into_iter()
+        .map(|(part, acc, tail)| {
+            let (share_t, tail) = tail.split_at_mut(rank * tile);
+            (share_t, (part, acc, tail))
+        })
+        .unzip();
     let (plane_in, plane) = (s.h * s.w, s.oh * s.ow);
     for n in 0..s.n {
         let xg = &x[n * s.cin * plane_in..][..cin_g * plane_in];
         for p0 in (0..plane).step_by(tile) {
             let tp = tile.min(plane - p0);
-            // Each job unfolds a share of the input channels into its rows of the tile.
+            // Each job unfolds a share of the input channels into its rows of the tile
+            // (and multiplies them by their columns of `A`).
             let shares = channel_shares(&mut shared[..k * tp], cin_g, threads, kk * tp);
-            shares.into_par_iter().for_each(|(cis, col)| im2col_simd(s, xg, cis, p0, tp, col));
+            shares.into_par_iter().zip(shares_t.par_iter_mut()).for_each(|((cis, col), share_t)| {
+                im2col_simd(s, xg, cis.clone(), p0, tp, col);
+                if let Some(l) = lora {
+                    let (c0, depth) = (cis.start * kk, cis.len() * kk);
+                    let a = MatRef { data: &l.a[c0..], rows: rank, cols: depth, row_stride: k, col_stride: 1 };
+                    let dst = MatMut::row_major(&mut share_t[..rank * tp], rank, tp);
+                    few_rows_product(a, MatRef::row_major(col, depth, tp), dst);
+                }
+            });
             let col: &[f32] = &shared[..k * tp];
+            let shares_t: Vec<&[f32]> = shares_t.iter().map(|t| &t[..rank * tp]).collect();
             own.par_iter_mut().for_each(|(part, acc, tail)| {
                 let chans = part.channels_of(0, cout_g);
                 if chans.is_empty() {
@@ -191,8 +221,16 @@ pub(super) fn im2col_shared(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32]
                     pointwise::unfolded(s, w, ep, col, tp, part, n, chans, (p0, 0), tail);
                     return;
                 }
+                let branch = lora.map(|l| {
+                    let t = &mut tail[..rank * tp];
+                    t.copy_from_slice(shares_t[0]);
+                    for share in &shares_t[1..] {
+                        t.iter_mut().zip(*share).for_each(|(a, b)| *a += b);
+                    }
+                    (l.b, rank, &*t)
+                });
                 let rhs = MatRef::row_major(col, k, tp);
-                multiply_tile(s, w, None, None, ep, rhs, part, (n, chans, p0), (acc, &mut [], &mut []));
+                multiply_tile(s, w, branch, None, ep, rhs, part, (n, chans, p0), (acc, &mut []));
             });
         }
     }

@@ -40,7 +40,10 @@
 //! transformed tiles by the transformed `A` and adds `B G` to the products before the
 //! output transform (the transform is linear, so this is the transform of `W + B A`).
 //! Either way the LoRA term is in the accumulator before the epilogue scales it, so a
-//! folded BatchNorm scales it as it scales the conv. Groups and depthwise layers have no
+//! folded BatchNorm scales it as it scales the conv. `A`'s few rows multiply the tile in
+//! registers (`gemm::few_rows_product`: the GEMM library would pack the whole tile again
+//! for them), and under a channel split each thread sums them over its share of the
+//! channels while the shared tile (transform) is built. Groups and depthwise layers have no
 //! fused branch ([`check`] refuses one): their LoRA runs as separate steps.
 //!
 //! A layer may also carry a residual bottleneck adapter on its output ([`Adapter`],
@@ -500,7 +503,7 @@ pub fn conv2d_fused(
             }
         };
         // A split by channels (so more than one part) of a layer with an input to prepare.
-        let by_channels = split_shape(s, algo, threads).1 > 1 && lora.is_none();
+        let by_channels = split_shape(s, algo, threads).1 > 1;
         if by_channels && algo != ConvAlgo::Gemm1x1 {
             // The parts share one input transform, or one unfolded tile.
             debug_assert!(
@@ -508,9 +511,9 @@ pub fn conv2d_fused(
                 "an adapter in parts or tiles needs a split by rows"
             );
             match algo {
-                ConvAlgo::Winograd2 => winograd_shared::<F2, 4, 2>(s, packed_weight, ep, x, &mut jobs),
-                ConvAlgo::Winograd4 => winograd_shared::<F4, 6, 4>(s, packed_weight, ep, x, &mut jobs),
-                _ => im2col_shared(s, packed_weight, ep, x, &mut jobs),
+                ConvAlgo::Winograd2 => winograd_shared::<F2, 4, 2>(s, packed_weight, lora, ep, x, &mut jobs),
+                ConvAlgo::Winograd4 => winograd_shared::<F4, 6, 4>(s, packed_weight, lora, ep, x, &mut jobs),
+                _ => im2col_shared(s, packed_weight, lora, ep, x, &mut jobs),
             }
         } else if jobs.len() == 1 {
             run(&mut jobs[0]);
@@ -708,10 +711,12 @@ fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
         ConvAlgo::Gemm1x1 => (gemm_tile(s, algo) * (s.cout_g() + rank)).max(pointwise::scratch_len(s.cin)),
         // The direct conv (a stem, narrow groups) reads one image's padded input from the
         // scratch.
+        // A LoRA branch's `t` (rank rows of a tile), and under a channel split each part's
+        // share of it (`im2col_shared`).
         ConvAlgo::Im2col if direct::applies(s) => {
-            (gemm_tile(s, algo) * (s.cout_g() + s.k() + rank) + registers).max(direct::scratch_len(s))
+            (gemm_tile(s, algo) * (s.cout_g() + s.k() + 2 * rank) + registers).max(direct::scratch_len(s))
         }
-        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k() + rank) + registers,
+        ConvAlgo::Im2col => gemm_tile(s, algo) * (s.cout_g() + s.k() + 2 * rank) + registers,
         ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(rank),
         ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(rank),
         ConvAlgo::Depthwise => 0,

@@ -393,7 +393,7 @@ fn check_lora(s: &Conv2dShape, rank: usize) -> usize {
             let want = reference_lora(s, &x, &w, &a, &b, rank, ep);
             let vectors = [ep.scale.map(<[f32]>::len), ep.shift.map(<[f32]>::len)];
             assert_eq!(super::check(s, algo, packed.len(), x_len, want.len(), vectors, fields), Ok(()));
-            for threads in [1, 2] {
+            for threads in [1, 2, 3] {
                 let mut out = vec![f32::NAN; want.len()];
                 let mut scratch = vec![f32::NAN; lora_scratch_len(s, algo, rank, threads)];
                 conv2d_lora(s, algo, &packed, Some(&lora), ep, &x, &mut out, &mut scratch, threads);
@@ -428,14 +428,20 @@ fn lora_every_algorithm() {
 
 #[test]
 fn lora_channel_split() {
-    // Two threads split the output channels; each part computes the branch itself.
+    // Two or three threads split the output channels and share one unfolded tile or one
+    // input transform; each part computes the branch's projection from all of it.
     for s in [
         shape(2, 20, (6, 5), 100, (3, 3), (1, 1), (1, 1), (1, 1), 1),
         shape(1, 24, (7, 7), 96, (1, 1), (1, 1), (0, 0), (1, 1), 1),
         shape(1, 16, (8, 8), 128, (3, 3), (2, 2), (1, 1), (1, 1), 1),
+        shape(1, 40, (6, 6), 100, (3, 3), (1, 1), (1, 1), (1, 1), 1),
     ] {
         assert_eq!(split_shape(&s, ConvAlgo::Im2col, 2), (1, 2));
         check_lora(&s, 4);
+    }
+    let s = shape(1, 40, (6, 6), 100, (3, 3), (1, 1), (1, 1), (1, 1), 1);
+    for algo in [ConvAlgo::Winograd2, ConvAlgo::Winograd4] {
+        assert_eq!(split_shape(&s, algo, 3), (1, 3), "{algo:?}");
     }
 }
 

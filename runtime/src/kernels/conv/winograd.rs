@@ -4,12 +4,13 @@
 //! ([`pack_winograd`], once, at packing), and per block of tile rows the input transform,
 //! one GEMM per transformed position and the output transform with the epilogue
 //! ([`winograd_part`]). A LoRA branch's `A`, transformed like the weight, multiplies the
-//! same transformed tiles (`G = Ã V`, rank rows per position), computed inside the input
-//! transform 8 channels at a time while they are hot; `G` is output-transformed like
-//! `rank` more output channels and each output channel adds `Σ_k B[c][k] (Aᵀ G_k A)`, a
-//! rank-`rank` update on M·M instead of A·A values per tile (the transform is linear).
-//! Before, `B G` was one GEMM of inner size `rank` per position (16 or 36 per block) and
-//! `Ã V` one more, both far below the GEMM library's efficient sizes.
+//! same transformed tiles (`G = Ã V`, rank rows per position, in registers after the
+//! input transform: [`project`]); `G` is output-transformed like `rank` more output
+//! channels and each output channel adds `Σ_k B[c][k] (Aᵀ G_k A)`, a rank-`rank` update
+//! on M·M instead of A·A values per tile (the transform is linear). Before, `B G` was one
+//! GEMM of inner size `rank` per position (16 or 36 per block), far below the GEMM
+//! library's efficient sizes. Under a split by channels the parts share one transform
+//! and each sums `G` over its share of the channels ([`winograd_shared`]).
 //!
 //! The transforms are plain Rust on fixed-size lane arrays ([`Lanes`]), run inside pulp
 //! `WithSimd` bodies ([`InputTransform`], [`OutputTransform`]) so that they are compiled
@@ -22,7 +23,7 @@ use rayon::prelude::*;
 use super::split::{Part, channel_shares, shared_scratch};
 use super::{Conv2dShape, Lora, finish};
 use crate::kernels::Epilogue;
-use crate::kernels::gemm::{MatMut, MatRef, sgemm};
+use crate::kernels::gemm::{MatMut, MatRef, few_rows_product, sgemm};
 
 /// F(2x2, 3x3) weight transform `G` (4x3).
 pub(super) const F2_G: [[f64; 3]; 4] = [[1.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0.0, 0.0, 1.0]];
@@ -239,6 +240,11 @@ impl Wino {
         Wino { tx, rows, lanes, plen, alpha: A, cin_g, cout_g }
     }
 
+    /// Transformed positions (`A·A`).
+    fn positions(&self) -> usize {
+        self.alpha * self.alpha
+    }
+
     /// Tiles per block.
     fn block(&self) -> usize {
         self.rows * self.tx
@@ -266,11 +272,11 @@ impl Wino {
         input.max(output)
     }
 
-    /// With `rank` rows of a LoRA branch's `G = Ã V` and their output transforms (0:
-    /// none).
+    /// With `rank` rows of a LoRA branch's `G = Ã V` (twice: under a channel split, the
+    /// part's share of it too) and their output transforms (0: none).
     pub(super) fn scratch(&self, rank: usize) -> usize {
         let m = self.alpha - 2;
-        (self.cin_g + self.cout_g + rank) * self.chan() + rank * m * m * self.stride() + self.work()
+        (self.cin_g + self.cout_g + 2 * rank) * self.chan() + rank * m * m * self.stride() + self.work()
     }
 }
 
@@ -309,8 +315,6 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 continue;
             }
             let blocks = b0..b1;
-            // One group (checked) for a LoRA branch: Ã is `[ξ][rank][cin]`.
-            let project = lora.map(|l| Project { a: l.a, rank, g: &mut *gl, tb });
             pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
                 s,
                 wz: &wz,
@@ -319,15 +323,33 @@ pub(super) fn winograd_part<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 blocks,
                 cis: 0..cin_g,
                 v,
-                project,
                 work,
                 tf: PhantomData,
             });
-            let lora = lora.map(|l| LoraOut { b: l.b, rank, g: &*gl, y: &mut *yg });
+            // One group (checked) for a LoRA branch: Ã is `[ξ][rank][cin]`.
+            let lora = lora.map(|l| LoraOut { b: l.b, rank, g: project(&wz, l, 0..cin_g, v, tb, gl), y: &mut *yg });
             gemms_and_output::<T, A, M>(s, &wz, u, v, mt, chans, (b0, tb), part, ep, lora, work);
         }
         b0 = b1;
     }
+}
+
+/// A LoRA branch's `G[k][ξ][t] = Σ_ci Ã[ξ][k][ci] V[ci][ξ][t]` over the `tb` tiles of a
+/// block and the input channels `cis` (one group), whose transformed rows `v` holds
+/// from its start, into `g` (laid out as `V`, by rank instead of channel): per position,
+/// the rank rows of `Ã` times `V` in registers ([`few_rows_product`]). Through the input
+/// transform, 8 channels at a time, a rank-4 branch took 9.5% of ResNet-18's 14x14
+/// F(2x2) layer at one thread; this way 3.5%.
+fn project<'g>(wz: &Wino, l: &Lora, cis: std::ops::Range<usize>, v: &[f32], tb: usize, g: &'g mut [f32]) -> &'g [f32] {
+    let (cin_g, ts, cs, rank) = (wz.cin_g, wz.stride(), wz.chan(), l.rank);
+    for xi in 0..wz.positions() {
+        let a = &l.a[xi * rank * cin_g + cis.start..];
+        let lhs = MatRef { data: a, rows: rank, cols: cis.len(), row_stride: cin_g, col_stride: 1 };
+        let rhs = MatRef { data: &v[xi * ts..], rows: cis.len(), cols: tb, row_stride: cs, col_stride: 1 };
+        let dst = MatMut { data: &mut g[xi * ts..], rows: rank, cols: tb, row_stride: cs, col_stride: 1 };
+        few_rows_product(lhs, rhs, dst);
+    }
+    g
 }
 
 /// A block's GEMMs, one per transformed position, for output channels `chans` of one
@@ -371,9 +393,12 @@ fn gemms_and_output<T: WinoTf<A, M>, const A: usize, const M: usize>(
 }
 
 /// Winograd over parts that split a layer of one group by output channels (each part
-/// owns every tile row), no LoRA branch: per block, the parts first transform the input
-/// together, each its share of the input channels into one `V` (in the first part's
-/// scratch), then each runs its channels' GEMMs and output transform from that `V`.
+/// owns every tile row): per block, the parts first transform the input together, each
+/// its share of the input channels into one `V` (in the first part's scratch), then each
+/// runs its channels' GEMMs and output transform from that `V`. A LoRA branch's
+/// projection `G = Ã V` sums every input channel, so each part computes it from the whole
+/// `V` after the transform (rank GEMM rows per position: `rank · threads / cout` of the
+/// layer's multiply-adds, 3% for a rank-4 branch on 256 channels at two threads).
 /// Through [`winograd_part`] each part would transform the whole input itself: ResNet-50's
 /// 28x28 3x3 layers (49 tiles) scaled 1.36-1.46x from one thread to two, its 14x14 ones
 /// 1.39-1.67x. `jobs` are the parts with their scratch, each at least
@@ -381,6 +406,7 @@ fn gemms_and_output<T: WinoTf<A, M>, const A: usize, const M: usize>(
 pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
     s: &Conv2dShape,
     u: &[f32],
+    lora: Option<&Lora>,
     ep: &Epilogue,
     x: &[f32],
     jobs: &mut [(Part, &mut [f32])],
@@ -392,8 +418,18 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
     // Every part's rows are the whole output's (checked by `shared_scratch`).
     let (r0, r1) = (jobs[0].0.r0, jobs[0].0.r1);
     // Each job's scratch: its own V region (the first job's is the shared V), then `mt`
-    // and the transforms' work space.
-    let (v_shared, mut own) = shared_scratch(jobs, 0, cin_g * cs);
+    // and the transforms' work space, and at its end the job's share of a LoRA branch's
+    // `G` (from its share of the input channels).
+    let rank = lora.map_or(0, |l| l.rank);
+    let (v_shared, own) = shared_scratch(jobs, 0, cin_g * cs);
+    let (mut shares_g, mut own): (Vec<&mut [f32]>, Vec<_>) = own
+        .into_iter()
+        .map(|(part, _, rest)| {
+            let at = rest.len() - rank * cs;
+            let (rest, share_g) = rest.split_at_mut(at);
+            (share_g, (part, rest))
+        })
+        .unzip();
     let ty_n = s.oh.div_ceil(M);
     let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
     let (u0, u1) = (tile_row(r0), tile_row(r1));
@@ -402,9 +438,11 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
         let b1 = (b0 + wz.rows).min(u1);
         let tb = (b1 - b0) * wz.tx;
         {
-            // Each job transforms a share of the input channels into its rows of V.
+            // Each job transforms a share of the input channels into its rows of V (and
+            // sums their part of a LoRA branch's projection).
             let shares = channel_shares(v_shared, cin_g, threads, cs);
-            shares.into_par_iter().zip(own.par_iter_mut()).for_each(|((cis, v), (_, _, rest))| {
+            let jobs = shares.into_par_iter().zip(own.par_iter_mut()).zip(shares_g.par_iter_mut());
+            jobs.for_each(|(((cis, v), (_, rest)), share_g)| {
                 let work = &mut rest[cout_g * cs..];
                 pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
                     s,
@@ -412,29 +450,42 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
                     x,
                     g: 0,
                     blocks: b0..b1,
-                    cis,
+                    cis: cis.clone(),
                     v,
-                    project: None,
                     work,
                     tf: PhantomData,
                 });
+                if let Some(l) = lora {
+                    project(&wz, l, cis, v, tb, share_g);
+                }
             });
         }
         let v: &[f32] = v_shared;
-        own.par_iter_mut().for_each(|(part, _, rest)| {
-            let (mt, work) = rest.split_at_mut(cout_g * cs);
+        let shares_g: Vec<&[f32]> = shares_g.iter().map(|g| &**g).collect();
+        let ts = wz.stride();
+        own.par_iter_mut().for_each(|(part, rest)| {
+            let (mt, rest) = rest.split_at_mut(cout_g * cs);
+            let (gl, rest) = rest.split_at_mut(rank * cs);
+            let (yg, work) = rest.split_at_mut(rank * M * M * ts);
             let chans = part.channels_of(0, cout_g);
-            if !chans.is_empty() {
-                gemms_and_output::<T, A, M>(s, &wz, u, v, mt, chans, (b0, tb), part, ep, None, work);
+            if chans.is_empty() {
+                return;
             }
+            let lora = lora.map(|l| {
+                gl.copy_from_slice(shares_g[0]);
+                for share in &shares_g[1..] {
+                    gl.iter_mut().zip(*share).for_each(|(a, b)| *a += b);
+                }
+                LoraOut { b: l.b, rank, g: &*gl, y: yg }
+            });
+            gemms_and_output::<T, A, M>(s, &wz, u, v, mt, chans, (b0, tb), part, ep, lora, work);
         });
         b0 = b1;
     }
 }
 
 /// The input transform of tile rows `blocks` (of a block), every input channel of group
-/// `g`, into `v[ci][ξ][t]` (and a LoRA branch's `G = Ã V`); compiled for the widest SIMD
-/// the CPU has.
+/// `g`, into `v[ci][ξ][t]`; compiled for the widest SIMD the CPU has.
 struct InputTransform<'a, T, const A: usize, const M: usize> {
     s: &'a Conv2dShape,
     wz: &'a Wino,
@@ -444,22 +495,9 @@ struct InputTransform<'a, T, const A: usize, const M: usize> {
     /// The input channels (of the group) to transform; `v` starts at the first.
     cis: std::ops::Range<usize>,
     v: &'a mut [f32],
-    project: Option<Project<'a>>,
     work: &'a mut [f32],
     tf: PhantomData<T>,
 }
-
-/// A LoRA branch's `G[k][ξ][t] = Σ_ci Ã[ξ][k][ci] V[ci][ξ][t]` over the `tb` tiles of a
-/// block (`g` laid out as V, by rank instead of channel).
-struct Project<'a> {
-    a: &'a [f32],
-    rank: usize,
-    g: &'a mut [f32],
-    tb: usize,
-}
-
-/// Input channels per step of [`project_block`].
-const PROJECT_CHANNELS: usize = 8;
 
 impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for InputTransform<'_, T, A, M> {
     type Output = ();
@@ -476,52 +514,14 @@ impl<T: WinoTf<A, M>, const A: usize, const M: usize> pulp::WithSimd for InputTr
 impl<T: WinoTf<A, M>, const A: usize, const M: usize> InputTransform<'_, T, A, M> {
     #[inline(always)]
     fn run<const L: usize>(self) {
-        let InputTransform { s, wz, x, g, blocks, cis, v, mut project, work, .. } = self;
+        let InputTransform { s, wz, x, g, blocks, cis, v, work, .. } = self;
         let (cin_g, ty_n, cs) = (s.cin_g(), s.oh.div_ceil(M), wz.chan());
-        // A LoRA branch's projection sums over every channel.
-        assert!(project.is_none() || cis == (0..cin_g), "input transform: a LoRA branch over some channels");
         for ci in cis.clone() {
             let vc = &mut v[(ci - cis.start) * cs..][..cs];
             for gu in blocks.clone() {
                 let (n, ty) = (gu / ty_n, gu % ty_n);
                 let xc = &x[(n * s.cin + g * cin_g + ci) * s.h * s.w..][..s.h * s.w];
                 input_row::<T, A, M, L>(s, wz, xc, ty, vc, (gu - blocks.start) * wz.tx, work);
-            }
-            // The LoRA branch's `Ã V`, a few channels at a time while they are hot.
-            if let Some(p) = project.as_mut()
-                && ((ci + 1) % PROJECT_CHANNELS == 0 || ci + 1 == cin_g)
-            {
-                let c0 = ci / PROJECT_CHANNELS * PROJECT_CHANNELS;
-                let vb = &v[c0 * cs..(ci + 1) * cs];
-                if ci + 1 - c0 == PROJECT_CHANNELS {
-                    project_block::<PROJECT_CHANNELS>(p, A * A, cin_g, c0, vb, wz.stride(), cs);
-                } else {
-                    for (j, vj) in vb.chunks(cs).enumerate() {
-                        project_block::<1>(p, A * A, cin_g, c0 + j, vj, wz.stride(), cs);
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// Adds channels `c0..c0 + N` (`v`, `cs` floats per channel) to the LoRA branch's `G`
-/// (the first block sets it): per position ξ and lanes `t..t + L`, the `N` transformed
-/// inputs stay in registers across the ranks, in whole lanes (past `tb` into the
-/// rows' slack, rows `ts` apart).
-#[inline(always)]
-fn project_block<const N: usize>(p: &mut Project, aa: usize, cin_g: usize, c0: usize, v: &[f32], ts: usize, cs: usize) {
-    const L: usize = OUT_LANES;
-    let Project { a, rank, g, tb } = p;
-    for xi in 0..aa {
-        for t in (0..*tb).step_by(L) {
-            let o = xi * ts + t;
-            let x: [Lanes<L>; N] = std::array::from_fn(|j| Lanes::load(&v[j * cs + o..]));
-            for k in 0..*rank {
-                let w = &a[(xi * *rank + k) * cin_g + c0..][..N];
-                let gk = &mut g[k * cs + o..];
-                let acc = if c0 == 0 { Lanes([0.0; L]) } else { Lanes::load(gk) };
-                x.iter().zip(w).fold(acc, |acc, (x, &w)| x.mul_add(w, acc)).store(gk);
             }
         }
     }
