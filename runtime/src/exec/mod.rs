@@ -445,7 +445,7 @@ impl Session {
         // Before any step, on this thread, and only when the variant differs from the
         // last: its f16 replacements decoded, then the raw LoRA `A`s packed for it and
         // the working copies of the layers merged on switch written.
-        self.decoded.refresh(&plan, variant);
+        self.decoded.refresh(&plan, variant, &self.pool);
         let weights = weights.with_decoded(self.decoded.copies());
         let Some(bound) = self.bound.as_mut() else { return Err(bad("bind", "no buffers")) };
         bound.pack_lora(&plan, weights);
