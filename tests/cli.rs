@@ -905,22 +905,13 @@ fn compile_variant_f16_reports_what_it_stored() {
     let overrides = [("num_classes", "10"), ("img", "32")];
     let (_, weights) = seeded_weights_file("models/resnet18.readi", &overrides, "f16");
     let plan = dir.join("h.plan");
-    let o = readi(&[
-        "compile",
-        "models/resnet18.readi",
-        "--weights",
-        &p(&weights),
-        "-o",
-        &p(&plan),
-        "--set",
-        "num_classes=10",
-        "--set",
-        "img=32",
-        "--seeded-variant",
-        "gamma=0.5",
-        "--variant-f16",
-        "--explain",
-    ]);
+    let (weights, plan_arg) = (p(&weights), p(&plan));
+    let compile = |extra: &[&str]| {
+        let args = ["compile", "models/resnet18.readi", "--weights", &weights, "-o", &plan_arg];
+        let sets = ["--set", "num_classes=10", "--set", "img=32", "--seeded-variant", "gamma=0.5"];
+        readi(&[&args[..], &sets, extra].concat())
+    };
+    let o = compile(&["--variant-f16", "--explain"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
     let line = out.lines().find(|l| l.starts_with("stored the variants'")).unwrap_or_else(|| panic!("{out}"));
@@ -937,20 +928,7 @@ fn compile_variant_f16_reports_what_it_stored() {
     assert!(half.contains(&"fc.weight@t#gamma=0.5"), "{half:?}");
     assert_eq!(half.iter().filter(|n| n.contains(".adapter.")).count(), 16, "{half:?}");
     // Without the flag: none.
-    let o = readi(&[
-        "compile",
-        "models/resnet18.readi",
-        "--weights",
-        &p(&weights),
-        "-o",
-        &p(&plan),
-        "--set",
-        "num_classes=10",
-        "--set",
-        "img=32",
-        "--seeded-variant",
-        "gamma=0.5",
-    ]);
+    let o = compile(&[]);
     assert!(o.status.success() && !stdout(&o).contains("stored the variants'"), "{}", stdout(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -26,8 +26,8 @@
 //! from a session-owned buffer, packed for its algorithm at the start of a run whose
 //! variant differs from the one the buffer holds (`Bound::pack_lora`; microseconds for a
 //! few small `A`s, nothing allocated). A variant's replacement stored as f16 is read the
-//! same way, from a session-owned f32 copy (one per replaced tensor, allocated with the
-//! session) decoded at the start of a run whose variant differs from the copy's.
+//! same way, from a session-owned f32 copy (one per replaced tensor, allocated by the
+//! first run) decoded at the start of a run whose variant differs from the copy's.
 //!
 //! An `lss_bev_pool` step (BEVFusion's view transform) keeps, per session, where its
 //! frustum points land in the BEV grid (`Bound::bev`, sized at bind time): computed from
@@ -317,7 +317,6 @@ impl Session {
             .map_err(|e| RunError::Threads(e.to_string()))?;
         let given = Vec::with_capacity(plan.manifest.inputs.len());
         let symbols = vec![0; plan.manifest.symbols.len()];
-        let decoded = Decoded::new(&plan);
         Ok(Session {
             plan,
             pool,
@@ -326,7 +325,7 @@ impl Session {
             active: Arc::new(AtomicUsize::new(0)),
             last_variant: None,
             bound: None,
-            decoded,
+            decoded: Decoded::default(),
             given,
             symbols,
             profile: None,

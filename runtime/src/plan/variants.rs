@@ -155,28 +155,28 @@ pub struct VariantTensors<'a> {
 const DECODE_CHUNK: usize = 1 << 16;
 
 /// A session's f32 copies of the active variant's f16 replacements: one per base tensor
-/// some variant replaces by an f16 tensor (whatever the number of variants), written
-/// when a run's variant differs from the one they hold, on the running thread before any
-/// step, so a run never sees a half-written copy. Allocated with the session; a switch
-/// writes into them and allocates nothing.
+/// some variant replaces by an f16 tensor (whatever the number of variants), written at
+/// the start of a run whose variant differs from the one they hold, before any step, so
+/// a run never sees a half-written copy. Allocated by the session's first run, after its
+/// footprint (which counts them) passed the memory limit; a switch then writes into them
+/// and allocates nothing.
+#[derive(Default)]
 pub(crate) struct Decoded {
     variant: Option<usize>,
     copies: Vec<Vec<f32>>,
 }
 
 impl Decoded {
-    /// The copies a session of `plan` keeps, zeroed (none for a plan without f16 tensors).
-    pub(crate) fn new(plan: &Plan) -> Decoded {
-        let len = |&b: &u32| plan.manifest.tensors[b as usize].numel();
-        Decoded { variant: None, copies: plan.variants.copies.iter().map(|b| vec![0.0; len(b)]).collect() }
-    }
-
     /// Decodes variant `variant`'s f16 replacements, unless the copies hold them already;
     /// a large one on the threads of `pool`.
     pub(crate) fn refresh(&mut self, plan: &Plan, variant: usize, pool: &rayon::ThreadPool) {
         let maps = &plan.variants;
         if maps.copies.is_empty() || self.variant == Some(variant) {
             return;
+        }
+        if self.copies.is_empty() {
+            let len = |&b: &u32| plan.manifest.tensors[b as usize].numel();
+            self.copies = maps.copies.iter().map(|b| vec![0.0; len(b)]).collect();
         }
         let Some(tensors) = plan.variant_tensors(variant) else { return };
         for (copy, &base) in self.copies.iter_mut().zip(&maps.copies) {
