@@ -203,8 +203,8 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
     let (p, warnings, s) = backend::compile_explained(m, &weights, "seeded", &sources, &opts).expect("compiles");
     let p = Arc::new(p);
     let s = s.expect("a strategy");
-    if let Some(h) =
-        backend::half_summary(m, &weights, "seeded", &sources, &opts, p.clone()).expect("compiles without f16")
+    if let Some(h) = backend::half_summary(m, &weights, "seeded", &sources, &opts, p.clone(), Some(&s))
+        .expect("compiles without f16")
     {
         println!("{}", h.line());
     }

@@ -113,9 +113,10 @@ impl HalfSummary {
     }
 }
 
-/// The effect of `--variant-f16` on `plan`, which [`compile_variants`] built from these
-/// arguments: `None` when it stores no f16 tensor; else the output difference against
-/// the module compiled again without it.
+/// The effect of `--variant-f16` on `plan`, which [`compile_explained`] built from these
+/// arguments with `strategy`: `None` when the strategy stores no weight f16; else the
+/// output difference against the module compiled again without it.
+#[allow(clippy::too_many_arguments)]
 pub fn half_summary(
     module: &Module,
     base: &WeightSet,
@@ -123,29 +124,15 @@ pub fn half_summary(
     sources: &[VariantSource],
     opts: &CompileOptions,
     plan: std::sync::Arc<Plan>,
+    strategy: Option<&passes::choose_strategy::Strategy>,
 ) -> Result<Option<HalfSummary>, Diagnostics> {
-    use readi_plan::DType;
-    let half: Vec<&readi_plan::format::TensorSpec> =
-        plan.manifest.tensors.iter().filter(|t| t.dtype == DType::F16).collect();
-    if half.is_empty() {
-        return Ok(None);
-    }
-    let stored = half.iter().map(|t| t.bytes() as u64).sum::<u64>();
-    // Largest first; `fc.weight@panels#fog=0.03`: the parameter is the name before `@`/`#`.
-    let mut sized: Vec<(String, usize)> = Vec::new();
-    for t in &half {
-        let p = t.name.split(['#', '@']).next().unwrap_or(&t.name);
-        match sized.iter_mut().find(|(n, _)| n == p) {
-            Some((_, b)) => *b += t.bytes(),
-            None => sized.push((p.to_string(), t.bytes())),
-        }
-    }
-    sized.sort_by_key(|(_, b)| std::cmp::Reverse(*b));
-    let params = sized.into_iter().map(|(p, _)| p).collect();
-    let exact_opts = CompileOptions { variant_f16: false, ..opts.clone() };
-    let (exact, _) = compile_variants(module, base, base_name, sources, &exact_opts)?;
-    let output_difference = output_difference(plan, std::sync::Arc::new(exact), PRUNE_INPUT_SEED)
-        .map_err(|e| ice(module, format!("running the plans to compare them: {e}")))?;
+    let Some(s) = strategy.filter(|s| !s.half.is_empty()) else { return Ok(None) };
+    // `choose_strategy` lists them largest first.
+    let params = s.half.iter().map(|h| h.param.clone()).collect();
+    let half = plan.manifest.tensors.iter().filter(|t| t.dtype == readi_plan::DType::F16);
+    let stored = half.map(|t| t.bytes() as u64).sum::<u64>();
+    let exact = CompileOptions { variant_f16: false, ..opts.clone() };
+    let output_difference = difference_from(plan, module, base, base_name, sources, &exact)?;
     Ok(Some(HalfSummary { params, stored: (stored, stored * 2), output_difference }))
 }
 
@@ -173,7 +160,7 @@ pub fn meld_summary(
         .collect())
 }
 
-/// The seed of the inputs [`prune_summary`] runs both plans on.
+/// The seed of the inputs [`prune_summary`] and [`half_summary`] run both plans on.
 pub const PRUNE_INPUT_SEED: u64 = 7;
 
 /// The effect of the module's `prune` rules on `pruned`, the plan
@@ -203,10 +190,23 @@ pub fn prune_summary(
     for r in plain.adapt.iter_mut().flat_map(|a| a.rules.iter_mut()).filter(|r| is_prune(r)) {
         r.kind = crate::adapt::RuleKind::Prune { below: 0.0 };
     }
-    let (unpruned, _) = compile_variants(&plain, base, base_name, sources, opts)?;
-    let output_difference = output_difference(pruned, std::sync::Arc::new(unpruned), PRUNE_INPUT_SEED)
-        .map_err(|e| ice(module, format!("running the plans to compare them: {e}")))?;
+    let output_difference = difference_from(pruned, &plain, base, base_name, sources, opts)?;
     Ok(Some(PruneSummary { layers, output_difference }))
+}
+
+/// Per output, how far `plan` is from `module` compiled with `opts` ([`output_difference`]
+/// on [`PRUNE_INPUT_SEED`]'s inputs): what a lossy step (pruning, f16 storage) moved.
+fn difference_from(
+    plan: std::sync::Arc<Plan>,
+    module: &Module,
+    base: &WeightSet,
+    base_name: &str,
+    sources: &[VariantSource],
+    opts: &CompileOptions,
+) -> Result<Vec<(String, f32)>, Diagnostics> {
+    let (other, _) = compile_variants(module, base, base_name, sources, opts)?;
+    output_difference(plan, std::sync::Arc::new(other), PRUNE_INPUT_SEED)
+        .map_err(|e| ice(module, format!("running the plans to compare them: {e}")))
 }
 
 /// Per output, the largest absolute difference between two plans of one model over the

@@ -163,8 +163,9 @@ pub fn run(s: &mut Frontend, args: CompileArgs, output: &Path) -> Result<(), Exi
         println!("{line}");
     }
     let plan = std::sync::Arc::new(plan);
-    let half = backend::half_summary(&module, &set, &wname, &sources, &opts, std::sync::Arc::clone(&plan))
-        .map_err(|d| report(s, d))?;
+    let half =
+        backend::half_summary(&module, &set, &wname, &sources, &opts, std::sync::Arc::clone(&plan), strategy.as_ref())
+            .map_err(|d| report(s, d))?;
     if let Some(h) = half {
         println!("{}", h.line());
     }

@@ -37,6 +37,7 @@ use crate::ir::{Graph, Node, NodeId, Op, ValueRef};
 use crate::module::{Lowered, Module};
 use crate::ops::Epilogue;
 use crate::weights::tensors::{Data, TensorTable};
+use half::slice::HalfFloatSliceExt;
 use readi_plan::Dim;
 use readi_plan::ops::{DType, Pure, Reshape};
 use readi_runtime::plan::TensorData;
@@ -165,7 +166,11 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
         .into_iter()
         .zip(&store.specs)
         .map(|(d, spec)| match spec.dtype {
-            DType::F16 => TensorData::F16(d.iter().map(|&x| half::f16::from_f32(x)).collect()),
+            DType::F16 => {
+                let mut h = vec![half::f16::ZERO; d.len()];
+                h.convert_from_f32_slice(&d);
+                TensorData::F16(h.into())
+            }
             _ => TensorData::F32(d),
         })
         .collect();

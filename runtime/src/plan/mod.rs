@@ -238,6 +238,12 @@ impl Plan {
         if self.manifest.tensors[i].dtype != DType::F32 {
             return &[];
         }
+        self.f32_data(i)
+    }
+
+    /// The data of stored tensor `i`, which the caller knows to be f32 (a variant map's
+    /// f16 flags, [`VariantTensors::get`]): no second look at the manifest.
+    fn f32_data(&self, i: usize) -> &[f32] {
         match &self.weights {
             Weights::Owned(t) => match &t[i] {
                 TensorData::F32(d) => d,

@@ -175,8 +175,7 @@ impl Decoded {
             return;
         }
         if self.copies.is_empty() {
-            let len = |&b: &u32| plan.manifest.tensors[b as usize].numel();
-            self.copies = maps.copies.iter().map(|b| vec![0.0; len(b)]).collect();
+            self.copies = Decoded::lens(plan).map(|n| vec![0.0; n]).collect();
         }
         let Some(tensors) = plan.variant_tensors(variant) else { return };
         for (copy, &base) in self.copies.iter_mut().zip(&maps.copies) {
@@ -199,10 +198,14 @@ impl Decoded {
         self.variant = Some(variant);
     }
 
+    /// Floats of each copy a session of `plan` keeps (its base tensor's).
+    fn lens(plan: &Plan) -> impl Iterator<Item = usize> + '_ {
+        plan.variants.copies.iter().map(|&b| plan.manifest.tensors[b as usize].numel())
+    }
+
     /// Bytes of the copies a session of `plan` keeps.
     pub(crate) fn bytes(plan: &Plan) -> usize {
-        let len = |&b: &u32| plan.manifest.tensors[b as usize].numel();
-        plan.variants.copies.iter().map(len).fold(0usize, |a, n| a.saturating_add(n.saturating_mul(4)))
+        Decoded::lens(plan).fold(0usize, |a, n| a.saturating_add(n.saturating_mul(4)))
     }
 
     /// The copies, for [`VariantTensors::with_decoded`].
@@ -236,7 +239,7 @@ impl<'a> VariantTensors<'a> {
             let copy = self.plan.variants.copy_of.get(t).copied().unwrap_or(NO_COPY);
             return self.decoded.get(copy as usize).map_or(&[], Vec::as_slice);
         }
-        self.plan.tensor(s)
+        self.plan.f32_data(s)
     }
 
     /// The same tensors, reading the f16 replacements from `copies` (a session's

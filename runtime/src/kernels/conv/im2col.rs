@@ -9,7 +9,7 @@
 //! together ([`im2col_shared`]).
 
 use super::adapter::{Adapter, apply_tile};
-use super::split::{Part, channel_shares, shared_scratch};
+use super::split::{Part, channel_shares, shared_scratch, sum_shares};
 use super::{Conv2dShape, ConvAlgo, Lora, finish, pointwise};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, few_rows_product, sgemm};
@@ -183,16 +183,9 @@ pub(super) fn im2col_shared(
     let registers = lora.is_none() && pointwise::applies_unfolded(s);
     let rank = lora.map_or(0, |l| l.rank);
     let threads = jobs.len();
-    // Each job's accumulator and tail scratch (its share of `t`, then `t`, then the
-    // register tiles' scratch); the first job's unfolding area is shared.
-    let (shared, own) = shared_scratch(jobs, tile * cout_g, k * tile);
-    let (mut shares_t, mut own): (Vec<&mut [f32]>, Vec<_>) = own
-        .into_iter()
-        .map(|(part, acc, tail)| {
-            let (share_t, tail) = tail.split_at_mut(rank * tile);
-            (share_t, (part, acc, tail))
-        })
-        .unzip();
+    // Each job's accumulator and tail scratch (`t`, or the register tiles' scratch), and
+    // its share of `t`; the first job's unfolding area is shared.
+    let (shared, mut shares_t, mut own) = shared_scratch(jobs, tile * cout_g, k * tile, rank * tile);
     let (plane_in, plane) = (s.h * s.w, s.oh * s.ow);
     for n in 0..s.n {
         let xg = &x[n * s.cin * plane_in..][..cin_g * plane_in];
@@ -210,8 +203,7 @@ pub(super) fn im2col_shared(
                     few_rows_product(a, MatRef::row_major(col, depth, tp), dst);
                 }
             });
-            let col: &[f32] = &shared[..k * tp];
-            let shares_t: Vec<&[f32]> = shares_t.iter().map(|t| &t[..rank * tp]).collect();
+            let (col, shares_t): (&[f32], &[&mut [f32]]) = (&shared[..k * tp], &shares_t);
             own.par_iter_mut().for_each(|(part, acc, tail)| {
                 let chans = part.channels_of(0, cout_g);
                 if chans.is_empty() {
@@ -223,10 +215,7 @@ pub(super) fn im2col_shared(
                 }
                 let branch = lora.map(|l| {
                     let t = &mut tail[..rank * tp];
-                    t.copy_from_slice(shares_t[0]);
-                    for share in &shares_t[1..] {
-                        t.iter_mut().zip(*share).for_each(|(a, b)| *a += b);
-                    }
+                    sum_shares(t, shares_t);
                     (l.b, rank, &*t)
                 });
                 let rhs = MatRef::row_major(col, k, tp);

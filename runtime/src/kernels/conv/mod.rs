@@ -709,10 +709,9 @@ fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
     let registers = if pointwise::applies_unfolded(s) { pointwise::scratch_len(s.k()) } else { 0 };
     match algo {
         ConvAlgo::Gemm1x1 => (gemm_tile(s, algo) * (s.cout_g() + rank)).max(pointwise::scratch_len(s.cin)),
-        // The direct conv (a stem, narrow groups) reads one image's padded input from the
-        // scratch.
         // A LoRA branch's `t` (rank rows of a tile), and under a channel split each part's
-        // share of it (`im2col_shared`).
+        // share of it (`im2col_shared`). The direct conv (a stem, narrow groups) reads one
+        // image's padded input from the scratch.
         ConvAlgo::Im2col if direct::applies(s) => {
             (gemm_tile(s, algo) * (s.cout_g() + s.k() + 2 * rank) + registers).max(direct::scratch_len(s))
         }

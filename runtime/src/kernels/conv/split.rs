@@ -172,9 +172,15 @@ pub(super) fn split<'a>(
     parts
 }
 
+/// One part's own scratch under a split by channels ([`shared_scratch`]): the part, its
+/// scratch before and after the shared cut (`share` floats of the end cut off).
+pub(super) type Own<'a, 'p> = (&'a mut Part<'p>, &'a mut [f32], &'a mut [f32]);
+
 /// The parts of a split by channels with one work area they share: each part's scratch
-/// cut around `at..at + len`, the first part's cut being the shared area. Returns that
-/// area and, per part, the part with its scratch before and after the cut.
+/// cut around `at..at + len`, the first part's cut being the shared area, and the last
+/// `share` floats of each part's scratch its share of a sum over the input channels
+/// (a LoRA branch's projection, [`sum_shares`]). Returns that area, the shares, and per
+/// part the part with its scratch before and after the cut.
 ///
 /// # Panics
 /// If the parts do not all own the same rows (a split by rows).
@@ -183,20 +189,33 @@ pub(super) fn shared_scratch<'a, 'p>(
     jobs: &'a mut [(Part<'p>, &mut [f32])],
     at: usize,
     len: usize,
-) -> (&'a mut [f32], Vec<(&'a mut Part<'p>, &'a mut [f32], &'a mut [f32])>) {
+    share: usize,
+) -> (&'a mut [f32], Vec<&'a mut [f32]>, Vec<Own<'a, 'p>>) {
     let rows = jobs.first().map(|(p, _)| (p.r0, p.r1));
     assert!(jobs.iter().all(|(p, _)| Some((p.r0, p.r1)) == rows), "shared scratch: a split by rows");
     let mut shared: &mut [f32] = &mut [];
-    let mut own = Vec::with_capacity(jobs.len());
+    let (mut shares, mut own) = (Vec::with_capacity(jobs.len()), Vec::with_capacity(jobs.len()));
     for (i, (part, scratch)) in jobs.iter_mut().enumerate() {
+        let (scratch, mine) = scratch.split_at_mut(scratch.len() - share);
         let (before, rest) = scratch.split_at_mut(at);
         let (cut, after) = rest.split_at_mut(len);
         if i == 0 {
             shared = cut;
         }
+        shares.push(mine);
         own.push((part, before, after));
     }
-    (shared, own)
+    (shared, shares, own)
+}
+
+/// `out` = the sum of the first `out.len()` floats of every share (the parts' sums over
+/// their shares of the input channels).
+pub(super) fn sum_shares(out: &mut [f32], shares: &[&mut [f32]]) {
+    let Some((first, rest)) = shares.split_first() else { return };
+    out.copy_from_slice(&first[..out.len()]);
+    for share in rest {
+        out.iter_mut().zip(share.iter()).for_each(|(a, b)| *a += b);
+    }
 }
 
 /// `area` cut into `parts` runs, one per share of `channels` (as even as the count

@@ -20,7 +20,7 @@ use std::marker::PhantomData;
 
 use rayon::prelude::*;
 
-use super::split::{Part, channel_shares, shared_scratch};
+use super::split::{Part, channel_shares, shared_scratch, sum_shares};
 use super::{Conv2dShape, Lora, finish};
 use crate::kernels::Epilogue;
 use crate::kernels::gemm::{MatMut, MatRef, few_rows_product, sgemm};
@@ -396,9 +396,8 @@ fn gemms_and_output<T: WinoTf<A, M>, const A: usize, const M: usize>(
 /// owns every tile row): per block, the parts first transform the input together, each
 /// its share of the input channels into one `V` (in the first part's scratch), then each
 /// runs its channels' GEMMs and output transform from that `V`. A LoRA branch's
-/// projection `G = Ã V` sums every input channel, so each part computes it from the whole
-/// `V` after the transform (rank GEMM rows per position: `rank · threads / cout` of the
-/// layer's multiply-adds, 3% for a rank-4 branch on 256 channels at two threads).
+/// projection `G = Ã V` sums every input channel: each part sums its share's rows of `V`
+/// right after transforming them ([`project`]), and every part adds the shares up.
 /// Through [`winograd_part`] each part would transform the whole input itself: ResNet-50's
 /// 28x28 3x3 layers (49 tiles) scaled 1.36-1.46x from one thread to two, its 14x14 ones
 /// 1.39-1.67x. `jobs` are the parts with their scratch, each at least
@@ -418,18 +417,9 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
     // Every part's rows are the whole output's (checked by `shared_scratch`).
     let (r0, r1) = (jobs[0].0.r0, jobs[0].0.r1);
     // Each job's scratch: its own V region (the first job's is the shared V), then `mt`
-    // and the transforms' work space, and at its end the job's share of a LoRA branch's
-    // `G` (from its share of the input channels).
+    // and the transforms' work space, and at its end its share of a LoRA branch's `G`.
     let rank = lora.map_or(0, |l| l.rank);
-    let (v_shared, own) = shared_scratch(jobs, 0, cin_g * cs);
-    let (mut shares_g, mut own): (Vec<&mut [f32]>, Vec<_>) = own
-        .into_iter()
-        .map(|(part, _, rest)| {
-            let at = rest.len() - rank * cs;
-            let (rest, share_g) = rest.split_at_mut(at);
-            (share_g, (part, rest))
-        })
-        .unzip();
+    let (v_shared, mut shares_g, mut own) = shared_scratch(jobs, 0, cin_g * cs, rank * cs);
     let ty_n = s.oh.div_ceil(M);
     let tile_row = |r: usize| (r / s.oh) * ty_n + (r % s.oh).div_ceil(M);
     let (u0, u1) = (tile_row(r0), tile_row(r1));
@@ -442,7 +432,7 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
             // sums their part of a LoRA branch's projection).
             let shares = channel_shares(v_shared, cin_g, threads, cs);
             let jobs = shares.into_par_iter().zip(own.par_iter_mut()).zip(shares_g.par_iter_mut());
-            jobs.for_each(|(((cis, v), (_, rest)), share_g)| {
+            jobs.for_each(|(((cis, v), (_, _, rest)), share_g)| {
                 let work = &mut rest[cout_g * cs..];
                 pulp::Arch::new().dispatch(InputTransform::<T, A, M> {
                     s,
@@ -460,10 +450,9 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 }
             });
         }
-        let v: &[f32] = v_shared;
-        let shares_g: Vec<&[f32]> = shares_g.iter().map(|g| &**g).collect();
+        let (v, shares_g): (&[f32], &[&mut [f32]]) = (v_shared, &shares_g);
         let ts = wz.stride();
-        own.par_iter_mut().for_each(|(part, rest)| {
+        own.par_iter_mut().for_each(|(part, _, rest)| {
             let (mt, rest) = rest.split_at_mut(cout_g * cs);
             let (gl, rest) = rest.split_at_mut(rank * cs);
             let (yg, work) = rest.split_at_mut(rank * M * M * ts);
@@ -472,10 +461,7 @@ pub(super) fn winograd_shared<T: WinoTf<A, M>, const A: usize, const M: usize>(
                 return;
             }
             let lora = lora.map(|l| {
-                gl.copy_from_slice(shares_g[0]);
-                for share in &shares_g[1..] {
-                    gl.iter_mut().zip(*share).for_each(|(a, b)| *a += b);
-                }
+                sum_shares(gl, shares_g);
                 LoraOut { b: l.b, rank, g: &*gl, y: yg }
             });
             gemms_and_output::<T, A, M>(s, &wz, u, v, mt, chans, (b0, tb), part, ep, lora, work);
