@@ -130,34 +130,53 @@ impl Runner {
     }
 }
 
-/// Median latency (ms) of several plans, measured in interleaved rounds so that machine
-/// noise hits them alike. `setup` picks each plan's variant.
-fn interleaved(runners: &mut [(&str, Runner)], rounds: usize, per_round: usize) -> Vec<f64> {
-    let mut times = vec![Vec::new(); runners.len()];
-    for (_, r) in runners.iter_mut() {
-        for _ in 0..3 {
-            r.run();
-        }
-    }
-    for _ in 0..rounds {
-        for (i, (_, r)) in runners.iter_mut().enumerate() {
-            for _ in 0..per_round {
-                times[i].push(r.run());
+/// Several plans timed in alternating rounds of one run each (the order reversed every other
+/// round, so that drift within a round hits them alike), after three warm-up runs each.
+/// On a shared host whose speed moves by 2x within minutes, the median of the rounds'
+/// ratios is steadier than the ratio of the medians: a round's runs are milliseconds apart.
+struct Rounds(Vec<Vec<f64>>);
+
+impl Rounds {
+    fn run(runners: &mut [(&str, Runner)], rounds: usize) -> Rounds {
+        for (_, r) in runners.iter_mut() {
+            for _ in 0..3 {
+                r.run();
             }
         }
+        let mut order: Vec<usize> = (0..runners.len()).collect();
+        let rounds = (0..rounds)
+            .map(|_| {
+                let mut t = vec![0.0; runners.len()];
+                for &i in &order {
+                    t[i] = runners[i].1.run();
+                }
+                order.reverse();
+                t
+            })
+            .collect();
+        Rounds(rounds)
     }
-    times.into_iter().map(median).collect()
+
+    /// Plan `i`'s median latency, ms.
+    fn median(&self, i: usize) -> f64 {
+        median(self.0.iter().map(|t| t[i]).collect())
+    }
+
+    /// The median over the rounds of `f` of a round's times.
+    fn ratio(&self, f: impl Fn(&[f64]) -> f64) -> f64 {
+        median(self.0.iter().map(|t| f(t)).collect())
+    }
 }
 
 /// Latency of a variant against the base plan: LoRA merged, as a branch, and without the
-/// spec's adapter rules (tuning and merged LoRA only), in interleaved rounds.
+/// spec's adapter rules (tuning and merged LoRA only), in alternating rounds ([`Rounds`]).
 fn adaptation_cost(
     src: &str,
     base: &Arc<Plan>,
     merged: &Arc<Plan>,
     branch: &Arc<Plan>,
     variants: usize,
-    rounds: (usize, usize),
+    rounds: usize,
 ) {
     let key = merged.variant_key(1).to_string();
     let folded = plan(&module(&without_adapters(src), &[]), variants, LoraMode::Merge);
@@ -170,9 +189,9 @@ fn adaptation_cost(
     for (_, r) in &mut runners[1..] {
         r.session.set_variant(&key).expect("key");
     }
-    let t = interleaved(&mut runners, rounds.0, rounds.1);
+    let t = Rounds::run(&mut runners, rounds);
     for (i, (name, _)) in runners.iter().enumerate() {
-        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t[i], 100.0 * (t[i] / t[0] - 1.0));
+        println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t.median(i), 100.0 * (t.ratio(|r| r[i] / r[0]) - 1.0));
     }
 }
 
@@ -185,7 +204,7 @@ fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
 /// `--lora auto --memory-budget 3` (the default switch budget; with `half`,
 /// `--variant-f16`) on `m` with `variants` variants: what the strategy chose, bytes per
 /// variant, latency against `base`, and the switch.
-fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize, usize), quick: bool, half: bool) {
+fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: usize, quick: bool, half: bool) {
     use readi_runtime::kernels::{Lora, conv, merge};
     use readi_runtime::plan::Kernel;
     let weights = backend::seeded_weights(&m.graph, 1);
@@ -226,8 +245,9 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
     plan_size("merge on switch", &p);
     let mut runners = vec![("base", Runner::new(base.clone())), ("variant", Runner::new(p.clone()))];
     runners[1].1.session.set_variant(p.variant_key(1)).expect("key");
-    let t = interleaved(&mut runners, rounds.0, rounds.1);
-    println!("  variant {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
+    let t = Rounds::run(&mut runners, rounds);
+    let ratio = t.ratio(|r| r[1] / r[0]);
+    println!("  variant {:.2} ms against the base plan {:.2} ms: ratio {ratio:.3}", t.median(1), t.median(0));
 
     // The re-merge a switch does, timed directly: every layer merged on switch, from the
     // plan's own raw tensors, into working copies like the session's.
@@ -301,7 +321,8 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: (usize
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
-    let (rounds, per_round) = if quick { (3, 3) } else { (10, 5) };
+    // Alternating rounds of one run per plan.
+    let rounds = if quick { 9 } else { 50 };
     let mib = |b: usize| b as f64 / (1024.0 * 1024.0);
 
     println!("== bevfusion_tiny, 12 variants, 2 threads ==");
@@ -347,7 +368,7 @@ fn main() {
         r.run();
     }
     let (mut first, mut steady) = (Vec::new(), Vec::new());
-    for _ in 0..rounds * per_round {
+    for _ in 0..rounds {
         r.session.set_variant(&other).expect("key");
         r.run();
         r.session.set_variant(&key).expect("key");
@@ -384,13 +405,13 @@ fn main() {
         100.0 * sel / steady
     );
 
-    adaptation_cost(include_str!("../models/bevfusion_tiny.readi"), &base, &merged, &branch, 12, (rounds, per_round));
+    adaptation_cost(include_str!("../models/bevfusion_tiny.readi"), &base, &merged, &branch, 12, rounds);
 
     for (name, p) in [("merged", &merged), ("branch", &branch)] {
         plan_size(name, p);
     }
     println!("-- bevfusion_tiny, --lora auto --memory-budget 3, 12 variants --");
-    merge_on_switch(&m, &base, 12, (rounds, per_round), quick, false);
+    merge_on_switch(&m, &base, 12, rounds, quick, false);
 
     // A melded variant against its parts: the meld stores its own values, never extra steps.
     let meld = "fog=0.06+gamma=0.5";
@@ -406,13 +427,13 @@ fn main() {
     for (k, r) in &mut runners {
         r.session.set_variant(k).expect("key");
     }
-    let t = interleaved(&mut runners, rounds, per_round);
+    let t = Rounds::run(&mut runners, rounds);
     println!(
         "melded variant {meld}: {:.2} ms against its parts {:.2} ms and {:.2} ms (ratio to the slower part {:.3})",
-        t[2],
-        t[0],
-        t[1],
-        t[2] / t[0].max(t[1])
+        t.median(2),
+        t.median(0),
+        t.median(1),
+        t.ratio(|r| r[2] / r[0].max(r[1]))
     );
 
     println!("\n== resnet18 224x224, 4 variants, 2 threads ==");
@@ -420,7 +441,7 @@ fn main() {
     let base = plan(&m, 0, LoraMode::Merge);
     let merged = plan(&m, 4, LoraMode::Merge);
     let branch = plan(&m, 4, LoraMode::Branch);
-    adaptation_cost(include_str!("../models/resnet18.readi"), &base, &merged, &branch, 4, (rounds, per_round));
+    adaptation_cost(include_str!("../models/resnet18.readi"), &base, &merged, &branch, 4, rounds);
 
     // The measurement: PEFT-style LoRA (r = 4, alpha = 8) on every 3x3 conv of layer3
     // and layer4, tuned BatchNorm and fc, two variants.
@@ -433,13 +454,18 @@ fn main() {
         plan_size(name, &p);
         let mut runners = vec![("base", Runner::new(base.clone())), ("variant", Runner::new(p.clone()))];
         runners[1].1.session.set_variant(p.variant_key(1)).expect("key");
-        let t = interleaved(&mut runners, rounds, per_round);
-        println!("  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {:.3}", t[1], t[0], t[1] / t[0]);
+        let t = Rounds::run(&mut runners, rounds);
+        let ratio = t.ratio(|r| r[1] / r[0]);
+        println!(
+            "  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {ratio:.3}",
+            t.median(1),
+            t.median(0)
+        );
     }
     println!("-- --lora auto --memory-budget 3 --");
-    merge_on_switch(&m, &base, 2, (rounds, per_round), quick, false);
+    merge_on_switch(&m, &base, 2, rounds, quick, false);
     println!("-- --lora auto --memory-budget 3 --variant-f16 --");
-    merge_on_switch(&m, &base, 2, (rounds, per_round), quick, true);
+    merge_on_switch(&m, &base, 2, rounds, quick, true);
 
     // Reloading a whole model copy: what a system without variants does on a switch.
     let path = std::env::temp_dir().join(format!("readi-bench-{}.plan", std::process::id()));
