@@ -57,10 +57,8 @@ fn plan_with(variants: &[&str], tag: &str, edit: impl Fn(&mut Vec<VariantSource>
     Arc::new(loaded)
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("readi-adabn-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+fn temp_dir(tag: &str) -> common::Scratch {
+    common::Scratch::new(&format!("adabn-{tag}"))
 }
 
 fn fixture_path(name: &str) -> PathBuf {
@@ -330,7 +328,6 @@ fn cli_adapt_bn_end_to_end() {
     let err = max_abs_error(&got.1, &want.1);
     eprintln!("adapted variant logits: max abs error vs PyTorch eval with the new statistics {err:e}");
     assert!(err <= 1e-4, "the adapted variant differs from PyTorch by {err:e}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -401,7 +398,6 @@ fn cli_adapt_bn_errors_name_the_file() {
     Plan::new(manifest, tensors).expect("valid").write(&old_path).expect("write");
     let e = adapt("gamma=0.25", &good, &p(&old_path));
     assert!(e.contains("recompile the plan"), "{e}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 fn write_npy(path: &Path, shape: &[usize], data: &[f32]) {
@@ -546,7 +542,6 @@ fn cli_adapt_bn_writes_only_the_variants_batchnorms() {
         let o = readi(&["compile", &spec, "--weights", &weights, "-o", &p(&dir.join("v.plan")), "--variant", &variant]);
         assert!(o.status.success(), "{key}: {}", text(&o.stderr));
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A variant whose scopes tune no BatchNorm gets an error naming it and its scopes, and
@@ -588,7 +583,6 @@ fn cli_adapt_bn_refuses_a_variant_owning_no_batchnorm() {
     let (_, _, plan) = scoped_plan(&dir2, &unscoped);
     let e = refuse(&plan, "gamma=0.5");
     assert!(e.contains("variant `gamma=0.5` owns no BatchNorm statistics (it is in the scope of no scoped"), "{e}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// What the plan records of each parameter's owners decides every key as the compiler's

@@ -96,8 +96,7 @@ fn ir_stops_after_a_pass() {
 
 #[test]
 fn graph_writes_dot() {
-    let dir = std::env::temp_dir().join(format!("readi-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli");
     let path = dir.join("r18.dot");
     let o = readi(&["graph", "models/resnet18.readi", "-o", path.to_str().expect("utf-8 path")]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -105,7 +104,6 @@ fn graph_writes_dot() {
     assert!(dot.starts_with("digraph \"resnet18\""), "{dot}");
     assert!(dot.contains("subgraph cluster_"), "block instances are clusters");
     assert_eq!(dot.matches('{').count(), dot.matches('}').count(), "balanced braces");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -206,8 +204,7 @@ fn the_bevfusion_demo_picks_each_conditions_variant() {
 /// chosen from the metadata, the boxes printed and written as JSON.
 #[test]
 fn a_simulated_sweep_feeds_bevfusion_and_boxes_come_out() {
-    let dir = std::env::temp_dir().join(format!("readi-cli-bevfusion-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli-bevfusion");
     let p = |name: &str| dir.join(name).to_str().expect("utf-8").to_string();
     let fixtures = common::root().join("tests/fixtures/bevfusion");
     let io = std::fs::read(fixtures.join("full.io.safetensors")).expect("fixture");
@@ -253,14 +250,12 @@ fn a_simulated_sweep_feeds_bevfusion_and_boxes_come_out() {
         serde_json::from_str(&std::fs::read_to_string(dir.join("out.json")).expect("json")).expect("valid JSON");
     assert_eq!(json["boxes"]["shape"], serde_json::json!([1, 12, 9]), "{json}");
     assert_eq!(json["labels"]["dtype"], "i64");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Writes seeded weights for a spec to a temp safetensors file; returns (dir, weights path).
-fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+fn seeded_weights_file(spec: &str, overrides: &[(&str, &str)], tag: &str) -> (common::Scratch, std::path::PathBuf) {
     let module = common::compile(spec, overrides, None).1.module.expect("module");
-    let dir = std::env::temp_dir().join(format!("readi-cli-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new(&format!("cli-{tag}"));
     let path = dir.join("weights.safetensors");
     let bytes = readi_compiler::backend::seeded_weights(&module.graph, 11).to_safetensors().expect("serialises");
     std::fs::write(&path, bytes).expect("write weights");
@@ -343,7 +338,6 @@ fn compile_run_bench_inspect() {
     let o = readi(&["inspect", &p(&bad)]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("checksum mismatch"), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -351,7 +345,7 @@ fn compile_reports_weight_errors_against_the_spec() {
     let (dir, _) = seeded_weights_file("models/resnet18.readi", &[], "bad");
     let plan = dir.join("x.plan");
     // Weights for 1000 classes, spec compiled for 10.
-    let (_, weights) = seeded_weights_file("models/resnet18.readi", &[], "bad1000");
+    let (_weights_dir, weights) = seeded_weights_file("models/resnet18.readi", &[], "bad1000");
     let o = readi(&[
         "compile",
         "models/resnet18.readi",
@@ -366,7 +360,6 @@ fn compile_reports_weight_errors_against_the_spec() {
     let err = stderr(&o);
     assert!(err.contains("tensor `fc.weight`") && err.contains("models/resnet18.readi:45:"), "{err}");
     assert!(!plan.exists(), "no plan is written on error");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 fn write_npy(path: &std::path::Path, t: &readi_runtime::exec::Tensor) {
@@ -485,7 +478,6 @@ fn compile_a_deployment_with_variants() {
     let o = readi(&["compile", "--deploy", &p(&manifest), "-o", &p(&plan)]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("`blur=7` is not declared"), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A model with a fog axis at 0.01, a camera axis and a meld rule, for the key tests.
@@ -517,12 +509,11 @@ variants {
 #[test]
 fn variant_keys_are_read_by_meaning_by_every_command() {
     use readi_compiler::backend::{WeightSet, seeded_tensor, variants::owned_params};
-    let dir = std::env::temp_dir().join(format!("readi-cli-keys-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli-keys");
     let spec = dir.join("keys.readi");
     std::fs::write(&spec, KEYS_SPEC).expect("write spec");
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
-    let (_, weights) = seeded_weights_file(&p(&spec), &[], "keys");
+    let (_weights_dir, weights) = seeded_weights_file(&p(&spec), &[], "keys");
     let module = common::compile(&p(&spec), &[], None).1.module.expect("module");
     let mut args = vec!["compile".to_string(), p(&spec), "--weights".into(), p(&weights)];
     for (seed, key) in [(5, "fog=0.01"), (6, "gamma=0.25")] {
@@ -635,7 +626,6 @@ fn variant_keys_are_read_by_meaning_by_every_command() {
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     let err = stderr(&o);
     assert!(err.contains("sample.safetensors: the plan needs") && err.contains("over the limit of"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -678,14 +668,13 @@ fn ir_reaches_every_back_end_pass() {
 /// outputs move; `--verbose` adds the table of layers.
 #[test]
 fn compile_reports_pruning() {
-    let dir = std::env::temp_dir().join(format!("readi-cli-prune-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli-prune");
     let text = std::fs::read_to_string("models/resnet18.readi").expect("read the spec");
     let spec = dir.join("r18p.readi");
     std::fs::write(&spec, text.replacen("adapt {", "adapt {\n  prune below=1e-3", 1)).expect("write spec");
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
     let overrides = [("num_classes", "10"), ("img", "32")];
-    let (_, weights) = seeded_weights_file(&p(&spec), &overrides, "prune");
+    let (_weights_dir, weights) = seeded_weights_file(&p(&spec), &overrides, "prune");
     let plan = dir.join("p.plan");
     let args = ["compile", &p(&spec), "--weights", &p(&weights), "-o", &p(&plan), "--set", "num_classes=10"];
     let o = readi(&[&args[..], &["--set", "img=32", "--verbose"]].concat());
@@ -709,7 +698,6 @@ fn compile_reports_pruning() {
         "img=32",
     ]);
     assert!(o.status.success() && !stdout(&o).contains("pruned"), "{}", stdout(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Weights saved from a training wrapper (`module.` before every name) get one error that
@@ -755,7 +743,6 @@ fn a_common_name_prefix_is_named_and_stripped() {
     let o = compile(&prefixed, "y.plan", &["--strip-prefix", "model."]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("no tensor in") && stderr(&o).contains("`model.`"), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A deployment file holds only the adaptation and the conditions for a model written
@@ -763,8 +750,7 @@ fn a_common_name_prefix_is_named_and_stripped() {
 /// the model file's. A `use` of a file that is not there is an error at its line.
 #[test]
 fn a_deployment_file_uses_a_model_file() {
-    let dir = std::env::temp_dir().join(format!("readi-cli-use-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli-use");
     let model = common::root().join("models/resnet18.readi");
     let deploy = dir.join("deploy.readi");
     let text = format!(
@@ -787,7 +773,6 @@ fn a_deployment_file_uses_a_model_file() {
     assert_eq!(o.status.code(), Some(1));
     let err = stderr(&o);
     assert!(err.contains("E0104") && err.contains("bad.readi:2:1") && err.contains("missing.readi"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A model whose outputs are i64 (top-k indices) and bool (a mask): `readi run` prints
@@ -796,8 +781,7 @@ fn a_deployment_file_uses_a_model_file() {
 /// floats (shortest round-trip form), NaN as null.
 #[test]
 fn integer_and_bool_outputs_are_printed_and_written_as_such() {
-    let dir = std::env::temp_dir().join(format!("readi-cli-int-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli-int");
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
     let spec = dir.join("top.readi");
     let text = "model top {\n  input x: f32[1, 5]\n  let t = topk(x, 3)\n  output idx = t[1]\n  output \
@@ -891,7 +875,6 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
     let doc = read_json(&one);
     assert_eq!(doc.as_object().expect("an object").keys().collect::<Vec<_>>(), ["s"]);
     assert_eq!(doc["s"], outputs["s"]);
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// `readi compile --variant-f16` without a budget stores the variants' values of every
@@ -899,11 +882,10 @@ fn integer_and_bool_outputs_are_printed_and_written_as_such() {
 /// plans run); `--explain` lists them; the plan file holds them as F16 tensors.
 #[test]
 fn compile_variant_f16_reports_what_it_stored() {
-    let dir = std::env::temp_dir().join(format!("readi-cli-f16-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("cli-f16");
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
     let overrides = [("num_classes", "10"), ("img", "32")];
-    let (_, weights) = seeded_weights_file("models/resnet18.readi", &overrides, "f16");
+    let (_weights_dir, weights) = seeded_weights_file("models/resnet18.readi", &overrides, "f16");
     let plan = dir.join("h.plan");
     let (weights, plan_arg) = (p(&weights), p(&plan));
     let compile = |extra: &[&str]| {
@@ -930,5 +912,4 @@ fn compile_variant_f16_reports_what_it_stored() {
     // Without the flag: none.
     let o = compile(&[]);
     assert!(o.status.success() && !stdout(&o).contains("stored the variants'"), "{}", stdout(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }

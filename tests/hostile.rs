@@ -35,10 +35,8 @@ fn refused(o: &Output) -> String {
 }
 
 /// A directory of its own for each test.
-fn temp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("readi-hostile-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+fn temp_dir(tag: &str) -> common::Scratch {
+    common::Scratch::new(&format!("hostile-{tag}"))
 }
 
 fn s(p: &Path) -> String {
@@ -91,7 +89,6 @@ fn the_unedited_plan_is_accepted() {
     assert_eq!(plan.manifest, m);
     let o = readi(&["inspect", &s(&path)]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -115,7 +112,6 @@ fn names_from_plans_are_printed_escaped() {
     let err = refused(&readi(&["run", &s(&path)]));
     assert!(!err.contains('\u{1b}'), "{err:?}");
     assert!(err.contains("input `img\\u{1b}[2J\\nerror: all good` is required"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -131,7 +127,6 @@ fn symbols_in_shapes_are_printed_escaped() {
     let err = refused(&readi(&["inspect", &s(&path)]));
     assert!(!err.contains('\u{1b}') && !err.contains('\u{7}'), "{err:?}");
     assert!(err.contains("\\u{1b}]0;owned\\u{7}\\u{1b}[2J"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// The unedited all_ops plan at `dir/ok.plan`.
@@ -157,7 +152,6 @@ fn a_batch_over_the_memory_limit_is_refused_before_allocating() {
     assert!(err.contains("over the limit of 1.0 KiB (1024 bytes)"), "{err}");
     let o = readi(&["bench", &s(&path), "--max-memory", "64M", "--runs", "1", "--warmup", "0"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -174,7 +168,6 @@ fn inspect_shows_the_recorded_footprint_and_the_limit() {
     let o = readi(&["inspect", &s(&old)]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stdout(&o).contains("memory: not recorded in the plan"), "{}", stdout(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -185,7 +178,6 @@ fn a_huge_slot_count_is_refused_at_load() {
         let err = refused(&readi(&[cmd, &s(&path)]));
         assert!(err.contains("activation buffers for") && err.contains("at most one per value"), "{err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -208,7 +200,6 @@ fn a_value_no_step_writes_takes_no_memory() {
     });
     let o = readi(&["bench", &s(&path), "--runs", "1", "--warmup", "0", "--max-memory", "64M"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -230,7 +221,6 @@ fn zero_and_huge_counts_are_refused() {
     }
     let o = readi(&["run", &s(&path), "--threads", "0"]);
     assert!(stderr(&o).contains("1 to 256"), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A plan of one step: input `x` of `shape` (`None`: the batch symbol `N`), the step's
@@ -308,7 +298,6 @@ fn a_conv_algorithm_that_does_not_fit_its_layer_is_refused() {
         assert!(err.contains("step 0 (`conv (+bn, relu#0)`)"), "{algo}: {err}");
         assert!(err.contains(&format!("conv algorithm `{algo}` cannot compute this layer")), "{algo}: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -382,7 +371,6 @@ fn a_crafted_lora_branch_is_refused() {
         let err = refused(&readi(&["run", &s(&path)]));
         assert!(err.contains(want), "case {i}: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -403,7 +391,6 @@ fn a_crafted_merge_on_switch_conv_is_refused() {
     });
     let err = refused(&readi(&["run", &s(&path)]));
     assert!(err.contains("step 0 (`conv (+bn, relu#0)`)") && err.contains("`raw` needs"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -452,7 +439,6 @@ fn a_crafted_adapter_is_refused() {
         let err = refused(&readi(&["run", &s(&path)]));
         assert!(err.contains(want) && err.contains("step 0"), "case {i}: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -463,7 +449,6 @@ fn an_input_declared_unlike_its_value_is_refused() {
     });
     let err = refused(&readi(&["run", &s(&path)]));
     assert!(err.contains("input `img` is declared as [N, 4, 16, 8] but its value has shape [N, 4, 16, 16]"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -496,7 +481,6 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
     let err = run_refused(&dir, "small.plan", plan, &[1, 1, 3, 3]);
     assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains("does not fit"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -543,7 +527,6 @@ fn a_crafted_conv_transpose_is_refused() {
         err.contains("its output has shape [N, 4, 6, 6], but conv_transpose2d of its inputs gives [N, 4, 7, 6]"),
         "{err}"
     );
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -588,7 +571,6 @@ fn a_crafted_conv3d_is_refused() {
         err.contains("its output has shape [N, 4, 2, 2, 2], but conv3d of its inputs gives [N, 4, 3, 2, 2]"),
         "{err}"
     );
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -607,7 +589,6 @@ fn a_linear_with_zero_input_features_is_refused() {
     let err = run_refused(&dir, "linear0.plan", plan, &[1, 0]);
     assert!(err.contains("step 0 (`the\\u{1b}step`)"), "{err}");
     assert!(err.contains("linear from 0 to 4 features: both must be at least 1"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -627,7 +608,6 @@ fn an_upsample_of_an_empty_tensor_is_refused() {
         assert!(err.contains("upsample0.plan: invalid plan at step 0 (`the\\u{1b}step`)"), "{err}");
         assert!(err.contains("upsample of an empty input [1, 2, 0, 3] to [1, 2, 4, 4]"), "{err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -637,7 +617,6 @@ fn duplicate_output_names_are_refused() {
     let out = dir.join("out.safetensors");
     let err = refused(&readi(&["run", &s(&path), "--output", &s(&out)]));
     assert!(err.contains("output `pooled` is declared twice"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// The manifest and tensors of tests/cases/ok/adapt_and_variants.readi with seeded
@@ -710,7 +689,6 @@ fn conditions_are_checked_at_load() {
         let err = refused(&readi(&["run", &s(&path), "--auto"]));
         assert!(err.contains("invalid plan manifest: ") && err.contains(want), "want `{want}`: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A parameter's recorded owners (`owned_by`) are checked at load: a scope the plan's
@@ -743,7 +721,6 @@ fn unknown_owning_scopes_are_refused_at_load() {
     std::fs::write(&path, plan_bytes(&edited, &tensors)).expect("write plan");
     let o = readi(&["inspect", &s(&path)]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -757,7 +734,6 @@ fn metadata_no_selector_reads_is_refused() {
         err.contains("no selector reads metadata `weather.fog` (the plan's selectors read: `weather.fog_density`)"),
         "{err}"
     );
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -779,7 +755,6 @@ fn an_output_flag_naming_no_output_is_refused() {
     let o = readi(&["run", &s(&path), "--input", &input, "--output", &s(&dir.join("all=outputs.safetensors"))]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(dir.join("all=outputs.safetensors").exists());
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -796,7 +771,6 @@ fn a_truncated_npy_input_is_reported_as_truncated() {
         err.contains("its header declares shape [1, 4, 16, 16], 4096 bytes of data, but the file holds 3996"),
         "{err}"
     );
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[cfg(unix)]
@@ -821,7 +795,6 @@ fn devices_and_directories_are_not_read_as_files() {
     write_npy(&x, &[1, 4, 16, 16]);
     let err = refused(&readi(&["run", &s(&path), "--input", &format!("img={}", s(&x)), "--max-memory", "1K"]));
     assert!(err.contains("over the limit of 1024 bytes for this kind of file (--max-memory)"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -838,7 +811,6 @@ fn an_empty_tensor_with_huge_inner_axes_is_refused() {
     std::fs::write(&path, plan_bytes(&plan.0, &plan.1)).expect("write plan");
     let err = refused(&readi(&["bench", &s(&path), "--runs", "1", "--warmup", "0"]));
     assert!(err.contains("value 0 (input `x`) at N = 1 does not fit in memory"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -871,7 +843,6 @@ fn a_crafted_groupnorm_is_refused() {
         let err = run_refused(&dir, &format!("groupnorm{i}.plan"), plan, &[1, 6, 4, 4]);
         assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains(want), "case {i}: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -898,7 +869,6 @@ fn a_crafted_index_out_of_range_is_refused() {
     let fill = Kernel::Pure(Pure::Fill(Fill { shape: vec![1, 4], start: 0.0, step: 1.0, dtype: DType::F32 }));
     let err = run_refused(&dir, "fill.plan", one_step(&[None, Some(4)], fill, &[Some(1), Some(4)], &[]), &[1, 4]);
     assert!(err.contains("takes 0 tensor input(s), got 1"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A crafted `lss_bev_pool` step (one input instead of six; six that are one tensor; a
@@ -928,7 +898,6 @@ fn a_crafted_lss_bev_pool_is_refused() {
         let err = run_refused(&dir, &format!("bev{k}.plan"), plan, &[1, 2, 4, 4, 6]);
         assert!(err.contains("the\\u{1b}step") && err.contains(want), "case {k}: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -958,5 +927,4 @@ fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
     plan.0.steps[0].inputs = vec![0, 0];
     let err = run_refused(&dir, "shape.plan", plan, &[1, 1, 3, 3]);
     assert!(err.contains("residual input has shape [N, 1, 3, 3], not its output's [N, 2, 3, 3]"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }

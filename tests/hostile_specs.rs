@@ -375,8 +375,7 @@ fn the_activation_peak_is_checked_against_the_limit() {
 
 #[test]
 fn max_activation_memory_flag() {
-    let dir = std::env::temp_dir().join(format!("readi-hostile-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("hostile");
     let spec = dir.join("up.readi");
     std::fs::write(&spec, "model m {\n  input x: f32[N, 3, 8, 8]\n  output y = upsample(x, size=[65536, 65536])\n}\n")
         .expect("write");
@@ -416,10 +415,8 @@ variants {
 
 /// A fresh directory with the spec, seeded base weights and variant files holding the
 /// named tensors of a seeded variant.
-fn variant_dir(tag: &str, files: &[(&str, &[&str])]) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("readi-hostile-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
+fn variant_dir(tag: &str, files: &[(&str, &[&str])]) -> common::Scratch {
+    let dir = common::Scratch::new(&format!("hostile-{tag}"));
     std::fs::write(dir.join("m.readi"), TUNE_SPEC).expect("write spec");
     let m = module_of(TUNE_SPEC);
     let base = backend::seeded_weights(&m.graph, 7);

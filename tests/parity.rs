@@ -60,8 +60,7 @@ fn check(rel: &str, overrides: &[(&str, &str)], fixture_name: &str) {
         assert!(err <= 1e-4, "{fixture_name}: output `{name}` differs from PyTorch by {err:e}");
     }
 
-    let dir = std::env::temp_dir().join(format!("readi-parity-{}-{fixture_name}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new(&format!("parity-{fixture_name}"));
     let path = dir.join("model.plan");
     plan.write(&path).expect("write plan");
     let loaded = Arc::new(Plan::load(&path).expect("load plan"));
@@ -72,7 +71,6 @@ fn check(rel: &str, overrides: &[(&str, &str)], fixture_name: &str) {
         let same = a.data.iter().zip(&b.data).all(|(x, y)| x.to_bits() == y.to_bits());
         assert!(same && a.shape == b.shape, "{fixture_name}: `{name}` changed after the save/load round trip");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

@@ -22,14 +22,15 @@ fn plan() -> Plan {
     backend::compile(&module, &weights, "seeded", &CompileOptions::default()).expect("compiles").0
 }
 
-fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("readi-planfile-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+/// `name` in a scratch directory of the test's own (removed when the guard drops).
+fn temp(name: &str) -> (common::Scratch, PathBuf) {
+    let dir = common::Scratch::new("planfile");
+    let path = dir.join(name);
+    (dir, path)
 }
 
 fn load_bytes(name: &str, bytes: &[u8]) -> Result<Plan, PlanError> {
-    let path = temp(name);
+    let (_dir, path) = temp(name);
     std::fs::write(&path, bytes).expect("write");
     Plan::load(&path)
 }
@@ -131,7 +132,7 @@ fn a_weights_file_is_not_a_plan() {
     assert!(matches!(e, PlanError::NotAPlan { .. }), "{e}");
     let e = load_bytes("junk.plan", b"definitely not a plan").expect_err("junk");
     assert!(matches!(e, PlanError::Container { .. }), "{e}");
-    let e = Plan::load(&temp("absent.plan")).expect_err("missing file");
+    let e = Plan::load(&temp("absent.plan").1).expect_err("missing file");
     assert!(matches!(e, PlanError::Io { .. }) && e.to_string().contains("absent.plan"), "{e}");
 }
 

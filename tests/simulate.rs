@@ -4,7 +4,6 @@
 mod common;
 
 use common::readi;
-use std::path::PathBuf;
 
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
@@ -17,10 +16,8 @@ const RATES: [f64; 5] = [0.5, 1.0, 1.5, 2.0, 2.5];
 const KERNELS: [usize; 5] = [5, 10, 15, 20, 30];
 
 /// A temporary directory for one test.
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("readi-simulate-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+fn temp_dir(name: &str) -> common::Scratch {
+    common::Scratch::new(&format!("simulate-{name}"))
 }
 
 /// A seeded synthetic scan: ranges uniform in [5, 80] m, azimuth all around, elevation in
@@ -336,7 +333,6 @@ fn kitti_bin_round_trip() {
     let five = PointCloud::new(5, (0..50).map(|i| i as f32).collect()).expect("five");
     io::write_cloud(&path, &five).expect("write");
     assert_eq!(io::read_cloud(&path, 5).expect("read 5"), five);
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -384,7 +380,6 @@ fn bad_files_give_clear_errors() {
     std::fs::write(&png, b"\x89PNG\r\n\x1a\nnot really").expect("write");
     let err = io::read_image(&png).expect_err("broken png");
     assert!(err.contains("broken.png: not a readable PNG"), "{err}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -403,7 +398,6 @@ fn png_round_trip_keeps_pixels_and_alpha() {
         .expect("write");
     let back = image::open(&out).expect("open").to_rgba8();
     assert_eq!(back.into_raw(), raw, "gamma 1 through PNG is lossless, alpha included");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -449,7 +443,6 @@ fn cli_simulates_fog_on_a_kitti_bin() {
     let o = readi(&["simulate", input.to_str().expect("utf-8"), "-o", "x.png", "--gamma", "0.5"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("000042.bin is a point cloud; gamma and blur apply to images"));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -494,5 +487,4 @@ fn cli_simulates_gamma_and_blur_on_a_png() {
     let o = readi(&["simulate", input.to_str().expect("utf-8"), "-o", "x.bin", "--fog", "0.06"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("frame.png is an image; fog and snow apply to lidar"));
-    let _ = std::fs::remove_dir_all(&dir);
 }

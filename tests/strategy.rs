@@ -482,8 +482,7 @@ fn a_head_stored_f16_computes_what_its_rounded_values_compute() {
         }
     }
     // The plan file keeps the f16 tensors, and a loaded plan runs the same.
-    let dir = std::env::temp_dir().join(format!("readi-f16-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("dir");
+    let dir = common::Scratch::new("f16");
     let path = dir.join("half.plan");
     half.write(&path).expect("write");
     let loaded = Arc::new(Plan::load(&path).expect("loads"));
@@ -496,5 +495,4 @@ fn a_head_stored_f16_computes_what_its_rounded_values_compute() {
         let input = [Input { name: "image", data: &data, shape: &shape }];
         assert_eq!(sl.run(&input).expect("runs"), sh.run(&input).expect("runs"), "{key}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -230,8 +230,7 @@ fn bad_attributes_are_refused_at_the_argument() {
 /// that is not a whole number of rows is refused naming it.
 #[test]
 fn the_cli_reads_bin_point_clouds() {
-    let dir = std::env::temp_dir().join(format!("readi-voxel-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::Scratch::new("voxel-cli");
     let p = |x: &std::path::Path| x.to_str().expect("utf-8").to_string();
     let spec = dir.join("vox5.readi");
     std::fs::write(&spec, spec_text_for_cli()).expect("spec");
@@ -257,7 +256,6 @@ fn the_cli_reads_bin_point_clouds() {
     let o = common::readi(&["run", &p(&plan), "--input", &format!("points={}", p(&bin)), "--output", &p(&out)]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("sweep.bin") && err.contains("not a positive multiple of 20"), "{err}");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 fn spec_text_for_cli() -> String {

@@ -209,7 +209,8 @@ fn the_switch_handle_is_send_sync_and_clone() {
 #[test]
 fn variants_survive_a_write_and_load() {
     let m = mlp(32, 16);
-    let path = temp("mlp.plan");
+    let dir = Scratch::new("variants");
+    let path = dir.join("mlp.plan");
     m.plan.write(&path).expect("writes");
     let loaded = Arc::new(Plan::load(&path).expect("loads"));
     assert!(loaded.is_mapped());
@@ -300,7 +301,8 @@ fn a_plan_file_with_a_bad_variant_table_is_refused_at_load() {
         ("readi.manifest".to_string(), json),
         ("readi.checksum".to_string(), format!("{:08x}", crc.finalize())),
     ]);
-    let path = temp("dup-key.plan");
+    let dir = Scratch::new("variants");
+    let path = dir.join("dup-key.plan");
     std::fs::write(&path, safetensors::serialize(views, Some(metadata)).expect("serialise")).expect("write");
     let e = Plan::load(&path).expect_err("a duplicate key must not load");
     let msg = e.to_string();
@@ -513,12 +515,10 @@ fn a_variant_stored_f16_reads_its_values_decoded() {
         assert_close(&y, &mlp_reference(&x, m.fin, m.fout, &want(key)), key);
     }
     // Through a file: the f16 tensors stay f16 and read the same.
-    let dir = std::env::temp_dir().join(format!("readi-half-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("dir");
+    let dir = Scratch::new("half");
     let path = dir.join("mlp.plan");
     plan.write(&path).expect("write");
     let loaded = Arc::new(Plan::load(&path).expect("loads"));
-    let _ = std::fs::remove_dir_all(&dir);
     assert!(loaded.manifest.tensors.iter().any(|t| t.dtype == readi_plan::DType::F16));
     let mut l = Session::new(loaded, 1).expect("session");
     for key in ["fog=3", "fog=1"] {

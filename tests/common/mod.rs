@@ -195,3 +195,27 @@ pub fn run_at_1_and_2_threads(
 pub fn output<'a>(outputs: &'a [(String, readi_runtime::exec::Tensor)], name: &str) -> &'a readi_runtime::exec::Tensor {
     &outputs.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("no output {name}")).1
 }
+
+/// A directory of a test's own, `readi-<tag>-XXXXXX` under the system's temp dir, removed
+/// when dropped: when the test ends, passed or failed (a test failing by panic unwinds).
+/// Derefs to its path.
+pub struct Scratch(tempfile::TempDir);
+
+impl Scratch {
+    pub fn new(tag: &str) -> Scratch {
+        Scratch(tempfile::Builder::new().prefix(&format!("readi-{tag}-")).tempdir().expect("temp dir"))
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
+    }
+}

@@ -3,7 +3,7 @@
 #![allow(dead_code)]
 
 use std::collections::HashMap;
-use std::path::PathBuf;
+use std::path::Path;
 use std::sync::Arc;
 
 use readi_plan::ops::{BinaryOp, ChannelAffine, Conv2d, LayerNorm, Linear, Pure, Window2};
@@ -375,12 +375,6 @@ pub fn fresh(plan: &Arc<Plan>, key: &str, threads: usize, x: &[f32], shape: &[us
     run(&mut s, x, shape)
 }
 
-pub fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("readi-variants-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
-}
-
 // ---------------------------------------------------------------------------------------
 // (e) Bad variant tables and keys
 // ---------------------------------------------------------------------------------------
@@ -400,5 +394,29 @@ pub fn refused(edit: impl FnOnce(&mut Vec<VariantTable>)) -> String {
         Err(e @ PlanError::Manifest { .. }) => e.to_string(),
         Err(e) => panic!("expected a manifest error, got {e}"),
         Ok(_) => panic!("an invalid variant table was accepted"),
+    }
+}
+
+/// A directory of a test's own, `readi-<tag>-XXXXXX` under the system's temp dir, removed
+/// when dropped: when the test ends, passed or failed (a test failing by panic unwinds).
+/// Derefs to its path.
+pub struct Scratch(tempfile::TempDir);
+
+impl Scratch {
+    pub fn new(tag: &str) -> Scratch {
+        Scratch(tempfile::Builder::new().prefix(&format!("readi-{tag}-")).tempdir().expect("temp dir"))
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
     }
 }
