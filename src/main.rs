@@ -116,10 +116,11 @@ fn run(cli: Cli) -> ExitCode {
             variant,
             inputs,
             switch,
+            against,
             max_memory,
         } => {
             let session = cli::session_options(threads, max_memory);
-            let timing = cli::bench::Timing { runs, warmup, batch, profile, steps, peak, switch };
+            let timing = cli::bench::Timing { runs, warmup, batch, profile, steps, peak, switch, against };
             cli::bench::run(&plan, session, &timing, variant.as_deref(), &inputs)
         }
         Command::Inspect { plan, verbose, max_memory } => cli::inspect::run(&plan, verbose, max_memory),

@@ -454,6 +454,24 @@ fn compile_a_deployment_with_variants() {
     let o = readi(&["bench", &p(&plan), "--runs", "1", "--switch", "blur=6"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("blur=6") && !stdout(&o).contains("median"), "{}", stderr(&o));
+    // A variant against the base in alternating rounds; an unknown key fails before any run.
+    let o = readi(&["bench", &p(&plan), "--runs", "3", "--variant", "gamma=0.25", "--against", "base"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("gamma=0.25 against base, 3 alternating rounds: median "))
+        .unwrap_or_else(|| panic!("{out}"));
+    let ratio: f64 = line
+        .split("ratio ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|r| r.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    assert!(ratio > 0.0 && ratio.is_finite(), "{line}");
+    let o = readi(&["bench", &p(&plan), "--runs", "1", "--against", "blur=6"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("blur=6") && !stdout(&o).contains("median"), "{}", stderr(&o));
 
     // --auto: a dark, textured image selects gamma=0.25 by its brightness; a dark flat one
     // also reads as blurred, and two camera conditions without a meld rule are an error.

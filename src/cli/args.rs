@@ -263,6 +263,12 @@ pub enum Command {
         /// that follows it, `--runs` switches.
         #[arg(long = "switch", value_name = "KEY")]
         switch: Vec<String>,
+        /// Also time the plan under this variant (a key, or `base`) in alternating runs
+        /// with the timed one, in a second session: one run of each a round, the order
+        /// reversed every round, `--runs` rounds; prints the median of the rounds' ratios
+        /// (what a variant costs over the base, steady on a machine whose speed drifts).
+        #[arg(long, value_name = "KEY")]
+        against: Option<String>,
         /// Most memory a run may take (activation buffers, scratch, inputs, outputs): bytes, or
         /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
         #[arg(long, value_name = "BYTES", value_parser = parse_memory)]

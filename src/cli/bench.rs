@@ -48,6 +48,8 @@ pub struct Timing {
     pub peak: bool,
     /// Variants to switch to and back from after the timed runs ([`switching`]).
     pub switch: Vec<String>,
+    /// A variant (or the base) to time in alternating runs with the timed one ([`against`]).
+    pub against: Option<String>,
 }
 
 /// Times `plan_path` under `variant` (or the base) on seeded inputs, except those `inputs`
@@ -60,7 +62,7 @@ pub fn run(
     variant: Option<&str>,
     inputs: &[(String, String)],
 ) -> Result<(), ExitCode> {
-    let Timing { runs, warmup, batch, profile, steps, peak, ref switch } = *timing;
+    let Timing { runs, warmup, batch, profile, steps, peak, ref switch, ref against } = *timing;
     let plan = load_plan(plan_path)?;
     let fail = |msg: String| {
         eprintln!("error: {msg}");
@@ -74,9 +76,20 @@ pub fn run(
     for key in switch.iter().map(String::as_str).chain([variant.unwrap_or(BASE_VARIANT)]) {
         session.set_variant(key).map_err(|e| fail(e.to_string()))?;
     }
+    // The second session of `--against`, its variant set and its batch bound with the first's.
+    let mut other = match against {
+        Some(key) => {
+            let s = Session::with_options(plan.clone(), options).map_err(|e| fail(e.to_string()))?;
+            s.set_variant(key).map_err(|e| fail(e.to_string()))?;
+            Some(s)
+        }
+        None => None,
+    };
     // Bound first: a batch too large for the memory limit (or for the address space) is
     // refused before the inputs are made.
-    session.bind_batch(batch).map_err(|e| fail(format!("{}: batch {batch}: {e}", plan_path.display())))?;
+    for s in std::iter::once(&mut session).chain(other.as_mut()) {
+        s.bind_batch(batch).map_err(|e| fail(format!("{}: batch {batch}: {e}", plan_path.display())))?;
+    }
     let mut data = synthetic_inputs(&plan, batch, 42);
     for (name, (shape, d)) in super::run::load_inputs(&plan.manifest, inputs, max_memory).map_err(fail)? {
         match data.iter_mut().find(|(n, _, _)| *n == name) {
@@ -121,9 +134,59 @@ pub fn run(
     if let Some(p) = session.profile() {
         print!("{}", readi::inspect::profile(&plan.manifest, p, times.len(), steps));
     }
+    if let Some(other) = other.as_mut() {
+        alternating(&mut session, other, &given, warmup, runs).map_err(|e| fail(format!("{shown}: {e}")))?;
+    }
     if !switch.is_empty() {
         switching(&mut session, &given, switch, runs).map_err(|e| fail(format!("{shown}: {e}")))?;
     }
+    Ok(())
+}
+
+/// `--against`: `session` and `other` (the same plan under another variant) in `runs`
+/// alternating rounds, one run of each, the order reversed every round so that a drift
+/// within a round hits both alike; prints the median of the rounds' ratios and their range.
+fn alternating(
+    session: &mut Session,
+    other: &mut Session,
+    given: &[Input<'_>],
+    warmup: usize,
+    runs: usize,
+) -> Result<(), String> {
+    for _ in 0..warmup {
+        other.run(given).map_err(|e| e.to_string())?;
+    }
+    let time = |s: &mut Session| -> Result<f64, String> {
+        let t = Instant::now();
+        s.run(given).map_err(|e| e.to_string())?;
+        Ok(t.elapsed().as_secs_f64() * 1e3)
+    };
+    let (mut mine, mut theirs, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+    for round in 0..runs {
+        let (a, b) = if round % 2 == 0 {
+            let a = time(session)?;
+            (a, time(other)?)
+        } else {
+            let b = time(other)?;
+            (time(session)?, b)
+        };
+        mine.push(a);
+        theirs.push(b);
+        ratios.push(a / b);
+    }
+    for v in [&mut mine, &mut theirs, &mut ratios] {
+        v.sort_by(f64::total_cmp);
+    }
+    println!(
+        "{} against {}, {runs} alternating rounds: median {:.2} ms against {:.2} ms, ratio {:.3} (the median of the rounds' ratios; rounds {:.3} to {:.3})",
+        session.variant(),
+        other.variant(),
+        percentile(&mine, 0.5),
+        percentile(&theirs, 0.5),
+        percentile(&ratios, 0.5),
+        ratios.first().copied().unwrap_or(0.0),
+        ratios.last().copied().unwrap_or(0.0)
+    );
     Ok(())
 }
 
