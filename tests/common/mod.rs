@@ -6,6 +6,10 @@ use std::path::{Path, PathBuf};
 use readi_compiler::passes::{self, Options, Outcome, Pass};
 use readi_grammar::diag::{FileId, SourceMap};
 
+mod scratch;
+#[allow(unused_imports)] // Not every test crate writes files.
+pub use scratch::Scratch;
+
 /// Runs the `readi` binary from the repository root, without colour.
 pub fn readi(args: &[&str]) -> std::process::Output {
     std::process::Command::new(env!("CARGO_BIN_EXE_readi"))
@@ -194,28 +198,4 @@ pub fn run_at_1_and_2_threads(
 /// The output `name` of a run.
 pub fn output<'a>(outputs: &'a [(String, readi_runtime::exec::Tensor)], name: &str) -> &'a readi_runtime::exec::Tensor {
     &outputs.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("no output {name}")).1
-}
-
-/// A directory of a test's own, `readi-<tag>-XXXXXX` under the system's temp dir, removed
-/// when dropped: when the test ends, passed or failed (a test failing by panic unwinds).
-/// Derefs to its path.
-pub struct Scratch(tempfile::TempDir);
-
-impl Scratch {
-    pub fn new(tag: &str) -> Scratch {
-        Scratch(tempfile::Builder::new().prefix(&format!("readi-{tag}-")).tempdir().expect("temp dir"))
-    }
-}
-
-impl std::ops::Deref for Scratch {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<Path> for Scratch {
-    fn as_ref(&self) -> &Path {
-        self.0.path()
-    }
 }

@@ -3,7 +3,6 @@
 #![allow(dead_code)]
 
 use std::collections::HashMap;
-use std::path::Path;
 use std::sync::Arc;
 
 use readi_plan::ops::{BinaryOp, ChannelAffine, Conv2d, LayerNorm, Linear, Pure, Window2};
@@ -14,6 +13,12 @@ use readi_runtime::plan::{
     Step, Storage, TensorSpec, ValueSpec, VariantTable,
 };
 use readi_runtime::testdata::data;
+
+// The workspace's one scratch-directory helper (the root test crate's).
+#[path = "../../../tests/common/scratch.rs"]
+mod scratch;
+#[allow(unused_imports)] // Not every test crate writes files.
+pub use scratch::Scratch;
 
 // ---------------------------------------------------------------------------------------
 // Building plans by hand
@@ -394,29 +399,5 @@ pub fn refused(edit: impl FnOnce(&mut Vec<VariantTable>)) -> String {
         Err(e @ PlanError::Manifest { .. }) => e.to_string(),
         Err(e) => panic!("expected a manifest error, got {e}"),
         Ok(_) => panic!("an invalid variant table was accepted"),
-    }
-}
-
-/// A directory of a test's own, `readi-<tag>-XXXXXX` under the system's temp dir, removed
-/// when dropped: when the test ends, passed or failed (a test failing by panic unwinds).
-/// Derefs to its path.
-pub struct Scratch(tempfile::TempDir);
-
-impl Scratch {
-    pub fn new(tag: &str) -> Scratch {
-        Scratch(tempfile::Builder::new().prefix(&format!("readi-{tag}-")).tempdir().expect("temp dir"))
-    }
-}
-
-impl std::ops::Deref for Scratch {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<Path> for Scratch {
-    fn as_ref(&self) -> &Path {
-        self.0.path()
     }
 }
