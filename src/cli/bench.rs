@@ -135,6 +135,10 @@ pub fn run(
         print!("{}", readi::inspect::profile(&plan.manifest, p, times.len(), steps));
     }
     if let Some(other) = other.as_mut() {
+        // The timed session goes on profiling its steps: the other pays the same timers.
+        if profile {
+            other.enable_profiling();
+        }
         alternating(&mut session, other, &given, warmup, runs).map_err(|e| fail(format!("{shown}: {e}")))?;
     }
     if !switch.is_empty() {
