@@ -12,8 +12,11 @@
 //! another node of the manifest with the same field name in its place (indices, shapes,
 //! kernels, keys, variant tables), edit an array (drop, duplicate, swap, clear), replace a
 //! string (another name of the plan, a kernel or algorithm name, control characters),
-//! change a conv's algorithm, poison a tensor's data (NaN, infinity, huge), or grow an axis
-//! of an input (to reach the memory budget once the shapes behind it are repaired). Half of the
+//! change a conv's algorithm, poison a tensor's data (NaN, infinity, huge), grow an axis
+//! of an input (to reach the memory budget once the shapes behind it are repaired), or
+//! change a tensor's element type (f16 on a base tensor or a value, a type the plan format
+//! has no tensors of, f32 for an f16 replacement); the file stores each tensor as its
+//! manifest entry says (f16 as f16), except the types it cannot hold, stored f32. Half of the
 //! cases are then *repaired* ([`repair`]): value shapes re-inferred by the operators'
 //! rules, tensor sizes made to fit their kernels, so that the mutation reaches the checks
 //! behind the manifest validation (kernel preconditions, the memory budget) instead of
@@ -63,6 +66,7 @@ const SPECS: &[(&str, LoraMode, usize)] = &[
     ("conv_algorithms_lora", LoraMode::Branch, 1),
     ("conv_algorithms_switch", LoraMode::Auto, 1),
     ("conv_algorithms_adapters", LoraMode::Merge, 1),
+    ("conv_algorithms_f16", LoraMode::Branch, 1),
 ];
 
 /// A spec with a conv of every algorithm the compiler chooses (Winograd F(4x4) and
@@ -122,6 +126,18 @@ variants {
 }
 ";
 
+/// [`CONV_ALGORITHMS`] with its head tuned and a LoRA branch, compiled with
+/// `--variant-f16`: the variant's head weight is stored f16.
+const F16_RULES: &str = "\
+adapt {
+  tune head
+  lora rank=2 alpha=4 on w4
+}
+variants {
+  axis fog on camera: 0.03 clear 0
+}
+";
+
 fn seeds() -> &'static [Seed] {
     static SEEDS: OnceLock<Vec<Seed>> = OnceLock::new();
     SEEDS.get_or_init(|| SPECS.iter().map(|&(rel, lora, n)| compile_seed(rel, lora, n)).collect())
@@ -134,6 +150,8 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
         common::compile_text(rel, &format!("{CONV_ALGORITHMS}{LORA_RULES}"), &[], None)
     } else if rel == "conv_algorithms_adapters" {
         common::compile_text(rel, ADAPTERS, &[], None)
+    } else if rel == "conv_algorithms_f16" {
+        common::compile_text(rel, &format!("{CONV_ALGORITHMS}{F16_RULES}"), &[], None)
     } else {
         common::compile(rel, &[], None)
     };
@@ -150,7 +168,7 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
         .collect();
     let weights = backend::seeded_weights(&module.graph, 1);
     let sources_v = backend::seeded_variants(&module, &keys, 2);
-    let mut opts = CompileOptions { lora, ..CompileOptions::default() };
+    let mut opts = CompileOptions { lora, variant_f16: rel == "conv_algorithms_f16", ..CompileOptions::default() };
     if rel == "conv_algorithms_switch" {
         // Every LoRA conv merged on switch: an unreachable budget keeps the free savings,
         // fixed costs make it deterministic.
@@ -173,6 +191,10 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
         let switched = plan.manifest.steps.iter().filter(|s| matches!(s.kernel, Kernel::Conv2d { switch: true, .. }));
         assert_eq!(switched.count(), 4, "convs merged on switch");
     }
+    if rel == "conv_algorithms_f16" {
+        let half = plan.manifest.tensors.iter().filter(|t| t.dtype == readi_plan::ops::DType::F16).count();
+        assert!(half >= 1, "an f16 variant tensor");
+    }
     if rel == "conv_algorithms_adapters" {
         let fused: Vec<&str> = plan
             .manifest
@@ -186,8 +208,12 @@ fn compile_seed(rel: &'static str, lora: LoraMode, variants: usize) -> Seed {
             .collect();
         assert_eq!(fused, ["winograd4", "gemm1x1", "depthwise", "im2col"], "fused adapters");
     }
-    let tensors =
-        plan.manifest.tensors.iter().enumerate().map(|(i, t)| (t.name.clone(), plan.tensor(i).to_vec())).collect();
+    // Values as f32 (an f16 tensor's decoded: `plan_file` encodes them again).
+    let value = |i: usize| match plan.tensor_f16(i) {
+        Some(h) => h.iter().map(|v| v.to_f32()).collect(),
+        None => plan.tensor(i).to_vec(),
+    };
+    let tensors = plan.manifest.tensors.iter().enumerate().map(|(i, t)| (t.name.clone(), value(i))).collect();
     Seed { name: rel, manifest: serde_json::to_value(&plan.manifest).expect("a manifest is JSON"), tensors }
 }
 
@@ -201,6 +227,7 @@ enum Mutation {
     Algorithm { at: usize, arg: usize },
     Poison { at: usize, arg: u64 },
     Grow { at: usize, arg: u64 },
+    Dtype { at: usize, arg: usize },
 }
 
 fn mutation() -> impl Strategy<Value = Mutation> {
@@ -213,6 +240,7 @@ fn mutation() -> impl Strategy<Value = Mutation> {
         2 => (at, any::<usize>()).prop_map(|(at, arg)| Mutation::Algorithm { at, arg }),
         1 => (at, any::<u64>()).prop_map(|(at, arg)| Mutation::Poison { at, arg }),
         2 => (at, any::<u64>()).prop_map(|(at, arg)| Mutation::Grow { at, arg }),
+        2 => (at, any::<usize>()).prop_map(|(at, arg)| Mutation::Dtype { at, arg }),
     ]
 }
 
@@ -433,6 +461,19 @@ fn apply(m: &Mutation, manifest: &mut Value, tensors: &mut HashMap<String, Vec<f
                 d.insert("coef".into(), coef);
             }
         }
+        Mutation::Dtype { at, arg } => {
+            // A stored tensor's (or, less often, a value's) element type: f16, f32 by
+            // omission or by name, or one no plan tensor has.
+            let Some(p) = pick(at, &|v| v.get("shape").is_some() && v.get("name").is_some()) else { return };
+            if let Some(Value::Object(n)) = node(manifest, &p.path) {
+                match arg % 4 {
+                    0 => n.insert("dtype".into(), "F16".into()),
+                    1 => n.remove("dtype"),
+                    2 => n.insert("dtype".into(), "F32".into()),
+                    _ => n.insert("dtype".into(), ["BF16", "I64", "Bool", "f16"][arg / 4 % 4].into()),
+                };
+            }
+        }
         Mutation::Poison { at, arg } => {
             let mut names: Vec<&String> = tensors.keys().collect();
             names.sort();
@@ -531,11 +572,11 @@ fn repair(manifest: &mut Value) {
 }
 
 /// The plan file of a (mutated) manifest: each manifest tensor stored under its name with
-/// the manifest's shape (its data cut or repeated to fit), the checksum computed as the
-/// compiler computes it.
+/// the manifest's shape (its data cut or repeated to fit) and, if the manifest says f16,
+/// as f16 (any other type as f32), the checksum computed as the compiler computes it.
 fn plan_file(manifest: &Value, tensors: &HashMap<String, Vec<f32>>) -> Vec<u8> {
     let json = manifest.to_string();
-    let entries: Vec<(String, Vec<usize>)> = manifest["tensors"]
+    let entries: Vec<(String, Vec<usize>, bool)> = manifest["tensors"]
         .as_array()
         .map(|ts| {
             ts.iter()
@@ -546,21 +587,26 @@ fn plan_file(manifest: &Value, tensors: &HashMap<String, Vec<f32>>) -> Vec<u8> {
                         .iter()
                         .map(|d| d.as_u64().and_then(|d| usize::try_from(d).ok()))
                         .collect();
-                    Some((name, shape?))
+                    Some((name, shape?, t["dtype"] == "F16"))
                 })
                 .collect()
         })
         .unwrap_or_default();
-    let stored: Vec<(String, Vec<usize>, Vec<u8>)> = entries
+    let stored: Vec<_> = entries
         .into_iter()
-        .filter_map(|(name, shape)| {
+        .filter_map(|(name, shape, half)| {
             let numel = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).filter(|&n| n <= 1 << 22)?;
             let source = tensors.get(&name).filter(|d| !d.is_empty()).map_or(&[0.5f32][..], Vec::as_slice);
-            let bytes: Vec<u8> = source.iter().cycle().take(numel).flat_map(|v| v.to_le_bytes()).collect();
-            Some((name, shape, bytes))
+            let values = source.iter().cycle().take(numel);
+            let (dtype, bytes): (_, Vec<u8>) = if half {
+                (safetensors::Dtype::F16, values.flat_map(|&v| half::f16::from_f32(v).to_le_bytes()).collect())
+            } else {
+                (safetensors::Dtype::F32, values.flat_map(|v| v.to_le_bytes()).collect())
+            };
+            Some((name, shape, dtype, bytes))
         })
         .collect();
-    common::plan_file_bytes(&readi_plan::format::FORMAT_VERSION.to_string(), json, &stored)
+    common::typed_plan_file_bytes(&readi_plan::format::FORMAT_VERSION.to_string(), json, &stored)
 }
 
 /// How far a case got.

@@ -73,15 +73,26 @@ pub fn rel_path(path: &Path) -> String {
 /// stored once (its first bytes) but counted in the checksum each time, as the manifest
 /// lists it.
 pub fn plan_file_bytes(format_version: &str, json: String, tensors: &[(String, Vec<usize>, Vec<u8>)]) -> Vec<u8> {
+    let typed: Vec<_> =
+        tensors.iter().map(|(n, s, b)| (n.clone(), s.clone(), safetensors::Dtype::F32, b.clone())).collect();
+    typed_plan_file_bytes(format_version, json, &typed)
+}
+
+/// [`plan_file_bytes`] with each tensor's container type given (f16 variant tensors).
+pub fn typed_plan_file_bytes(
+    format_version: &str,
+    json: String,
+    tensors: &[(String, Vec<usize>, safetensors::Dtype, Vec<u8>)],
+) -> Vec<u8> {
     use std::collections::{HashMap, HashSet};
     let mut crc = crc32fast::Hasher::new();
     crc.update(json.as_bytes());
     let mut seen = HashSet::new();
     let mut views = Vec::new();
-    for (name, shape, bytes) in tensors {
+    for (name, shape, dtype, bytes) in tensors {
         crc.update(bytes);
         if seen.insert(name.as_str())
-            && let Ok(view) = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), bytes)
+            && let Ok(view) = safetensors::tensor::TensorView::new(*dtype, shape.clone(), bytes)
         {
             views.push((name.clone(), view));
         }
