@@ -21,6 +21,7 @@
 //!   the first run after a switch minus a steady run (p50/p99);
 //! * reloading a full model copy from disk (read + checksum), for comparison.
 
+use std::convert::Infallible;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -28,6 +29,7 @@ use std::time::Instant;
 mod common;
 
 use common::inputs;
+use readi::rounds::Rounds;
 use readi_compiler::Module;
 use readi_compiler::backend::{self, CompileOptions, LoraMode};
 use readi_compiler::passes::{self, Options};
@@ -130,42 +132,17 @@ impl Runner {
     }
 }
 
-/// Several plans timed in alternating rounds of one run each (the order reversed every other
-/// round, so that drift within a round hits them alike), after three warm-up runs each.
-/// On a shared host whose speed moves by 2x within minutes, the median of the rounds'
-/// ratios is steadier than the ratio of the medians: a round's runs are milliseconds apart.
-struct Rounds(Vec<Vec<f64>>);
-
-impl Rounds {
-    fn run(runners: &mut [(&str, Runner)], rounds: usize) -> Rounds {
-        for (_, r) in runners.iter_mut() {
-            for _ in 0..3 {
-                r.run();
-            }
+/// Several plans timed in alternating rounds ([`Rounds`]) after three warm-up runs each.
+fn alternating(runners: &mut [(&str, Runner)], rounds: usize) -> Rounds {
+    for (_, r) in runners.iter_mut() {
+        for _ in 0..3 {
+            r.run();
         }
-        let mut order: Vec<usize> = (0..runners.len()).collect();
-        let rounds = (0..rounds)
-            .map(|_| {
-                let mut t = vec![0.0; runners.len()];
-                for &i in &order {
-                    t[i] = runners[i].1.run();
-                }
-                order.reverse();
-                t
-            })
-            .collect();
-        Rounds(rounds)
     }
-
-    /// Plan `i`'s median latency, ms.
-    fn median(&self, i: usize) -> f64 {
-        median(self.0.iter().map(|t| t[i]).collect())
-    }
-
-    /// The median over the rounds of `f` of a round's times.
-    fn ratio(&self, f: impl Fn(&[f64]) -> f64) -> f64 {
-        median(self.0.iter().map(|t| f(t)).collect())
-    }
+    let mut timers: Vec<_> = runners.iter_mut().map(|(_, r)| move || Ok::<_, Infallible>(r.run())).collect();
+    let mut timers: Vec<&mut dyn FnMut() -> Result<f64, Infallible>> = timers.iter_mut().map(|t| t as _).collect();
+    let Ok(rounds) = Rounds::run(&mut timers, rounds);
+    rounds
 }
 
 /// Latency of a variant against the base plan: LoRA merged, as a branch, and without the
@@ -189,7 +166,7 @@ fn adaptation_cost(
     for (_, r) in &mut runners[1..] {
         r.session.set_variant(&key).expect("key");
     }
-    let t = Rounds::run(&mut runners, rounds);
+    let t = alternating(&mut runners, rounds);
     for (i, (name, _)) in runners.iter().enumerate() {
         println!("{name:<28} {:7.2} ms  {:+6.1}% vs base", t.median(i), 100.0 * (t.ratio(|r| r[i] / r[0]) - 1.0));
     }
@@ -245,7 +222,7 @@ fn merge_on_switch(m: &Module, base: &Arc<Plan>, variants: usize, rounds: usize,
     plan_size("merge on switch", &p);
     let mut runners = vec![("base", Runner::new(base.clone())), ("variant", Runner::new(p.clone()))];
     runners[1].1.session.set_variant(p.variant_key(1)).expect("key");
-    let t = Rounds::run(&mut runners, rounds);
+    let t = alternating(&mut runners, rounds);
     let ratio = t.ratio(|r| r[1] / r[0]);
     println!("  variant {:.2} ms against the base plan {:.2} ms: ratio {ratio:.3}", t.median(1), t.median(0));
 
@@ -427,7 +404,7 @@ fn main() {
     for (k, r) in &mut runners {
         r.session.set_variant(k).expect("key");
     }
-    let t = Rounds::run(&mut runners, rounds);
+    let t = alternating(&mut runners, rounds);
     println!(
         "melded variant {meld}: {:.2} ms against its parts {:.2} ms and {:.2} ms (ratio to the slower part {:.3})",
         t.median(2),
@@ -454,7 +431,7 @@ fn main() {
         plan_size(name, &p);
         let mut runners = vec![("base", Runner::new(base.clone())), ("variant", Runner::new(p.clone()))];
         runners[1].1.session.set_variant(p.variant_key(1)).expect("key");
-        let t = Rounds::run(&mut runners, rounds);
+        let t = alternating(&mut runners, rounds);
         let ratio = t.ratio(|r| r[1] / r[0]);
         println!(
             "  variant ({name}) {:.2} ms against the base plan {:.2} ms: ratio {ratio:.3}",

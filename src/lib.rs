@@ -2,4 +2,5 @@
 //! The compiler and the runtime are the `readi-compiler` and `readi-runtime` crates.
 
 pub mod inspect;
+pub mod rounds;
 pub mod simulate;

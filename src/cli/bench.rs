@@ -4,6 +4,7 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::Instant;
 
+use readi::rounds::{Rounds, median};
 use readi_compiler::print::thousands;
 use readi_runtime::exec::{Input, Session, SessionOptions};
 use readi_runtime::plan::{BASE_VARIANT, Plan, escaped};
@@ -148,8 +149,8 @@ pub fn run(
 }
 
 /// `--against`: `session` and `other` (the same plan under another variant) in `runs`
-/// alternating rounds, one run of each, the order reversed every round so that a drift
-/// within a round hits both alike; prints the median of the rounds' ratios and their range.
+/// alternating rounds ([`Rounds`]); prints the median of the rounds' ratios and their
+/// range.
 fn alternating(
     session: &mut Session,
     other: &mut Session,
@@ -160,34 +161,21 @@ fn alternating(
     for _ in 0..warmup {
         other.run(given).map_err(|e| e.to_string())?;
     }
-    let time = |s: &mut Session| -> Result<f64, String> {
+    let timer = |s: &mut Session| -> Result<f64, String> {
         let t = Instant::now();
         s.run(given).map_err(|e| e.to_string())?;
         Ok(t.elapsed().as_secs_f64() * 1e3)
     };
-    let (mut mine, mut theirs, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
-    for round in 0..runs {
-        let (a, b) = if round % 2 == 0 {
-            let a = time(session)?;
-            (a, time(other)?)
-        } else {
-            let b = time(other)?;
-            (time(session)?, b)
-        };
-        mine.push(a);
-        theirs.push(b);
-        ratios.push(a / b);
-    }
-    for v in [&mut mine, &mut theirs, &mut ratios] {
-        v.sort_by(f64::total_cmp);
-    }
+    let (mut mine, mut theirs) = (|| timer(&mut *session), || timer(&mut *other));
+    let rounds = Rounds::run(&mut [&mut mine, &mut theirs], runs)?;
+    let ratios = rounds.sorted(|t| t[0] / t[1]);
     println!(
         "{} against {}, {runs} alternating rounds: median {:.2} ms against {:.2} ms, ratio {:.3} (the median of the rounds' ratios; rounds {:.3} to {:.3})",
         session.variant(),
         other.variant(),
-        percentile(&mine, 0.5),
-        percentile(&theirs, 0.5),
-        percentile(&ratios, 0.5),
+        rounds.median(0),
+        rounds.median(1),
+        median(&ratios),
         ratios.first().copied().unwrap_or(0.0),
         ratios.last().copied().unwrap_or(0.0)
     );

@@ -267,7 +267,7 @@ pub(crate) fn strided_rows_product<S: pulp::Simd, const MR: usize, const NV: usi
 
 /// `c = a · b` for a few rows of `a` (a LoRA branch's `A`, rank rows), reading `b` in
 /// place, rows `b.row_stride` apart and columns contiguous: [`strided_rows_product`]
-/// register tiles of up to 4 rows by two vectors of columns. Through [`sgemm`] the `gemm`
+/// register tiles of up to 4 rows by 4 vectors of columns. Through [`sgemm`] the `gemm`
 /// crate packs all of `b` for a handful of rows: a rank-4 branch on ResNet-18's layer4
 /// (4608 x 49 unfolded rows) cost as much as packing the tile for the conv itself.
 /// Columns past the last whole vector read a vector across the row's end into the next
