@@ -150,7 +150,8 @@ fn main() {
     }
 
     // Conv layers of ResNet-18 (224x224, batch 1) with the chosen algorithm.
-    let layers: [(&str, usize, usize, usize, usize, usize, usize); 8] = [
+    // Then MobileNetV2's and EfficientNet-B0's depthwise layers (strided, small planes).
+    let layers: [(&str, usize, usize, usize, usize, usize, usize); 15] = [
         ("conv1_7x7s2_3_64", 3, 224, 64, 7, 2, 3),
         ("l1_3x3_64", 64, 56, 64, 3, 1, 1),
         ("l2_3x3s2_64_128", 64, 56, 128, 3, 2, 1),
@@ -159,6 +160,13 @@ fn main() {
         ("l4_3x3_512", 512, 7, 512, 3, 1, 1),
         ("ds_1x1s2_64_128", 64, 56, 128, 1, 2, 0),
         ("dw_3x3_64", 64, 56, 64, 3, 1, 1),
+        ("dw_3x3s2_96@112", 96, 112, 96, 3, 2, 1),
+        ("dw_3x3s2_144@56", 144, 56, 144, 3, 2, 1),
+        ("dw_3x3s2_192@28", 192, 28, 192, 3, 2, 1),
+        ("dw_3x3s2_576@14", 576, 14, 576, 3, 2, 1),
+        ("dw_3x3_960@7", 960, 7, 960, 3, 1, 1),
+        ("dw_5x5s2_144@56", 144, 56, 144, 5, 2, 2),
+        ("dw_5x5s2_672@14", 672, 14, 672, 5, 2, 2),
     ];
     for (name, cin, hw, cout, k, stride, pad) in layers {
         let groups = if name.starts_with("dw") { cin } else { 1 };

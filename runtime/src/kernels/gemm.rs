@@ -1,7 +1,8 @@
 //! Single-precision matrix product, a checked safe wrapper over the `gemm` crate.
 //!
-//! This is the one module of the runtime kernels allowed `unsafe`: the `gemm` crate takes
-//! raw pointers and strides. [`sgemm`] first proves, with explicit checks, that every
+//! This is the one module of the runtime kernels allowed `unsafe` throughout (elsewhere one
+//! statement is: the depthwise register block's vector read, `conv/depthwise.rs`, after a
+//! bound check per block): the `gemm` crate takes raw pointers and strides. [`sgemm`] first proves, with explicit checks, that every
 //! element the product can touch lies inside its slice and that no two destination
 //! elements share memory; only then does it call the crate.
 //!
