@@ -4,6 +4,7 @@
 use std::hint::black_box;
 use std::time::Instant;
 
+use readi_plan::ops::Activation;
 use readi_runtime::kernels::conv::{self, Conv2dShape};
 use readi_runtime::kernels::pool::{Pool2dShape, PoolKind, pool2d};
 use readi_runtime::kernels::resize::{ResizeMode, upsample};
@@ -68,6 +69,12 @@ fn main() {
     time("binary mul [1,64,56,56]x[1,64,1,1]", f, |_| {
         elementwise::binary(BinaryOp::Mul, &a, &[1, 64, 56, 56], &b, &[1, 64, 1, 1], &mut out, &[1, 64, 56, 56])
     });
+    // Activations over EfficientNet-B0's first expansion [96, 112, 112].
+    let a = data(96 * 112 * 112, 7);
+    let mut out = vec![0.0; a.len()];
+    for act in [Activation::Silu, Activation::Sigmoid, Activation::Relu6] {
+        time(&format!("{act:?} [96,112,112]"), f, |_| elementwise::activation(act, &a, &mut out));
+    }
     let a = data(6 * 196 * 196, 7);
     let mut out = vec![0.0; a.len()];
     time("scalar mul [6,196,196]", f, |_| elementwise::scalar(BinaryOp::Mul, &a, 0.125, false, &mut out));
@@ -151,7 +158,7 @@ fn main() {
 
     // Conv layers of ResNet-18 (224x224, batch 1) with the chosen algorithm.
     // Then MobileNetV2's and EfficientNet-B0's depthwise layers (strided, small planes).
-    let layers: [(&str, usize, usize, usize, usize, usize, usize); 15] = [
+    let layers: [(&str, usize, usize, usize, usize, usize, usize); 17] = [
         ("conv1_7x7s2_3_64", 3, 224, 64, 7, 2, 3),
         ("l1_3x3_64", 64, 56, 64, 3, 1, 1),
         ("l2_3x3s2_64_128", 64, 56, 128, 3, 2, 1),
@@ -167,6 +174,9 @@ fn main() {
         ("dw_3x3_960@7", 960, 7, 960, 3, 1, 1),
         ("dw_5x5s2_144@56", 144, 56, 144, 5, 2, 2),
         ("dw_5x5s2_672@14", 672, 14, 672, 5, 2, 2),
+        // MobileNetV3's squeeze-and-excitation convs: 1x1 on a 1x1 plane.
+        ("se_fc1_960_240@1", 960, 1, 240, 1, 1, 0),
+        ("se_fc2_240_960@1", 240, 1, 960, 1, 1, 0),
     ];
     for (name, cin, hw, cout, k, stride, pad) in layers {
         let groups = if name.starts_with("dw") { cin } else { 1 };

@@ -121,8 +121,8 @@ simd_fn! {
 /// errors against f64 over [-12, 12] and every binade of f32, as
 /// `unary_functions_within_a_few_ulp` measures them (one f32 ulp is 6e-8 to 1.2e-7):
 /// `exp` 9.5e-8 (0 below -87, where e^x < 1.7e-38), `log` 7.7e-8, `erf` 2.6e-7, `tanh`
-/// 2.3e-7, `elu` 9.6e-8, `sqrt` 5.9e-8, `rsqrt` 8.9e-8, `hardswish` 1.4e-7, `hardsigmoid`
-/// 8.9e-8; `abs`, `neg`, `relu6` and `clamp` are exact.
+/// 2.3e-7, `sigmoid` 1.9e-7, `silu` 2.3e-7, `elu` 9.6e-8, `sqrt` 5.9e-8, `rsqrt` 8.9e-8,
+/// `hardswish` 1.4e-7, `hardsigmoid` 8.9e-8; `abs`, `neg`, `relu6` and `clamp` are exact.
 pub fn activation(act: Activation, x: &[f32], out: &mut [f32]) {
     assert_eq!(x.len(), out.len(), "activation: x and out differ in length");
     par_ranges(out, |start, o| map_chunk(act, &x[start..start + o.len()], o));
@@ -1104,6 +1104,8 @@ mod tests {
             (Activation::Neg, 0.0),
             (Activation::Erf, 3.0e-7),
             (Activation::Tanh, 2.5e-7),
+            (Activation::Sigmoid, 2.5e-7),
+            (Activation::Silu, 3.0e-7),
             (Activation::Elu { alpha: 1.0 }, 1.5e-7),
             (Activation::Relu6, 0.0),
             (Activation::Clamp { min: Some(-0.25), max: Some(2.0) }, 0.0),
