@@ -4,12 +4,14 @@
 //! of the pairs' differences, and the adapter's multiply-adds per second at that median.
 //! `cargo run --release -p readi-runtime --example adapter_cost [filter]`.
 use std::hint::black_box;
-use std::time::Instant;
 
 use readi_plan::ops::Activation;
 use readi_runtime::kernels::Epilogue;
 use readi_runtime::kernels::conv::{self, Adapter, Conv2dShape, ConvAlgo};
 use readi_runtime::testdata::data;
+
+#[path = "common/paired.rs"]
+mod paired;
 
 /// A layer: name, its shape, and the algorithm the ResNet-18 plan gives it.
 struct Layer(&'static str, Conv2dShape, ConvAlgo);
@@ -43,38 +45,12 @@ fn main() {
         for threads in [1, 2] {
             let need = conv::adapter_scratch_len(&s, algo, 0, mid, threads).expect("a size");
             let mut scratch = vec![0.0; need];
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
-            let (mut base, mut with) = (Vec::new(), Vec::new());
-            pool.install(|| {
-                for i in 0..2000 {
-                    let adapter = (i % 2 == 1).then_some(&ad);
-                    let t = Instant::now();
-                    conv::conv2d_fused(
-                        &s,
-                        algo,
-                        &w,
-                        None,
-                        adapter,
-                        &ep,
-                        &x,
-                        Some(&res),
-                        &mut out,
-                        &mut scratch,
-                        threads,
-                    );
-                    black_box(&out);
-                    let us = t.elapsed().as_secs_f64() * 1e6;
-                    // After a warm-up of 100 pairs.
-                    if i >= 200 {
-                        if adapter.is_some() { with.push(us) } else { base.push(us) }
-                    }
-                }
+            let (added, ratio) = paired::with_and_without(threads, |on| {
+                let adapter = on.then_some(&ad);
+                let res = Some(&res[..]);
+                conv::conv2d_fused(&s, algo, &w, None, adapter, &ep, &x, res, &mut out, &mut scratch, threads);
+                black_box(&out);
             });
-            let mut added: Vec<f64> = with.iter().zip(&base).map(|(w, b)| w - b).collect();
-            let mut ratio: Vec<f64> = with.iter().zip(&base).map(|(w, b)| w / b).collect();
-            added.sort_by(f64::total_cmp);
-            ratio.sort_by(f64::total_cmp);
-            let (added, ratio) = (added[added.len() / 2], ratio[ratio.len() / 2]);
             let gfma = macs / added * 1e-3;
             line += &format!("  {threads}T +{added:5.1} us ({ratio:.3}x, {gfma:4.1} GFMA/s)");
         }

@@ -3,11 +3,13 @@
 //! and without its branch in alternating calls, the median of the pairs' differences.
 //! `cargo run --release -p readi-runtime --example lora_cost [filter]`.
 use std::hint::black_box;
-use std::time::Instant;
 
 use readi_runtime::kernels::conv::{self, Conv2dShape, ConvAlgo};
 use readi_runtime::kernels::{Epilogue, Lora};
 use readi_runtime::testdata::data;
+
+#[path = "common/paired.rs"]
+mod paired;
 
 /// A layer: name, its shape, and the algorithm the ResNet-18 plan gives it.
 struct Layer(&'static str, Conv2dShape, ConvAlgo);
@@ -40,26 +42,11 @@ fn main() {
         let mut scratch = vec![0.0; conv::lora_scratch_len(&s, algo, rank, 2)];
         let mut line = format!("{name:26}");
         for threads in [1, 2] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
-            let (mut base, mut with) = (Vec::new(), Vec::new());
-            pool.install(|| {
-                for i in 0..2000 {
-                    let branch = (i % 2 == 1).then_some(&lora);
-                    let t = Instant::now();
-                    conv::conv2d_lora(&s, algo, &w, branch, &ep, &x, &mut out, &mut scratch, threads);
-                    black_box(&out);
-                    let us = t.elapsed().as_secs_f64() * 1e6;
-                    // After a warm-up of 100 pairs.
-                    if i >= 200 {
-                        if branch.is_some() { with.push(us) } else { base.push(us) }
-                    }
-                }
+            let (added, ratio) = paired::with_and_without(threads, |on| {
+                let branch = on.then_some(&lora);
+                conv::conv2d_lora(&s, algo, &w, branch, &ep, &x, &mut out, &mut scratch, threads);
+                black_box(&out);
             });
-            let mut added: Vec<f64> = with.iter().zip(&base).map(|(w, b)| w - b).collect();
-            let mut ratio: Vec<f64> = with.iter().zip(&base).map(|(w, b)| w / b).collect();
-            added.sort_by(f64::total_cmp);
-            ratio.sort_by(f64::total_cmp);
-            let (added, ratio) = (added[added.len() / 2], ratio[ratio.len() / 2]);
             line += &format!("  {threads}T +{added:5.1} us ({ratio:.3}x)");
         }
         println!("{line}");
