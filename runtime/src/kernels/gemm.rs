@@ -194,6 +194,19 @@ pub(crate) fn prefetch(v: &f32) {
     let _ = v;
 }
 
+/// [`prefetch`] into the L2 cache only: for streams read from farther away (L3, memory),
+/// where the L1 cache's few outstanding misses would bound the rate.
+#[inline(always)]
+pub(crate) fn prefetch_l2(v: &f32) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: as in `prefetch`.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T1 }>((v as *const f32).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = v;
+}
+
 /// The `MR x NV`-vector sums of the rows `a` (each `depth = a[0].len()` long) times the
 /// first `depth` rows of `b` (each at least `NV` vectors), in registers: per step `i`,
 /// `a[r][i]` broadcast and multiplied into row `i` of `b`, for every `r`. `b` comes one

@@ -670,6 +670,15 @@ fn pad_phases(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [
 /// at the same pixels (when the conv adds one).
 #[inline(always)]
 fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f32]>) {
+    let dst = &mut dst[..acc.len()];
+    affine(dst, acc, c, ep, res);
+    ep.finish_act(dst);
+}
+
+/// [`finish`] but for an activation other than a ReLU: `acc · scale[c] + shift[c] + res`
+/// into `dst`, then the ReLU if the epilogue has one.
+#[inline(always)]
+fn affine(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f32]>) {
     let scale = ep.scale.map_or(1.0, |v| v[c]);
     let shift = ep.shift.map_or(0.0, |v| v[c]);
     let dst = &mut dst[..acc.len()];
@@ -689,7 +698,6 @@ fn finish(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
             (false, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a + shift),
         }
     }
-    ep.finish_act(dst);
 }
 
 /// `src` into the start of `dst`, the rest of `dst` zero: a tail tile's row, padded

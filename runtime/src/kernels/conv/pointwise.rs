@@ -16,8 +16,8 @@
 #[cfg(test)]
 use super::ConvAlgo;
 use super::split::Part;
-use super::{Conv2dShape, clamp_vector, finish, pad_row};
-use crate::kernels::gemm::{prefetch, strided_rows_product};
+use super::{Conv2dShape, affine, clamp_vector, finish, pad_row};
+use crate::kernels::gemm::{prefetch, prefetch_l2, strided_rows_product};
 use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer runs here rather than through the `gemm` crate: one group,
@@ -80,6 +80,13 @@ pub(super) fn scratch_len(depth: usize) -> usize {
 /// zero-padded vector: a 7x7 plane is three AVX-512 vectors and one pixel, which padded
 /// costs a third more than the rest.
 const DOTS: usize = 4;
+
+/// Channels whose weight rows [`Image::dots`] multiplies at a time: eight sums in flight,
+/// enough to cover the multiply-add's latency on two units.
+const DOT_ROWS: usize = 8;
+
+/// Channels [`Image::dots`] finishes together.
+const DOT_BLOCK: usize = 64;
 
 /// The conv of one part (its output channels of its rows) into the part's planes, image
 /// by image.
@@ -301,8 +308,12 @@ impl Image<'_> {
     }
 
     /// Pixels `p..end` (a few) of channels `chans` as dot products: each pixel's input
-    /// column copied out contiguous, then for 4 channels at a time (4 sums in flight) the
-    /// weight rows times the columns, in vectors of input channels.
+    /// column copied out contiguous, then for [`DOT_ROWS`] channels at a time (as many sums
+    /// in flight) the weight rows times the columns, in vectors of input channels. The sums
+    /// of a block of [`DOT_BLOCK`] channels are finished together: the affine per channel,
+    /// then an activation other than a ReLU in one pass over the block (a 1x1 plane, a
+    /// squeeze-and-excitation conv's, is one pixel a channel: a call per channel cost as
+    /// much as its weight row's multiplies).
     #[inline(always)]
     fn dots<S: pulp::Simd>(
         self,
@@ -313,39 +324,57 @@ impl Image<'_> {
         end: usize,
         scratch: &mut [f32],
     ) {
-        const G: usize = 4;
+        const G: usize = DOT_ROWS;
         let (cin, plane, r) = (self.depth, self.stride, end - p);
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let cols = &mut scratch[..r * cin];
         for (j, col) in cols.chunks_exact_mut(cin).enumerate() {
             col.iter_mut().enumerate().for_each(|(ci, v)| *v = self.x[ci * plane + p + j]);
         }
         let off = self.first + p - self.p_lo;
-        let mut sums = [0.0f32; DOTS * G];
-        let mut c = chans.start;
-        while c < chans.end {
-            let g = (chans.end - c).min(G);
-            let rows: [&[f32]; G] = std::array::from_fn(|k| &self.w[(c + k.min(g - 1)) * cin..][..cin]);
-            for (j, col) in cols.chunks_exact(cin).enumerate() {
-                let (cv, ct) = S::as_simd_f32s(col);
-                let mut acc = [simd.splat_f32s(0.0); G];
-                let heads: [&[S::f32s]; G] = rows.map(|row| S::as_simd_f32s(row).0);
-                for (i, &x) in cv.iter().enumerate() {
-                    for k in 0..G {
-                        acc[k] = simd.mul_add_f32s(heads[k][i], x, acc[k]);
+        // Channel-major within a block: `sums[(c - b0) * r + j]`.
+        let mut sums = [0.0f32; DOT_BLOCK * DOTS];
+        let mut vals = [0.0f32; DOT_BLOCK * DOTS];
+        for b0 in chans.clone().step_by(DOT_BLOCK) {
+            let b1 = chans.end.min(b0 + DOT_BLOCK);
+            let mut c = b0;
+            while c < b1 {
+                let g = (b1 - c).min(G);
+                let rows: [&[f32]; G] = std::array::from_fn(|k| &self.w[(c + k.min(g - 1)) * cin..][..cin]);
+                // The next group's rows, fetched into L2 while this one's are multiplied
+                // (a line per row and step, as the first pixel reads them): a squeeze-
+                // and-excitation conv's weight comes from L3 or memory, once per image,
+                // faster when asked for ahead.
+                let ahead = self.w.get((c + g) * cin..(c + g + G) * cin).unwrap_or(&[]);
+                for (j, col) in cols.chunks_exact(cin).enumerate() {
+                    let (cv, ct) = S::as_simd_f32s(col);
+                    let mut acc = [simd.splat_f32s(0.0); G];
+                    let heads: [&[S::f32s]; G] = rows.map(|row| S::as_simd_f32s(row).0);
+                    for (i, &x) in cv.iter().enumerate() {
+                        if j == 0 && !ahead.is_empty() {
+                            (0..G).for_each(|k| prefetch_l2(&ahead[(i * G + k) * lanes]));
+                        }
+                        for k in 0..G {
+                            acc[k] = simd.mul_add_f32s(heads[k][i], x, acc[k]);
+                        }
+                    }
+                    for k in 0..g {
+                        let tail = &rows[k][cin - ct.len()..];
+                        let t: f32 = tail.iter().zip(ct).map(|(a, b)| a * b).sum();
+                        sums[(c - b0 + k) * r + j] = simd.reduce_sum_f32s(acc[k]) + t;
                     }
                 }
-                for k in 0..G {
-                    let tail = &rows[k][cin - ct.len()..];
-                    let t: f32 = tail.iter().zip(ct).map(|(a, b)| a * b).sum();
-                    sums[k * DOTS + j] = simd.reduce_sum_f32s(acc[k]) + t;
-                }
+                c += g;
             }
-            for k in 0..g {
-                let res = part.residual(self.n, c + k).map(|q| &q[off..]);
-                let dst = &mut part.plane(self.n, c + k)[off..off + r];
-                finish(dst, &sums[k * DOTS..][..r], c + k, self.ep, res);
+            let block = &mut vals[..(b1 - b0) * r];
+            for (k, (v, s)) in block.chunks_exact_mut(r).zip(sums.chunks_exact(r)).enumerate() {
+                let res = part.residual(self.n, b0 + k).map(|q| &q[off..]);
+                affine(v, s, b0 + k, self.ep, res);
             }
-            c += g;
+            self.ep.finish_act(block);
+            for (k, v) in block.chunks_exact(r).enumerate() {
+                part.plane(self.n, b0 + k)[off..off + r].copy_from_slice(v);
+            }
         }
     }
 

@@ -573,7 +573,8 @@ fn check_residual(s: &Conv2dShape, algo: ConvAlgo, acts: &[Option<Activation>]) 
 /// 1x1 layers of small planes take the register path (`pointwise.rs`): planes that end
 /// in whole tiles, in narrower tiles, in a few pixels (dot products) or in part of a
 /// vector (zero-padded); channel counts that leave micro-tile tails; input channels that
-/// leave vector tails (the dot products); batches split across images and by channels;
+/// leave vector tails (the dot products) and blocks of its epilogue; batches split
+/// across images and by channels;
 /// with and without a residual, before each kind of activation.
 #[test]
 fn pointwise_tails_batches_and_residuals() {
@@ -586,6 +587,10 @@ fn pointwise_tails_batches_and_residuals() {
         (1, 19, (16, 16), 8),
         (2, 33, (9, 10), 1),
         (1, 70, (3, 3), 64),
+        // Dot products over more channels than a block of the epilogue, in groups
+        // that leave tails: a squeeze-and-excitation conv's 1x1 plane, a 2x2 one.
+        (2, 40, (1, 1), 150),
+        (1, 37, (2, 2), 70),
     ];
     for (n, cin, hw, cout) in cases {
         let s = shape(n, cin, hw, cout, (1, 1), (1, 1), (0, 0), (1, 1), 1);
