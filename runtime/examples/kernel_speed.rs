@@ -158,7 +158,7 @@ fn main() {
 
     // Conv layers of ResNet-18 (224x224, batch 1) with the chosen algorithm.
     // Then MobileNetV2's and EfficientNet-B0's depthwise layers (strided, small planes).
-    let layers: [(&str, usize, usize, usize, usize, usize, usize); 17] = [
+    let layers: [(&str, usize, usize, usize, usize, usize, usize); 20] = [
         ("conv1_7x7s2_3_64", 3, 224, 64, 7, 2, 3),
         ("l1_3x3_64", 64, 56, 64, 3, 1, 1),
         ("l2_3x3s2_64_128", 64, 56, 128, 3, 2, 1),
@@ -174,6 +174,10 @@ fn main() {
         ("dw_3x3_960@7", 960, 7, 960, 3, 1, 1),
         ("dw_5x5s2_144@56", 144, 56, 144, 5, 2, 2),
         ("dw_5x5s2_672@14", 672, 14, 672, 5, 2, 2),
+        // EfficientNet-B0's stride-1 5x5 and 3x3 layers on small planes.
+        ("dw_5x5_480@14", 480, 14, 480, 5, 1, 2),
+        ("dw_5x5_1152@7", 1152, 7, 1152, 5, 1, 2),
+        ("dw_3x3_1152@7", 1152, 7, 1152, 3, 1, 1),
         // MobileNetV3's squeeze-and-excitation convs: 1x1 on a 1x1 plane.
         ("se_fc1_960_240@1", 960, 1, 240, 1, 1, 0),
         ("se_fc2_240_960@1", 240, 1, 960, 1, 1, 0),

@@ -2,9 +2,13 @@
 //! direct loop per output plane with the epilogue, parallel over groups of planes; no
 //! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
 //! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
-//! in SIMD registers (`Registers`); the rest through the loops of `depthwise_acc`.
+//! in SIMD registers (`Registers`), by rows, or at stride 1 on planes with rows of at
+//! most 8 pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
+//! `depthwise_acc`.
 
 use rayon::prelude::*;
+
+mod flat;
 
 use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
@@ -19,9 +23,12 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     // padded copy) is shared by them (MobileNetV2's 7x7 planes took about as long to set
     // up as to compute), and at least four tasks per thread.
     let per = (s.n * s.cout / (4 * threads.max(1))).clamp(1, 64);
+    let flat = flat::applies(s);
     let registers = Registers::applies(s);
     let group = |(i, dst): (usize, &mut [f32])| {
-        if registers {
+        if flat {
+            pulp::Arch::new().dispatch(flat::Flat { s, w, x, ep, first: i * per, dst });
+        } else if registers {
             pulp::Arch::new().dispatch(Registers { s, w, x, ep, first: i * per, dst });
         } else {
             for (j, dst) in dst.chunks_mut(plane).enumerate() {
@@ -37,8 +44,15 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     }
 }
 
+/// Whether a layer takes the flat path (`flat.rs`), for the tests.
+#[cfg(test)]
+pub(super) fn flat_applies(s: &Conv2dShape) -> bool {
+    flat::applies(s)
+}
+
 /// Output plane `idx` (image `idx / cout`, channel `idx % cout`): its input plane, its
 /// kernel and its channel.
+#[inline(always)]
 fn plane_operands<'a>(s: &Conv2dShape, w: &'a [f32], x: &'a [f32], idx: usize) -> (&'a [f32], &'a [f32], usize) {
     let (n, c) = (idx / s.cout, idx % s.cout);
     let g = c / s.cout_g();

@@ -57,7 +57,8 @@
 //! paths (Gemm1x1, Im2col), `pointwise.rs` the register tiles of small planes,
 //! `direct.rs` the direct conv an im2col layer with few input channels per group (a stem,
 //! RegNet's grouped convs) runs instead, `winograd.rs` Winograd, `depthwise.rs` the direct
-//! loop, and `tests.rs` the tests of every algorithm against one reference.
+//! loop (`depthwise/flat.rs` its 7x7 planes), and `tests.rs` the tests of every algorithm
+//! against one reference.
 
 use rayon::prelude::*;
 

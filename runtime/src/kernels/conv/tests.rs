@@ -127,6 +127,30 @@ fn depthwise() {
     check_all(&shape(1, 4, (10, 10), 4, (5, 5), (2, 2), (2, 2), (2, 2), 4));
 }
 
+/// Stride-1 "same" layers of planes with rows of at most 8 pixels take the flat path
+/// (`depthwise/flat.rs`): 7x7 planes with 3x3, 5x5 and 7x7 kernels (a plane's last
+/// vector partly outside it), a kernel larger than the plane, a channel multiplier, a
+/// plane of a few pixels, batches and more planes than one thread's task.
+#[test]
+fn depthwise_flat_small_planes() {
+    let cases = [
+        shape(2, 5, (7, 7), 5, (3, 3), (1, 1), (1, 1), (1, 1), 5),
+        shape(1, 3, (7, 7), 6, (5, 5), (1, 1), (2, 2), (1, 1), 3),
+        shape(1, 4, (7, 7), 4, (7, 7), (1, 1), (3, 3), (1, 1), 4),
+        shape(1, 2, (3, 5), 2, (7, 5), (1, 1), (3, 2), (1, 1), 2),
+        shape(3, 40, (4, 4), 40, (3, 3), (1, 1), (1, 1), (1, 1), 40),
+        shape(1, 300, (6, 8), 300, (3, 3), (1, 1), (1, 1), (1, 1), 300),
+    ];
+    for s in &cases {
+        assert!(depthwise::flat_applies(s), "{s:?} takes the flat path");
+        check(s, ConvAlgo::Depthwise);
+    }
+    // Not: rows of more than 8, stride 2, an output smaller than the input.
+    assert!(!depthwise::flat_applies(&shape(1, 2, (14, 14), 2, (3, 3), (1, 1), (1, 1), (1, 1), 2)));
+    assert!(!depthwise::flat_applies(&shape(1, 2, (7, 7), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2)));
+    assert!(!depthwise::flat_applies(&shape(1, 2, (7, 7), 2, (3, 3), (1, 1), (0, 0), (1, 1), 2)));
+}
+
 /// Rows wide enough for the depthwise kernel's register-blocked interior, at each stride
 /// it has a copy for, with its remainder and borders: MobileNet's 3x3 (stride 1 and 2),
 /// EfficientNet's 5x5 stride 2, ConvNeXt's 7x7, a dilated kernel, a channel multiplier,
