@@ -162,6 +162,10 @@ fn depthwise_wide_rows() {
     check(&shape(1, 2, (9, 70), 2, (5, 5), (2, 2), (2, 2), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (8, 41), 2, (7, 7), (1, 1), (3, 3), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (9, 50), 2, (3, 3), (1, 1), (2, 2), (2, 2), 2), ConvAlgo::Depthwise);
+    // Seven output rows: a block of four, then the last four again (narrow rows stored
+    // a vector wide, and rows of two vectors).
+    check(&shape(1, 2, (14, 14), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(2, 3, (7, 20), 3, (5, 5), (1, 1), (2, 2), (1, 1), 3), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 33), 6, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 34), 2, (3, 3), (1, 1), (0, 0), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 52), 2, (3, 3), (3, 3), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
