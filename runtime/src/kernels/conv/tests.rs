@@ -166,6 +166,10 @@ fn depthwise_wide_rows() {
     // a vector wide, and rows of two vectors).
     check(&shape(1, 2, (14, 14), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(2, 3, (7, 20), 3, (5, 5), (1, 1), (2, 2), (1, 1), 3), ConvAlgo::Depthwise);
+    // Blocks of eight rows (5x5 and 7x7 at stride 1, 16 rows or more), then of four,
+    // then the rest.
+    check(&shape(1, 2, (19, 18), 2, (5, 5), (1, 1), (2, 2), (1, 1), 2), ConvAlgo::Depthwise);
+    check(&shape(1, 2, (16, 33), 2, (7, 7), (1, 1), (3, 3), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 33), 6, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 34), 2, (3, 3), (1, 1), (0, 0), (1, 1), 2), ConvAlgo::Depthwise);
     check(&shape(1, 2, (4, 52), 2, (3, 3), (3, 3), (1, 1), (1, 1), 2), ConvAlgo::Depthwise);
