@@ -88,7 +88,7 @@ impl pulp::WithSimd for Flat<'_> {
             let (xc, k, c) = plane_operands(s, w, x, first + j);
             copy[border..border + plane].copy_from_slice(xc);
             let g = Plane {
-                raw: copy,
+                copy,
                 valid,
                 k,
                 s,
@@ -119,7 +119,7 @@ impl pulp::WithSimd for Flat<'_> {
 /// What every tile of one plane reads.
 struct Plane<'a, V> {
     /// The plane with its zero border.
-    raw: &'a [f32],
+    copy: &'a [f32],
     /// Per kernel column, which output pixels take its taps (1) or not (0).
     valid: &'a [f32],
     /// The plane's taps, `kh x kw`.
@@ -148,7 +148,7 @@ impl<V: Copy> Plane<'_, V> {
                 let tap = simd.splat_f32s(self.k[ky * s.kw + kx]);
                 // Output pixel `p` reads position `p + ky w + kx` of the copy (its border
                 // is `pad_h` rows and `pad_w` pixels).
-                let from = &self.raw[v0 * lanes + ky * wd + kx..];
+                let from = &self.copy[v0 * lanes + ky * wd + kx..];
                 for (r, a) in acc.iter_mut().enumerate() {
                     let xv = vec(&from[r * lanes..]);
                     *a = simd.select_f32s(masks[r], simd.mul_add_f32s(xv, tap, *a), *a);
