@@ -232,7 +232,8 @@ pub fn variant_tables(m: &Manifest) -> String {
 
 /// A kernel's choices for listings, in the order it applies them: `[winograd4 scale shift
 /// relu]` for a conv (its algorithm and what its epilogue applies), `[shift relu]` for a
-/// linear or channel affine; nothing for other kernels. A fused LoRA branch shows as
+/// linear or channel affine; nothing for other kernels. A conv that scales its input's
+/// channels (its last input) starts with `channel_scale`. A fused LoRA branch shows as
 /// `lora(rank=4)` (added before the epilogue), a fused residual adapter as
 /// `adapter(mid=16, act=relu)` (between the shift and the activation), a residual input
 /// (the step's second) as `+residual` (after those, before the activation). A conv merged on
@@ -243,7 +244,10 @@ pub fn kernel_detail(k: &Kernel) -> String {
     let Some(ep) = k.epilogue() else { return String::new() };
     let mut parts: Vec<String> = Vec::new();
     let mut switch = false;
-    if let Kernel::Conv2d { algo, switch: s, .. } = k {
+    if let Kernel::Conv2d { algo, switch: s, channel_scale, .. } = k {
+        if *channel_scale {
+            parts.push("channel_scale".into());
+        }
         parts.push(algo.to_string());
         switch = *s;
     }

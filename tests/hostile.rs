@@ -476,6 +476,7 @@ fn a_conv_kernel_larger_than_its_padded_input_is_refused() {
         switch: false,
         adapter: None,
         residual: false,
+        channel_scale: false,
     };
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], kernel, &[None, Some(1), Some(1), Some(1)], &[("w", vec![25])]);
@@ -915,6 +916,7 @@ fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
         switch: false,
         adapter: None,
         residual: true,
+        channel_scale: false,
     };
     // Flagged as adding a residual, but with one input.
     let plan =
@@ -927,4 +929,33 @@ fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
     plan.0.steps[0].inputs = vec![0, 0];
     let err = run_refused(&dir, "shape.plan", plan, &[1, 1, 3, 3]);
     assert!(err.contains("residual input has shape [N, 1, 3, 3], not its output's [N, 2, 3, 3]"), "{err}");
+}
+
+#[test]
+fn a_conv_channel_scale_that_is_missing_or_misshapen_is_refused() {
+    use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
+    use readi_runtime::plan::Kernel;
+    let dir = temp_dir("channel_scale");
+    let window = Window2 { kernel: [1, 1], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
+    let conv = Kernel::Conv2d {
+        conv: Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 },
+        algo: ConvAlgo::Gemm1x1,
+        weight: 0,
+        epilogue: Default::default(),
+        lora: None,
+        switch: false,
+        adapter: None,
+        residual: false,
+        channel_scale: true,
+    };
+    let shape = [None, Some(1), Some(3), Some(3)];
+    // Flagged as scaling its input's channels, but with one input.
+    let plan = one_step(&shape, conv.clone(), &shape, &[("w", vec![1])]);
+    let err = run_refused(&dir, "one.plan", plan, &[1, 1, 3, 3]);
+    assert!(err.contains("step 0 (`the\\u{1b}step`)") && err.contains("takes 2 inputs, got 1"), "{err}");
+    // A scale of the input's shape, not one value per channel.
+    let mut plan = one_step(&shape, conv, &shape, &[("w", vec![1])]);
+    plan.0.steps[0].inputs = vec![0, 0];
+    let err = run_refused(&dir, "shape.plan", plan, &[1, 1, 3, 3]);
+    assert!(err.contains("channel scale has shape [N, 1, 3, 3], not [N, C, 1, 1]"), "{err}");
 }

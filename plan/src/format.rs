@@ -50,7 +50,10 @@ use crate::ops::{
 /// Version 9: a conv may add a residual input in its epilogue (`Kernel::Conv2d {
 /// residual }`, the step's second input), which a version 8 runtime would ignore, computing
 /// the conv without the add. Versions 2 to 8 read unchanged.
-pub const FORMAT_VERSION: u32 = 9;
+/// Version 10: a conv may scale its input's channels per image (`Kernel::Conv2d {
+/// channel_scale }`, a squeeze-and-excitation's multiply, the step's last input), which a
+/// version 9 runtime would ignore. Versions 2 to 9 read unchanged.
+pub const FORMAT_VERSION: u32 = 10;
 
 /// The oldest plan format version this crate still reads: version 2 plans differ only in
 /// writing an epilogue's activation as `"relu": bool`, which [`EpilogueSpec`] accepts.
@@ -526,6 +529,13 @@ pub enum Kernel {
         /// connection `act(bn(conv(x)) + r)` in one pass over the output. Absent: one input.
         #[serde(default, skip_serializing_if = "is_false")]
         residual: bool,
+        /// The step's last input, `[N, in, 1, 1]`, scales each image's input channels
+        /// before the conv, `conv(x · s)`: a squeeze-and-excitation's multiply, computed
+        /// as the conv with its weight's input channels scaled per image. Only with an
+        /// algorithm that stores the weight as PyTorch's ([`ConvAlgo::packs_as_is`]) and
+        /// no LoRA branch. Absent: no scale.
+        #[serde(default, skip_serializing_if = "is_false")]
+        channel_scale: bool,
     },
     /// Transposed 2-D convolution with a fused per-channel epilogue (bias = shift).
     /// `weight` is PyTorch's `[in, out/groups, kh, kw]`, as it is.
@@ -725,13 +735,24 @@ mod tests {
             switch: false,
             adapter: None,
             residual: false,
+            channel_scale: false,
         };
         let (x, y): (&[usize], &[usize]) = (&[1, 4, 5, 5], &[1, 6, 5, 5]);
         assert_eq!(plain.multiply_adds(&[x], y), 150 * 36);
         let Kernel::Conv2d { conv, algo, weight, epilogue, .. } = plain else { unreachable!() };
         let lora = Some(LoraSpec { a: 1, b: 2, rank: 2, a_raw: false });
         let adapter = Some(AdapterSpec { down: 3, down_bias: 4, up: 5, up_bias: 6, mid: 3, act: Activation::Relu });
-        let both = Kernel::Conv2d { conv, algo, weight, epilogue, lora, switch: false, adapter, residual: false };
+        let both = Kernel::Conv2d {
+            conv,
+            algo,
+            weight,
+            epilogue,
+            lora,
+            switch: false,
+            adapter,
+            residual: false,
+            channel_scale: false,
+        };
         assert_eq!(both.multiply_adds(&[x], y), 150 * 36 + 25 * (2 * 36 + 6 * 2) + 25 * (2 * 3 * 6));
     }
 }

@@ -173,7 +173,7 @@ fn schedule(m: &Manifest) -> Result<(), String> {
         let refs: Vec<&TensorType> = inputs.iter().collect();
         let out = &m.values[step.output].shape;
         let want = match &step.kernel {
-            Kernel::Conv2d { conv, residual: true, .. } => conv.infer_with_residual(&refs),
+            Kernel::Conv2d { conv, residual, channel_scale, .. } => conv.infer_fused(&refs, *residual, *channel_scale),
             k => ops::infer(k.op(), &refs),
         }
         .map_err(|e| format!("{at}: {e}"))?;

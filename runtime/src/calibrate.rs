@@ -169,7 +169,9 @@ impl BnCalibrator {
             let kernel = match &step.kernel {
                 // A fused LoRA branch is part of what the BatchNorm reads.
                 // A fused adapter reads the BatchNorm's output: not part of its input.
-                Kernel::Conv2d { conv, algo, weight, lora, switch, .. } => Kernel::Conv2d {
+                // So is a channel scale on its input (the step's last input, which the
+                // stand-in reads as its last too).
+                Kernel::Conv2d { conv, algo, weight, lora, switch, channel_scale, .. } => Kernel::Conv2d {
                     conv: conv.clone(),
                     algo: *algo,
                     weight: *weight,
@@ -178,6 +180,7 @@ impl BnCalibrator {
                     switch: *switch,
                     adapter: None,
                     residual: false,
+                    channel_scale: *channel_scale,
                 },
                 // Validation: a BnInfo is only on conv and channel-affine steps.
                 Kernel::ChannelAffine { affine, .. } => {

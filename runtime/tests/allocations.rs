@@ -195,6 +195,7 @@ fn switch_plan() -> Plan {
         switch: true,
         adapter: None,
         residual: false,
+        channel_scale: false,
     };
     let manifest = Manifest {
         format_version: FORMAT_VERSION,

@@ -33,6 +33,9 @@ pub struct ConvOp {
     /// Back end: a second input of the output's shape added after the epilogue's shift,
     /// before its activation (`fuse_epilogues`: a residual connection's add).
     pub residual: bool,
+    /// Back end: a last input `[N, in, 1, 1]` scales the input's channels per image
+    /// before the conv (`fuse_epilogues`: a squeeze-and-excitation's multiply).
+    pub channel_scale: bool,
     /// A `conv1d`: the input is `[N, C, L]` and the output `[N, out, L']`, computed as
     /// `conv` (kernel height 1) on `[N, C, 1, L]`; unpacked weights drop the kernel
     /// height (`[out, in/groups, kw]`).
@@ -69,6 +72,7 @@ impl ConvOp {
             switch: false,
             adapter: None,
             residual: false,
+            channel_scale: false,
             one_d: false,
         }
     }
@@ -125,11 +129,11 @@ impl Operator for ConvOp {
         if self.one_d { "conv1d" } else { self.conv.kind_name() }
     }
     fn arity(&self) -> Option<usize> {
-        Some(if self.residual { 2 } else { 1 })
+        Some(1 + usize::from(self.residual) + usize::from(self.channel_scale))
     }
     fn infer(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
-        if self.residual {
-            return self.conv.infer_with_residual(inputs);
+        if self.residual || self.channel_scale {
+            return self.conv.infer_fused(inputs, self.residual, self.channel_scale);
         }
         if !self.one_d {
             return self.conv.infer(inputs);
@@ -172,6 +176,10 @@ impl Operator for ConvOp {
         }
         if self.residual {
             v.push(("residual", "input 1, before the activation".to_string()));
+        }
+        if self.channel_scale {
+            let at = 1 + usize::from(self.residual);
+            v.push(("channel_scale", format!("input {at}, on the input's channels")));
         }
         v
     }

@@ -19,8 +19,16 @@
 //!   such convs. The other operand does not depend on the conv (the add is the conv's only
 //!   reader), so the graph stays acyclic.
 //!
-//! Does nothing when no bias is left and no activation or residual add follows such a
-//! node. Assumes `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
+//! * rule `fuse_channel_scale`: a `mul` of a value `[N, C, H, W]` by a per-channel scale
+//!   `[N, C, 1, 1]` (a squeeze-and-excitation's), read only by a 1x1 conv (as its input),
+//!   becomes the conv's last input, the conv computed with its weight's input channels
+//!   scaled per image; the mul and its product leave the graph. Only where the weight
+//!   (`out · in/groups`) is no larger than the product (`C · H · W`, per image), so that
+//!   scaling it costs at most what the multiply did, and not on a conv with a LoRA branch
+//!   (which reads the input too). A residual fused after it goes before it.
+//!
+//! Does nothing when no bias is left and no activation, residual add or channel scale
+//! follows such a node. Assumes `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
 
 use readi_grammar::diag::Diagnostics;
 
@@ -83,6 +91,20 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             patches.push(p);
             continue;
         }
+        if let Op::Pure(Pure::Binary(BinaryOp::Mul)) = node.op
+            && let Some((conv, x, scale, new)) = scaled_conv(g, id)
+        {
+            let slots = rebind(&new, &g.node(conv).params, &[]);
+            let port = if matches!(&new, Op::Conv2d(c) if c.residual) { 2 } else { 1 };
+            let mut p = Patch::new("fuse_channel_scale");
+            p.rewrite.push((conv, new, slots));
+            p.set_inputs.push((conv, 0, x));
+            p.set_inputs.push((conv, port, scale));
+            p.fuse.push((conv, node.path.clone()));
+            p.remove.push(id);
+            patches.push(p);
+            continue;
+        }
         if let Op::Pure(Pure::Binary(BinaryOp::Add)) = node.op
             && let Some((conv, other, new)) = residual_conv(g, id)
         {
@@ -91,6 +113,10 @@ pub fn run(module: &Module, _: &BackendInputs<'_>, _: &mut Diagnostics) -> Resul
             let mut p = Patch::new("fuse_residual");
             p.rewrite.push((conv.node, new, slots));
             p.set_inputs.push((conv.node, 1, other));
+            // A channel scale fused before stays the last input.
+            if let Some(&scale) = g.inputs(conv.node).get(1).filter(|_| producer_scaled(producer)) {
+                p.set_inputs.push((conv.node, 2, scale));
+            }
             p.replace_uses.push((ValueRef { node: id, port: 0 }, conv));
             p.fuse.push((conv.node, node.path.clone()));
             p.remove.push(id);
@@ -112,6 +138,45 @@ fn residual_conv(g: &Graph, add: NodeId) -> Option<(ValueRef, ValueRef, Op)> {
         let fits = !c.residual && !c.one_d && c.epilogue.act.is_none();
         (fits && g.uses(x.node) == 1 && ty(x) == out && ty(other) == out)
             .then(|| (x, other, Op::Conv2d(crate::ops::ConvOp { residual: true, ..c.clone() })))
+    })
+}
+
+/// Whether a node is a conv with a fused channel scale.
+fn producer_scaled(node: &crate::ir::Node) -> bool {
+    matches!(&node.op, Op::Conv2d(c) if c.channel_scale)
+}
+
+/// For a `mul` node: the 1x1 conv that alone reads its product (at its input), the
+/// operand of the product's shape `[N, C, H, W]`, the one of shape `[N, C, 1, 1]` (the
+/// scale), and the conv's new op with the scale fused. Only where scaling the weight costs
+/// no more than the multiply it replaces: `out · in/groups` at most `C · H · W`. The conv
+/// has no LoRA branch (which would read the unscaled input) and is not a conv1d.
+fn scaled_conv(g: &Graph, mul: NodeId) -> Option<(NodeId, ValueRef, ValueRef, Op)> {
+    let [a, b] = g.inputs(mul)[..] else { return None };
+    let out = &g.node(mul).outputs[0];
+    let [conv] = g.users(mul)[..] else { return None };
+    if g.uses(mul) != 1 || !g.incoming(conv).iter().any(|&(port, v)| port == 0 && v.node == mul) {
+        return None;
+    }
+    let Op::Conv2d(c) = &g.node(conv).op else { return None };
+    let win = &c.conv.window;
+    let fits = !c.channel_scale && !c.one_d && c.lora.is_none() && win.kernel == [1, 1];
+    // The product's channels and plane (its batch may be symbolic).
+    let (ch, h, w) = (out.known_dim(1)?, out.known_dim(2)?, out.known_dim(3)?);
+    let weight = c.conv.out_channels.checked_mul(c.conv.in_channels / c.conv.groups.max(1))?;
+    if !fits || out.rank() != 4 || weight > ch * h * w {
+        return None;
+    }
+    let one = crate::ir::Dim::known(1);
+    let is_scale = |t: &crate::ir::TensorType| {
+        t.dtype == out.dtype
+            && t.rank() == 4
+            && t.shape[..2] == out.shape[..2]
+            && t.shape[2..].iter().all(|d| *d == one)
+    };
+    [(a, b), (b, a)].into_iter().find_map(|(x, scale)| {
+        (g.value_type(x)? == out && is_scale(g.value_type(scale)?))
+            .then(|| (conv, x, scale, Op::Conv2d(crate::ops::ConvOp { channel_scale: true, ..c.clone() })))
     })
 }
 

@@ -325,9 +325,10 @@ impl<'m> Lowering<'m> {
                     switch: c.switch,
                     adapter,
                     residual: c.residual,
+                    channel_scale: c.channel_scale,
                 };
-                if c.one_d && c.residual {
-                    return Err(ice(format!("conv1d `{}` has a residual", node.path)));
+                if c.one_d && (c.residual || c.channel_scale) {
+                    return Err(ice(format!("conv1d `{}` has a residual or a channel scale", node.path)));
                 }
                 if c.one_d {
                     return self.lower_conv1d(id, kernel, inputs);

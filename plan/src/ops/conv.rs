@@ -24,20 +24,46 @@ impl Conv2d {
 }
 
 impl Conv2d {
-    /// The output of the conv adding a residual (`Kernel::Conv2d { residual }`, the
-    /// compiler's `fuse_residual`): `inputs` are its input and the residual, which must
-    /// have the output's shape.
-    pub fn infer_with_residual(&self, inputs: &[&TensorType]) -> ShapeResult<TensorType> {
-        let [x, r] = inputs else {
-            return Err(ShapeError::new(format!("a conv with a residual takes 2 inputs, got {}", inputs.len())));
-        };
+    /// The output of the conv with its fused inputs (`Kernel::Conv2d { residual,
+    /// channel_scale }`, the compiler's `fuse_residual` and `fuse_channel_scale`):
+    /// `inputs` are its input, then the residual, of the output's shape, when `residual`,
+    /// then the channel scale, `[N, in, 1, 1]` for an input of `N` images, when
+    /// `channel_scale`.
+    pub fn infer_fused(&self, inputs: &[&TensorType], residual: bool, channel_scale: bool) -> ShapeResult<TensorType> {
+        let want = 1 + usize::from(residual) + usize::from(channel_scale);
+        if inputs.len() != want {
+            return Err(ShapeError::new(format!(
+                "a conv{}{} takes {want} inputs, got {}",
+                if residual { " with a residual" } else { "" },
+                if channel_scale { " with a channel scale" } else { "" },
+                inputs.len()
+            )));
+        }
+        let x = inputs[0];
         let out = super::infer(self, &[x])?;
-        if r.shape != out.shape {
+        if residual && inputs[1].shape != out.shape {
             return Err(ShapeError::new(format!(
                 "its residual input has shape {}, not its output's {}",
-                crate::show_shape(&r.shape),
+                crate::show_shape(&inputs[1].shape),
                 crate::show_shape(&out.shape)
             )));
+        }
+        if channel_scale {
+            let s = inputs[want - 1];
+            let one = crate::Dim::known(1);
+            let fits = s.rank() == 4
+                && x.rank() == 4
+                && s.shape[0] == x.shape[0]
+                && s.shape[1] == x.shape[1]
+                && s.shape[2] == one
+                && s.shape[3] == one;
+            if !fits {
+                return Err(ShapeError::new(format!(
+                    "its channel scale has shape {}, not [N, C, 1, 1] of its input {}",
+                    crate::show_shape(&s.shape),
+                    crate::show_shape(&x.shape)
+                )));
+            }
         }
         Ok(out)
     }

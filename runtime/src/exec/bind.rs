@@ -314,8 +314,12 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
                 switch_tmp_len = switch_tmp_len.max(merge::switch_tmp_len(s, *algo, step.kernel.lora().is_some()));
             }
             let mid = step.kernel.adapter().map_or(0, |a| a.mid);
-            let need = conv::adapter_scratch_len(s, *algo, rank, mid, threads)
-                .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
+            let need = if matches!(step.kernel, Kernel::Conv2d { channel_scale: true, .. }) {
+                conv::scaled_scratch_len(s, *algo, mid, threads)
+            } else {
+                conv::adapter_scratch_len(s, *algo, rank, mid, threads)
+            }
+            .ok_or_else(|| overflow(format!("the scratch of {at}")))?;
             if need > scratch_len {
                 (scratch_len, scratch_by) = (need, Some(k));
             }
@@ -672,7 +676,9 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
         Kernel::Pure(Pure::SparseToDense(_)) => Some(2),
         Kernel::Pure(Pure::Concat(_)) => None,
         Kernel::Pure(Pure::LidarDepthMap(_)) => Some(5),
-        Kernel::Conv2d { residual: true, .. } => Some(2),
+        Kernel::Conv2d { residual, channel_scale, .. } => {
+            Some(1 + usize::from(*residual) + usize::from(*channel_scale))
+        }
         _ => Some(1),
     };
     if step.inputs.is_empty() || arity.is_some_and(|n| step.inputs.len() != n) {
@@ -683,10 +689,23 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
     let out = shapes[step.output].as_slice();
     let u = |v: i64| usize::try_from(v).map_err(|_| format!("a negative size {v}"));
     match &step.kernel {
-        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch, adapter, residual } => {
+        Kernel::Conv2d { conv: c, algo, weight, epilogue, lora: l, switch, adapter, residual, channel_scale } => {
             let [n, cin, h, w] = x[..] else { return Err(format!("conv2d of a value of shape {x:?}, not 4-D")) };
             if *residual && input(1) != out {
                 return Err(format!("conv2d residual of shape {:?}, its output is {out:?}", input(1)));
+            }
+            if *channel_scale {
+                let sc = input(step.inputs.len() - 1);
+                if sc != [n, cin, 1, 1] {
+                    return Err(format!("conv2d channel scale of shape {sc:?}, its input is {x:?}"));
+                }
+                if !algo.packs_as_is() || l.is_some() {
+                    return Err(format!(
+                        "conv2d channel scale on a {} weight{}: only with a weight stored as PyTorch's and no LoRA branch",
+                        algo.name(),
+                        if l.is_some() { " with a LoRA branch" } else { "" }
+                    ));
+                }
             }
             if cin != u(c.in_channels)? {
                 return Err(format!("conv2d expects {} input channels, its input is {x:?}", c.in_channels));

@@ -126,7 +126,7 @@ pub(crate) fn run_step(
     // Every kernel takes at least one input (checked at bind time).
     let (x, xs) = input(0);
     match &step.kernel {
-        Kernel::Conv2d { weight, epilogue: ep, lora, switch, adapter, residual, .. } => {
+        Kernel::Conv2d { weight, epilogue: ep, lora, switch, adapter, residual, channel_scale, .. } => {
             if let Some((s, algo)) = conv_params {
                 let a = |l: &LoraSpec| if l.a_raw { b.lora_a[k].as_slice() } else { w.get(l.a) };
                 // Merged on switch: the working copy, `B A` in it (`Bound::pack_lora`).
@@ -144,7 +144,25 @@ pub(crate) fn run_step(
                 let e = epilogue(w, ep);
                 // Bind checked the arity: a residual conv reads two inputs.
                 let res = residual.then(|| input(1).0);
-                conv::conv2d_fused(s, *algo, wt, lora.as_ref(), adapter.as_ref(), &e, x, res, out, scratch, threads);
+                if *channel_scale {
+                    // Bind checked: the scale is the last input, no LoRA branch.
+                    let sc = input(step.inputs.len() - 1).0;
+                    conv::conv2d_scaled(s, *algo, wt, adapter.as_ref(), &e, x, sc, res, out, scratch, threads);
+                } else {
+                    conv::conv2d_fused(
+                        s,
+                        *algo,
+                        wt,
+                        lora.as_ref(),
+                        adapter.as_ref(),
+                        &e,
+                        x,
+                        res,
+                        out,
+                        scratch,
+                        threads,
+                    );
+                }
             }
         }
         Kernel::ConvTranspose2d { conv: c, weight, epilogue: ep } => {

@@ -301,6 +301,7 @@ pub fn conv_plan(cin: usize, cout: usize, hw: usize) -> ConvPlan {
                 switch: false,
                 adapter: None,
                 residual: false,
+                channel_scale: false,
             },
             inputs: vec![0],
             output: 1,

@@ -192,6 +192,62 @@ pub fn adapter_scratch_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize, mid: us
     Some(after.max(parts.checked_mul(part_scratch(s, algo, rank).checked_add(work)?)?))
 }
 
+/// Scratch floats [`conv2d_scaled`] needs with an adapter of `mid` bottleneck channels
+/// (0: none): the scaled weight, then [`adapter_scratch_len`] of one image; `None` if it
+/// overflows.
+pub fn scaled_scratch_len(s: &Conv2dShape, algo: ConvAlgo, mid: usize, threads: usize) -> Option<usize> {
+    let one = Conv2dShape { n: 1, ..*s };
+    adapter_scratch_len(&one, algo, 0, mid, threads)?.checked_add(s.cout.checked_mul(s.k())?)
+}
+
+/// [`conv2d_fused`] of the input with its channels scaled per image, `conv(x · s)` for
+/// `scale` `[n, cin]` (a squeeze-and-excitation's multiply, fused): image by image, the
+/// conv with the weight's input channels scaled instead, into the front of `scratch`
+/// (`cout · cin/groups · kh · kw` products an image, where scaling the input would take
+/// `cin · h · w` and a pass over it). For the algorithms that store the weight as PyTorch's
+/// ([`ConvAlgo::packs_as_is`]); no LoRA branch. `scratch` holds [`scaled_scratch_len`]
+/// floats.
+///
+/// # Panics
+/// If `algo` stores another layout or a length is wrong.
+#[allow(clippy::too_many_arguments)]
+pub fn conv2d_scaled(
+    s: &Conv2dShape,
+    algo: ConvAlgo,
+    packed_weight: &[f32],
+    adapter: Option<&Adapter>,
+    ep: &Epilogue,
+    x: &[f32],
+    scale: &[f32],
+    res: Option<&[f32]>,
+    out: &mut [f32],
+    scratch: &mut [f32],
+    threads: usize,
+) {
+    assert!(algo.packs_as_is(), "conv: a channel scale on a {} weight", algo.name());
+    assert_eq!(scale.len(), s.n * s.cin, "conv: channel scale length");
+    assert_eq!(packed_weight.len(), s.cout * s.k(), "conv: weight length");
+    let one = Conv2dShape { n: 1, ..*s };
+    let (xl, ol, taps) = (s.cin * s.h * s.w, s.cout * s.oh * s.ow, s.kh * s.kw);
+    let (w, rest) = scratch.split_at_mut(packed_weight.len());
+    for n in 0..s.n {
+        let sc = &scale[n * s.cin..][..s.cin];
+        for (co, (dst, src)) in w.chunks_exact_mut(s.k()).zip(packed_weight.chunks_exact(s.k())).enumerate() {
+            // Output channel `co` reads input channels `g · cin/groups ..` of its group.
+            let sc = &sc[co / s.cout_g() * s.cin_g()..][..s.cin_g()];
+            if taps == 1 {
+                dst.iter_mut().zip(src).zip(sc).for_each(|((d, &v), &f)| *d = v * f);
+            } else {
+                for ((d, v), &f) in dst.chunks_exact_mut(taps).zip(src.chunks_exact(taps)).zip(sc) {
+                    d.iter_mut().zip(v).for_each(|(d, &v)| *d = v * f);
+                }
+            }
+        }
+        let (xn, on) = (&x[n * xl..][..xl], &mut out[n * ol..][..ol]);
+        conv2d_fused(&one, algo, w, None, adapter, ep, xn, res.map(|r| &r[n * ol..][..ol]), on, rest, threads);
+    }
+}
+
 /// Whether [`conv2d_adapter`] computes a layer's adapter (not in its GEMM tiles) inside
 /// each thread's part right after the conv: a split by rows, so that each part holds every
 /// channel of its pixels. Else it runs over the finished output.

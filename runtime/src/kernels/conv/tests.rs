@@ -778,3 +778,46 @@ fn a_clamped_store_keeps_nan() {
         }
     }
 }
+
+/// A channel scale on the input (`conv2d_scaled`, a squeeze-and-excitation's multiply
+/// fused): against the reference conv of the input multiplied first, per image and
+/// channel, for each algorithm that keeps PyTorch's weight layout, with batches (a scale
+/// per image), groups, a residual and activations, at 1 to 3 threads; its scratch is
+/// what `scaled_scratch_len` says.
+#[test]
+fn channel_scale_matches_scaling_the_input() {
+    let cases = [
+        (shape(2, 24, (7, 7), 40, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(1, 16, (28, 28), 24, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(2, 12, (9, 8), 10, (1, 1), (1, 1), (0, 0), (1, 1), 2), ConvAlgo::Gemm1x1),
+        (shape(2, 8, (9, 10), 6, (3, 3), (2, 2), (1, 1), (1, 1), 2), ConvAlgo::Im2col),
+        (shape(2, 6, (8, 8), 6, (3, 3), (1, 1), (1, 1), (1, 1), 6), ConvAlgo::Depthwise),
+    ];
+    for (s, algo) in &cases {
+        let x = data(s.n * s.cin * s.h * s.w, 31);
+        let fan_in = s.cin / s.groups * s.kh * s.kw;
+        let w: Vec<f32> = data(fan_in * s.cout, 32).iter().map(|v| v * (3.0 / fan_in as f32).sqrt()).collect();
+        let sc: Vec<f32> = data(s.n * s.cin, 33).iter().map(|v| 0.5 + v).collect();
+        let (scale, shift) = (data(s.cout, 34), data(s.cout, 35));
+        let res = data(s.n * s.cout * s.oh * s.ow, 36);
+        let plane = s.h * s.w;
+        let xs: Vec<f32> = x.iter().enumerate().map(|(i, &v)| v * sc[i / plane]).collect();
+        let mut packed = vec![0.0; packed_weight_len(s, *algo)];
+        pack_weight(s, *algo, &w, &mut packed);
+        for act in [None, Some(Activation::Relu), Some(Activation::Hardswish)] {
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+            let plain = reference(s, &xs, &w, &ep);
+            let y = reference(s, &xs, &w, &Epilogue { act: None, ..ep });
+            let with_res = with_residual(&y, &res, act);
+            for (r, want) in [(None, &plain), (Some(&res[..]), &with_res)] {
+                for threads in [1, 2, 3] {
+                    let mut out = vec![f32::NAN; want.len()];
+                    let len = scaled_scratch_len(s, *algo, 0, threads).expect("scratch length");
+                    let mut scratch = vec![f32::NAN; len];
+                    conv2d_scaled(s, *algo, &packed, None, &ep, &x, &sc, r, &mut out, &mut scratch, threads);
+                    assert_close(&out, want, 1e-4);
+                }
+            }
+        }
+    }
+}
