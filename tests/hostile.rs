@@ -901,13 +901,12 @@ fn a_crafted_lss_bev_pool_is_refused() {
     }
 }
 
-#[test]
-fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
+/// A 1x1 conv step from one channel to `out` over its weight, tensor 0, with the flags of
+/// its fused inputs.
+fn pointwise_conv(out: i64, residual: bool, channel_scale: bool) -> readi_runtime::plan::Kernel {
     use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
-    use readi_runtime::plan::Kernel;
-    let dir = temp_dir("residual");
     let window = Window2 { kernel: [1, 1], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
-    let conv = |out: i64| Kernel::Conv2d {
+    readi_runtime::plan::Kernel::Conv2d {
         conv: Conv2d { in_channels: 1, out_channels: out, window, groups: 1 },
         algo: ConvAlgo::Gemm1x1,
         weight: 0,
@@ -915,9 +914,15 @@ fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
         lora: None,
         switch: false,
         adapter: None,
-        residual: true,
-        channel_scale: false,
-    };
+        residual,
+        channel_scale,
+    }
+}
+
+#[test]
+fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
+    let dir = temp_dir("residual");
+    let conv = |out: i64| pointwise_conv(out, true, false);
     // Flagged as adding a residual, but with one input.
     let plan =
         one_step(&[None, Some(1), Some(3), Some(3)], conv(1), &[None, Some(1), Some(3), Some(3)], &[("w", vec![1])]);
@@ -933,21 +938,8 @@ fn a_conv_residual_that_is_missing_or_misshapen_is_refused() {
 
 #[test]
 fn a_conv_channel_scale_that_is_missing_or_misshapen_is_refused() {
-    use readi_plan::ops::{Conv2d, ConvAlgo, Window2};
-    use readi_runtime::plan::Kernel;
     let dir = temp_dir("channel_scale");
-    let window = Window2 { kernel: [1, 1], stride: [1, 1], padding: [0, 0], dilation: [1, 1] };
-    let conv = Kernel::Conv2d {
-        conv: Conv2d { in_channels: 1, out_channels: 1, window, groups: 1 },
-        algo: ConvAlgo::Gemm1x1,
-        weight: 0,
-        epilogue: Default::default(),
-        lora: None,
-        switch: false,
-        adapter: None,
-        residual: false,
-        channel_scale: true,
-    };
+    let conv = pointwise_conv(1, false, true);
     let shape = [None, Some(1), Some(3), Some(3)];
     // Flagged as scaling its input's channels, but with one input.
     let plan = one_step(&shape, conv.clone(), &shape, &[("w", vec![1])]);

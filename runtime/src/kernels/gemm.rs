@@ -184,24 +184,26 @@ pub fn sgemm(a: MatRef, b: MatRef, c: MatMut, accumulate: bool, threads: usize) 
 /// hardware prefetcher to follow.
 #[inline(always)]
 pub(crate) fn prefetch(v: &f32) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: SSE, which `_mm_prefetch` needs, is part of x86-64; a prefetch reads
-    // nothing into the program and cannot fault (`v` is a valid reference anyway).
-    unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>((v as *const f32).cast());
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = v;
+    prefetch_into::<false>(v)
 }
 
 /// [`prefetch`] into the L2 cache only: for streams read from farther away (L3, memory),
 /// where the L1 cache's few outstanding misses would bound the rate.
 #[inline(always)]
 pub(crate) fn prefetch_l2(v: &f32) {
+    prefetch_into::<true>(v)
+}
+
+/// [`prefetch`] (into L1) or [`prefetch_l2`].
+#[inline(always)]
+fn prefetch_into<const L2: bool>(v: &f32) {
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: as in `prefetch`.
+    // SAFETY: SSE, which `_mm_prefetch` needs, is part of x86-64; a prefetch reads
+    // nothing into the program and cannot fault (`v` is a valid reference anyway).
     unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T1 }>((v as *const f32).cast());
+        use std::arch::x86_64::{_MM_HINT_T0, _MM_HINT_T1, _mm_prefetch};
+        let p = (v as *const f32).cast();
+        if L2 { _mm_prefetch::<_MM_HINT_T1>(p) } else { _mm_prefetch::<_MM_HINT_T0>(p) }
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = v;
