@@ -32,7 +32,8 @@
 //!   residual fused after it goes before it.
 //!
 //! Does nothing when no bias is left and no activation, residual add or channel scale
-//! follows such a node. Assumes `fold_batchnorm` ran (so a ReLU after a folded BatchNorm follows its conv).
+//! follows such a node. Assumes `fold_batchnorm` ran (so a ReLU after a folded BatchNorm
+//! follows its conv).
 
 use readi_grammar::diag::Diagnostics;
 
