@@ -12,7 +12,7 @@
 //! another activation runs once over all of a task's planes.
 
 use crate::kernels::Epilogue;
-use crate::kernels::conv::{Conv2dShape, clamp_vector};
+use crate::kernels::conv::{Conv2dShape, store_vector};
 
 use super::plane_operands;
 
@@ -92,7 +92,6 @@ impl pulp::WithSimd for Flat<'_> {
                 valid,
                 k,
                 s,
-                lanes,
                 scale: simd.splat_f32s(ep.scale.map_or(1.0, |v| v[c])),
                 shift: simd.splat_f32s(ep.shift.map_or(0.0, |v| v[c])),
                 clamp,
@@ -125,24 +124,23 @@ struct Plane<'a, V> {
     /// The plane's taps, `kh x kw`.
     k: &'a [f32],
     s: &'a Conv2dShape,
-    lanes: usize,
     scale: V,
     shift: V,
     clamp: Option<(f32, f32)>,
 }
 
 impl<V: Copy> Plane<'_, V> {
-    /// Output vectors `v0..v0 + R`: the sums over every tap in registers, then
-    /// `clamp(sum · scale + shift)` stored (the last vector only as far as the plane).
+    /// Output vectors `v0..v0 + R`: the sums over every tap in registers, then stored by
+    /// the register paths' `store_vector` (the last vector only as far as the plane).
     #[inline(always)]
     fn tile<S: pulp::Simd<f32s = V>, const R: usize>(&self, simd: S, v0: usize, out: &mut [f32]) {
-        let (s, lanes) = (self.s, self.lanes);
-        let wd = s.w;
+        let (s, lanes) = (self.s, size_of::<V>() / size_of::<f32>());
+        let (wd, row) = (s.w, self.valid.len() / s.kw);
         let mut acc = [simd.splat_f32s(0.0); R];
         let half = simd.splat_f32s(0.5);
         let vec = |a: &[f32]| S::as_simd_f32s(&a[..lanes]).0[0];
         for kx in 0..s.kw {
-            let valid = &self.valid[kx * (self.valid.len() / s.kw) + v0 * lanes..];
+            let valid = &self.valid[kx * row + v0 * lanes..];
             let masks: [S::m32s; R] = std::array::from_fn(|r| simd.greater_than_f32s(vec(&valid[r * lanes..]), half));
             for ky in 0..s.kh {
                 let tap = simd.splat_f32s(self.k[ky * s.kw + kx]);
@@ -156,17 +154,10 @@ impl<V: Copy> Plane<'_, V> {
             }
         }
         for (r, a) in acc.into_iter().enumerate() {
-            // Multiplied, then added, as the other depthwise paths do.
-            let z = simd.add_f32s(simd.mul_f32s(a, self.scale), self.shift);
-            let z = self.clamp.map_or(z, |cl| clamp_vector(simd, z, cl));
             let at = (v0 + r) * lanes;
-            if at + lanes <= out.len() {
-                S::as_mut_simd_f32s(&mut out[at..at + lanes]).0[0] = z;
-            } else if at < out.len() {
-                let mut tail = [0.0f32; 16];
-                S::as_mut_simd_f32s(&mut tail[..lanes]).0[0] = z;
-                let n = out.len() - at;
-                out[at..].copy_from_slice(&tail[..n]);
+            if at < out.len() {
+                let end = out.len().min(at + lanes);
+                store_vector(simd, a, self.scale, self.shift, self.clamp, &mut out[at..end]);
             }
         }
     }
