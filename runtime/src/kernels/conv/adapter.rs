@@ -109,14 +109,30 @@ simd_fn! {
     }
 }
 
-/// Pixels per tile of [`Fused`]: every backend's tile is this wide (two AVX-512 vectors,
-/// four AVX2 vectors, eight of 4 lanes, 32 scalars).
-const TILE: usize = crate::kernels::panel::PANEL;
+/// Pixels per tile: [`apply_by_weights`]'s, and [`Fused`]'s where the tile's copy fits the
+/// L1 cache ([`fused_tile`]), else half of this. Every backend's micro-tile divides half a
+/// tile (AVX-512: four vectors in a whole tile, two otherwise; AVX2 four, in chunks of
+/// 32 pixels; 4 lanes eight; 32 scalars).
+const TILE: usize = 64;
+
+/// Floats in a cache line.
+const LINE: usize = 16;
+
+/// The tile width of [`Fused`] for `cout` channels: a whole [`TILE`] where the tile's
+/// rows copied side by side fit 32 KiB (of a 48 KiB L1 cache, beside `h` and the weights'
+/// rows in use), else half of one. On AVX-512 a whole tile takes micro-tiles of 6 rows by
+/// 4 vectors (24 sums), half a tile 8 by 2 (16): ResNet-18's layer1 and layer2 adapters
+/// (64 and 128 channels) took 0.80-0.91x the time with whole tiles of 6 by 4 against half
+/// tiles of 8 by 2; layer3's (256 channels, whole tiles of 64 KiB) 0.96-1.0x, so it keeps
+/// the half tiles (in-process A/B, conv and adapter, 1 and 2 threads, 2026-12-06).
+fn fused_tile(cout: usize) -> usize {
+    if cout * TILE * size_of::<f32>() <= 32 << 10 { TILE } else { TILE / 2 }
+}
 
 /// Scratch floats of one worker of [`apply_fused`]: a tile's bottleneck rows, and a tail
 /// tile of the output and of the residual.
 pub(super) fn fused_scratch_len(cout: usize, mid: usize) -> usize {
-    (mid + 2 * cout) * TILE
+    (mid + 2 * cout) * fused_tile(cout)
 }
 
 /// The adapter of a conv step on its output `[n, cout, oh, ow]` (scaled and shifted), in
@@ -188,8 +204,9 @@ pub(super) fn apply_fused(
 }
 
 /// Implements `pulp::WithSimd` for a pass over tiles with a `run::<S, MR, NV, HV>`
-/// method: micro-tiles of `MR` rows by `NV` vectors (a tile), or `HV` (half a tile, for a
-/// narrow tail); sums in 16 of the 32 AVX-512 registers, 12 of the 16 AVX2 ones.
+/// method: micro-tiles of `MR` rows by `NV` vectors across a tile, or `HV` across half a
+/// tile (a narrow tail); sums in 24 or 16 of the 32 AVX-512 registers (the pass's
+/// `wide()`), 12 of the 16 AVX2 ones.
 macro_rules! tile_pass {
     ($($t:ty),*) => {$(
         impl pulp::WithSimd for $t {
@@ -197,10 +214,11 @@ macro_rules! tile_pass {
             #[inline(always)]
             fn with_simd<S: pulp::Simd>(self, simd: S) {
                 match size_of::<S::f32s>() / size_of::<f32>() {
+                    16 if self.wide() => self.run::<S, 6, 4, 2>(simd),
                     16 => self.run::<S, 8, 2, 1>(simd),
                     8 => self.run::<S, 3, 4, 2>(simd),
                     4 => self.run::<S, 2, 8, 4>(simd),
-                    _ => self.run::<S, 2, TILE, { TILE / 2 }>(simd),
+                    _ => self.run::<S, 2, { TILE / 2 }, { TILE / 4 }>(simd),
                 }
             }
         }
@@ -208,6 +226,26 @@ macro_rules! tile_pass {
 }
 
 tile_pass!(Fused<'_, '_>, ByRows<'_>, ByChannels<'_>);
+
+// Whether a pass runs whole tiles (the AVX-512 micro-tile for them): [`Fused`] by its
+// channel count, the passes of [`apply_by_weights`] always.
+impl Fused<'_, '_> {
+    fn wide(&self) -> bool {
+        fused_tile(self.rows.len()) == TILE
+    }
+}
+
+impl ByRows<'_> {
+    fn wide(&self) -> bool {
+        true
+    }
+}
+
+impl ByChannels<'_> {
+    fn wide(&self) -> bool {
+        true
+    }
+}
 
 /// Scratch floats [`apply_fused`] needs at this thread count.
 pub(super) fn fused_after_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
@@ -267,8 +305,8 @@ fn apply_by_weights(
 
 /// The width the tile at `at` of a run of `plane` pixels is computed in: a whole tile, or
 /// half of one for a tail that fits it.
-fn tile_width(plane: usize, at: usize) -> usize {
-    if plane - at > TILE / 2 { TILE } else { TILE / 2 }
+fn tile_width(tile: usize, plane: usize, at: usize) -> usize {
+    if plane - at > tile / 2 { tile } else { tile / 2 }
 }
 
 /// Phase one of [`apply_by_weights`]: bottleneck rows `rows` of every tile of image `y`
@@ -290,7 +328,7 @@ impl ByRows<'_> {
         for at in (0..plane).step_by(TILE) {
             let ht = &mut h[at..];
             if at + TILE <= plane {
-                k.down_rows::<S, MR, NV>(simd, (&y[at..], plane), rows.clone(), ht, stride);
+                k.down_rows::<S, MR, NV>(simd, (&y[at..], plane), rows.clone(), ht, stride, TILE);
                 continue;
             }
             let rem = plane - at;
@@ -298,10 +336,10 @@ impl ByRows<'_> {
             for (c, d) in pad.chunks_mut(TILE).enumerate() {
                 pad_row(d, &y[c * plane + at..][..rem]);
             }
-            if tile_width(plane, at) < TILE {
-                k.down_rows::<S, MR, HV>(simd, (pad, TILE), rows.clone(), ht, stride);
+            if tile_width(TILE, plane, at) < TILE {
+                k.down_rows::<S, MR, HV>(simd, (pad, TILE), rows.clone(), ht, stride, TILE / 2);
             } else {
-                k.down_rows::<S, MR, NV>(simd, (pad, TILE), rows.clone(), ht, stride);
+                k.down_rows::<S, MR, NV>(simd, (pad, TILE), rows.clone(), ht, stride, TILE);
             }
         }
         if k.inner.is_none() {
@@ -334,7 +372,7 @@ impl ByChannels<'_> {
             if at + TILE <= plane {
                 let r = res.map(|data| Strided { data, stride: plane, at });
                 let mut y = StridedMut { data: &mut *planes, stride: plane, c0, at };
-                k.up_chans::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), ht, stride);
+                k.up_chans::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), (ht, stride), TILE);
                 continue;
             }
             let rem = plane - at;
@@ -346,10 +384,10 @@ impl ByChannels<'_> {
             }
             let r = res.map(|_| Strided { data: &*pr, stride: TILE, at: 0 });
             let mut y = StridedMut { data: &mut *py, stride: TILE, c0: 0, at: 0 };
-            if tile_width(plane, at) < TILE {
-                k.up_chans::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), ht, stride);
+            if tile_width(TILE, plane, at) < TILE {
+                k.up_chans::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), (ht, stride), TILE / 2);
             } else {
-                k.up_chans::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), ht, stride);
+                k.up_chans::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), chans.clone(), (ht, stride), TILE);
             }
             for c in chans.clone() {
                 planes[(c - c0) * plane + at..][..rem].copy_from_slice(&py[c * TILE..][..rem]);
@@ -481,50 +519,52 @@ impl Fused<'_, '_> {
         let Fused { ad, rows, res, tp, act, scratch } = self;
         let (cout, mid) = (rows.len(), ad.mid);
         let k = Kernel::new(ad, cout, act);
-        let (h, rest) = scratch.split_at_mut(mid * TILE);
-        let (ty, rest) = rest.split_at_mut(cout * TILE);
-        let tr = &mut rest[..cout * TILE];
-        let full = tp / TILE * TILE;
-        for at in (0..full).step_by(TILE) {
+        let tw = fused_tile(cout);
+        let (h, rest) = scratch.split_at_mut(mid * tw);
+        let (ty, rest) = rest.split_at_mut(cout * tw);
+        let tr = &mut rest[..cout * tw];
+        let full = tp / tw * tw;
+        for at in (0..full).step_by(tw) {
             // The next tile's rows, a plane apart: more streams than the hardware
             // prefetcher follows.
-            if at + 2 * TILE <= tp {
+            if at + 2 * tw <= tp {
                 for row in rows.iter() {
-                    prefetch(&row[at + TILE]);
-                    prefetch(&row[at + TILE + TILE / 2]);
+                    for line in (at + tw..at + 2 * tw).step_by(LINE) {
+                        prefetch(&row[line]);
+                    }
                 }
             }
             let r = res.map(|r| Strided { at, ..r });
             // The tile's rows side by side, for `down` to read at one stride.
             for (c, row) in rows.iter().enumerate() {
-                ty[c * TILE..][..TILE].copy_from_slice(&row[at..at + TILE]);
+                ty[c * tw..][..tw].copy_from_slice(&row[at..at + tw]);
             }
-            k.down_tile::<S, MR, NV>(simd, (ty, TILE), h);
-            k.up_tile::<S, MR, NV, _, _>(simd, &mut SegmentsMut { rows: &mut *rows, at }, r.as_ref(), h);
+            k.down_tile::<S, MR, NV>(simd, (ty, tw), h, tw);
+            k.up_tile::<S, MR, NV, _, _>(simd, &mut SegmentsMut { rows: &mut *rows, at }, r.as_ref(), h, tw);
         }
         if full < tp {
             let rem = tp - full;
             for (c, row) in rows.iter().enumerate() {
-                pad_row(&mut ty[c * TILE..][..TILE], &row[full..tp]);
+                pad_row(&mut ty[c * tw..][..tw], &row[full..tp]);
                 if let Some(r) = res {
-                    pad_row(&mut tr[c * TILE..][..TILE], &r.row(c)[full..tp]);
+                    pad_row(&mut tr[c * tw..][..tw], &r.row(c)[full..tp]);
                 }
             }
-            let r = res.map(|_| Strided { data: &*tr, stride: TILE, at: 0 });
-            let half = tile_width(tp, full) < TILE;
+            let r = res.map(|_| Strided { data: &*tr, stride: tw, at: 0 });
+            let half = tile_width(tw, tp, full) < tw;
             if half {
-                k.down_tile::<S, MR, HV>(simd, (ty, TILE), h);
+                k.down_tile::<S, MR, HV>(simd, (ty, tw), h, tw / 2);
             } else {
-                k.down_tile::<S, MR, NV>(simd, (ty, TILE), h);
+                k.down_tile::<S, MR, NV>(simd, (ty, tw), h, tw);
             }
-            let mut y = StridedMut { data: &mut *ty, stride: TILE, c0: 0, at: 0 };
+            let mut y = StridedMut { data: &mut *ty, stride: tw, c0: 0, at: 0 };
             if half {
-                k.up_tile::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), h);
+                k.up_tile::<S, MR, HV, _, _>(simd, &mut y, r.as_ref(), h, tw / 2);
             } else {
-                k.up_tile::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), h);
+                k.up_tile::<S, MR, NV, _, _>(simd, &mut y, r.as_ref(), h, tw);
             }
             for (c, row) in rows.iter_mut().enumerate() {
-                row[full..tp].copy_from_slice(&ty[c * TILE..][..rem]);
+                row[full..tp].copy_from_slice(&ty[c * tw..][..rem]);
             }
         }
         if let Some(f) = act.filter(|_| k.outer.is_none()) {
@@ -551,43 +591,56 @@ impl<'a> Kernel<'a> {
         Kernel { ad, cout, inner: clamp_bounds(ad.act), outer: act.and_then(clamp_bounds) }
     }
 
-    /// The tile's `h = act(down · y + bd)`, `mid` rows of `NV` vectors in `h`.
+    /// The tile's `h = act(down · y + bd)`, `mid` rows of `cols` pixels in `h`.
     #[inline(always)]
-    fn down_tile<S: pulp::Simd, const MR: usize, const NV: usize>(self, simd: S, y: (&[f32], usize), h: &mut [f32]) {
-        let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
-        let h = &mut h[..mid * width];
-        self.down_rows::<S, MR, NV>(simd, y, 0..mid, h, width);
+    fn down_tile<S: pulp::Simd, const MR: usize, const NV: usize>(
+        self,
+        simd: S,
+        y: (&[f32], usize),
+        h: &mut [f32],
+        cols: usize,
+    ) {
+        let mid = self.ad.mid;
+        let h = &mut h[..mid * cols];
+        self.down_rows::<S, MR, NV>(simd, y, 0..mid, h, cols, cols);
         if self.inner.is_none() {
             elementwise::activation_chunk(self.ad.act, h);
         }
     }
 
-    /// Bottleneck rows `rows` of the tile's `h` (before a non-clamp activation) into `h`,
-    /// its rows `stride` floats apart from `rows.start`.
+    /// Bottleneck rows `rows` of the tile's `h` (before a non-clamp activation) for its
+    /// first `cols` pixels, `NV` vectors at a time, into `h`, its rows `stride` floats
+    /// apart from `rows.start`.
     #[inline(always)]
     fn down_rows<S: pulp::Simd, const MR: usize, const NV: usize>(
         self,
         simd: S,
-        y: (&[f32], usize),
+        (y, ys): (&[f32], usize),
         rows: std::ops::Range<usize>,
         h: &mut [f32],
         stride: usize,
+        cols: usize,
     ) {
-        let hs = stride / (size_of::<S::f32s>() / size_of::<f32>());
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let hs = stride / lanes;
         let (hv, _) = S::as_mut_simd_f32s(h);
         let mut m = rows.start;
         while m < rows.end {
             let left = rows.end - m;
-            let at = (m - rows.start) * hs;
-            m += if left >= MR {
-                self.down::<S, MR, NV>(simd, y, m, &mut hv[at..], hs)
-            } else if left >= 4 && MR > 4 {
-                self.down::<S, 4, NV>(simd, y, m, &mut hv[at..], hs)
-            } else if left >= 2 {
-                self.down::<S, 2, NV>(simd, y, m, &mut hv[at..], hs)
-            } else {
-                self.down::<S, 1, NV>(simd, y, m, &mut hv[at..], hs)
-            };
+            let mut step = 0;
+            for j in (0..cols).step_by(NV * lanes) {
+                let (y, at) = ((&y[j..], ys), (m - rows.start) * hs + j / lanes);
+                step = if left >= MR {
+                    self.down::<S, MR, NV>(simd, y, m, &mut hv[at..], hs)
+                } else if left >= 4 && MR > 4 {
+                    self.down::<S, 4, NV>(simd, y, m, &mut hv[at..], hs)
+                } else if left >= 2 {
+                    self.down::<S, 2, NV>(simd, y, m, &mut hv[at..], hs)
+                } else {
+                    self.down::<S, 1, NV>(simd, y, m, &mut hv[at..], hs)
+                };
+            }
+            m += step;
         }
     }
 
@@ -599,13 +652,13 @@ impl<'a> Kernel<'a> {
         y: &mut Y,
         res: Option<&R>,
         h: &[f32],
+        cols: usize,
     ) {
-        let width = NV * size_of::<S::f32s>() / size_of::<f32>();
-        self.up_chans::<S, MR, NV, Y, R>(simd, y, res, 0..self.cout, &h[..self.ad.mid * width], width);
+        self.up_chans::<S, MR, NV, Y, R>(simd, y, res, 0..self.cout, (&h[..self.ad.mid * cols], cols), cols);
     }
 
-    /// Channels `chans` of the tile: `y += up · h + bu (+ res)`, clamped; `h`'s rows
-    /// `stride` floats apart.
+    /// Channels `chans` of the tile's first `cols` pixels, `NV` vectors at a time: `y += up
+    /// · h + bu (+ res)`, clamped; `h`'s rows `stride` floats apart.
     #[inline(always)]
     fn up_chans<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
         self,
@@ -613,21 +666,26 @@ impl<'a> Kernel<'a> {
         y: &mut Y,
         res: Option<&R>,
         chans: std::ops::Range<usize>,
-        h: &[f32],
-        stride: usize,
+        (h, stride): (&[f32], usize),
+        cols: usize,
     ) {
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let mut c = chans.start;
         while c < chans.end {
             let left = chans.end - c;
-            c += if left >= MR {
-                self.up::<S, MR, NV, Y, R>(simd, y, res, c, h, stride)
-            } else if left >= 4 && MR > 4 {
-                self.up::<S, 4, NV, Y, R>(simd, y, res, c, h, stride)
-            } else if left >= 2 {
-                self.up::<S, 2, NV, Y, R>(simd, y, res, c, h, stride)
-            } else {
-                self.up::<S, 1, NV, Y, R>(simd, y, res, c, h, stride)
-            };
+            let mut step = 0;
+            for j in (0..cols).step_by(NV * lanes) {
+                step = if left >= MR {
+                    self.up::<S, MR, NV, Y, R>(simd, y, res, c, (h, j), stride)
+                } else if left >= 4 && MR > 4 {
+                    self.up::<S, 4, NV, Y, R>(simd, y, res, c, (h, j), stride)
+                } else if left >= 2 {
+                    self.up::<S, 2, NV, Y, R>(simd, y, res, c, (h, j), stride)
+                } else {
+                    self.up::<S, 1, NV, Y, R>(simd, y, res, c, (h, j), stride)
+                };
+            }
+            c += step;
         }
     }
 
@@ -655,8 +713,8 @@ impl<'a> Kernel<'a> {
         MR
     }
 
-    /// Channels `c0..c0 + MR` of the tile: `y += up · h + bu (+ res)`, clamped; `h`'s rows
-    /// `stride` floats apart.
+    /// Channels `c0..c0 + MR` of the tile's `NV` vectors from pixel `j` on: `y += up · h
+    /// + bu (+ res)`, clamped; `h`'s rows `stride` floats apart.
     #[inline(always)]
     fn up<S: pulp::Simd, const MR: usize, const NV: usize, Y: TileRowsMut, R: TileRows>(
         self,
@@ -664,17 +722,17 @@ impl<'a> Kernel<'a> {
         y: &mut Y,
         res: Option<&R>,
         c0: usize,
-        h: &[f32],
+        (h, j): (&[f32], usize),
         stride: usize,
     ) -> usize {
         let (mid, width) = (self.ad.mid, NV * size_of::<S::f32s>() / size_of::<f32>());
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.ad.up[(c0 + r) * mid..][..mid]);
-        let acc = strided_rows_product::<S, MR, NV>(simd, a, h, stride);
+        let acc = strided_rows_product::<S, MR, NV>(simd, a, &h[j..], stride);
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
             let b = simd.splat_f32s(self.ad.up_bias[c]);
-            let rv = res.map(|q| S::as_simd_f32s(&q.row(c)[..width]).0);
-            let (dst, _) = S::as_mut_simd_f32s(&mut y.row_mut(c)[..width]);
+            let rv = res.map(|q| S::as_simd_f32s(&q.row(c)[j..][..width]).0);
+            let (dst, _) = S::as_mut_simd_f32s(&mut y.row_mut(c)[j..][..width]);
             for v in 0..NV {
                 let mut z = simd.add_f32s(simd.add_f32s(sums[v], b), dst[v]);
                 if let Some(rv) = rv {
@@ -914,6 +972,8 @@ mod tests {
             // Weights larger than the output: shared by bottleneck rows and channels.
             (1, 32, (4, 5), 16, Activation::Sigmoid),
             (2, 40, (3, 3), 24, Activation::Relu),
+            // ... over a whole tile and a tail.
+            (1, 128, (9, 9), 64, Activation::Relu),
         ] {
             let s = shape(n, 4, hw, cout, 3, 1, 1);
             let plane = s.oh * s.ow;
@@ -935,11 +995,22 @@ mod tests {
     }
 
     /// [`Fused`] compiled for every SIMD width the machine has (each its own micro-tile
-    /// and tail), on a plane of two tiles and a tail, with a residual and ReLU.
+    /// and tail), on planes of whole tiles and a tail narrower or wider than half a tile,
+    /// with a residual and ReLU.
     #[test]
     fn every_simd_width_matches_the_definition() {
+        // Whole tiles, and (over 128 channels) half tiles.
+        for (cout, mid) in [(13, 6), (131, 9)] {
+            assert_eq!(fused_tile(cout) == TILE, cout <= 128);
+            let tile = fused_tile(cout);
+            for plane in [2 * tile + 7, tile + tile / 2 + 3] {
+                simd_widths_match(cout, mid, plane);
+            }
+        }
+    }
+
+    fn simd_widths_match(cout: usize, mid: usize, plane: usize) {
         use crate::kernels::testutil::backends;
-        let (cout, mid, plane) = (13, 6, 2 * TILE + 7);
         let (down, up) = (data(mid * cout, 31), data(cout * mid, 32));
         let (bd, bu) = (data(mid, 33), data(cout, 34));
         let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid, act: Activation::Relu };
