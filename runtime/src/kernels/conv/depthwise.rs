@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 mod flat;
 
-use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
+use super::{Conv2dShape, clamp_vector, pad_interior, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
 
 /// Direct conv for one input channel per group, parallel over groups of output planes.
@@ -153,13 +153,13 @@ impl Registers<'_> {
             let mut start = 0;
             if ST == 1 && K >= 5 && s.oh >= 16 {
                 while start + 8 <= s.oh {
-                    g.block::<S, 8, K, ST>(simd, &buf, &taps, start, dst);
+                    g.rows::<S, 8, K, ST>(simd, &buf, &taps, start, dst);
                     start += 8;
                 }
             }
             let full = start + (s.oh - start) / ROWS * ROWS;
             for oy in (start..full).step_by(ROWS) {
-                g.block::<S, ROWS, K, ST>(simd, &buf, &taps, oy, dst);
+                g.rows::<S, ROWS, K, ST>(simd, &buf, &taps, oy, dst);
             }
             // The rows left after the whole blocks: one at a time, or when there are
             // `ROWS - 1` of them, as one more block over the last `ROWS` rows (its first
@@ -167,10 +167,10 @@ impl Registers<'_> {
             // 0.89-0.95x the time (in-process A/B, 1 and 2 threads); fewer rows left
             // run better one by one (two of 14: 1.03x as a block).
             if (s.oh - start) % ROWS == ROWS - 1 && s.oh >= ROWS {
-                g.block::<S, ROWS, K, ST>(simd, &buf, &taps, s.oh - ROWS, dst);
+                g.rows::<S, ROWS, K, ST>(simd, &buf, &taps, s.oh - ROWS, dst);
             } else {
                 for oy in full..s.oh {
-                    g.block::<S, 1, K, ST>(simd, &buf, &taps, oy, dst);
+                    g.rows::<S, 1, K, ST>(simd, &buf, &taps, oy, dst);
                 }
             }
             ep.finish_unclamped(dst);
@@ -192,11 +192,38 @@ struct Geometry {
 }
 
 impl Geometry {
+    /// [`Geometry::block`], its stores all whole vectors where the block's last one fits
+    /// the plane (rows of at least a vector, or narrower rows stored a vector wide into
+    /// the rows after them), else each through [`store_vector`]. Apart, the whole-vector
+    /// path keeps no partial store (a `memcpy` call, around which LLVM had spilled the
+    /// block's loaded rows on every vector) and clamps with bounds splatted once (infinite
+    /// for none) instead of a branch per vector: 0.82-0.93x the time on MobileNetV2's
+    /// depthwise layers on 56x56, 28x28 and 14x14 planes with ReLU, 0.84-0.89x on
+    /// EfficientNet-B0's 14x14 ones, 0.91-0.98x with SiLU (its pass after the conv
+    /// unchanged); 7-pixel rows unchanged (in-process A/B, 1 and 2 threads, 2026-12-06).
+    #[inline(always)]
+    fn rows<S: pulp::Simd, const R: usize, const K: usize, const ST: usize>(
+        self,
+        simd: S,
+        padded: &[f32],
+        taps: &[[f32; K]; K],
+        oy0: usize,
+        dst: &mut [f32],
+    ) {
+        let lanes = size_of::<S::f32s>() / size_of::<f32>();
+        let last = (oy0 + R - 1) * self.ow + self.ow.saturating_sub(lanes) + lanes;
+        if last <= dst.len() {
+            self.block::<S, R, K, ST, true>(simd, padded, taps, oy0, dst)
+        } else {
+            self.block::<S, R, K, ST, false>(simd, padded, taps, oy0, dst)
+        }
+    }
+
     /// Output rows `oy0..oy0 + R` of the plane `dst`, vector by vector along the row, at
     /// stride `ST`. A row narrower than a vector is stored a whole vector wide where the
     /// plane has room past it: the rows stored after it overwrite the extra lanes.
     #[inline(always)]
-    fn block<S: pulp::Simd, const R: usize, const K: usize, const ST: usize>(
+    fn block<S: pulp::Simd, const R: usize, const K: usize, const ST: usize, const WHOLE: bool>(
         self,
         simd: S,
         padded: &[f32],
@@ -207,6 +234,8 @@ impl Geometry {
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let ow = self.ow;
         let (scale, shift) = (simd.splat_f32s(self.scale), simd.splat_f32s(self.shift));
+        let (lo, hi) = self.clamp.unwrap_or((f32::NEG_INFINITY, f32::INFINITY));
+        let (lo, hi) = (simd.splat_f32s(lo), simd.splat_f32s(hi));
         let width = lanes.min(ow);
         // The farthest vector the block reads: the last phase's last row of the block
         // (ST (R - 1) + K rows from row ST oy0), from the last vector start plus the
@@ -242,6 +271,17 @@ impl Geometry {
             }
             for (r, a) in acc.into_iter().enumerate() {
                 let at = (oy0 + r) * ow + ox;
+                if WHOLE {
+                    let mut y = simd.mul_add_f32s(a, scale, shift);
+                    if lanes > 1 {
+                        // NaN kept: the bound goes first ([`clamp_vector`]).
+                        y = simd.min_f32s(hi, simd.max_f32s(lo, y));
+                    } else if let Some(bounds) = self.clamp {
+                        y = clamp_vector(simd, y, bounds);
+                    }
+                    S::as_mut_simd_f32s(&mut dst[at..at + lanes]).0[0] = y;
+                    continue;
+                }
                 let room = if width < lanes { (dst.len() - at).min(lanes) } else { width };
                 store_vector(simd, a, scale, shift, self.clamp, &mut dst[at..][..room]);
             }
@@ -505,6 +545,33 @@ mod tests {
     use super::*;
     use crate::kernels::testutil::{assert_close, backends, data};
     use crate::kernels::{Activation, Epilogue};
+
+    /// A NaN in the input stays NaN in the outputs it reaches through the clamped stores
+    /// (rows of a vector and more, and narrower rows stored a vector wide) on every SIMD
+    /// width, with and without a ReLU; the others stay finite.
+    #[test]
+    fn a_nan_reaches_the_outputs_it_touches() {
+        for (hw, k) in [(20, 3), (14, 5)] {
+            let s = Conv2dShape::square(1, 1, hw, 1, k, 1, k / 2, 1);
+            assert!(Registers::applies(&s));
+            let mut x = data(hw * hw, 1);
+            let (cy, cx) = (hw / 2, hw / 2);
+            x[cy * hw + cx] = f32::NAN;
+            let w = data(k * k, 2);
+            for act in [None, Some(Activation::Relu)] {
+                let ep = Epilogue { scale: None, shift: None, act };
+                for b in backends() {
+                    let mut got = vec![0.0; hw * hw];
+                    b.run(Registers { s: &s, w: &w, x: &x, ep: &ep, first: 0, dst: &mut got });
+                    for (i, v) in got.iter().enumerate() {
+                        let (y, x) = (i / hw, i % hw);
+                        let reached = y.abs_diff(cy) <= k / 2 && x.abs_diff(cx) <= k / 2;
+                        assert_eq!(v.is_nan(), reached, "{b:?} {act:?} {hw}x{hw} k{k}: ({y}, {x}) = {v}");
+                    }
+                }
+            }
+        }
+    }
 
     /// [`Registers`] on every SIMD width this CPU has (the kernel picks the widest),
     /// against the loops it replaced ([`depthwise_loops`]): 3x3, 5x5 and 7x7 kernels at
