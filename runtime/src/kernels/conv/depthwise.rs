@@ -221,7 +221,8 @@ impl Geometry {
 
     /// Output rows `oy0..oy0 + R` of the plane `dst`, vector by vector along the row, at
     /// stride `ST`. A row narrower than a vector is stored a whole vector wide where the
-    /// plane has room past it: the rows stored after it overwrite the extra lanes.
+    /// plane has room past it: the rows stored after it overwrite the extra lanes. With
+    /// `WHOLE` (the block's last store fits the plane, [`Geometry::rows`]) every store is.
     #[inline(always)]
     fn block<S: pulp::Simd, const R: usize, const K: usize, const ST: usize, const WHOLE: bool>(
         self,
