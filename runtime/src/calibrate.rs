@@ -437,7 +437,7 @@ fn train_mode_batchnorm(
         let (a, b) = affine[row % c];
         for v in xs {
             let y = *v * a + b;
-            *v = if relu { y.max(0.0) } else { y };
+            *v = if relu { crate::kernels::elementwise::relu(y) } else { y };
         }
     });
     if let Some(f) = layer.act.filter(|a| act && *a != Activation::Relu) {

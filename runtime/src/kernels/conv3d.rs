@@ -23,6 +23,7 @@
 //! (the sparse kernels, through `panel.rs`, make none).
 
 use super::Epilogue;
+use super::elementwise::relu;
 use super::gemm::{MatMut, MatRef, sgemm};
 
 pub use readi_plan::ops::Conv3dShape;
@@ -430,9 +431,9 @@ fn finish_row(row: &mut [f32], c: usize, ep: &Epilogue) {
     let scale = ep.scale.map_or(1.0, |v| v[c]);
     let shift = ep.shift.map_or(0.0, |v| v[c]);
     match (ep.scale.is_some(), ep.relu()) {
-        (true, true) => row.iter_mut().for_each(|a| *a = (*a * scale + shift).max(0.0)),
+        (true, true) => row.iter_mut().for_each(|a| *a = relu(*a * scale + shift)),
         (true, false) => row.iter_mut().for_each(|a| *a = *a * scale + shift),
-        (false, true) => row.iter_mut().for_each(|a| *a = (*a + shift).max(0.0)),
+        (false, true) => row.iter_mut().for_each(|a| *a = relu(*a + shift)),
         (false, false) if ep.shift.is_some() => row.iter_mut().for_each(|a| *a += shift),
         (false, false) => {}
     }

@@ -15,6 +15,7 @@
 //! Blocks divide the group's channels, so no unit straddles a group. Allocates nothing.
 
 use super::Epilogue;
+use super::elementwise::relu;
 use super::gemm::{MatMut, MatRef, sgemm};
 
 pub use readi_plan::ops::ConvTranspose2dShape;
@@ -268,9 +269,9 @@ simd_fn! {
             let scale = ep.scale.map_or(1.0, |v| v[c]);
             let shift = ep.shift.map_or(0.0, |v| v[c]);
             match (ep.scale.is_some(), ep.relu()) {
-                (true, true) => p.iter_mut().for_each(|a| *a = (*a * scale + shift).max(0.0)),
+                (true, true) => p.iter_mut().for_each(|a| *a = relu(*a * scale + shift)),
                 (true, false) => p.iter_mut().for_each(|a| *a = *a * scale + shift),
-                (false, true) => p.iter_mut().for_each(|a| *a = (*a + shift).max(0.0)),
+                (false, true) => p.iter_mut().for_each(|a| *a = relu(*a + shift)),
                 (false, false) if ep.shift.is_some() => p.iter_mut().for_each(|a| *a += shift),
                 (false, false) => {}
             }

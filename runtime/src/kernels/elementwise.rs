@@ -151,7 +151,7 @@ simd_fn! {
     /// [`add_in_place`] on one chunk, the ReLU in the sum's loop.
     fn add_chunk_in_place(out: &mut [f32], r: &[f32], act: Option<Activation>) {
         if act == Some(Activation::Relu) {
-            out.iter_mut().zip(r).for_each(|(o, &r)| *o = (*o + r).max(0.0));
+            out.iter_mut().zip(r).for_each(|(o, &r)| *o = relu(*o + r));
         } else {
             out.iter_mut().zip(r).for_each(|(o, &r)| *o += r);
             if let Some(f) = act {

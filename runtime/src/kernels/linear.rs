@@ -1,5 +1,6 @@
 //! Fully connected layers and batched matrix products, on top of [`sgemm`].
 
+use super::elementwise::relu;
 use rayon::prelude::*;
 
 use super::Epilogue;
@@ -213,7 +214,7 @@ fn epilogue_row(row: &mut [f32], ep: &Epilogue) {
         (Some(sc), Some(sh)) => row.iter_mut().zip(sc.iter().zip(sh)).for_each(|(v, (s, b))| *v = *v * s + b),
     }
     if ep.relu() {
-        row.iter_mut().for_each(|v| *v = v.max(0.0));
+        row.iter_mut().for_each(|v| *v = relu(*v));
     }
 }
 

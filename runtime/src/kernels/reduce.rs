@@ -435,7 +435,8 @@ impl View {
                     shifted_rows(simd, seg, sq, k, &x[base + off..base + off + tn]);
                 }
                 for (o, &q) in seg.iter_mut().zip(sq.iter()) {
-                    *o = (q - *o * *o * inv).max(0.0) / div;
+                    // Rounding can take it below 0; a NaN stays NaN.
+                    *o = super::elementwise::relu(q - *o * *o * inv) / div;
                 }
                 pos += tn;
             }

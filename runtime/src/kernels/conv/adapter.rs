@@ -101,7 +101,7 @@ simd_fn! {
     fn bias_rows(rows: &mut [f32], bias: &[f32], tp: usize, relu: bool) {
         for (row, &b) in rows.chunks_mut(tp).zip(bias) {
             if relu {
-                row.iter_mut().for_each(|v| *v = (*v + b).max(0.0));
+                row.iter_mut().for_each(|v| *v = elementwise::relu(*v + b));
             } else {
                 row.iter_mut().for_each(|v| *v += b);
             }

@@ -6,6 +6,7 @@
 //! most 8 pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
 //! `depthwise_acc`.
 
+use crate::kernels::elementwise::relu;
 use rayon::prelude::*;
 
 mod flat;
@@ -299,7 +300,7 @@ simd_fn! {
         let acc_scale = ep.scale.map_or(1.0, |v| v[c]);
         let shift = ep.shift.map_or(0.0, |v| v[c]);
         if ep.relu() {
-            dst.iter_mut().for_each(|d| *d = (*d * acc_scale + shift).max(0.0));
+            dst.iter_mut().for_each(|d| *d = relu(*d * acc_scale + shift));
         } else {
             dst.iter_mut().for_each(|d| *d = *d * acc_scale + shift);
         }

@@ -12,6 +12,7 @@ use super::adapter::{Adapter, apply_tile};
 use super::split::{Part, channel_shares, shared_scratch, sum_shares};
 use super::{Conv2dShape, ConvAlgo, Lora, finish, pointwise};
 use crate::kernels::Epilogue;
+use crate::kernels::elementwise::relu;
 use crate::kernels::gemm::{MatMut, MatRef, few_rows_product, sgemm};
 
 /// Pixels per GEMM tile: the unfolded tile plus the result tile fill up to 1.5 MiB, in
@@ -147,9 +148,9 @@ simd_fn! {
             let scale = ep.scale.map_or(1.0, |v| v[c]);
             let shift = ep.shift.map_or(0.0, |v| v[c]);
             match (ep.scale.is_some(), ep.relu()) {
-                (true, true) => row.iter_mut().for_each(|a| *a = (*a * scale + shift).max(0.0)),
+                (true, true) => row.iter_mut().for_each(|a| *a = relu(*a * scale + shift)),
                 (true, false) => row.iter_mut().for_each(|a| *a = *a * scale + shift),
-                (false, true) => row.iter_mut().for_each(|a| *a = (*a + shift).max(0.0)),
+                (false, true) => row.iter_mut().for_each(|a| *a = relu(*a + shift)),
                 (false, false) => row.iter_mut().for_each(|a| *a += shift),
             }
         }

@@ -60,6 +60,7 @@
 //! loop (`depthwise/flat.rs` its 7x7 planes), and `tests.rs` the tests of every algorithm
 //! against one reference.
 
+use crate::kernels::elementwise::relu;
 use rayon::prelude::*;
 
 use super::{Activation, Epilogue};
@@ -743,15 +744,15 @@ fn affine(dst: &mut [f32], acc: &[f32], c: usize, ep: &Epilogue, res: Option<&[f
         let res = &res[..acc.len()];
         let it = dst.iter_mut().zip(acc).zip(res);
         if ep.relu() {
-            it.for_each(|((d, &a), &r)| *d = (a * scale + shift + r).max(0.0));
+            it.for_each(|((d, &a), &r)| *d = relu(a * scale + shift + r));
         } else {
             it.for_each(|((d, &a), &r)| *d = a * scale + shift + r);
         }
     } else {
         match (ep.scale.is_some(), ep.relu()) {
-            (true, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a * scale + shift).max(0.0)),
+            (true, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = relu(a * scale + shift)),
             (true, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a * scale + shift),
-            (false, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = (a + shift).max(0.0)),
+            (false, true) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = relu(a + shift)),
             (false, false) => dst.iter_mut().zip(acc).for_each(|(d, &a)| *d = a + shift),
         }
     }

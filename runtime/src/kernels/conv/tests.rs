@@ -821,3 +821,66 @@ fn channel_scale_matches_scaling_the_input() {
         }
     }
 }
+
+/// A NaN in the input reaches, through a fused ReLU (with and without a residual, and
+/// with an adapter), every output whose receptive field holds it, as PyTorch's ReLU keeps
+/// NaN: on every algorithm's epilogue (GEMM rows, the 1x1 and im2col tiles, Winograd, the
+/// depthwise registers and loops, the direct conv), at 1 and 2 threads.
+#[test]
+fn a_nan_input_stays_nan_through_a_fused_relu() {
+    let cases = [
+        (shape(1, 8, (9, 9), 16, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
+        (shape(1, 8, (9, 9), 16, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 3, (12, 12), 16, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 8, (10, 10), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 8, (10, 10), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
+        (shape(1, 4, (10, 10), 4, (3, 3), (1, 1), (1, 1), (1, 1), 4), ConvAlgo::Depthwise),
+        (shape(1, 4, (10, 10), 4, (3, 3), (1, 1), (2, 2), (2, 2), 4), ConvAlgo::Depthwise),
+    ];
+    for (s, algo) in &cases {
+        assert!(algo.supports(s), "{} on {s:?}", algo.name());
+        let (cy, cx) = (s.h / 2, s.w / 2);
+        let mut x = data(s.n * s.cin * s.h * s.w, 41);
+        x[cy * s.w + cx] = f32::NAN;
+        let w = data(s.cout * s.cin / s.groups * s.kh * s.kw, 42);
+        let mut packed = vec![0.0; packed_weight_len(s, *algo)];
+        pack_weight(s, *algo, &w, &mut packed);
+        let (scale, shift) = (data(s.cout, 43), data(s.cout, 44));
+        let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
+        let res = data(s.n * s.cout * s.oh * s.ow, 45);
+        let mid = 2;
+        let (down, up) = (data(mid * s.cout, 46), data(s.cout * mid, 47));
+        let (bd, bu) = (data(mid, 48), data(s.cout, 49));
+        let ad = Adapter { down: &down, down_bias: &bd, up: &up, up_bias: &bu, mid, act: Activation::Relu };
+        let reaches = |o: usize, oy: usize, ox: usize| {
+            // Input channel 0 feeds group 0's outputs; the adapter mixes every channel.
+            let hit = |o: usize, step: usize, k: usize, d: usize, p: usize, c: usize| {
+                (0..k).any(|t| (o * step + t * d).checked_sub(p) == Some(c))
+            };
+            hit(oy, s.stride_h, s.kh, s.dil_h, s.pad_h, cy)
+                && hit(ox, s.stride_w, s.kw, s.dil_w, s.pad_w, cx)
+                && o < s.cout / s.groups
+        };
+        for (res, adapter) in [(None, None), (Some(&res[..]), None), (None, Some(&ad))] {
+            for threads in [1, 2] {
+                let need = adapter_scratch_len(s, *algo, 0, mid, threads).expect("a size");
+                let mut scratch = vec![0.0; need];
+                let mut out = vec![0.0; s.n * s.cout * s.oh * s.ow];
+                conv2d_fused(s, *algo, &packed, None, adapter, &ep, &x, res, &mut out, &mut scratch, threads);
+                for (i, v) in out.iter().enumerate() {
+                    let (o, p) = (i / (s.oh * s.ow), i % (s.oh * s.ow));
+                    let reached = reaches(o, p / s.ow, p % s.ow) || adapter.is_some() && reaches(0, p / s.ow, p % s.ow);
+                    if reached {
+                        assert!(
+                            v.is_nan(),
+                            "{} {s:?} res {} adapter {}: out[{i}] = {v}",
+                            algo.name(),
+                            res.is_some(),
+                            adapter.is_some()
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
