@@ -6,13 +6,13 @@
 //! most 8 pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
 //! `depthwise_acc`.
 
-use crate::kernels::elementwise::relu;
 use rayon::prelude::*;
 
 mod flat;
 
-use super::{Conv2dShape, clamp_vector, pad_interior, pad_phases, store_vector, vector_starts};
+use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
+use crate::kernels::elementwise::relu;
 
 /// Direct conv for one input channel per group, parallel over groups of output planes.
 pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], out: &mut [f32], threads: usize) {
@@ -193,15 +193,16 @@ struct Geometry {
 }
 
 impl Geometry {
-    /// [`Geometry::block`], its stores all whole vectors where the block's last one fits
-    /// the plane (rows of at least a vector, or narrower rows stored a vector wide into
-    /// the rows after them), else each through [`store_vector`]. Apart, the whole-vector
-    /// path keeps no partial store (a `memcpy` call, around which LLVM had spilled the
-    /// block's loaded rows on every vector) and clamps with bounds splatted once (infinite
-    /// for none) instead of a branch per vector: 0.82-0.93x the time on MobileNetV2's
-    /// depthwise layers on 56x56, 28x28 and 14x14 planes with ReLU, 0.84-0.89x on
-    /// EfficientNet-B0's 14x14 ones, 0.91-0.98x with SiLU (its pass after the conv
-    /// unchanged); 7-pixel rows unchanged (in-process A/B, 1 and 2 threads, 2026-12-06).
+    /// [`Geometry::block`], compiled apart for blocks whose last store fits the plane
+    /// (rows of at least a vector, or narrower rows stored a vector wide into the rows
+    /// after them): there every [`store_vector`] is a whole vector, and the partial store's
+    /// `memcpy` call, around which LLVM had spilled the block's loaded rows on every
+    /// vector, drops out. 0.82-0.93x the time on MobileNetV2's depthwise layers on 56x56,
+    /// 28x28 and 14x14 planes with ReLU, 0.84-0.89x on EfficientNet-B0's 14x14 ones,
+    /// 0.91-0.98x with SiLU (its pass after the conv unchanged); 7-pixel rows unchanged
+    /// (in-process A/B, 1 and 2 threads, 2026-12-06; those figures with the clamp's bounds
+    /// splatted once in a copy of `store_vector`, which `store_vector` itself, its clamp a
+    /// branch per vector, runs within 1.00-1.03x of).
     #[inline(always)]
     fn rows<S: pulp::Simd, const R: usize, const K: usize, const ST: usize>(
         self,
@@ -223,7 +224,8 @@ impl Geometry {
     /// Output rows `oy0..oy0 + R` of the plane `dst`, vector by vector along the row, at
     /// stride `ST`. A row narrower than a vector is stored a whole vector wide where the
     /// plane has room past it: the rows stored after it overwrite the extra lanes. With
-    /// `WHOLE` (the block's last store fits the plane, [`Geometry::rows`]) every store is.
+    /// `WHOLE` (the block's last store fits the plane, [`Geometry::rows`]) every store is
+    /// a whole vector.
     #[inline(always)]
     fn block<S: pulp::Simd, const R: usize, const K: usize, const ST: usize, const WHOLE: bool>(
         self,
@@ -236,8 +238,6 @@ impl Geometry {
         let lanes = size_of::<S::f32s>() / size_of::<f32>();
         let ow = self.ow;
         let (scale, shift) = (simd.splat_f32s(self.scale), simd.splat_f32s(self.shift));
-        let (lo, hi) = self.clamp.unwrap_or((f32::NEG_INFINITY, f32::INFINITY));
-        let (lo, hi) = (simd.splat_f32s(lo), simd.splat_f32s(hi));
         let width = lanes.min(ow);
         // The farthest vector the block reads: the last phase's last row of the block
         // (ST (R - 1) + K rows from row ST oy0), from the last vector start plus the
@@ -273,18 +273,15 @@ impl Geometry {
             }
             for (r, a) in acc.into_iter().enumerate() {
                 let at = (oy0 + r) * ow + ox;
-                if WHOLE {
-                    let mut y = simd.mul_add_f32s(a, scale, shift);
-                    if lanes > 1 {
-                        // NaN kept: the bound goes first ([`clamp_vector`]).
-                        y = simd.min_f32s(hi, simd.max_f32s(lo, y));
-                    } else if let Some(bounds) = self.clamp {
-                        y = clamp_vector(simd, y, bounds);
-                    }
-                    S::as_mut_simd_f32s(&mut dst[at..at + lanes]).0[0] = y;
-                    continue;
-                }
-                let room = if width < lanes { (dst.len() - at).min(lanes) } else { width };
+                // A whole vector where the block fits (the slice's length is then known,
+                // and the partial store's copy drops out), else up to the plane's end.
+                let room = if WHOLE {
+                    lanes
+                } else if width < lanes {
+                    (dst.len() - at).min(lanes)
+                } else {
+                    width
+                };
                 store_vector(simd, a, scale, shift, self.clamp, &mut dst[at..][..room]);
             }
         }
