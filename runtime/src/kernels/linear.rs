@@ -1,9 +1,9 @@
 //! Fully connected layers and batched matrix products, on top of [`sgemm`].
 
-use super::elementwise::relu;
 use rayon::prelude::*;
 
 use super::Epilogue;
+use super::elementwise::relu;
 use super::gemm::{MatMut, MatRef, sgemm};
 use super::panel;
 

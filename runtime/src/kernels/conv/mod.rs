@@ -60,9 +60,9 @@
 //! loop (`depthwise/flat.rs` its 7x7 planes), and `tests.rs` the tests of every algorithm
 //! against one reference.
 
-use crate::kernels::elementwise::relu;
 use rayon::prelude::*;
 
+use super::elementwise::relu;
 use super::{Activation, Epilogue};
 
 mod adapter;
