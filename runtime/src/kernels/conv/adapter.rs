@@ -205,16 +205,17 @@ pub(super) fn apply_fused(
 
 /// Implements `pulp::WithSimd` for a pass over tiles with a `run::<S, MR, NV, HV>`
 /// method: micro-tiles of `MR` rows by `NV` vectors across a tile, or `HV` across half a
-/// tile (a narrow tail); sums in 24 or 16 of the 32 AVX-512 registers (the pass's
-/// `wide()`), 12 of the 16 AVX2 ones.
+/// tile (a narrow tail); sums in 24 or 16 of the 32 AVX-512 registers (24 where the
+/// pass's rule says it runs whole tiles), 12 of the 16 AVX2 ones.
 macro_rules! tile_pass {
-    ($($t:ty),*) => {$(
+    ($($t:ty => |$p:ident| $wide:expr),*) => {$(
         impl pulp::WithSimd for $t {
             type Output = ();
             #[inline(always)]
             fn with_simd<S: pulp::Simd>(self, simd: S) {
+                let $p = &self;
                 match size_of::<S::f32s>() / size_of::<f32>() {
-                    16 if self.wide() => self.run::<S, 6, 4, 2>(simd),
+                    16 if $wide => self.run::<S, 6, 4, 2>(simd),
                     16 => self.run::<S, 8, 2, 1>(simd),
                     8 => self.run::<S, 3, 4, 2>(simd),
                     4 => self.run::<S, 2, 8, 4>(simd),
@@ -225,27 +226,13 @@ macro_rules! tile_pass {
     )*};
 }
 
-tile_pass!(Fused<'_, '_>, ByRows<'_>, ByChannels<'_>);
-
 // Whether a pass runs whole tiles (the AVX-512 micro-tile for them): [`Fused`] by its
 // channel count, the passes of [`apply_by_weights`] always.
-impl Fused<'_, '_> {
-    fn wide(&self) -> bool {
-        fused_tile(self.rows.len()) == TILE
-    }
-}
-
-impl ByRows<'_> {
-    fn wide(&self) -> bool {
-        true
-    }
-}
-
-impl ByChannels<'_> {
-    fn wide(&self) -> bool {
-        true
-    }
-}
+tile_pass!(
+    Fused<'_, '_> => |p| fused_tile(p.rows.len()) == TILE,
+    ByRows<'_> => |_p| true,
+    ByChannels<'_> => |_p| true
+);
 
 /// Scratch floats [`apply_fused`] needs at this thread count.
 pub(super) fn fused_after_len(s: &Conv2dShape, mid: usize, threads: usize) -> usize {
