@@ -201,4 +201,27 @@ fn main() {
             black_box(&out);
         });
     }
+
+    // EfficientNet-B0's first expansion (1x1, 16 to 96 channels on 112x112) and a
+    // depthwise layer, by activation: what each activation adds to the conv.
+    let layers = [("expand_1x1_16_96@112", 16, 112, 96, 1, 1, 0, 1), ("dw_3x3_144@56", 144, 56, 144, 3, 1, 1, 144)];
+    for (name, cin, hw, cout, k, stride, pad, groups) in layers {
+        let s = Conv2dShape::square(1, cin, hw, cout, k, stride, pad, groups);
+        let algo = conv::choose(&s);
+        let x = data(cin * hw * hw, 3);
+        let w = data(cout * cin / groups * k * k, 4);
+        let scale: Vec<f32> = data(cout, 5).iter().map(|v| 1.0 + 0.5 * v).collect();
+        let shift = data(cout, 6);
+        let mut out = vec![0.0; cout * s.oh * s.ow];
+        let mut packed = vec![0.0; conv::packed_weight_len(&s, algo)];
+        conv::pack_weight(&s, algo, &w, &mut packed);
+        let mut scratch = vec![0.0; conv::scratch_len(&s, algo, 2)];
+        for act in [None, Some(Activation::Relu), Some(Activation::Silu), Some(Activation::Hardswish)] {
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act };
+            time(&format!("conv {name} {} {act:?}", algo.name()), f, |t| {
+                conv::conv2d(&s, algo, &packed, &ep, &x, &mut out, &mut scratch, t);
+                black_box(&out);
+            });
+        }
+    }
 }

@@ -1,8 +1,9 @@
 //! Element-wise kernels: binary ops with NumPy broadcasting, ops with a scalar, activations.
 
+use pulp::Simd;
 use rayon::prelude::*;
 
-use super::softmax::exp_fast;
+use super::softmax::{exp_fast, exp_simd};
 use super::{Activation, BinaryOp};
 
 /// Below this many elements a kernel runs on the calling thread.
@@ -247,9 +248,27 @@ macro_rules! per_act {
     };
 }
 
+/// `out[i] = act(x[i])`.
+fn map_chunk(act: Activation, x: &[f32], out: &mut [f32]) {
+    if on_vectors(act) {
+        pulp::Arch::new().dispatch(VectorMap { act, x: Some(&x[..out.len()]), out })
+    } else {
+        map_chunk_loop(act, x, out)
+    }
+}
+
+/// `x[i] = act(x[i])`.
+fn map_chunk_in_place(act: Activation, x: &mut [f32]) {
+    if on_vectors(act) {
+        pulp::Arch::new().dispatch(VectorMap { act, x: None, out: x })
+    } else {
+        map_chunk_in_place_loop(act, x)
+    }
+}
+
 simd_fn! {
-    /// `out[i] = act(x[i])`.
-    fn map_chunk(act: Activation, x: &[f32], out: &mut [f32]) {
+    /// [`map_chunk`] as a loop over the scalar function, which LLVM vectorises.
+    fn map_chunk_loop(act: Activation, x: &[f32], out: &mut [f32]) {
         let x = &x[..out.len()];
         per_act!(act, f => {
             for (o, &v) in out.iter_mut().zip(x) {
@@ -260,14 +279,132 @@ simd_fn! {
 }
 
 simd_fn! {
-    /// `x[i] = act(x[i])`.
-    fn map_chunk_in_place(act: Activation, x: &mut [f32]) {
+    /// [`map_chunk_in_place`] as a loop over the scalar function.
+    fn map_chunk_in_place_loop(act: Activation, x: &mut [f32]) {
         per_act!(act, f => {
             for v in x.iter_mut() {
                 *v = f(*v);
             }
         })
     }
+}
+
+/// Whether `act` runs on SIMD vectors written out ([`VectorMap`]) rather than as a loop
+/// over its scalar function: the functions over `exp` (sigmoid, SiLU), whose polynomial
+/// LLVM keeps as separate multiplies and adds in the vectorised loop (Rust does not let
+/// it fuse them), about 40 instructions a vector.
+#[inline(always)]
+pub(crate) fn on_vectors(act: Activation) -> bool {
+    matches!(act, Activation::Silu | Activation::Sigmoid)
+}
+
+/// `act` on `N` vectors in registers, for an activation of [`on_vectors`]: a conv's store.
+///
+/// # Panics
+/// For another activation.
+#[inline(always)]
+pub(crate) fn act_simd<S: Simd, const N: usize>(simd: S, act: Activation, x: [S::f32s; N]) -> [S::f32s; N] {
+    match act {
+        Activation::Silu => silu_simd(simd, x),
+        Activation::Sigmoid => sigmoid_simd(simd, x),
+        _ => unreachable!("act_simd: {act:?} is not computed on vectors"),
+    }
+}
+
+/// `out = act(x)` (`x` given) or `out = act(out)`, vector by vector, for the activations
+/// of [`on_vectors`]; on the scalar backend, the scalar loops.
+struct VectorMap<'a> {
+    act: Activation,
+    x: Option<&'a [f32]>,
+    out: &'a mut [f32],
+}
+
+impl pulp::WithSimd for VectorMap<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        let VectorMap { act, x, out } = self;
+        if size_of::<S::f32s>() == size_of::<f32>() {
+            // One lane: the scalar functions (no software multiply-add).
+            return match x {
+                Some(x) => map_chunk_loop(act, x, out),
+                None => map_chunk_in_place_loop(act, out),
+            };
+        }
+        map_vectors(simd, act, x, out);
+    }
+}
+
+/// Vectors [`map_vectors`] computes together. SiLU in place over 56x56 planes (AVX-512, 1
+/// and 2 threads, alternating calls, 2026-12-06), against the loop over the scalar
+/// function: one vector at a time 0.72x its time, four 0.61-0.66x, and with their steps
+/// interleaved in the source ([`exp_simd`]) 0.95x that again: one vector's chain of ~25
+/// dependent steps leaves the core waiting.
+const TOGETHER: usize = 4;
+
+/// `out = act(x)`, or `out = act(out)` without `x` ([`act_simd`]): [`TOGETHER`] vectors at a
+/// time, then one at a time, then the last partial one.
+#[inline(always)]
+fn map_vectors<S: Simd>(simd: S, act: Activation, x: Option<&[f32]>, out: &mut [f32]) {
+    let (head, tail) = S::as_mut_simd_f32s(out);
+    let tail_in = match x {
+        Some(x) => {
+            let (xh, xt) = S::as_simd_f32s(x);
+            let mut groups = head.chunks_exact_mut(TOGETHER);
+            let mut xs = xh.chunks_exact(TOGETHER);
+            for (o, v) in (&mut groups).zip(&mut xs) {
+                o.copy_from_slice(&act_simd(simd, act, <[S::f32s; TOGETHER]>::try_from(v).expect("a group")));
+            }
+            for (o, &v) in groups.into_remainder().iter_mut().zip(xs.remainder()) {
+                [*o] = act_simd(simd, act, [v]);
+            }
+            xt
+        }
+        None => {
+            let mut groups = head.chunks_exact_mut(TOGETHER);
+            for o in &mut groups {
+                let y = act_simd(simd, act, <[S::f32s; TOGETHER]>::try_from(&*o).expect("a group"));
+                o.copy_from_slice(&y);
+            }
+            for o in groups.into_remainder() {
+                [*o] = act_simd(simd, act, [*o]);
+            }
+            &*tail
+        }
+    };
+    if !tail.is_empty() {
+        let [y] = act_simd(simd, act, [simd.partial_load_f32s(tail_in)]);
+        simd.partial_store_f32s(tail, y);
+    }
+}
+
+/// [`sigmoid`] on `N` vectors, over [`exp_simd`] (multiply-adds fused): `1 / (1 + e)` with
+/// `e = e^-|x|`, times `e` for negative `x`. NaN stays NaN.
+#[inline(always)]
+pub(crate) fn sigmoid_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S::f32s; N] {
+    let one = simd.splat_f32s(1.0);
+    let mut a = x;
+    for i in 0..N {
+        a[i] = simd.neg_f32s(simd.abs_f32s(x[i]));
+    }
+    let e = exp_simd(simd, a);
+    let mut out = x;
+    for i in 0..N {
+        let s = simd.div_f32s(one, simd.add_f32s(one, e[i]));
+        let negative = simd.less_than_f32s(x[i], simd.splat_f32s(0.0));
+        out[i] = simd.select_f32s(negative, simd.mul_f32s(e[i], s), s);
+    }
+    out
+}
+
+/// [`silu`] on `N` vectors: `x · sigmoid(x)`.
+#[inline(always)]
+pub(crate) fn silu_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S::f32s; N] {
+    let mut out = sigmoid_simd(simd, x);
+    for i in 0..N {
+        out[i] = simd.mul_f32s(x[i], out[i]);
+    }
+    out
 }
 
 /// `max(x, 0)`, keeping NaN as PyTorch does.
@@ -770,7 +907,7 @@ pub fn check_same_length(x: &[usize], out: &[usize]) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{assert_close, data};
+    use crate::kernels::testutil::{assert_close, backends, data};
 
     fn apply(op: BinaryOp, x: f32, y: f32) -> f32 {
         match op {
@@ -1065,8 +1202,13 @@ mod tests {
     fn max_rel_error(act: Activation, x: &[f32]) -> f64 {
         let mut got = vec![0.0; x.len()];
         activation(act, x, &mut got);
+        rel_error(act, x, &got)
+    }
+
+    /// [`max_rel_error`] of `got`, computed from `x`.
+    fn rel_error(act: Activation, x: &[f32], got: &[f32]) -> f64 {
         let mut worst = 0.0f64;
-        for (&v, &g) in x.iter().zip(&got) {
+        for (&v, &g) in x.iter().zip(got) {
             let w = act.reference(v as f64);
             let wf = w as f32;
             if wf.is_nan() || wf.is_infinite() {
@@ -1220,6 +1362,36 @@ mod tests {
         binary(BinaryOp::Pow, &a, &[3, 4, 5], &b, &[5], &mut out, &[3, 4, 5]);
         let want: Vec<f32> = a.iter().enumerate().map(|(i, v)| v.powf(b[i % 5])).collect();
         assert_eq!(out, want);
+    }
+
+    /// The activations computed on whole vectors (`VectorMap`), on every backend this CPU
+    /// has, out of place and in place, on lengths that end in groups of four vectors,
+    /// single vectors and a partial one: within the bounds the scalar functions keep, NaN
+    /// and infinities where the formula puts them.
+    #[test]
+    fn vector_activations_on_every_backend() {
+        let special = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -0.0, 0.0, -100.0, -88.0, -87.5, 88.73, 1e-30];
+        for len in [3, 16, 64, 181, 517] {
+            let mut x: Vec<f32> = data(len, 4).iter().map(|v| v * 24.0).collect();
+            for (v, s) in x.iter_mut().step_by(7).zip(special) {
+                *v = s;
+            }
+            for (act, bound) in [(Activation::Silu, 3.0e-7), (Activation::Sigmoid, 2.5e-7)] {
+                assert!(on_vectors(act));
+                for b in backends() {
+                    let mut out = vec![0.0; len];
+                    b.run(VectorMap { act, x: Some(&x), out: &mut out });
+                    let err = rel_error(act, &x, &out);
+                    assert!(err <= bound, "{b:?} {act:?} length {len}: relative error {err:e}");
+                    let mut in_place = x.clone();
+                    b.run(VectorMap { act, x: None, out: &mut in_place });
+                    assert!(
+                        in_place.iter().zip(&out).all(|(a, b)| a.to_bits() == b.to_bits()),
+                        "{b:?} {act:?} length {len}: in place differs"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
