@@ -115,7 +115,9 @@ pub struct Epilogue<'a> {
     pub scale: Option<&'a [f32]>,
     pub shift: Option<&'a [f32]>,
     /// Applied last; `Relu` runs in the affine's own loop, any other activation as a
-    /// second pass over the block the affine just wrote (still in cache).
+    /// second pass over the block the affine just wrote (still in cache), except where a
+    /// register path computes it on its sums ([`Epilogue::clamp`],
+    /// [`Epilogue::vector_act`]).
     pub act: Option<Activation>,
 }
 
@@ -131,6 +133,14 @@ impl Epilogue<'_> {
     #[inline(always)]
     pub fn clamp(&self) -> Option<(f32, f32)> {
         clamp_bounds(self.act?)
+    }
+
+    /// The activation a register path computes on its vectors before it stores them, on a
+    /// SIMD backend `S` of more than one lane: SiLU and sigmoid ([`elementwise::act_simd`]),
+    /// whose pass over the stored block would read it back.
+    #[inline(always)]
+    pub fn vector_act<S: pulp::Simd>(&self) -> Option<Activation> {
+        self.act.filter(|&a| size_of::<S::f32s>() > size_of::<f32>() && elementwise::on_vectors(a))
     }
 
     /// Applies the activation unless it is a clamp (see [`Epilogue::clamp`]) to `out`, a

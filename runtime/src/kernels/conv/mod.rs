@@ -546,7 +546,7 @@ pub fn conv2d_fused(
         let run = |(part, scratch): &mut (Part, &mut [f32])| {
             let (scratch, work) = scratch.split_at_mut(conv_len);
             match algo {
-                ConvAlgo::Gemm1x1 if lora.is_none() && in_tile.is_none() && pointwise::applies(s) => {
+                ConvAlgo::Gemm1x1 if lora.is_none() && in_tile.is_none() && pointwise::applies(s, ep.act) => {
                     pointwise::part(s, packed_weight, ep, x, part, scratch)
                 }
                 ConvAlgo::Gemm1x1 | ConvAlgo::Im2col => {

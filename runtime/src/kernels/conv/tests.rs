@@ -626,10 +626,15 @@ fn pointwise_tails_batches_and_residuals() {
     ];
     for (n, cin, hw, cout) in cases {
         let s = shape(n, cin, hw, cout, (1, 1), (1, 1), (0, 0), (1, 1), 1);
-        assert!(pointwise::applies(&s), "{s:?} takes the register path");
+        assert!(pointwise::applies(&s, None), "{s:?} takes the register path");
         check(&s, ConvAlgo::Gemm1x1);
         check_residual(&s, ConvAlgo::Gemm1x1, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
     }
+    // Past the plane bound, a SiLU or sigmoid layer of a small weight takes the tiles too
+    // (the activation computed on the sums in registers), a ReLU one the GEMM.
+    let s = shape(2, 8, (21, 23), 24, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+    assert!(pointwise::applies(&s, Some(Activation::Silu)) && !pointwise::applies(&s, Some(Activation::Relu)));
+    check_residual(&s, ConvAlgo::Gemm1x1, &[Some(Activation::Silu), Some(Activation::Sigmoid)]);
     assert_eq!(split_shape(&shape(1, 70, (3, 3), 64, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1, 2), (1, 2));
     // Im2col layers of small planes run the same tiles over their unfolded rows: strided
     // 3x3 and 1x1 (ResNet's downsampling), padding, dilation, a 5x5, batches.
