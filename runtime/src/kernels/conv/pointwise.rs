@@ -23,7 +23,7 @@ use crate::kernels::{Activation, Epilogue, elementwise};
 /// Whether a Gemm1x1 layer with activation `act` runs here rather than through the `gemm`
 /// crate: one group, and planes of at most [`MAX_PLANE`] pixels with at most
 /// [`MAX_STREAMED`] weight floats streamed per image; or, when the tiles compute the
-/// activation in registers (SiLU, sigmoid: [`Epilogue::vector_act`]), planes of any size
+/// activation in registers (SiLU, sigmoid, GELU, tanh: [`Epilogue::vector_act`]), planes of any size
 /// under a weight of at most [`MAX_ACT_WEIGHT`] floats.
 pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
     let small = s.oh * s.ow <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED;
