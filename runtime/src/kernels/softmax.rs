@@ -85,7 +85,22 @@ fn softmax_row<S: Simd>(simd: S, x: &[f32], out: &mut [f32]) {
     let max = simd.splat_f32s(simd.reduce_max_f32s(m));
     let mut acc = simd.splat_f32s(0.0);
     let (oh, _) = S::as_mut_simd_f32s(out);
-    for (o, &v) in oh.iter_mut().zip(xh) {
+    // Four vectors' exps at a time, their steps interleaved ([`exp_simd`]), summed in the
+    // same order as one at a time: 0.88-0.95x the time on ViT-B's 197-wide rows and on
+    // 4096-wide ones, 1 and 2 threads (alternating calls, 2026-12-06); Swin's 49-wide
+    // windows have three whole vectors and run as before.
+    let whole = oh.len() / 4 * 4;
+    let (o4, o1) = oh.split_at_mut(whole);
+    let (x4, x1) = xh.split_at(whole);
+    for (o, v) in o4.chunks_exact_mut(4).zip(x4.chunks_exact(4)) {
+        let d = |i: usize| simd.sub_f32s(v[i], max);
+        let e = exp_simd(simd, [d(0), d(1), d(2), d(3)]);
+        for (o, e) in o.iter_mut().zip(e) {
+            *o = e;
+            acc = simd.add_f32s(acc, e);
+        }
+    }
+    for (o, &v) in o1.iter_mut().zip(x1) {
         [*o] = exp_simd(simd, [simd.sub_f32s(v, max)]);
         acc = simd.add_f32s(acc, *o);
     }
@@ -136,7 +151,7 @@ fn softmax_short_row(x: &[f32], out: &mut [f32]) {
 /// waiting, `N` independent chains side by side keep both units busy.
 #[inline(always)]
 pub(crate) fn exp_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S::f32s; N] {
-    // Loops over the lanes, not `map` closures: closures were not inlined into the
+    // Loops over the vectors, not `map` closures: those were not inlined into the
     // SIMD-enabled caller (a call per step, 11x slower).
     let c = |v: f32| simd.splat_f32s(v);
     let mut low = [simd.less_than_f32s(x[0], c(-87.0)); N];
