@@ -23,8 +23,8 @@ use crate::kernels::{Activation, Epilogue, elementwise};
 /// Whether a Gemm1x1 layer with activation `act` runs here rather than through the `gemm`
 /// crate: one group, and planes of at most [`MAX_PLANE`] pixels with at most
 /// [`MAX_STREAMED`] weight floats streamed per image; or, when the tiles compute the
-/// activation in registers (SiLU, sigmoid, GELU, tanh: [`Epilogue::vector_act`]), planes of any size
-/// under a weight of at most [`MAX_ACT_WEIGHT`] floats.
+/// activation in registers (SiLU, sigmoid, GELU, tanh: [`Epilogue::vector_act`]), planes
+/// of any size under a weight of at most [`MAX_ACT_WEIGHT`] floats.
 pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
     let small = s.oh * s.ow <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED;
     let in_registers = act.is_some_and(elementwise::on_vectors) && s.cin * s.cout <= MAX_ACT_WEIGHT;
@@ -36,10 +36,11 @@ pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
 /// scratch, then the epilogue reads it back and the activation's pass reads the output
 /// again; the tiles compute SiLU on the sums and store once. EfficientNet-B0's SiLU
 /// expansions (2-core Xeon, AVX-512, 2026-12-06, tiles' time over the crate path's,
-/// alternating calls in one process, 1 / 2 threads): 16 to 96 channels on 112x112 0.92 /
-/// 0.92, 24 to 144 on 56x56 0.93 / 0.98, 40 to 240 on 28x28 0.98 / 0.85; 112 to 672 on
-/// 14x14 (75 Ki floats, past this bound) 0.98 / 1.06. With a ReLU the crate's path stays
-/// ahead on large planes (16 to 96 on 112x112: 1.10 / 1.15).
+/// alternating calls in one process, 2-3 runs, 1 / 2 threads): 16 to 96 channels on
+/// 112x112 0.89-0.92 / 0.92-0.95, 24 to 144 on 56x56 0.93 / 0.98, 40 to 240 on 28x28
+/// 0.98-1.02 / 0.85-0.91; 112 to 672 on 14x14 (75 Ki floats, past this bound) 0.98-1.07 /
+/// 1.00-1.06. With a ReLU the crate's path stays ahead on large planes (16 to 96 on
+/// 112x112: 1.10 / 1.15). GELU and tanh, costlier, take the same rule unmeasured.
 const MAX_ACT_WEIGHT: usize = 16 * 1024;
 
 /// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
