@@ -299,6 +299,8 @@ impl Image<'_> {
         let a: [&[f32]; MR] = std::array::from_fn(|r| &self.w[(c0 + r) * cin..][..cin]);
         let acc = strided_rows_product::<S, MR, NV>(simd, a, &self.x[p..], plane);
         let off = self.first + p - self.p_lo;
+        // The activation computed on the sums, else (not a clamp) a pass over the stored block.
+        let in_registers = self.ep.vector_act::<S>();
         for (r, sums) in acc.iter().enumerate() {
             let c = c0 + r;
             let scale = simd.splat_f32s(self.ep.scale.map_or(1.0, |v| v[c]));
@@ -317,11 +319,11 @@ impl Image<'_> {
                 }
                 z[v] = self.clamp.map_or(z[v], |cl| clamp_vector(simd, z[v], cl));
             }
-            if let Some(act) = self.ep.vector_act::<S>() {
+            if let Some(act) = in_registers {
                 z = elementwise::act_simd(simd, act, z);
             }
             dst.copy_from_slice(&z);
-            if let Some(f) = self.post.filter(|_| self.ep.vector_act::<S>().is_none()) {
+            if let Some(f) = self.post.filter(|_| in_registers.is_none()) {
                 elementwise::activation_chunk(f, out);
             }
         }
