@@ -425,6 +425,66 @@ fn fused_branches_match_merged_lora_on_every_algorithm() {
     }
 }
 
+/// A conv of weight panels (a 6x6 plane; 128 -> 320 channels, a weight too large for
+/// im2col's register tiles) with a LoRA branch: its kernel reads `A` raw, so the plan
+/// stores it raw; the branch plan's outputs are the merged plan's, at batch 1 and 3, on 1
+/// and 2 threads.
+#[test]
+fn a_lora_branch_on_weight_panels_matches_the_merged_weight() {
+    let spec = "model m {
+  input x: f32[N, 128, 12, 12] @camera
+  p = conv2d(x, 320, kernel=3, stride=2, padding=1, bias=false)
+  n = batchnorm(p)
+  fc = linear(flatten(relu(n), start=1), 10)
+  output y = fc
+}
+adapt {
+  tune batchnorm
+  lora rank=4 alpha=8 on p
+}
+variants {
+  axis fog on camera: 0.03, 0.06 clear 0
+}
+";
+    let (sources, out) = common::compile_text("panels.readi", spec, &[], None);
+    assert!(!out.diagnostics.has_errors(), "{}", sources.render_all(&out.diagnostics, false));
+    let m = out.module.expect("module");
+    let keys = vec!["fog=0.03".to_string(), "fog=0.06".to_string()];
+    let variants = backend::seeded_variants(&m, &keys, SEED + 2);
+    let merged = Arc::new(compile(&sources, &m, &variants, LoraMode::Merge));
+    let branch = Arc::new(compile(&sources, &m, &variants, LoraMode::Branch));
+    let conv = |p: &Plan| {
+        p.manifest.steps.iter().find_map(|s| match &s.kernel {
+            readi_runtime::plan::Kernel::Conv2d { algo, lora, .. } => {
+                Some((algo.name(), lora.map(|l| (l.a_raw, p.manifest.tensors[l.a].numel()))))
+            }
+            _ => None,
+        })
+    };
+    assert_eq!(conv(&merged), Some(("panels", None)));
+    assert_eq!(conv(&branch), Some(("panels", Some((true, 4 * 128 * 9)))));
+    for batch in [1usize, 3] {
+        let shape = vec![batch, 128, 12, 12];
+        let x = seeded_tensor(7, "x", &shape);
+        let input = [Input { name: "x", data: &x, shape: &shape }];
+        for threads in [1, 2] {
+            let mut a = Session::new(merged.clone(), threads).expect("session");
+            let mut b = Session::new(branch.clone(), threads).expect("session");
+            for key in ["base", "fog=0.03", "fog=0.06"] {
+                a.set_variant(key).expect("key");
+                b.set_variant(key).expect("key");
+                let (ya, yb) = (a.run(&input).expect("run"), b.run(&input).expect("run"));
+                let scale = ya[0].1.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                let err = max_abs_error(&ya[0].1.data, &yb[0].1.data);
+                assert!(
+                    err <= 1e-5 * scale.max(1.0),
+                    "{key}, batch {batch}, {threads} threads: {err:e} (scale {scale})"
+                );
+            }
+        }
+    }
+}
+
 /// A branch plan's outputs under `key` from a fresh session on 2 threads.
 fn fresh_run(plan: &Arc<Plan>, key: &str, input: &[Input<'_>]) -> Vec<f32> {
     let mut s = Session::new(Arc::clone(plan), 2).expect("session");

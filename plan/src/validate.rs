@@ -252,7 +252,8 @@ fn tensor_sizes(m: &Manifest, step: &Step) -> Result<(), String> {
                 }
                 // A raw `A` is PyTorch's layout, what the im2col algorithm reads.
                 let a = Conv2dShape { cout: l.rank, ..s };
-                let (stored, how) = if l.a_raw { (ConvAlgo::Im2col, "raw") } else { (*algo, algo.name()) };
+                let layout = algo.lora_a_layout();
+                let (stored, how) = if l.a_raw { (ConvAlgo::Im2col, "raw") } else { (layout, layout.name()) };
                 lora_sizes(m, l, stored.packed_len(&a), conv.out_channels, how)?;
             }
             if let Some(a) = adapter {

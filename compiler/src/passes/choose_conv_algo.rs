@@ -2,7 +2,8 @@
 //! runtime's cost model, `readi_runtime::kernels::conv::choose`, on the layer's shape at
 //! batch size 1 (the choice does not depend on the batch): Winograd F(4x4) or F(2x2) for
 //! 3x3 stride-1 layers with enough channels, a plain GEMM for 1x1 stride-1 layers, the
-//! direct loop for depthwise layers, im2col otherwise.
+//! direct loop for depthwise layers, weight panels for large weights on 7x7 planes, im2col
+//! otherwise.
 //!
 //! A variant-owned conv takes the algorithm `choose_strategy` chose for it (a compact one
 //! under a memory budget). Does nothing when every conv has an algorithm. Assumes the epilogues are fused (the

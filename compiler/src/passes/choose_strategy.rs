@@ -340,11 +340,10 @@ fn time_conv(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> f64 {
     let w: Vec<f32> = (0..s.cout * s.k()).map(|i| ((i % 7) as f32 - 3.0) * 0.01).collect();
     let mut packed = vec![0.0f32; conv::packed_weight_len(s, algo)];
     conv::pack_weight(s, algo, &w, &mut packed);
-    let a_shape = conv::lora_a_shape(s, rank.max(1));
     let a: Vec<f32> = (0..rank * s.k()).map(|i| ((i % 3) as f32 - 1.0) * 0.01).collect();
-    let mut a_packed = vec![0.0f32; if rank > 0 { conv::packed_weight_len(&a_shape, algo) } else { 0 }];
+    let mut a_packed = vec![0.0f32; if rank > 0 { conv::lora_a_len(s, algo, rank) } else { 0 }];
     if rank > 0 {
-        conv::pack_weight(&a_shape, algo, &a, &mut a_packed);
+        conv::pack_lora_a(s, algo, rank, &a, &mut a_packed);
     }
     let b: Vec<f32> = (0..s.cout * rank).map(|i| ((i % 5) as f32 - 2.0) * 0.01).collect();
     let lora = (rank > 0).then(|| conv::Lora { a: &a_packed, b: &b, rank });

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Operator, ShapeError, ShapeResult, TensorType, Window2, nchw, pair, spatial};
+use super::{Operator, PANEL, ShapeError, ShapeResult, TensorType, Window2, nchw, pair, spatial};
 use crate::dim::Dim;
 
 /// A 2-D convolution's geometry. The bias, and what the back end fuses into the conv (a
@@ -175,6 +175,10 @@ pub enum ConvAlgo {
     Winograd4,
     /// Direct loop for one input channel per group (depthwise). Weight as PyTorch's.
     Depthwise,
+    /// Small planes, one group: each image unfolded pixel by pixel, one GEMM with the
+    /// output channels in the vector lanes. Weight `[ceil(cout / PANEL)][k][PANEL]`: the
+    /// panels of a linear layer ([`PANEL`]), `k = cin · kh · kw`, padded with zeros.
+    Panels,
 }
 
 impl Conv2dShape {
@@ -215,8 +219,14 @@ impl Conv2dShape {
 
 impl ConvAlgo {
     /// Every algorithm, for listings and tests.
-    pub const ALL: [ConvAlgo; 5] =
-        [ConvAlgo::Gemm1x1, ConvAlgo::Im2col, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Depthwise];
+    pub const ALL: [ConvAlgo; 6] = [
+        ConvAlgo::Gemm1x1,
+        ConvAlgo::Im2col,
+        ConvAlgo::Winograd2,
+        ConvAlgo::Winograd4,
+        ConvAlgo::Depthwise,
+        ConvAlgo::Panels,
+    ];
 
     /// The name stored in plan files.
     pub fn name(self) -> &'static str {
@@ -226,6 +236,7 @@ impl ConvAlgo {
             ConvAlgo::Winograd2 => "winograd2",
             ConvAlgo::Winograd4 => "winograd4",
             ConvAlgo::Depthwise => "depthwise",
+            ConvAlgo::Panels => "panels",
         }
     }
 
@@ -243,6 +254,7 @@ impl ConvAlgo {
             ConvAlgo::Im2col => true,
             ConvAlgo::Winograd2 | ConvAlgo::Winograd4 => s.is_winograd_shape(),
             ConvAlgo::Depthwise => s.cin_g() == 1,
+            ConvAlgo::Panels => s.groups == 1,
         }
     }
 
@@ -257,12 +269,20 @@ impl ConvAlgo {
     /// Length of the weight packed for this algorithm; saturates at `usize::MAX` (which
     /// no stored tensor has, so a plan declaring such a layer is refused).
     pub fn packed_len(self, s: &Conv2dShape) -> usize {
-        let per = match self {
-            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => s.k(),
-            ConvAlgo::Winograd2 => s.cin_g().saturating_mul(16),
-            ConvAlgo::Winograd4 => s.cin_g().saturating_mul(36),
+        let (rows, per) = match self {
+            ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => (s.cout, s.k()),
+            ConvAlgo::Winograd2 => (s.cout, s.cin_g().saturating_mul(16)),
+            ConvAlgo::Winograd4 => (s.cout, s.cin_g().saturating_mul(36)),
+            ConvAlgo::Panels => (s.cout.div_ceil(PANEL).saturating_mul(PANEL), s.k()),
         };
-        s.cout.saturating_mul(per)
+        rows.saturating_mul(per)
+    }
+
+    /// The algorithm whose packing a fused LoRA branch's `A` takes for this one: its own,
+    /// but PyTorch's layout (im2col's) for [`ConvAlgo::Panels`], whose kernel reads `A`'s
+    /// few rows as they are (panels would pad them to [`PANEL`] rows).
+    pub fn lora_a_layout(self) -> ConvAlgo {
+        if self == ConvAlgo::Panels { ConvAlgo::Im2col } else { self }
     }
 }
 

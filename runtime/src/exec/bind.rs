@@ -325,7 +325,7 @@ pub(super) fn layout(plan: &Plan, symbols: &[usize], threads: usize) -> Result<L
             }
             // `check_step` checked the raw length, so the packed one is in range.
             if lora.is_some_and(|l| l.a_raw) {
-                lora_len[k] = conv::packed_weight_len(&conv::lora_a_shape(s, rank), *algo);
+                lora_len[k] = conv::lora_a_len(s, *algo, rank);
                 lora_floats = sum([lora_floats, lora_len[k]], "the packed LoRA A buffers")?;
             }
         }
@@ -637,7 +637,7 @@ impl Bound {
             {
                 // A branch the variant does not give is skipped (`run_step`): nothing
                 // reads its `A`, and the next variant that gives it packs again.
-                conv::pack_weight(&conv::lora_a_shape(s, l.rank), *algo, weights.get(l.a), &mut self.lora_a[k]);
+                conv::pack_lora_a(s, *algo, l.rank, weights.get(l.a), &mut self.lora_a[k]);
             }
         }
         self.lora_variant = Some(variant);
@@ -725,7 +725,7 @@ fn check_step(plan: &Plan, step: &Step, shapes: &[Vec<usize>]) -> Result<(), Str
                         plan.manifest.tensors[spec.a].name
                     ));
                 }
-                *a_len = conv::packed_weight_len(&conv::lora_a_shape(&s, *rank), *algo);
+                *a_len = conv::lora_a_len(&s, *algo, *rank);
             }
             let mut w_len = len(*weight);
             if *switch {

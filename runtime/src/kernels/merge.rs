@@ -85,7 +85,7 @@ mod tests {
             }
         }
         let l = crate::kernels::Lora { a: &a, b: &b, rank };
-        for algo in [ConvAlgo::Im2col, ConvAlgo::Winograd2, ConvAlgo::Winograd4] {
+        for algo in [ConvAlgo::Im2col, ConvAlgo::Winograd2, ConvAlgo::Winograd4, ConvAlgo::Panels] {
             let mut want = vec![0.0; conv::packed_weight_len(&s, algo)];
             conv::pack_weight(&s, algo, &merged, &mut want);
             let mut tmp = vec![0.0; switch_tmp_len(&s, algo, true)];

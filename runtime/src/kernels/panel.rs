@@ -47,6 +47,19 @@ pub fn pack(weight: &[f32], k: usize, n: usize, out: &mut [f32]) {
 /// # Panics
 /// If a slice length disagrees with the sizes.
 pub fn gemm(x: &[f32], rows: usize, k: usize, packed: &[f32], n: usize, out: &mut [f32]) {
+    checked(x, rows, k, packed, n, out, false);
+}
+
+/// [`gemm`] adding to `out`: `out[rows x n] += x[rows x k] · B`.
+///
+/// # Panics
+/// If a slice length disagrees with the sizes.
+pub fn gemm_add(x: &[f32], rows: usize, k: usize, packed: &[f32], n: usize, out: &mut [f32]) {
+    checked(x, rows, k, packed, n, out, true);
+}
+
+/// [`gemm`] or [`gemm_add`], the lengths checked.
+fn checked(x: &[f32], rows: usize, k: usize, packed: &[f32], n: usize, out: &mut [f32], add: bool) {
     assert_eq!(x.len(), rows * k, "panel gemm: input length");
     assert_eq!(packed.len(), packed_len(k, n), "panel gemm: packed length");
     assert_eq!(out.len(), rows * n, "panel gemm: output length");
@@ -54,10 +67,12 @@ pub fn gemm(x: &[f32], rows: usize, k: usize, packed: &[f32], n: usize, out: &mu
         return;
     }
     if k == 0 {
-        out.fill(0.0);
+        if !add {
+            out.fill(0.0);
+        }
         return;
     }
-    pulp::Arch::new().dispatch(Gemm { x, rows, k, packed, n, out });
+    pulp::Arch::new().dispatch(Gemm { x, rows, k, packed, n, out, add });
 }
 
 struct Gemm<'a> {
@@ -67,6 +82,8 @@ struct Gemm<'a> {
     packed: &'a [f32],
     n: usize,
     out: &'a mut [f32],
+    /// Whether the product adds to `out` instead of overwriting it.
+    add: bool,
 }
 
 impl pulp::WithSimd for Gemm<'_> {
@@ -88,12 +105,12 @@ impl Gemm<'_> {
     /// vectors wide (one panel).
     #[inline(always)]
     fn tiles<S: Simd, const MR: usize, const NV: usize>(self, simd: S) {
-        let Gemm { x, rows, k, packed, n, out } = self;
+        let Gemm { x, rows, k, packed, n, out, add } = self;
         for m0 in (0..rows).step_by(MC) {
             let m1 = rows.min(m0 + MC);
             for k0 in (0..k).step_by(KC) {
                 let depth = KC.min(k - k0);
-                let t = Tiles { x, k, k0, depth, n, acc: k0 > 0 };
+                let t = Tiles { x, k, k0, depth, n, acc: add || k0 > 0 };
                 for (p, panel) in packed.chunks_exact(k * PANEL).enumerate() {
                     let (bv, _) = S::as_simd_f32s(&panel[k0 * PANEL..][..depth * PANEL]);
                     let (c0, cols) = (p * PANEL, PANEL.min(n - p * PANEL));
@@ -239,7 +256,7 @@ mod tests {
         let want = naive(&x, rows, k, &w, n);
         for b in backends() {
             let mut out = vec![f32::NAN; rows * n];
-            b.run(Gemm { x: &x, rows, k, packed: &p, n, out: &mut out });
+            b.run(Gemm { x: &x, rows, k, packed: &p, n, out: &mut out, add: false });
             assert_close(&out, &want, 1e-5);
         }
     }

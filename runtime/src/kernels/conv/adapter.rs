@@ -892,7 +892,8 @@ mod tests {
         assert_eq!(check(&shape(2, 8, (9, 7), 16, 1, 1, 1), ConvAlgo::Gemm1x1, 4, Activation::Relu), [true, true]);
         assert_eq!(check(&shape(1, 5, (11, 9), 12, 3, 2, 1), ConvAlgo::Im2col, 3, Activation::Silu), [true, true]);
         assert_eq!(check(&shape(2, 6, (9, 10), 8, 3, 1, 1), ConvAlgo::Im2col, 2, Activation::Tanh), [true, true]);
-        // Winograd and depthwise: after the conv, over the output.
+        // Winograd, weight panels and depthwise: after the conv, over the output.
+        assert_eq!(check(&shape(2, 8, (13, 12), 40, 3, 2, 1), ConvAlgo::Panels, 8, Activation::Relu), [false, false]);
         for algo in [ConvAlgo::Winograd2, ConvAlgo::Winograd4] {
             assert_eq!(check(&shape(2, 6, (13, 12), 8, 3, 1, 1), algo, 4, Activation::Relu), [false, false]);
         }

@@ -69,6 +69,7 @@ mod adapter;
 mod depthwise;
 mod direct;
 mod im2col;
+mod panels;
 mod pointwise;
 mod split;
 mod winograd;
@@ -94,7 +95,11 @@ pub fn layer_shape(conv: &readi_plan::ops::Conv2d, n: usize, h: usize, w: usize)
 /// least [`WINOGRAD_MIN_TILES`] of its 4x4 tiles and its weight (4x the original) stays
 /// within 16 MiB, else F(2x2) when it has that many 2x2 tiles and its weight (1.8x) within
 /// 32 MiB; a plain GEMM for 1x1 stride-1 convs; the direct loop for depthwise convs;
-/// im2col for everything else.
+/// weight panels ([`ConvAlgo::Panels`]) for other kernels of one group on planes of at most
+/// [`PANELS_MAX_PLANE`] pixels whose weight is too large for im2col's register tiles
+/// (`pointwise::applies_unfolded`: there, at 64 and 128 channels at 7x7, the tiles took
+/// 0.92-0.95x the panels' time; at 256 and 512 channels the panels 0.85-0.98x the `gemm`
+/// crate's, one and two threads, 2026-12-06, EPYC Zen 4); im2col for everything else.
 pub fn choose(s: &Conv2dShape) -> ConvAlgo {
     let (cin_g, cout_g) = (s.cin_g(), s.cout_g());
     if cin_g == 1 && s.groups > 1 {
@@ -113,8 +118,14 @@ pub fn choose(s: &Conv2dShape) -> ConvAlgo {
             return ConvAlgo::Winograd2;
         }
     }
+    if s.groups == 1 && s.oh * s.ow <= PANELS_MAX_PLANE && s.kh * s.kw > 1 && !pointwise::applies_unfolded(s) {
+        return ConvAlgo::Panels;
+    }
     ConvAlgo::Im2col
 }
+
+/// Most output pixels per image of a layer [`choose`] computes by [`ConvAlgo::Panels`].
+pub use self::panels::MAX_PLANE as PANELS_MAX_PLANE;
 
 /// Tiles an image needs for [`choose`] to take a Winograd algorithm: each transformed
 /// position is one GEMM with a column per tile, and with few columns the weight's
@@ -146,7 +157,23 @@ pub fn pack_weight(s: &Conv2dShape, algo: ConvAlgo, weight: &[f32], out: &mut [f
         ConvAlgo::Gemm1x1 | ConvAlgo::Im2col | ConvAlgo::Depthwise => out.copy_from_slice(weight),
         ConvAlgo::Winograd2 => pack_winograd::<4>(s, &F2_G, weight, out),
         ConvAlgo::Winograd4 => pack_winograd::<6>(s, &F4_G, weight, out),
+        ConvAlgo::Panels => super::panel::pack(weight, s.k(), s.cout, out),
     }
+}
+
+/// Floats of a layer's LoRA `A` at `rank` as the kernel of `algo` reads it
+/// ([`ConvAlgo::lora_a_layout`]).
+pub fn lora_a_len(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
+    packed_weight_len(&lora_a_shape(s, rank), algo.lora_a_layout())
+}
+
+/// Packs a LoRA `A` at `rank` given raw (`[rank, cin/groups, kh, kw]`) for the kernel of
+/// `algo`, into `out` ([`lora_a_len`] floats).
+///
+/// # Panics
+/// As [`pack_weight`].
+pub fn pack_lora_a(s: &Conv2dShape, algo: ConvAlgo, rank: usize, raw: &[f32], out: &mut [f32]) {
+    pack_weight(&lora_a_shape(s, rank), algo.lora_a_layout(), raw, out);
 }
 
 /// A conv's fused LoRA branch ([`conv2d_lora`]) is a [`Lora`] whose `A` is packed for the
@@ -253,7 +280,9 @@ pub fn conv2d_scaled(
 /// each thread's part right after the conv: a split by rows, so that each part holds every
 /// channel of its pixels. Else it runs over the finished output.
 fn adapter_in_parts(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> bool {
-    algo != ConvAlgo::Depthwise && !adapter_in_tile(s, algo, threads) && split_shape(s, algo, threads).1 == 1
+    !matches!(algo, ConvAlgo::Depthwise | ConvAlgo::Panels)
+        && !adapter_in_tile(s, algo, threads)
+        && split_shape(s, algo, threads).1 == 1
 }
 
 /// Whether [`conv2d_adapter`] computes a layer's adapter inside its GEMM tiles: a GEMM
@@ -322,6 +351,7 @@ pub fn check(
             ConvAlgo::Gemm1x1 => "a 1x1 kernel, stride 1 and no padding",
             ConvAlgo::Winograd2 | ConvAlgo::Winograd4 => "a 3x3 kernel, stride 1 and dilation 1",
             ConvAlgo::Depthwise => "one input channel per group (groups = input channels)",
+            ConvAlgo::Panels => "one group",
             ConvAlgo::Im2col => "nothing",
         };
         return Err(format!(
@@ -373,7 +403,7 @@ pub fn check(
         if rank == 0 || rank > MAX_LORA_RANK {
             return Err(format!("LoRA rank {rank}: it must be 1 to {MAX_LORA_RANK}"));
         }
-        let want_a = packed_weight_len(&lora_a_shape(s, rank), algo);
+        let want_a = lora_a_len(s, algo, rank);
         if a_len != want_a || Some(b_len) != s.cout.checked_mul(rank) {
             return Err(format!(
                 "LoRA A has {a_len} values (`{}` at rank {rank} needs {want_a}), B {b_len} (needs {} x {rank})",
@@ -484,7 +514,7 @@ pub fn conv2d_fused(
     let rank = lora.map_or(0, |l| l.rank);
     if let Some(l) = lora {
         assert!(s.groups == 1 && algo != ConvAlgo::Depthwise && l.rank > 0, "conv: LoRA on {s:?} with {algo:?}");
-        assert_eq!(l.a.len(), packed_weight_len(&lora_a_shape(s, l.rank), algo), "conv: LoRA A length");
+        assert_eq!(l.a.len(), lora_a_len(s, algo, l.rank), "conv: LoRA A length");
         assert_eq!(l.b.len(), s.cout * l.rank, "conv: LoRA B length");
     }
     debug_assert_eq!(
@@ -533,6 +563,8 @@ pub fn conv2d_fused(
     let ad_act = ep.act.filter(|_| res_after.is_none());
     if algo == ConvAlgo::Depthwise {
         depthwise(s, packed_weight, &conv_ep, x, out, threads);
+    } else if algo == ConvAlgo::Panels {
+        panels::conv(s, packed_weight, lora, &conv_ep, x, res_in_rows, out, scratch, threads);
     } else if direct {
         // A stem or a grouped conv of narrow groups: few input channels per group, which
         // im2col would unfold into shallow GEMMs.
@@ -554,7 +586,7 @@ pub fn conv2d_fused(
                 }
                 ConvAlgo::Winograd2 => winograd_part::<F2, 4, 2>(s, packed_weight, lora, ep, x, part, scratch),
                 ConvAlgo::Winograd4 => winograd_part::<F4, 6, 4>(s, packed_weight, lora, ep, x, part, scratch),
-                ConvAlgo::Depthwise => unreachable!("handled above"),
+                ConvAlgo::Depthwise | ConvAlgo::Panels => unreachable!("handled above"),
             }
             if let Some(a) = in_parts {
                 adapter::apply_part(s, a, part, ad_act, res_in_adapter, work);
@@ -785,6 +817,7 @@ fn part_scratch(s: &Conv2dShape, algo: ConvAlgo, rank: usize) -> usize {
         ConvAlgo::Winograd2 => Wino::new::<4, 2>(s).scratch(rank),
         ConvAlgo::Winograd4 => Wino::new::<6, 4>(s).scratch(rank),
         ConvAlgo::Depthwise => 0,
+        ConvAlgo::Panels => panels::scratch_len(s, rank),
     }
 }
 

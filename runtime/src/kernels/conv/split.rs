@@ -58,6 +58,10 @@ const CHANNEL_SPLIT_TILES: usize = 64;
 
 /// How many threads share the layer.
 pub(super) fn parts(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> usize {
+    if algo == ConvAlgo::Panels {
+        // One scratch: the threads share the panels of one product.
+        return 1;
+    }
     let (r, c) = split_shape(s, algo, threads);
     r * c
 }

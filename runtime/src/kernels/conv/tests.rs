@@ -103,7 +103,7 @@ fn check_all(s: &Conv2dShape) -> usize {
 
 #[test]
 fn plain_3x3() {
-    assert_eq!(check_all(&shape(1, 5, (9, 11), 7, (3, 3), (1, 1), (1, 1), (1, 1), 1)), 3);
+    assert_eq!(check_all(&shape(1, 5, (9, 11), 7, (3, 3), (1, 1), (1, 1), (1, 1), 1)), 4);
 }
 
 #[test]
@@ -198,7 +198,7 @@ fn dilation() {
 
 #[test]
 fn one_by_one() {
-    assert_eq!(check_all(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1)), 2);
+    assert_eq!(check_all(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1)), 3);
     check_all(&shape(1, 16, (14, 13), 24, (1, 1), (2, 2), (0, 0), (1, 1), 1));
     check_all(&shape(1, 8, (5, 6), 8, (1, 1), (1, 1), (1, 1), (1, 1), 2));
 }
@@ -237,7 +237,7 @@ fn winograd_edges() {
         shape(2, 16, (5, 1), 16, (3, 3), (1, 1), (1, 1), (1, 1), 1),
         shape(1, 16, (7, 3), 16, (3, 3), (1, 1), (2, 2), (1, 1), 1),
     ] {
-        assert_eq!(check_all(&s), 3);
+        assert_eq!(check_all(&s), 4);
     }
 }
 
@@ -248,7 +248,7 @@ fn many_tiles_and_blocks() {
     assert!(gemm_tile(&s, ConvAlgo::Im2col) < s.oh * s.ow / 2);
     assert!(Wino::new::<6, 4>(&s).rows < s.oh.div_ceil(4));
     assert!(Wino::new::<4, 2>(&s).rows < s.oh.div_ceil(2));
-    assert_eq!(check_all(&s), 3);
+    assert_eq!(check_all(&s), 4);
     check_all(&shape(1, 48, (20, 20), 40, (1, 1), (1, 1), (0, 0), (1, 1), 1));
 }
 
@@ -305,14 +305,20 @@ fn names_round_trip_and_choose_supports() {
         (shape(1, 64, (56, 56), 256, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
         // 16 tiles of 4x4, 49 of 2x2; then 16 of 2x2 (fewer than WINOGRAD_MIN_TILES).
         (shape(1, 256, (14, 14), 256, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
-        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        // At most PANELS_MAX_PLANE pixels: the weight in panels (but 1x1 kernels).
+        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
+        (shape(1, 256, (14, 14), 512, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Panels),
+        (shape(1, 512, (8, 8), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 64, (7, 8), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 1024, (14, 14), 2048, (1, 1), (2, 2), (0, 0), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 64, (7, 7), 64, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Im2col),
         // At the tile bound: 36 tiles of 4x4; 25 of 4x4 and 100 of 2x2; 36 of 2x2; 25 of 2x2.
         (shape(1, 64, (24, 24), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
         (shape(1, 64, (20, 20), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
         (shape(1, 64, (12, 12), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
         (shape(1, 64, (10, 10), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 512, (28, 28), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
-        (shape(1, 512, (4, 4), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 512, (4, 4), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
         (shape(1, 16, (56, 56), 16, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 32, (56, 56), 32, (3, 3), (1, 1), (1, 1), (1, 1), 32), ConvAlgo::Depthwise),
     ];
@@ -415,9 +421,8 @@ fn check_lora(s: &Conv2dShape, rank: usize) -> usize {
     for &algo in &algos {
         let mut packed = vec![0.0; packed_weight_len(s, algo)];
         pack_weight(s, algo, &w, &mut packed);
-        let sa = lora_a_shape(s, rank);
-        let mut packed_a = vec![0.0; packed_weight_len(&sa, algo)];
-        pack_weight(&sa, algo, &a, &mut packed_a);
+        let mut packed_a = vec![0.0; lora_a_len(s, algo, rank)];
+        pack_lora_a(s, algo, rank, &a, &mut packed_a);
         let lora = Lora { a: &packed_a, b: &b, rank };
         let fields = Some((rank, packed_a.len(), b.len()));
         let x_len = x.len();
@@ -438,24 +443,24 @@ fn check_lora(s: &Conv2dShape, rank: usize) -> usize {
 
 #[test]
 fn lora_every_algorithm() {
-    // 3x3 stride 1 (im2col and both Winograds), odd sizes, batch > 1.
-    assert_eq!(check_lora(&shape(2, 17, (13, 10), 19, (3, 3), (1, 1), (1, 1), (1, 1), 1), 4), 3);
+    // 3x3 stride 1 (im2col, panels and both Winograds), odd sizes, batch > 1.
+    assert_eq!(check_lora(&shape(2, 17, (13, 10), 19, (3, 3), (1, 1), (1, 1), (1, 1), 1), 4), 4);
     // Several Winograd blocks and im2col tiles, rank 1 and 8.
-    assert_eq!(check_lora(&shape(1, 64, (30, 29), 40, (3, 3), (1, 1), (1, 1), (1, 1), 1), 8), 3);
-    assert_eq!(check_lora(&shape(1, 16, (9, 7), 16, (3, 3), (1, 1), (0, 0), (1, 1), 1), 1), 3);
+    assert_eq!(check_lora(&shape(1, 64, (30, 29), 40, (3, 3), (1, 1), (1, 1), (1, 1), 1), 8), 4);
+    assert_eq!(check_lora(&shape(1, 16, (9, 7), 16, (3, 3), (1, 1), (0, 0), (1, 1), 1), 1), 4);
     // Winograd's branch takes input channels 8 at a time: fewer than 8 (only the
     // remainder), a multiple of 8 (none), 8 and a remainder; every other rank 2..7.
-    assert_eq!(check_lora(&shape(1, 5, (11, 12), 7, (3, 3), (1, 1), (1, 1), (1, 1), 1), 3), 3);
-    assert_eq!(check_lora(&shape(2, 24, (9, 14), 33, (3, 3), (1, 1), (1, 1), (1, 1), 1), 7), 3);
+    assert_eq!(check_lora(&shape(1, 5, (11, 12), 7, (3, 3), (1, 1), (1, 1), (1, 1), 1), 3), 4);
+    assert_eq!(check_lora(&shape(2, 24, (9, 14), 33, (3, 3), (1, 1), (1, 1), (1, 1), 1), 7), 4);
     for rank in [2, 5, 6] {
-        assert_eq!(check_lora(&shape(1, 11, (8, 13), 9, (3, 3), (1, 1), (1, 1), (1, 1), 1), rank), 3);
+        assert_eq!(check_lora(&shape(1, 11, (8, 13), 9, (3, 3), (1, 1), (1, 1), (1, 1), 1), rank), 4);
     }
-    // 1x1 (GEMM and im2col), stride 2 1x1 (im2col).
-    assert_eq!(check_lora(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1), 4), 2);
-    assert_eq!(check_lora(&shape(1, 16, (14, 13), 24, (1, 1), (2, 2), (0, 0), (1, 1), 1), 3), 1);
-    // Stride, padding, dilation, non-square kernels: im2col.
-    assert_eq!(check_lora(&shape(3, 6, (9, 9), 5, (3, 3), (2, 1), (0, 2), (1, 1), 1), 2), 1);
-    assert_eq!(check_lora(&shape(2, 3, (12, 15), 4, (3, 2), (2, 1), (1, 0), (2, 3), 1), 4), 1);
+    // 1x1 (GEMM, im2col and panels), stride 2 1x1 (im2col and panels).
+    assert_eq!(check_lora(&shape(2, 19, (7, 9), 21, (1, 1), (1, 1), (0, 0), (1, 1), 1), 4), 3);
+    assert_eq!(check_lora(&shape(1, 16, (14, 13), 24, (1, 1), (2, 2), (0, 0), (1, 1), 1), 3), 2);
+    // Stride, padding, dilation, non-square kernels: im2col and panels.
+    assert_eq!(check_lora(&shape(3, 6, (9, 9), 5, (3, 3), (2, 1), (0, 2), (1, 1), 1), 2), 2);
+    assert_eq!(check_lora(&shape(2, 3, (12, 15), 4, (3, 2), (2, 1), (1, 0), (2, 3), 1), 4), 2);
 }
 
 #[test]
@@ -697,8 +702,8 @@ fn pointwise_bits_do_not_depend_on_the_split() {
 }
 
 /// A residual input on every path: added as the rows are written (the GEMM paths, both
-/// Winograds, a split by channels, with a LoRA branch) and in a pass after (depthwise, the
-/// direct conv), before a ReLU, another activation or none, at 1 to 3 threads, against the
+/// Winograds, a split by channels, weight panels, with a LoRA branch) and in a pass after
+/// (depthwise, the direct conv), before a ReLU, another activation or none, at 1 to 3 threads, against the
 /// references plus the sum.
 #[test]
 fn residual_on_every_path() {
@@ -715,9 +720,13 @@ fn residual_on_every_path() {
         (shape(1, 16, (4, 4), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(2, 16, (9, 8), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
         (shape(2, 16, (9, 8), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
+        // Weight panels: two images, 40 channels (a panel and a part of one) shared by 2
+        // and 3 threads.
+        (shape(2, 16, (9, 8), 40, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Panels),
+        (shape(1, 16, (7, 7), 96, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
     ];
     assert!(direct::applies(&cases[5].0), "the stem case takes the direct conv");
-    for (s, algo) in &cases[6..] {
+    for (s, algo) in &cases[6..9] {
         assert_eq!(split_shape(s, *algo, 2), (1, 2), "{} splits by channels", algo.name());
         assert_eq!(split_shape(s, *algo, 3), (1, 3), "{} splits by channels", algo.name());
     }
@@ -725,7 +734,7 @@ fn residual_on_every_path() {
         check_residual(s, *algo, &[None, Some(Activation::Relu), Some(Activation::Hardswish)]);
     }
     // With a LoRA branch, whose sum comes before the scale and the residual after it.
-    for algo in [ConvAlgo::Gemm1x1, ConvAlgo::Winograd4] {
+    for algo in [ConvAlgo::Gemm1x1, ConvAlgo::Winograd4, ConvAlgo::Panels] {
         let k = if algo == ConvAlgo::Gemm1x1 { 1 } else { 3 };
         let s = shape(2, 9, (10, 11), 12, (k, k), (1, 1), (k / 2, k / 2), (1, 1), 1);
         let (rank, fan_in) = (3, 9 * k * k);
@@ -736,9 +745,8 @@ fn residual_on_every_path() {
         let (scale, shift, res) = (data(12, 35), data(12, 36), data(s.n * 12 * s.oh * s.ow, 37));
         let mut packed = vec![0.0; packed_weight_len(&s, algo)];
         pack_weight(&s, algo, &w, &mut packed);
-        let sa = lora_a_shape(&s, rank);
-        let mut packed_a = vec![0.0; packed_weight_len(&sa, algo)];
-        pack_weight(&sa, algo, &a, &mut packed_a);
+        let mut packed_a = vec![0.0; lora_a_len(&s, algo, rank)];
+        pack_lora_a(&s, algo, rank, &a, &mut packed_a);
         let lora = Lora { a: &packed_a, b: &b, rank };
         let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: Some(Activation::Relu) };
         let y = reference_lora(&s, &x, &w, &a, &b, rank, &Epilogue { act: None, ..ep });
@@ -830,7 +838,7 @@ fn channel_scale_matches_scaling_the_input() {
 /// A NaN in the input reaches, through a fused ReLU (with and without a residual, and
 /// with an adapter), every output whose receptive field holds it, as PyTorch's ReLU keeps
 /// NaN: on every algorithm's epilogue (GEMM rows, the 1x1 and im2col tiles, Winograd, the
-/// depthwise registers and loops, the direct conv), at 1 and 2 threads.
+/// depthwise registers and loops, the direct conv, weight panels), at 1 and 2 threads.
 #[test]
 fn a_nan_input_stays_nan_through_a_fused_relu() {
     let cases = [
@@ -841,6 +849,7 @@ fn a_nan_input_stays_nan_through_a_fused_relu() {
         (shape(1, 8, (10, 10), 8, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd4),
         (shape(1, 4, (10, 10), 4, (3, 3), (1, 1), (1, 1), (1, 1), 4), ConvAlgo::Depthwise),
         (shape(1, 4, (10, 10), 4, (3, 3), (1, 1), (2, 2), (2, 2), 4), ConvAlgo::Depthwise),
+        (shape(1, 8, (9, 9), 40, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Panels),
     ];
     for (s, algo) in &cases {
         assert!(algo.supports(s), "{} on {s:?}", algo.name());
