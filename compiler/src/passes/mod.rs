@@ -130,7 +130,11 @@ pub const PIPELINE: &[(Pass, &str, &str)] = &[
         "fuse_epilogues",
         "biases into epilogue shifts; ReLUs into the conv, linear or affine before",
     ),
-    (Pass::ChooseConvAlgo, "choose_conv_algo", "choose each conv's algorithm (im2col, Winograd, depthwise, 1x1 GEMM, weight panels)"),
+    (
+        Pass::ChooseConvAlgo,
+        "choose_conv_algo",
+        "choose each conv's algorithm (im2col, Winograd, depthwise, 1x1 GEMM, weight panels)",
+    ),
     (Pass::PackWeights, "pack_weights", "pack conv weights for their algorithm; store linear weights transposed"),
     (Pass::Lower, "lower", "one kernel step per node: the schedule, stored tensors and variant tables"),
     (Pass::PlanBuffers, "plan_buffers", "share activation buffers between values whose lifetimes do not overlap"),
