@@ -30,10 +30,12 @@ use readi_plan::ops::PANEL;
 pub const MAX_PLANE: usize = 49;
 
 /// Scratch floats of a layer with a LoRA branch of `rank` (0: none): one image unfolded,
-/// its branch's `t`, the product and `B`'s panels (at least one row of them).
+/// its branch's `t`, the product and `B`'s panels (at least one row of them). Saturates
+/// (a crafted plan's plane and depth may be large together; no session allocates that).
 pub(super) fn scratch_len(s: &Conv2dShape, rank: usize) -> usize {
     let (plane, cols) = (s.oh * s.ow, s.cout.div_ceil(PANEL) * PANEL);
-    plane * (s.k() + rank) + cols * (plane + rank.max(1))
+    let unfolded = plane.saturating_mul(s.k().saturating_add(rank));
+    unfolded.saturating_add(cols.saturating_mul(plane.saturating_add(rank.max(1))))
 }
 
 /// The conv of every image of `x` into `out` (`[n, cout, oh, ow]`), `w` packed by
