@@ -6,10 +6,11 @@
 //! ([`panel::pack`]: `[ceil(cout / PANEL)][k][PANEL]`), and each image is unfolded pixel by
 //! pixel (`col[p][k]`, `k = cin · kh · kw` in PyTorch's order), so the product is a linear
 //! layer's, `prod[p][c] = Σ_k col[p][k] · W[c][k]`, with the output channels in the lanes
-//! ([`panel::gemm`]). The epilogue writes each channel's plane from its column of `prod`.
+//! ([`panel::gemm`]). Each channel's column of `prod`, copied out, takes the conv's one
+//! epilogue (`finish`) into its plane.
 //!
 //! A fused LoRA branch reads `A` raw (`[rank][k]`): `t[p][r] = col[p] · A[r]` by dot
-//! products, then `prod += t · Bᵀ` through `B`'s rows packed as panels per call (`rank ·
+//! products, then `prod += t · Bᵀ` through `B`'s rows packed as panels once a call (`rank ·
 //! cout` floats). The threads share the panels (each its channels, their epilogue too).
 //!
 //! ResNet-18's and ResNet-50's 512-channel 3x3 layers at 7x7 took 0.83-0.86x the time of
@@ -19,8 +20,7 @@
 
 use rayon::prelude::*;
 
-use super::Conv2dShape;
-use crate::kernels::elementwise::relu;
+use super::{Conv2dShape, finish};
 use crate::kernels::{Epilogue, Lora, panel};
 use readi_plan::ops::PANEL;
 
@@ -30,12 +30,14 @@ use readi_plan::ops::PANEL;
 pub const MAX_PLANE: usize = 49;
 
 /// Scratch floats of a layer with a LoRA branch of `rank` (0: none): one image unfolded,
-/// its branch's `t`, the product and `B`'s panels (at least one row of them). Saturates
-/// (a crafted plan's plane and depth may be large together; no session allocates that).
+/// its branch's `t`, the product, `B`'s panels and a plane's row per panel (at most one
+/// worker a panel). Saturates (a crafted plan's plane and depth may be large together; no
+/// session allocates that).
 pub(super) fn scratch_len(s: &Conv2dShape, rank: usize) -> usize {
-    let (plane, cols) = (s.oh * s.ow, s.cout.div_ceil(PANEL) * PANEL);
+    let (plane, panels) = (s.oh * s.ow, s.cout.div_ceil(PANEL));
     let unfolded = plane.saturating_mul(s.k().saturating_add(rank));
-    unfolded.saturating_add(cols.saturating_mul(plane.saturating_add(rank.max(1))))
+    let per_panel = plane.saturating_mul(PANEL + 1).saturating_add(rank * PANEL);
+    unfolded.saturating_add(panels.saturating_mul(per_panel))
 }
 
 /// The conv of every image of `x` into `out` (`[n, cout, oh, ow]`), `w` packed by
@@ -60,8 +62,13 @@ pub(super) fn conv(
     let per = panels.div_ceil(threads.max(1).min(panels));
     let (col, rest) = scratch.split_at_mut(plane * k);
     let (t, rest) = rest.split_at_mut(plane * rank);
-    let (prod, bp) = rest.split_at_mut(panels * PANEL * plane);
-    let bp = &mut bp[..panels * PANEL * rank.max(1)];
+    let (prod, rest) = rest.split_at_mut(panels * PANEL * plane);
+    let (bp, rows) = rest.split_at_mut(panel::packed_len(rank, cout));
+    let rows = &mut rows[..panels * plane];
+    if let Some(l) = lora {
+        panel::pack(l.b, rank, cout, bp);
+    }
+    let bp: &[f32] = bp;
     let (image_in, image_out) = (s.cin * s.h * s.w, cout * plane);
     for n in 0..s.n {
         let xn = &x[n * image_in..][..image_in];
@@ -79,61 +86,30 @@ pub(super) fn conv(
         let on = &mut out[n * image_out..][..image_out];
         let rn = res.map(|r| &r[n * image_out..][..image_out]);
         let chunk = per * PANEL;
-        // Worker `i`: the planes of its channels, its part of the product and of `B`'s panels.
-        let job = |i: usize, planes: &mut [f32], prod: &mut [f32], bp: &mut [f32]| {
+        // Worker `i`: the planes of its channels, its part of the product, a row.
+        let job = |i: usize, planes: &mut [f32], prod: &mut [f32], row: &mut [f32]| {
             let c0 = i * chunk;
             let cols = planes.len() / plane;
             let prod = &mut prod[..plane * cols];
             panel::gemm(col, plane, k, &w[c0 * k..][..panel::packed_len(k, cols)], cols, prod);
-            if let Some(l) = lora {
-                let bp = &mut bp[..panel::packed_len(rank, cols)];
-                panel::pack(&l.b[c0 * rank..][..cols * rank], rank, cols, bp);
-                panel::gemm_add(t, plane, rank, bp, cols, prod);
+            if lora.is_some() {
+                panel::gemm_add(t, plane, rank, &bp[c0 * rank..][..panel::packed_len(rank, cols)], cols, prod);
             }
+            let row = &mut row[..plane];
             for (j, dst) in planes.chunks_exact_mut(plane).enumerate() {
                 let c = c0 + j;
-                finish_column(dst, prod, (j, cols), c, ep, rn.map(|r| &r[c * plane..][..plane]));
+                row.iter_mut().zip(prod[j..].iter().step_by(cols)).for_each(|(r, &v)| *r = v);
+                finish(dst, row, c, ep, rn.map(|r| &r[c * plane..][..plane]));
             }
         };
-        let (pc, bc) = (chunk * plane, chunk * rank.max(1));
         if per >= panels {
-            job(0, on, prod, bp);
+            job(0, on, prod, rows);
         } else {
-            let jobs = on.par_chunks_mut(pc).zip(prod.par_chunks_mut(pc)).zip(bp.par_chunks_mut(bc));
-            jobs.enumerate().for_each(|(i, ((planes, prod), bp))| job(i, planes, prod, bp));
+            let pc = chunk * plane;
+            let jobs = on.par_chunks_mut(pc).zip(prod.par_chunks_mut(pc)).zip(rows.par_chunks_mut(per * plane));
+            jobs.enumerate().for_each(|(i, ((planes, prod), row))| job(i, planes, prod, row));
         }
     }
-}
-
-/// The epilogue of channel `c` into its plane `dst`, from column `j` of `prod` (rows of
-/// `cols`): `prod · scale + shift (+ res)`, then the activation, as `finish` computes it.
-fn finish_column(
-    dst: &mut [f32],
-    prod: &[f32],
-    (j, cols): (usize, usize),
-    c: usize,
-    ep: &Epilogue,
-    res: Option<&[f32]>,
-) {
-    let scale = ep.scale.map_or(1.0, |v| v[c]);
-    let shift = ep.shift.map_or(0.0, |v| v[c]);
-    let column = prod[j..].iter().step_by(cols);
-    match res {
-        Some(res) => {
-            for ((d, &a), &r) in dst.iter_mut().zip(column).zip(res) {
-                *d = a * scale + shift + r;
-            }
-        }
-        None => {
-            for (d, &a) in dst.iter_mut().zip(column) {
-                *d = a * scale + shift;
-            }
-        }
-    }
-    if ep.relu() {
-        dst.iter_mut().for_each(|v| *v = relu(*v));
-    }
-    ep.finish_act(dst);
 }
 
 /// Unfolds pixels `first..` of one image `x` into `col`, a row of `k` values per pixel
