@@ -435,12 +435,11 @@ pub(crate) fn gelu_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S
 /// [`gelu_tanh`] on `N` vectors: `x · sigmoid(2 √(2/π) (x + 0.044715 x³))`.
 #[inline(always)]
 pub(crate) fn gelu_tanh_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S::f32s; N] {
-    const TWO_BETA: f32 = 1.595_769; // 2 √(2/π)
     let c = |v: f32| simd.splat_f32s(v);
     let mut u = x;
     for i in 0..N {
-        let cube = simd.mul_f32s(simd.mul_f32s(simd.mul_f32s(c(0.044715), x[i]), x[i]), x[i]);
-        u[i] = simd.mul_f32s(c(TWO_BETA), simd.add_f32s(x[i], cube));
+        let cube = simd.mul_f32s(simd.mul_f32s(simd.mul_f32s(c(GELU_TANH_CUBIC), x[i]), x[i]), x[i]);
+        u[i] = simd.mul_f32s(c(GELU_TANH_SCALE), simd.add_f32s(x[i], cube));
     }
     let mut out = sigmoid_simd(simd, u);
     for i in 0..N {
@@ -653,9 +652,14 @@ const ERFC_POLY: [f32; 10] = [
 /// as the equal `x · sigmoid(2 √(2/π) (x + 0.044715 x³))`.
 #[inline(always)]
 fn gelu_tanh(x: f32) -> f32 {
-    const TWO_BETA: f32 = 1.595_769; // 2 √(2/π)
-    x * sigmoid(TWO_BETA * (x + 0.044715 * x * x * x))
+    x * sigmoid(GELU_TANH_SCALE * (x + GELU_TANH_CUBIC * x * x * x))
 }
+
+/// [`gelu_tanh`]'s `2 √(2/π)`, the sigmoid form's argument scale.
+const GELU_TANH_SCALE: f32 = 1.595_769;
+
+/// [`gelu_tanh`]'s cubic coefficient (PyTorch's `0.044715`).
+const GELU_TANH_CUBIC: f32 = 0.044715;
 
 /// `1 / (1 + e^-x)`, through `e^-|x|` so nothing overflows: exact to a few ulp, 0 below
 /// x = -87 (where the true value is under 1.7e-38), NaN for NaN.
