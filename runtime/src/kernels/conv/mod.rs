@@ -97,7 +97,7 @@ pub fn layer_shape(conv: &readi_plan::ops::Conv2d, n: usize, h: usize, w: usize)
 /// 32 MiB; a plain GEMM for 1x1 stride-1 convs; the direct loop for depthwise convs;
 /// weight panels ([`ConvAlgo::Panels`]) for other kernels of one group on planes of at most
 /// [`PANELS_MAX_PLANE`] pixels whose weight is too large for im2col's register tiles
-/// (`pointwise::applies_unfolded`: there, at 64 and 128 channels at 7x7, the tiles took
+/// (`pointwise::light_unfolded`: there, at 64 and 128 channels at 7x7, the tiles took
 /// 0.92-0.95x the panels' time; at 256 and 512 channels the panels 0.85-0.98x the `gemm`
 /// crate's, one and two threads, 2026-12-06, EPYC Zen 4); im2col for everything else.
 pub fn choose(s: &Conv2dShape) -> ConvAlgo {
@@ -118,7 +118,7 @@ pub fn choose(s: &Conv2dShape) -> ConvAlgo {
             return ConvAlgo::Winograd2;
         }
     }
-    if s.groups == 1 && s.oh * s.ow <= PANELS_MAX_PLANE && s.kh * s.kw > 1 && !pointwise::applies_unfolded(s) {
+    if s.groups == 1 && s.oh * s.ow <= PANELS_MAX_PLANE && s.kh * s.kw > 1 && !pointwise::light_unfolded(s) {
         return ConvAlgo::Panels;
     }
     ConvAlgo::Im2col

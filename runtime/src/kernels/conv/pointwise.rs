@@ -22,11 +22,13 @@ use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer with activation `act` runs here rather than through the `gemm`
 /// crate: one group, and planes of at most [`MAX_PLANE`] pixels with at most
-/// [`MAX_STREAMED`] weight floats streamed per image; or, when the tiles compute the
-/// activation in registers (SiLU, sigmoid, GELU, tanh: [`Epilogue::vector_act`]), planes
-/// of any size under a weight of at most [`MAX_ACT_WEIGHT`] floats.
+/// [`MAX_STREAMED`] weight floats streamed per image, or of at most [`ONE_TILE_PLANE`]
+/// whatever the weight; or, when the tiles compute the activation in registers (SiLU,
+/// sigmoid, GELU, tanh: [`Epilogue::vector_act`]), planes of any size under a weight of
+/// at most [`MAX_ACT_WEIGHT`] floats.
 pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
-    let small = s.oh * s.ow <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED;
+    let plane = s.oh * s.ow;
+    let small = plane <= ONE_TILE_PLANE || (plane <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED);
     let in_registers = act.is_some_and(elementwise::on_vectors) && s.cin * s.cout <= MAX_ACT_WEIGHT;
     s.groups == 1 && (small || in_registers)
 }
@@ -44,10 +46,17 @@ pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
 const MAX_ACT_WEIGHT: usize = 16 * 1024;
 
 /// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
-/// crate: one group, planes of at most [`MAX_UNFOLDED_PLANE`] pixels, and at most
-/// [`MAX_STREAMED`] weight floats streamed per image.
+/// crate: one group and planes of at most [`MAX_UNFOLDED_PLANE`] pixels (which is
+/// [`ONE_TILE_PLANE`]: any weight).
 pub(super) fn applies_unfolded(s: &Conv2dShape) -> bool {
-    s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE && streamed(s, s.k()) <= MAX_STREAMED
+    s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE
+}
+
+/// Whether the tiles over an Im2col layer's unfolded rows stream at most
+/// [`MAX_STREAMED`] weight floats per image: below that bound they beat the weight
+/// panels on 7x7 planes, above it the panels win (`conv::choose`).
+pub(super) fn light_unfolded(s: &Conv2dShape) -> bool {
+    streamed(s, s.k()) <= MAX_STREAMED
 }
 
 /// Weight floats the tiles read per image of a layer of `depth` input rows: the whole
@@ -56,8 +65,8 @@ fn streamed(s: &Conv2dShape, depth: usize) -> usize {
     s.cout * depth * (s.oh * s.ow).div_ceil(48)
 }
 
-/// The most weight floats [`applies`] and [`applies_unfolded`] let the tiles stream per
-/// image (1.25 MiB). The tiles broadcast the weight from six rows at a time, once per
+/// The most weight floats [`applies`] lets the tiles stream per image of more than
+/// [`ONE_TILE_PLANE`] pixels (1.25 MiB), and the bound of [`light_unfolded`]. The tiles broadcast the weight from six rows at a time, once per
 /// group of pixels; the crate packs it once per call. Measured on a 2-core Xeon with a
 /// 2 MiB L2 (2026-12-05, `readi bench --profile`, alternating rounds, one thread, the
 /// crate's time over the tiles'): MobileNetV2's 1x1 layers streaming 123-307 Ki floats
@@ -76,6 +85,20 @@ const MAX_STREAMED: usize = 320 * 1024;
 /// crate's path writes each output row from one long tile, this one 6 planes at a time.
 const MAX_PLANE: usize = 256;
 
+/// Planes of at most this many pixels (one AVX-512 tile of three vectors and a fourth:
+/// 7x7) take the tiles whatever their weight ([`applies`], [`applies_unfolded`]). On the
+/// AMD EPYC (Zen 4, AVX-512 on 256-bit units, 1 MiB L2; 2026-12-06, the tiles' time over
+/// the crate's, old and new rule alternating call by call in one process, 350 pairs, 1 /
+/// 2 threads) the 7x7 layers [`MAX_STREAMED`] had sent to the crate: MobileNetV2's 320 to
+/// 1280 with ReLU6 0.80 / 0.79, 960 to 320 0.79 / 0.77; EfficientNet-B0's SiLU 192 to 1152
+/// 0.78 / 0.77, 320 to 1280 0.78 / 0.78, 1152 to 320 0.79 / 0.77; ResNet-50's 512 to 2048
+/// 0.82 / 0.84, 2048 to 512 0.80 / 0.79 and its 1024 to 2048 stride-2 downsampling (over
+/// its unfolded rows) 0.83 / 0.84. Its 14x14 layers measured 0.97-1.02 (the bound stays
+/// there), the 28x28 and 56x56 ones 1.01-1.11. On the Xeon whose measurements set
+/// [`MAX_STREAMED`] (2026-12-05), the 320 to 1280 layer had run 1.07x as long by the
+/// tiles as by the crate: re-measure there.
+const ONE_TILE_PLANE: usize = 64;
+
 /// The largest plane [`applies_unfolded`] takes: one AVX-512 tile and a remainder. On the
 /// EPYC, on ResNet-50's 7x7 strided 3x3 (4608 unfolded rows) and 1x1 downsampling, the
 /// steps took 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3
@@ -83,6 +106,9 @@ const MAX_PLANE: usize = 256;
 /// unfolded matrix larger than L2 once per 6 channels, where the crate blocks it for the
 /// cache.
 const MAX_UNFOLDED_PLANE: usize = 64;
+
+// `applies_unfolded` takes any weight: its planes are all within one tile.
+const _: () = assert!(MAX_UNFOLDED_PLANE <= ONE_TILE_PLANE);
 
 /// Scratch floats of one part over `depth` input rows: a padded tail's input columns and
 /// its sums, for vectors of up to 16 lanes and micro-tiles of up to 8 rows; or the columns

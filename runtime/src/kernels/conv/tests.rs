@@ -635,6 +635,13 @@ fn pointwise_tails_batches_and_residuals() {
         check(&s, ConvAlgo::Gemm1x1);
         check_residual(&s, ConvAlgo::Gemm1x1, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
     }
+    // A 7x7 plane takes the tiles whatever its weight (416 x 400 floats streamed twice
+    // per image, past the bound larger planes keep); a 14x14 one of that weight does not.
+    let heavy = shape(1, 416, (7, 7), 400, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+    assert!(pointwise::applies(&heavy, None), "{heavy:?} takes the register path");
+    check(&heavy, ConvAlgo::Gemm1x1);
+    check_residual(&heavy, ConvAlgo::Gemm1x1, &[Some(Activation::Relu6)]);
+    assert!(!pointwise::applies(&shape(1, 416, (14, 14), 400, (1, 1), (1, 1), (0, 0), (1, 1), 1), None));
     // Past the plane bound, a SiLU or sigmoid layer of a small weight takes the tiles too
     // (the activation computed on the sums in registers), a ReLU one the GEMM.
     let s = shape(2, 8, (21, 23), 24, (1, 1), (1, 1), (0, 0), (1, 1), 1);
@@ -649,6 +656,9 @@ fn pointwise_tails_batches_and_residuals() {
         shape(1, 6, (8, 7), 13, (3, 3), (1, 1), (2, 2), (2, 2), 1),
         shape(3, 5, (7, 7), 6, (5, 5), (1, 1), (2, 2), (1, 1), 1),
         shape(1, 40, (4, 4), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        // A strided 1x1 to a 7x7 plane past the weight bound (ResNet-50's last
+        // downsampling, narrower).
+        shape(1, 300, (14, 14), 600, (1, 1), (2, 2), (0, 0), (1, 1), 1),
     ];
     for s in &unfolded {
         assert!(pointwise::applies_unfolded(s) && !direct::applies(s), "{s:?} takes the register path");
