@@ -2,13 +2,16 @@
 //! direct loop per output plane with the epilogue, parallel over groups of planes; no
 //! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
 //! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
-//! in SIMD registers (`Registers`), by rows, or at stride 1 on planes with rows of at
-//! most 8 pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
-//! `depthwise_acc`.
+//! in SIMD registers: with AVX-512, on output planes of at most 28x28, sixteen channels
+//! at a time in the lanes (`lanes.rs`); else by rows (`Registers`), or at stride 1 on
+//! planes with rows of at most 8 pixels (7x7) by the plane read flat (`flat.rs`); the
+//! rest through the loops of `depthwise_acc`.
 
 use rayon::prelude::*;
 
 mod flat;
+#[cfg(target_arch = "x86_64")]
+mod lanes;
 
 use super::{Conv2dShape, pad_interior, pad_phases, store_vector, vector_starts};
 use crate::kernels::Epilogue;
@@ -19,6 +22,10 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     let plane = s.oh * s.ow;
     if plane == 0 {
         return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if lanes::applies(s) {
+        return lanes::depthwise(s, w, ep, x, out, threads);
     }
     // Planes per task: several, so that a task's setup (a SIMD dispatch, zeroing the
     // padded copy) is shared by them (MobileNetV2's 7x7 planes took about as long to set
@@ -49,6 +56,16 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
 #[cfg(test)]
 pub(super) fn flat_applies(s: &Conv2dShape) -> bool {
     flat::applies(s)
+}
+
+/// Whether a layer takes the channels-in-lanes path (`lanes.rs`) on this machine, for
+/// the tests.
+#[cfg(test)]
+pub(super) fn lanes_applies(s: &Conv2dShape) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return lanes::applies(s);
+    #[cfg(not(target_arch = "x86_64"))]
+    return false;
 }
 
 /// Output plane `idx` (image `idx / cout`, channel `idx % cout`): its input plane, its
@@ -579,6 +596,42 @@ mod tests {
     /// channel multiplier, rows not a multiple of the block's, and each kind of
     /// activation: none, the clamps applied in the store (ReLU, ReLU6, a clamp) and one
     /// applied after (Hardswish).
+    /// The flat path on every SIMD width against the loops (with AVX-512 these layers
+    /// take the lanes, so the conv tests no longer reach it there).
+    #[test]
+    fn the_flat_path_matches_the_loops_on_every_simd_width() {
+        let acts = [None, Some(Activation::Relu6), Some(Activation::Silu), Some(Activation::Hardswish)];
+        for (i, (n, c, (h, w), cout, k)) in [
+            (2, 5, (7, 7), 5, 3),
+            (1, 3, (7, 7), 6, 5),
+            (1, 4, (7, 7), 4, 7),
+            (3, 40, (4, 4), 40, 3),
+            (1, 30, (6, 8), 30, 3),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let s = Conv2dShape { groups: c, ..Conv2dShape::square(n, c, 7, cout, k, 1, k / 2, c) };
+            let s = Conv2dShape { h, w, oh: h, ow: w, ..s };
+            assert!(flat::applies(&s), "{s:?}");
+            let x = data(n * c * h * w, 5);
+            let wt = data(cout * k * k, 6);
+            let (scale, shift) = (data(cout, 7), data(cout, 8));
+            let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: acts[i % acts.len()] };
+            let plane = h * w;
+            let mut want = vec![f32::NAN; n * cout * plane];
+            for (i, dst) in want.chunks_mut(plane).enumerate() {
+                let (xc, kc, c) = plane_operands(&s, &wt, &x, i);
+                depthwise_loops(&s, xc, kc, c, &ep, dst);
+            }
+            for b in backends() {
+                let mut got = vec![f32::NAN; want.len()];
+                b.run(flat::Flat { s: &s, w: &wt, x: &x, ep: &ep, first: 0, dst: &mut got });
+                assert_close(&got, &want, 1e-5);
+            }
+        }
+    }
+
     #[test]
     fn every_simd_width_matches_the_loops() {
         let acts = [

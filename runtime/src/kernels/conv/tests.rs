@@ -127,6 +127,69 @@ fn depthwise() {
     check_all(&shape(1, 4, (10, 10), 4, (5, 5), (2, 2), (2, 2), (2, 2), 4));
 }
 
+/// With AVX-512, depthwise layers of output planes up to 28x28 take sixteen channels at a
+/// time in the vector lanes (`depthwise/lanes.rs`): channel counts that leave a partial
+/// group of sixteen, rows narrower and wider than sixteen pixels and than a block of
+/// four outputs, strides 1 and 2, 3x3 to 7x7 kernels, paddings 0 to 3, batches, more
+/// groups than one task holds; `check` runs five epilogues (SiLU on the sums in
+/// registers, hardswish after) at 1 to 3 threads against the naive conv. Without AVX-512
+/// the layers take the row path and only the naive comparison runs.
+#[test]
+fn depthwise_lanes() {
+    let cases = [
+        shape(1, 5, (7, 7), 5, (3, 3), (2, 2), (1, 1), (1, 1), 5),
+        shape(2, 17, (14, 14), 17, (3, 3), (2, 2), (1, 1), (1, 1), 17),
+        shape(1, 40, (14, 14), 40, (5, 5), (1, 1), (2, 2), (1, 1), 40),
+        shape(3, 16, (9, 20), 16, (7, 7), (1, 1), (3, 3), (1, 1), 16),
+        shape(1, 33, (28, 28), 33, (5, 5), (2, 2), (2, 2), (1, 1), 33),
+        shape(1, 20, (13, 30), 20, (3, 3), (1, 1), (0, 0), (1, 1), 20),
+        shape(1, 300, (4, 4), 300, (3, 3), (1, 1), (1, 1), (1, 1), 300),
+        shape(2, 8, (2, 3), 8, (3, 3), (1, 1), (1, 1), (1, 1), 8),
+        shape(1, 24, (56, 56), 24, (3, 3), (2, 2), (1, 1), (1, 1), 24),
+        shape(1, 3, (15, 17), 3, (7, 7), (2, 2), (3, 3), (1, 1), 3),
+    ];
+    let lanes = depthwise::lanes_applies(&cases[0]);
+    for s in &cases {
+        assert_eq!(depthwise::lanes_applies(s), lanes, "{s:?}");
+        check(s, ConvAlgo::Depthwise);
+    }
+    // Not: a 56x56 output, a channel multiplier, dilation, a 4x4 kernel, stride 3.
+    for s in [
+        shape(1, 4, (56, 56), 4, (3, 3), (1, 1), (1, 1), (1, 1), 4),
+        shape(1, 4, (14, 14), 8, (3, 3), (1, 1), (1, 1), (1, 1), 4),
+        shape(1, 4, (14, 14), 4, (3, 3), (1, 1), (2, 2), (2, 2), 4),
+        shape(1, 4, (14, 14), 4, (4, 4), (1, 1), (1, 1), (1, 1), 4),
+        shape(1, 4, (14, 14), 4, (3, 3), (3, 3), (1, 1), (1, 1), 4),
+    ] {
+        assert!(!depthwise::lanes_applies(&s), "{s:?}");
+    }
+}
+
+/// The lanes path moves sixteen channels through each transpose: a NaN in one channel's
+/// input reaches that channel's outputs whose window holds it, and no other channel's.
+#[test]
+fn depthwise_lanes_keep_a_nan_in_its_channel() {
+    let s = shape(1, 20, (14, 14), 20, (5, 5), (2, 2), (2, 2), (1, 1), 20);
+    let (hw, plane) = (14, 49);
+    let (chan, cy, cx) = (17, 6, 9);
+    let mut x = data(20 * hw * hw, 1);
+    x[chan * hw * hw + cy * hw + cx] = f32::NAN;
+    let w = data(20 * 25, 2);
+    for act in [None, Some(Activation::Relu6), Some(Activation::Silu)] {
+        let ep = Epilogue { scale: None, shift: None, act };
+        for threads in [1, 2] {
+            let mut out = vec![0.0; 20 * plane];
+            conv2d(&s, ConvAlgo::Depthwise, &w, &ep, &x, &mut out, &mut [], threads);
+            for (i, v) in out.iter().enumerate() {
+                let (c, oy, ox) = (i / plane, i % plane / 7, i % 7);
+                // Output (oy, ox) reads input rows 2 oy - 2 ..= 2 oy + 2, columns likewise.
+                let reached = c == chan && (2 * oy).abs_diff(cy) <= 2 && (2 * ox).abs_diff(cx) <= 2;
+                assert_eq!(v.is_nan(), reached, "{act:?}, {threads} threads: channel {c} ({oy}, {ox}) = {v}");
+            }
+        }
+    }
+}
+
 /// Stride-1 "same" layers of planes with rows of at most 8 pixels take the flat path
 /// (`depthwise/flat.rs`): 7x7 planes with 3x3, 5x5 and 7x7 kernels (a plane's last
 /// vector partly outside it), a kernel larger than the plane, a channel multiplier, a
