@@ -596,6 +596,18 @@ mod tests {
     /// channel multiplier, rows not a multiple of the block's, and each kind of
     /// activation: none, the clamps applied in the store (ReLU, ReLU6, a clamp) and one
     /// applied after (Hardswish).
+    /// Every output plane of `s` by the loops of `depthwise_loops`: what the register
+    /// paths are checked against.
+    fn by_the_loops(s: &Conv2dShape, x: &[f32], w: &[f32], ep: &Epilogue) -> Vec<f32> {
+        let plane = s.oh * s.ow;
+        let mut want = vec![f32::NAN; s.n * s.cout * plane];
+        for (i, dst) in want.chunks_mut(plane).enumerate() {
+            let (xc, kc, c) = plane_operands(s, w, x, i);
+            depthwise_loops(s, xc, kc, c, ep, dst);
+        }
+        want
+    }
+
     /// The flat path on every SIMD width against the loops (with AVX-512 these layers
     /// take the lanes, so the conv tests no longer reach it there).
     #[test]
@@ -618,12 +630,7 @@ mod tests {
             let wt = data(cout * k * k, 6);
             let (scale, shift) = (data(cout, 7), data(cout, 8));
             let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: acts[i % acts.len()] };
-            let plane = h * w;
-            let mut want = vec![f32::NAN; n * cout * plane];
-            for (i, dst) in want.chunks_mut(plane).enumerate() {
-                let (xc, kc, c) = plane_operands(&s, &wt, &x, i);
-                depthwise_loops(&s, xc, kc, c, &ep, dst);
-            }
+            let want = by_the_loops(&s, &x, &wt, &ep);
             for b in backends() {
                 let mut got = vec![f32::NAN; want.len()];
                 b.run(flat::Flat { s: &s, w: &wt, x: &x, ep: &ep, first: 0, dst: &mut got });
@@ -686,11 +693,7 @@ mod tests {
             let (scale, shift) = (data(cout, 7), data(cout, 8));
             let ep = Epilogue { scale: Some(&scale), shift: Some(&shift), act: acts[i % acts.len()] };
             let plane = oh * ow;
-            let mut want = vec![f32::NAN; n * cout * plane];
-            for (i, dst) in want.chunks_mut(plane).enumerate() {
-                let (xc, kc, c) = plane_operands(&s, &wt, &x, i);
-                depthwise_loops(&s, xc, kc, c, &ep, dst);
-            }
+            let want = by_the_loops(&s, &x, &wt, &ep);
             for b in backends() {
                 let mut got = vec![f32::NAN; want.len()];
                 b.run(Registers { s: &s, w: &wt, x: &x, ep: &ep, first: 0, dst: &mut got });
