@@ -28,8 +28,12 @@ use crate::kernels::elementwise;
 /// Channels a vector holds (AVX-512's f32 lanes).
 const L: usize = 16;
 
-/// Output pixels whose sums one block keeps in registers (`B` vectors).
+/// Output pixels whose sums one block keeps in registers (`B` vectors). Eight took
+/// 1.1-1.55x four's time on the layers measured below (one thread, 2026-12-06).
 const B: usize = 4;
+
+/// Taps of the largest kernel (7x7).
+const MAX_TAPS: usize = 49;
 
 /// The most output pixels per plane this path takes (28x28). On the AMD EPYC (Zen 4,
 /// 2026-12-06; this path's time over the row path's, the two alternating call by call in
@@ -51,7 +55,8 @@ const MAX_COPY: usize = 64 * 1024;
 /// output plane of at most [`MAX_OUT_PLANE`] pixels whose bordered input copy fits
 /// [`MAX_COPY`].
 pub(super) fn applies(s: &Conv2dShape) -> bool {
-    let copy = (s.h.saturating_add(2 * s.pad_h)).saturating_mul(s.w.saturating_add(2 * s.pad_w)).saturating_mul(L);
+    let side = |len: usize, pad: usize| len.saturating_add(pad.saturating_mul(2));
+    let copy = side(s.h, s.pad_h).saturating_mul(side(s.w, s.pad_w)).saturating_mul(L);
     s.cin == s.groups
         && s.cout == s.cin
         && s.stride_h == s.stride_w
@@ -76,8 +81,8 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     let simd = V4::try_new().expect("lanes::applies checks AVX-512");
     let plane = s.oh * s.ow;
     let groups = s.cout.div_ceil(L);
-    // Tasks of one image's groups of channels: several groups a task (a task zeroes its
-    // copy's border once), at least four tasks a thread.
+    // Tasks of one image's groups of channels: several groups a task (one dispatch and
+    // one buffer a task), at least four tasks a thread.
     let per = (s.n * groups / (4 * threads.max(1))).clamp(1, 8);
     let mut tasks: Vec<(usize, usize, &mut [f32])> = Vec::new();
     for (n, image) in out.chunks_mut(s.cout * plane).enumerate() {
@@ -125,9 +130,9 @@ impl Task<'_> {
             _ => unreachable!("lanes::applies"),
         }
     }
-}
 
-impl Task<'_> {
+    /// Every group of sixteen channels of the task: transposed in, each output row by
+    /// blocks of [`B`] pixels, transposed out.
     #[inline(always)]
     fn run<const ST: usize, const K: usize>(self, simd: V4) {
         let Task { s, w, ep, x, c0, dst } = self;
@@ -150,8 +155,8 @@ impl Task<'_> {
             let (ch, x) = (c0 + g * L, &x[g * L * s.h * s.w..]);
             transpose_in(simd, s, x, nc, copy);
             // Each tap's sixteen channels, then the epilogue's scale and shift.
-            let mut taps = [simd.splat_f32s(0.0); 49];
-            let mut lane = [[0.0f32; L]; 49];
+            let mut taps = [simd.splat_f32s(0.0); MAX_TAPS];
+            let mut lane = [[0.0f32; L]; MAX_TAPS];
             for c in 0..nc {
                 for (t, l) in lane.iter_mut().take(K * K).enumerate() {
                     l[c] = w[(g * L + c) * K * K + t];
@@ -166,17 +171,17 @@ impl Task<'_> {
                 shift[c] = ep.shift.map_or(0.0, |v| v[ch + c]);
             }
             let (scale, shift) = (vector(&scale), vector(&shift));
-            let g = Geometry { pw, ow: s.ow, scale, shift, clamp, in_registers };
+            let geo = Geometry { pw, ow: s.ow, scale, shift, clamp, in_registers };
             for oy in 0..s.oh {
                 // Blocks of `B` pixels, the last one overlapping the one before it.
                 let mut ox = 0;
                 while ox < s.ow {
                     if s.ow >= B {
                         let at = ox.min(s.ow - B);
-                        g.block::<ST, K, B>(simd, copy, &taps, oy, at, sums);
+                        geo.block::<ST, K, B>(simd, copy, &taps, oy, at, sums);
                         ox = at + B;
                     } else {
-                        g.block::<ST, K, 1>(simd, copy, &taps, oy, ox, sums);
+                        geo.block::<ST, K, 1>(simd, copy, &taps, oy, ox, sums);
                         ox += 1;
                     }
                 }
@@ -210,7 +215,7 @@ impl Geometry {
         &self,
         simd: V4,
         copy: &[f32],
-        taps: &[pulp::f32x16; 49],
+        taps: &[pulp::f32x16; MAX_TAPS],
         oy: usize,
         ox0: usize,
         sums: &mut [f32],
