@@ -589,13 +589,6 @@ mod tests {
         }
     }
 
-    /// [`Registers`] on every SIMD width this CPU has (the kernel picks the widest),
-    /// against the loops it replaced ([`depthwise_loops`]): 3x3, 5x5 and 7x7 kernels at
-    /// stride 1 and 2 (odd and even padding and widths, so both column phases start the
-    /// row), planes narrower than a vector, a row a vector and a bit wide, two images, a
-    /// channel multiplier, rows not a multiple of the block's, and each kind of
-    /// activation: none, the clamps applied in the store (ReLU, ReLU6, a clamp) and one
-    /// applied after (Hardswish).
     /// Every output plane of `s` by the loops of `depthwise_loops`: what the register
     /// paths are checked against.
     fn by_the_loops(s: &Conv2dShape, x: &[f32], w: &[f32], ep: &Epilogue) -> Vec<f32> {
@@ -639,6 +632,13 @@ mod tests {
         }
     }
 
+    /// [`Registers`] on every SIMD width this CPU has (the kernel picks the widest),
+    /// against the loops it replaced ([`depthwise_loops`]): 3x3, 5x5 and 7x7 kernels at
+    /// stride 1 and 2 (odd and even padding and widths, so both column phases start the
+    /// row), planes narrower than a vector, a row a vector and a bit wide, two images, a
+    /// channel multiplier, rows not a multiple of the block's, and each kind of
+    /// activation: none, the clamps applied in the store (ReLU, ReLU6, a clamp) and one
+    /// applied after (Hardswish).
     #[test]
     fn every_simd_width_matches_the_loops() {
         let acts = [
