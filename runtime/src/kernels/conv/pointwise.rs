@@ -46,8 +46,8 @@ pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
 const MAX_ACT_WEIGHT: usize = 16 * 1024;
 
 /// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
-/// crate: one group and planes of at most [`MAX_UNFOLDED_PLANE`] pixels (which is
-/// [`ONE_TILE_PLANE`]: any weight).
+/// crate: one group and planes of at most [`MAX_UNFOLDED_PLANE`] pixels, whatever the
+/// weight (they are all within [`ONE_TILE_PLANE`]).
 pub(super) fn applies_unfolded(s: &Conv2dShape) -> bool {
     s.groups == 1 && s.oh * s.ow <= MAX_UNFOLDED_PLANE
 }
@@ -66,8 +66,9 @@ fn streamed(s: &Conv2dShape, depth: usize) -> usize {
 }
 
 /// The most weight floats [`applies`] lets the tiles stream per image of more than
-/// [`ONE_TILE_PLANE`] pixels (1.25 MiB), and the bound of [`light_unfolded`]. The tiles broadcast the weight from six rows at a time, once per
-/// group of pixels; the crate packs it once per call. Measured on a 2-core Xeon with a
+/// [`ONE_TILE_PLANE`] pixels (1.25 MiB), and the bound of [`light_unfolded`]. The tiles
+/// broadcast the weight from six rows at a time, once per group of pixels; the crate
+/// packs it once per call. Measured on a 2-core Xeon with a
 /// 2 MiB L2 (2026-12-05, `readi bench --profile`, alternating rounds, one thread, the
 /// crate's time over the tiles'): MobileNetV2's 1x1 layers streaming 123-307 Ki floats
 /// 1.02-1.23 (the tiles win), its 7x7 320 -> 1280 one (400 Ki) 0.93; ResNet-50's 14x14
@@ -104,11 +105,8 @@ const ONE_TILE_PLANE: usize = 64;
 /// steps took 0.89-0.90x the crate path's time in the model (ResNet-18's 7x7 strided 3x3
 /// 0.85x); its 14x14 strided 3x3 (2304 rows, 196 pixels) took 1.17x: the tiles re-read an
 /// unfolded matrix larger than L2 once per 6 channels, where the crate blocks it for the
-/// cache.
-const MAX_UNFOLDED_PLANE: usize = 64;
-
-// `applies_unfolded` takes any weight: its planes are all within one tile.
-const _: () = assert!(MAX_UNFOLDED_PLANE <= ONE_TILE_PLANE);
+/// cache. One tile's plane, which takes the tiles whatever its weight.
+const MAX_UNFOLDED_PLANE: usize = ONE_TILE_PLANE;
 
 /// Scratch floats of one part over `depth` input rows: a padded tail's input columns and
 /// its sums, for vectors of up to 16 lanes and micro-tiles of up to 8 rows; or the columns
