@@ -389,7 +389,8 @@ fn depthwise_blocks(s: &Conv2dShape, xc: &[f32], k: &[f32], dst: &mut [f32], str
 const MAX_PADDED: usize = 16 * 1024;
 
 thread_local! {
-    /// Each thread's zero-padded copy of the plane it is on.
+    /// Each thread's zero-padded copy of the plane it is on: the buffer of every
+    /// depthwise path (the rows', the flat one's, the lanes'), one at a time a thread.
     static PADDED: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 

@@ -14,7 +14,7 @@
 use crate::kernels::Epilogue;
 use crate::kernels::conv::{Conv2dShape, store_vector};
 
-use super::plane_operands;
+use super::{PADDED, plane_operands};
 
 /// Output vectors whose sums a tile keeps in registers.
 const TILE: usize = 8;
@@ -44,11 +44,6 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
         && s.kw <= MAX_K
 }
 
-thread_local! {
-    /// Each thread's zero-bordered copy of the plane it is on, and the column masks.
-    static BUF: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
-}
-
 /// Planes `first..` of the output (index `n * cout + c`), as many as `dst` holds.
 pub(super) struct Flat<'a> {
     pub(super) s: &'a Conv2dShape,
@@ -71,7 +66,8 @@ impl pulp::WithSimd for Flat<'_> {
         // its last vector, so that every tap of every output vector reads inside it.
         let border = s.pad_h * wd + s.pad_w;
         let len = 2 * border + vectors * lanes;
-        let mut buf = BUF.take();
+        // The thread's zero-bordered copy of the plane it is on, and the column masks.
+        let mut buf = PADDED.take();
         buf.clear();
         buf.resize(len + s.kw * vectors * lanes, 0.0);
         let (copy, valid) = buf.split_at_mut(len);
@@ -110,7 +106,7 @@ impl pulp::WithSimd for Flat<'_> {
                 v += 1;
             }
         }
-        BUF.set(buf);
+        PADDED.set(buf);
         ep.finish_unclamped(dst);
     }
 }

@@ -25,6 +25,8 @@ use crate::kernels::Epilogue;
 use crate::kernels::conv::{Conv2dShape, clamp_vector};
 use crate::kernels::elementwise;
 
+use super::PADDED;
+
 /// Channels a vector holds (AVX-512's f32 lanes).
 const L: usize = 16;
 
@@ -69,11 +71,6 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
         && V4::try_new().is_some()
 }
 
-thread_local! {
-    /// Each thread's bordered copy of sixteen planes and its block of outputs.
-    static BUF: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
-}
-
 /// The depthwise conv `x -> out` (`[n, c, h, w] -> [n, c, oh, ow]`, `w` PyTorch's `[c,
 /// 1, k, k]`) with the epilogue, parallel over groups of sixteen channels of each image.
 /// Only for layers [`applies`] takes.
@@ -84,13 +81,10 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     // Tasks of one image's groups of channels: several groups a task (one dispatch and
     // one buffer a task), at least four tasks a thread.
     let per = (s.n * groups / (4 * threads.max(1))).clamp(1, 8);
-    let mut tasks: Vec<(usize, usize, &mut [f32])> = Vec::new();
-    for (n, image) in out.chunks_mut(s.cout * plane).enumerate() {
-        for (t, dst) in image.chunks_mut(per * L * plane).enumerate() {
-            tasks.push((n, t * per * L, dst));
-        }
-    }
-    let run = |(n, c0, dst): (usize, usize, &mut [f32])| {
+    let (image, chunk) = (s.cout * plane, per * L * plane);
+    // Task `t` of image `n`: channels from `t per L`.
+    let run = |n: usize, t: usize, dst: &mut [f32]| {
+        let c0 = t * per * L;
         let x = &x[(n * s.cin + c0) * s.h * s.w..];
         let task = Task { s, w: &w[c0 * s.kh * s.kw..], ep, x, c0, dst };
         // Compiled with AVX-512 enabled: everything `dispatch` calls is inlined into it.
@@ -100,9 +94,13 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
         );
     };
     if threads <= 1 {
-        tasks.into_iter().for_each(run);
+        for (n, im) in out.chunks_mut(image).enumerate() {
+            im.chunks_mut(chunk).enumerate().for_each(|(t, dst)| run(n, t, dst));
+        }
     } else {
-        tasks.into_par_iter().for_each(run);
+        out.par_chunks_mut(image).enumerate().for_each(|(n, im)| {
+            im.par_chunks_mut(chunk).enumerate().for_each(|(t, dst)| run(n, t, dst));
+        });
     }
 }
 
@@ -138,11 +136,11 @@ impl Task<'_> {
         let Task { s, w, ep, x, c0, dst } = self;
         let (ph, pw) = (s.h + 2 * s.pad_h, s.w + 2 * s.pad_w);
         let plane = s.oh * s.ow;
-        let mut buf = BUF.take();
-        // The copy, then the block of outputs (`plane` vectors), then sixteen vectors of
-        // slack the transpose back reads past the block's last pixel. Not cleared: the
-        // copy is written whole (border too) for each group, the block too but for the
-        // slack, whose lanes are never stored.
+        // The thread's buffer of the depthwise paths: the copy, then the block of outputs
+        // (`plane` vectors), then sixteen vectors of slack the transpose back reads past
+        // the block's last pixel. Not cleared: the copy is written whole (border too) for
+        // each group, the block too but for the slack, whose lanes are never stored.
+        let mut buf = PADDED.take();
         let need = ph * pw * L + (plane + L) * L;
         if buf.len() < need {
             buf.resize(need, 0.0);
@@ -156,14 +154,12 @@ impl Task<'_> {
             transpose_in(simd, s, x, nc, copy);
             // Each tap's sixteen channels, then the epilogue's scale and shift.
             let mut taps = [simd.splat_f32s(0.0); MAX_TAPS];
-            let mut lane = [[0.0f32; L]; MAX_TAPS];
-            for c in 0..nc {
-                for (t, l) in lane.iter_mut().take(K * K).enumerate() {
-                    l[c] = w[(g * L + c) * K * K + t];
+            for (t, tap) in taps.iter_mut().enumerate().take(K * K) {
+                let mut lane = [0.0f32; L];
+                for (c, v) in lane.iter_mut().enumerate().take(nc) {
+                    *v = w[(g * L + c) * K * K + t];
                 }
-            }
-            for (t, l) in taps.iter_mut().zip(&lane).take(K * K) {
-                *t = vector(l);
+                *tap = vector(&lane);
             }
             let (mut scale, mut shift) = ([1.0f32; L], [0.0f32; L]);
             for c in 0..nc {
@@ -192,7 +188,7 @@ impl Task<'_> {
                 ep.finish_unclamped(dst);
             }
         }
-        BUF.set(buf);
+        PADDED.set(buf);
     }
 }
 
