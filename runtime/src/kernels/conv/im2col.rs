@@ -24,6 +24,33 @@ pub(super) fn gemm_tile(s: &Conv2dShape, algo: ConvAlgo) -> usize {
     tile.min((s.oh * s.ow).div_ceil(16) * 16)
 }
 
+/// The pixels of the next GEMM call when `left` remain: at most `tile`; and when `split`
+/// ([`split_remainder`]), a multiple of 16 unless fewer than 16 remain. The `gemm` crate
+/// packs every pixel of a call (16 to a vector) when their count is not a multiple of 16,
+/// and computes them in place otherwise; a remainder of a few pixels in a call of its own
+/// packs only those.
+fn gemm_cols(left: usize, tile: usize, split: bool) -> usize {
+    if left > tile {
+        tile
+    } else if split && left > 16 {
+        left / 16 * 16
+    } else {
+        left
+    }
+}
+
+/// Whether a layer's GEMM tiles split off their last pixels past a multiple of 16
+/// ([`gemm_cols`]): when the input is deep and the output narrow, packing the tile's input
+/// costs more than a second call. A 28x28 plane split by rows between two threads
+/// leaves each 392 pixels (2-core AMD EPYC, 2026-12-06, old and new rule alternating
+/// call by call in one process, 780 pairs, two threads): MobileNetV2's and
+/// EfficientNet-B0's projections 96, 120, 144, 192 and 240 to 32 or 40 channels took
+/// 0.92-0.96x the time; expansions 32 or 40 to 96-240 took 1.03-1.05x, ResNet-50's 512 to
+/// 128 and 128 to 512 1.01x (kept whole).
+pub(super) fn split_remainder(s: &Conv2dShape) -> bool {
+    s.cout_g() <= 64 && s.k() >= 2 * s.cout_g()
+}
+
 /// Gemm1x1 / Im2col over one part: per image, per tile of pixels, per group: (unfold,)
 /// GEMM into scratch (and a LoRA branch's two small ones), epilogue into the output.
 #[allow(clippy::too_many_arguments)]
@@ -47,13 +74,14 @@ pub(super) fn gemm_part(
     let (h, col) = rest.split_at_mut(tile * adapter.map_or(0, |a| a.mid));
     // Small planes of one group skip the GEMM call: register tiles over the unfolded rows.
     let registers = algo == ConvAlgo::Im2col && lora.is_none() && adapter.is_none() && pointwise::applies_unfolded(s);
+    let split = !registers && split_remainder(s);
     let last = (part.r1 - 1) / s.oh;
     for n in part.n0..=last {
         let (lo, hi) = part.rows_of(n, s.oh);
         let (p_lo, p_hi) = (lo * s.ow, hi * s.ow);
         let mut p0 = p_lo;
         while p0 < p_hi {
-            let tp = tile.min(p_hi - p0);
+            let tp = gemm_cols(p_hi - p0, tile, split);
             for g in 0..s.groups {
                 let chans = part.channels_of(g, cout_g);
                 let mrows = chans.len();

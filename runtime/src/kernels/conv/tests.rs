@@ -127,6 +127,26 @@ fn depthwise() {
     check_all(&shape(1, 4, (10, 10), 4, (5, 5), (2, 2), (2, 2), (2, 2), 4));
 }
 
+/// The GEMM paths call the `gemm` crate on pixel counts that are multiples of 16 and the
+/// last few pixels on their own (`im2col::gemm_cols`) for deep inputs and narrow outputs:
+/// parts of 392, 252 and 280 pixels (a 28x28 plane at 2 and 3 threads), a 399-pixel
+/// plane, a remainder under 16, and batches, against the naive conv.
+#[test]
+fn gemm_tiles_split_off_their_remainder() {
+    let cases = [
+        shape(1, 100, (28, 28), 30, (1, 1), (1, 1), (0, 0), (1, 1), 1),
+        shape(2, 64, (21, 19), 24, (1, 1), (1, 1), (0, 0), (1, 1), 1),
+        shape(1, 12, (21, 19), 10, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+        shape(1, 40, (5, 7), 16, (3, 3), (1, 1), (1, 1), (1, 1), 1),
+    ];
+    for s in &cases {
+        assert!(im2col::split_remainder(s), "{s:?}");
+        let algo = choose(s);
+        assert!(matches!(algo, ConvAlgo::Gemm1x1 | ConvAlgo::Im2col), "{s:?} takes {}", algo.name());
+        check(s, algo);
+    }
+}
+
 /// With AVX-512, depthwise layers of output planes up to 28x28 take sixteen channels at a
 /// time in the vector lanes (`depthwise/lanes.rs`): channel counts that leave a partial
 /// group of sixteen, rows narrower and wider than sixteen pixels and than a block of
