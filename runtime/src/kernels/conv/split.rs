@@ -27,7 +27,13 @@ pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (u
     let units = s.n * s.oh.div_ceil(unit);
     // GEMM columns (pixels or tiles) per thread under a row split.
     let cols = units * s.ow.div_ceil(unit) / threads;
-    let least = if unit > 1 { CHANNEL_SPLIT_TILES } else { CHANNEL_SPLIT_COLS };
+    let least = if unit > 1 {
+        CHANNEL_SPLIT_TILES
+    } else if expansion(s, algo) {
+        EXPANSION_SPLIT_COLS
+    } else {
+        CHANNEL_SPLIT_COLS
+    };
     if threads > 1 && s.groups == 1 && cols < least && s.cout >= 32 * threads {
         (1, threads)
     } else {
@@ -44,6 +50,25 @@ pub(super) fn split_shape(s: &Conv2dShape, algo: ConvAlgo, threads: usize) -> (u
 /// 0.960; `benches/ab.py`, 8 alternating rounds, 2026-12-05); at 512 ResNet-18 and
 /// RegNetY-400MF lost again (1.05, 1.02).
 const CHANNEL_SPLIT_COLS: usize = 256;
+
+/// Whether a layer is a 1x1 expansion: at least four output channels per input channel,
+/// so that it writes four times what it reads.
+fn expansion(s: &Conv2dShape, algo: ConvAlgo) -> bool {
+    algo == ConvAlgo::Gemm1x1 && s.cout >= 4 * s.cin
+}
+
+/// GEMM columns per thread below which a 1x1 expansion ([`expansion`]) is split by
+/// channels: each thread then writes whole planes, one contiguous block of the output,
+/// and reads all of the (four times smaller) input. Split by rows, the two threads'
+/// halves of every plane interleave in memory: writing 192 planes of 784 floats that
+/// way took 2.9x as long as writing them in two contiguous halves (a loop of stores,
+/// 2-core AMD EPYC, 2026-12-06), the cores' prefetchers pulling each other's lines.
+/// MobileNetV2's 28x28 expansions (32 to 192 channels, 392 pixels a thread) then took
+/// 0.82-0.91x the time at two threads, ResNet-50's 128 to 512 0.93-0.96x, EfficientNet-B0's
+/// and MobileNetV3's 40 to 240 and 40 to 120 0.85-0.97x (old and new split alternating
+/// run by run in one process, 300-400 pairs). Layers that do not expand lost: RegNetY's
+/// 28x28 104 to 104 convs, between grouped convs split by rows, took 1.10-1.24x.
+const EXPANSION_SPLIT_COLS: usize = 512;
 
 /// Winograd tiles per thread below which a layer with enough output channels is split by
 /// channels. When each thread of a channel split still transformed the whole input

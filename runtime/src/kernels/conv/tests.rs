@@ -348,6 +348,21 @@ fn channel_split() {
         }
         check_all(&s);
     }
+    // A 1x1 expansion (four times the input's channels) splits by channels up to larger
+    // planes: 28x28 at two threads (392 pixels a thread), 30x30 at three (300), where a
+    // layer that does not expand splits by rows; 56x56 by rows.
+    let expand = shape(1, 32, (28, 28), 128, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+    assert_eq!(split_shape(&expand, ConvAlgo::Gemm1x1, 2), (1, 2));
+    let wide = shape(1, 24, (30, 30), 96, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+    assert_eq!(split_shape(&wide, ConvAlgo::Gemm1x1, 3), (1, 3));
+    for s in [
+        shape(1, 104, (28, 28), 104, (1, 1), (1, 1), (0, 0), (1, 1), 1),
+        shape(1, 24, (56, 56), 144, (1, 1), (1, 1), (0, 0), (1, 1), 1),
+    ] {
+        assert_eq!(split_shape(&s, ConvAlgo::Gemm1x1, 2), (2, 1), "{s:?}");
+    }
+    check_all(&expand);
+    check_all(&wide);
 }
 
 /// Worst error relative to the output's RMS, unscaled data in [-1, 1): Winograd F(4x4)
