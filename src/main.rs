@@ -95,13 +95,13 @@ fn run(cli: Cli) -> ExitCode {
             };
             cli::compile::run(&mut s, args, &output)
         }
-        Command::Run { plan, inputs, outputs, threads, max_memory, variant, auto, meta, drop_views } => {
+        Command::Run { plan, inputs, outputs, threads, max_memory, no_spin, variant, auto, meta, drop_views } => {
             let choice = match variant {
                 Some(v) => cli::run::Choice::Key(v),
                 None if auto => cli::run::Choice::Auto(meta),
                 None => cli::run::Choice::Base,
             };
-            let session = cli::session_options(threads, max_memory);
+            let session = cli::session_options(threads, max_memory).spin(!no_spin);
             cli::run::run(&plan, &inputs, &outputs, session, choice, &drop_views)
         }
         Command::Bench {
@@ -118,8 +118,9 @@ fn run(cli: Cli) -> ExitCode {
             switch,
             against,
             max_memory,
+            no_spin,
         } => {
-            let session = cli::session_options(threads, max_memory);
+            let session = cli::session_options(threads, max_memory).spin(!no_spin);
             let timing = cli::bench::Timing { runs, warmup, batch, profile, steps, peak, switch, against };
             cli::bench::run(&plan, session, &timing, variant.as_deref(), &inputs)
         }

@@ -674,7 +674,7 @@ fn exercise(path: &std::path::Path) -> Reached {
 }
 
 fn session(plan: Arc<Plan>) -> Result<Session, readi_runtime::exec::RunError> {
-    Session::with_options(plan, SessionOptions { threads: 1, max_memory: BUDGET })
+    Session::with_options(plan, SessionOptions::default().threads(1).max_memory(BUDGET))
 }
 
 /// Runs a case on its own thread and fails it when it takes longer than [`HANG`]; the

@@ -32,7 +32,7 @@ fn a_run_over_the_limit_is_refused_and_one_within_it_runs() {
     let need = exec::footprint(&plan, 2, 1).expect("a footprint").total;
     let x = vec![0.5f32; 8];
     let given = [Input { name: "x", data: &x, shape: &[2, 4] }];
-    let options = SessionOptions { threads: 1, max_memory: need - 1 };
+    let options = SessionOptions::default().threads(1).max_memory(need - 1);
     let mut s = Session::with_options(Arc::clone(&plan), options).expect("session");
     match s.run(&given) {
         Err(RunError::OverBudget { needed, limit, at, largest }) => {

@@ -39,7 +39,7 @@ pub fn adapt(args: &Args<'_>) -> Result<(), String> {
     let key = check_key(&plan, args.variant)?;
     let owned = owned_statistics(&plan, &key)?;
     let shown = args.plan.display();
-    let options = SessionOptions { threads: args.threads, max_memory: args.max_memory };
+    let options = SessionOptions::default().threads(args.threads).max_memory(args.max_memory);
     let mut cal = BnCalibrator::with_options(plan.clone(), options).map_err(|e| format!("{shown}: {e}"))?;
     let bar = ProgressBar::new(args.samples.len() as u64);
     if let Ok(style) = ProgressStyle::with_template("{spinner} adapt-bn [{bar:30}] {pos}/{len} batches {msg}") {

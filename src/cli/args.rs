@@ -210,6 +210,10 @@ pub enum Command {
         /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
         #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
         max_memory: Option<usize>,
+        /// Let the idle worker threads sleep between steps instead of spinning through a
+        /// run: less CPU taken from other processes, more latency on small steps.
+        #[arg(long)]
+        no_spin: bool,
         /// The variant to run, by key (`fog=0.03`); default the base model.
         #[arg(long, value_name = "KEY", conflicts_with = "auto")]
         variant: Option<String>,
@@ -273,6 +277,10 @@ pub enum Command {
         /// with a unit, `512M`, `2G` (powers of 1024); default half the physical memory.
         #[arg(long, value_name = "BYTES", value_parser = parse_memory)]
         max_memory: Option<usize>,
+        /// Let the idle worker threads sleep between steps instead of spinning through a
+        /// run: less CPU taken from other processes, more latency on small steps.
+        #[arg(long)]
+        no_spin: bool,
     },
     /// Describe a plan: inputs, outputs, parameters, bytes, schedule and buffers.
     #[command(after_help = "Example:\n  readi inspect r18.plan")]

@@ -43,6 +43,7 @@
 //! * `switch.rs`: [`VariantSwitch`] and the variant key lookup.
 
 mod arena;
+mod awake;
 mod bind;
 mod run;
 mod switch;
@@ -240,7 +241,7 @@ pub fn default_max_memory() -> usize {
     total.map_or(FALLBACK_MAX_MEMORY, |t| t / 2)
 }
 
-/// How a [`Session`] runs: its thread count and its memory limit.
+/// How a [`Session`] runs: its thread count, its memory limit and whether its workers spin.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SessionOptions {
     /// Worker threads (at least 1).
@@ -249,13 +250,18 @@ pub struct SessionOptions {
     /// zeros, inputs and outputs); a binding over it is refused before anything is
     /// allocated.
     pub max_memory: usize,
+    /// Whether the workers other than the one running a run spin through it, taking each
+    /// step's parallel work at once, rather than sleeping between steps (default: yes;
+    /// `exec/awake.rs`). Off, they sleep whenever idle for a few microseconds: less CPU
+    /// burnt in serial stretches, more latency on small steps.
+    pub spin: bool,
 }
 
 impl Default for SessionOptions {
     /// One thread per core, [`default_max_memory`].
     fn default() -> SessionOptions {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        SessionOptions { threads, max_memory: default_max_memory() }
+        SessionOptions { threads, max_memory: default_max_memory(), spin: true }
     }
 }
 
@@ -267,6 +273,10 @@ impl SessionOptions {
     pub fn max_memory(self, bytes: usize) -> SessionOptions {
         SessionOptions { max_memory: bytes, ..self }
     }
+
+    pub fn spin(self, spin: bool) -> SessionOptions {
+        SessionOptions { spin, ..self }
+    }
 }
 
 /// Runs one plan; reuses its buffers across runs.
@@ -276,6 +286,8 @@ pub struct Session {
     threads: usize,
     /// [`SessionOptions::max_memory`].
     max_memory: usize,
+    /// [`SessionOptions::spin`].
+    spin: bool,
     /// The active variant's index, shared with every [`VariantSwitch`]; always a valid
     /// index (stores are checked).
     active: Arc<AtomicUsize>,
@@ -322,6 +334,7 @@ impl Session {
             pool,
             threads,
             max_memory: options.max_memory,
+            spin: options.spin,
             active: Arc::new(AtomicUsize::new(0)),
             last_variant: None,
             bound: None,
@@ -451,7 +464,7 @@ impl Session {
         let run = Run { plan: &plan, weights, inputs, given: &self.given };
         let threads = self.threads;
         let profile = self.profile.as_deref_mut();
-        self.pool.install(|| run::execute(&run, bound, threads, profile))?;
+        awake::install(&self.pool, threads, self.spin, || run::execute(&run, bound, threads, profile))?;
         let bound: &Bound = bound;
         let mut out = Vec::with_capacity(m.outputs.len());
         for o in &m.outputs {
