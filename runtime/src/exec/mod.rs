@@ -40,6 +40,7 @@
 //!   [`Session`], which matches inputs, binds and runs;
 //! * `bind.rs`: binding symbols, shapes, buffers and conv parameters (`Bound`);
 //! * `run.rs`: executing the steps of a bound plan (`Run`, `run_step`);
+//! * `awake.rs`: the other workers spinning through a run ([`SessionOptions::spin`]);
 //! * `switch.rs`: [`VariantSwitch`] and the variant key lookup.
 
 mod arena;
