@@ -24,18 +24,22 @@ fn main() {
         eprintln!("usage: step_compare A.plan[@THREADS] B.plan[@THREADS] [ROUNDS]");
         std::process::exit(2);
     }
-    let side = |arg: &str| {
-        let (path, threads) = match arg.rsplit_once('@') {
-            Some((p, t)) => (p, t.parse::<usize>().expect("a thread count after @")),
-            None => (arg, 2),
-        };
-        let plan = Arc::new(Plan::load(std::path::Path::new(path)).unwrap_or_else(|e| panic!("{path}: {e}")));
-        let mut session = Session::new(plan.clone(), threads).expect("a session");
-        session.bind_batch(1).expect("batch 1 binds");
-        (plan, session, threads)
+    let parse = |arg: &str| match arg.rsplit_once('@') {
+        Some((path, t)) => (path.to_string(), t.parse::<usize>().expect("a thread count after @")),
+        None => (arg.to_string(), 2),
     };
-    let (plan, a, ta) = side(&args[0]);
-    let (plan_b, b, tb) = side(&args[1]);
+    let ((path_a, ta), (path_b, tb)) = (parse(&args[0]), parse(&args[1]));
+    let load = |path: &str| Arc::new(Plan::load(std::path::Path::new(path)).unwrap_or_else(|e| panic!("{path}: {e}")));
+    // One plan at two thread counts is loaded once.
+    let same = path_a == path_b;
+    let plan = load(&path_a);
+    let plan_b = if same { Arc::clone(&plan) } else { load(&path_b) };
+    let session = |plan: &Arc<Plan>, threads: usize| {
+        let mut s = Session::new(Arc::clone(plan), threads).expect("a session");
+        s.bind_batch(1).expect("batch 1 binds");
+        s
+    };
+    let (a, b) = (session(&plan, ta), session(&plan_b, tb));
     let rounds: usize = args.get(2).map_or(200, |r| r.parse().expect("a round count"));
     let steps = plan.manifest.steps.len();
     assert_eq!(steps, plan_b.manifest.steps.len(), "the plans have different schedules");
@@ -50,9 +54,8 @@ fn main() {
             s.run(&inputs).expect("a run");
         }
     }
-    let mut per_step = [vec![Vec::with_capacity(rounds); steps], vec![Vec::with_capacity(rounds); steps]];
+    let mut per_step = [vec![Vec::new(); steps], vec![Vec::new(); steps]];
     let mut whole = [Vec::with_capacity(rounds), Vec::with_capacity(rounds)];
-    let mut ratios = Vec::with_capacity(rounds);
     for r in 0..rounds {
         let mut t = [0.0; 2];
         for i in if r % 2 == 0 { [0, 1] } else { [1, 0] } {
@@ -67,13 +70,13 @@ fn main() {
         }
         whole[0].push(t[0]);
         whole[1].push(t[1]);
-        ratios.push(t[1] / t[0]);
     }
     let median = |v: &[f64]| {
         let mut v = v.to_vec();
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
+    let ratios: Vec<f64> = whole[0].iter().zip(&whole[1]).map(|(a, b)| b / a).collect();
     println!(
         "A {:.3} ms ({ta} threads), B {:.3} ms ({tb} threads): B / A {:.3} (median of {rounds} rounds)",
         median(&whole[0]),
@@ -81,8 +84,6 @@ fn main() {
         median(&ratios)
     );
     // Excess of B over what A predicts: perfect scaling for one plan, A itself for two.
-    let same = args[0].rsplit_once('@').map_or(args[0].as_str(), |(p, _)| p)
-        == args[1].rsplit_once('@').map_or(args[1].as_str(), |(p, _)| p);
     let expect = |x: f64| if same { x * ta as f64 / tb as f64 } else { x };
     let mut rows: Vec<(f64, f64, f64, &str)> = (0..steps)
         .map(|k| {
