@@ -22,7 +22,7 @@ fn main() {
         Layer("layer1 64 56x56", Conv2dShape::square(1, 64, 56, 64, 3, 1, 1, 1), ConvAlgo::Winograd4),
         Layer("layer2 128 28x28", Conv2dShape::square(1, 128, 28, 128, 3, 1, 1, 1), ConvAlgo::Winograd4),
         Layer("layer3 256 14x14", Conv2dShape::square(1, 256, 14, 256, 3, 1, 1, 1), ConvAlgo::Winograd2),
-        Layer("layer4 512 7x7", Conv2dShape::square(1, 512, 7, 512, 3, 1, 1, 1), ConvAlgo::Im2col),
+        Layer("layer4 512 7x7", Conv2dShape::square(1, 512, 7, 512, 3, 1, 1, 1), ConvAlgo::Panels),
     ];
     for Layer(name, s, algo) in layers {
         if !name.contains(&filter) {
