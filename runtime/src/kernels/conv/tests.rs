@@ -234,6 +234,24 @@ fn depthwise_flat_small_planes() {
     assert!(!depthwise::flat_applies(&shape(1, 2, (7, 7), 2, (3, 3), (1, 1), (0, 0), (1, 1), 2)));
 }
 
+/// Stride-2 depthwise layers whose output planes are too large for the channels-in-lanes
+/// path, so the row path copies each input row split into its even and odd columns: an
+/// even width, an odd one with a 5x5 kernel (padding 2, so the even columns go to phase
+/// 0), no padding, and a batch, each against the reference.
+#[test]
+fn depthwise_strided_rows_split_by_phase() {
+    let cases = [
+        shape(1, 2, (60, 64), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2),
+        shape(1, 2, (58, 67), 2, (5, 5), (2, 2), (2, 2), (1, 1), 2),
+        shape(1, 2, (102, 33), 2, (3, 3), (2, 2), (0, 0), (1, 1), 2),
+        shape(2, 3, (100, 32), 3, (3, 3), (2, 2), (1, 1), (1, 1), 3),
+    ];
+    for s in &cases {
+        assert!(s.oh * s.ow > 28 * 28 && !depthwise::lanes_applies(s), "{s:?} takes the row path");
+        check(s, ConvAlgo::Depthwise);
+    }
+}
+
 /// Rows wide enough for the depthwise kernel's register-blocked interior, at each stride
 /// it has a copy for, with its remainder and borders: MobileNet's 3x3 (stride 1 and 2),
 /// EfficientNet's 5x5 stride 2, ConvNeXt's 7x7, a dilated kernel, a channel multiplier,
