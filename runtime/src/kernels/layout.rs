@@ -1,5 +1,11 @@
-//! Data movement: axis permutation and concatenation, row-major.
+//! Data movement: axis permutation and concatenation, row-major; the 16x16 transpose in
+//! AVX-512 registers that the permutes and the depthwise lanes path share.
 
+#[cfg(target_arch = "x86_64")]
+use core::arch::x86_64::__m512;
+
+#[cfg(target_arch = "x86_64")]
+use pulp::x86::V4;
 use rayon::prelude::*;
 
 /// Below this many elements a kernel runs on the calling thread.
@@ -35,29 +41,21 @@ pub fn permute(x: &[f32], shape: &[usize], perm: &[usize], out: &mut [f32]) {
     let sl = v.strides[r - 1];
     // Fills output rows (of length `n`) `first..` of `out`.
     let run = |first: usize, out: &mut [f32]| {
-        let rows = out.len() / n;
         if sl == 1 {
             for (i, o) in out.chunks_mut(n).enumerate() {
                 let b = v.row_offset(first + i);
                 o.copy_from_slice(&x[b..b + n]);
             }
         } else if r >= 2 && v.strides[r - 2] == 1 {
-            // Output rows that neighbour along axis r - 2 read neighbouring input elements:
-            // fill up to TB of them together, a short contiguous read per column.
-            let m = v.dims[r - 2];
-            let mut i = 0;
-            while i < rows {
-                let g = first + i;
-                let k = TB.min(m - g % m).min(rows - i);
-                let b = v.row_offset(g);
-                let group = &mut out[i * n..(i + k) * n];
-                for j in 0..n {
-                    for (kk, &val) in x[b + j * sl..b + j * sl + k].iter().enumerate() {
-                        group[kk * n + j] = val;
-                    }
-                }
-                i += k;
+            #[cfg(target_arch = "x86_64")]
+            if let Some(simd) = V4::try_new() {
+                // Compiled with AVX-512 enabled: everything it calls is inlined into it.
+                return simd.vectorize(
+                    #[inline(always)]
+                    || swap_last_two(x, &v, first, out, Tiles16(simd)),
+                );
             }
+            swap_last_two(x, &v, first, out, NoTiles);
         } else {
             for (i, o) in out.chunks_mut(n).enumerate() {
                 let b = v.row_offset(first + i);
@@ -73,6 +71,122 @@ pub fn permute(x: &[f32], shape: &[usize], perm: &[usize], out: &mut [f32]) {
     } else {
         run(0, out);
     }
+}
+
+/// Output rows `first..` of a permutation whose last two axes swap (the output's last
+/// axis has input stride `sl`, the one before it stride 1): up to [`TB`] output rows that
+/// neighbour along that axis together, each column a short contiguous read. `tiles`
+/// fills whole 16x16 blocks of a group of sixteen rows first where it can.
+#[inline(always)]
+fn swap_last_two(x: &[f32], v: &Permuted, first: usize, out: &mut [f32], tiles: impl ColumnTiles) {
+    let r = v.dims.len();
+    let (n, sl, m) = (v.dims[r - 1], v.strides[r - 1], v.dims[r - 2]);
+    let rows = out.len() / n;
+    let mut i = 0;
+    while i < rows {
+        let g = first + i;
+        let k = TB.min(m - g % m).min(rows - i);
+        let b = v.row_offset(g);
+        let group = &mut out[i * n..(i + k) * n];
+        let done = if k == TB { tiles.fill(x, b, sl, group, n) } else { 0 };
+        for j in done..n {
+            for (kk, &val) in x[b + j * sl..b + j * sl + k].iter().enumerate() {
+                group[kk * n + j] = val;
+            }
+        }
+        i += k;
+    }
+}
+
+/// How [`swap_last_two`] fills the columns of a group of sixteen output rows before its
+/// scalar loop takes the rest.
+trait ColumnTiles: Copy {
+    /// Fills columns `0..c` of `group` (sixteen rows of `n`; column `j` from the sixteen
+    /// inputs at `b + j sl`) and returns `c`.
+    fn fill(self, x: &[f32], b: usize, sl: usize, group: &mut [f32], n: usize) -> usize;
+}
+
+/// No SIMD: the scalar loop does every column.
+#[derive(Clone, Copy)]
+struct NoTiles;
+
+impl ColumnTiles for NoTiles {
+    #[inline(always)]
+    fn fill(self, _: &[f32], _: usize, _: usize, _: &mut [f32], _: usize) -> usize {
+        0
+    }
+}
+
+/// AVX-512: sixteen columns at a time, sixteen vector loads (one per column, sixteen
+/// rows' values), a [`transpose16`], sixteen vector stores (one per row). The scalar loop
+/// stores one float at a time, `n` apart: ConvNeXt-T's permutes around its layer norms
+/// took 0.45-0.6x its time with the tiles (0.15 to 0.07 ms each on its 56x56 stage; its 41
+/// permutes 2.9 to 1.5 ms a run at one thread, 2.7 to 1.3 at two; the model 0.984x and
+/// 0.974x; Swin-T's patch-embedding permute 0.67x; the two paths alternating run by run in
+/// one process, 2026-12-06).
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct Tiles16(V4);
+
+#[cfg(target_arch = "x86_64")]
+impl ColumnTiles for Tiles16 {
+    #[inline(always)]
+    fn fill(self, x: &[f32], b: usize, sl: usize, group: &mut [f32], n: usize) -> usize {
+        use pulp::{Simd, cast};
+        let simd = self.0;
+        let whole = n / TB * TB;
+        let mut j = 0;
+        while j < whole {
+            let mut rows: [__m512; TB] = [cast(simd.splat_f32s(0.0)); TB];
+            for (c, row) in rows.iter_mut().enumerate() {
+                *row = cast(V4::as_simd_f32s(&x[b + (j + c) * sl..][..TB]).0[0]);
+            }
+            let t = transpose16(simd, rows);
+            for (kk, v) in t.into_iter().enumerate() {
+                V4::as_mut_simd_f32s(&mut group[kk * n + j..][..TB]).0[0] = cast(v);
+            }
+            j += TB;
+        }
+        whole
+    }
+}
+
+/// The transpose of a 16x16 block held as sixteen row vectors: unpacks of pairs of rows,
+/// then shuffles of 64-bit pairs, then two rounds of 128-bit lane shuffles.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(crate) fn transpose16(simd: V4, r: [__m512; 16]) -> [__m512; 16] {
+    const L: usize = 16;
+    // Loops over arrays rather than `array::from_fn`: its closures were compiled apart
+    // from the AVX-512 function, each intrinsic a call.
+    let f = simd.avx512f;
+    let mut t = r;
+    for i in 0..L / 2 {
+        t[2 * i] = f._mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+        t[2 * i + 1] = f._mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+    }
+    // u[4k + j]: rows 4k..4k + 4, column pairs.
+    let mut u = t;
+    for k in 0..L / 4 {
+        u[4 * k] = f._mm512_shuffle_ps::<0x44>(t[4 * k], t[4 * k + 2]);
+        u[4 * k + 1] = f._mm512_shuffle_ps::<0xEE>(t[4 * k], t[4 * k + 2]);
+        u[4 * k + 2] = f._mm512_shuffle_ps::<0x44>(t[4 * k + 1], t[4 * k + 3]);
+        u[4 * k + 3] = f._mm512_shuffle_ps::<0xEE>(t[4 * k + 1], t[4 * k + 3]);
+    }
+    let mut v = u;
+    for half in 0..2 {
+        for j in 0..4 {
+            let (a, b) = (u[8 * half + j], u[8 * half + 4 + j]);
+            v[8 * half + j] = f._mm512_shuffle_f32x4::<0x88>(a, b);
+            v[8 * half + 4 + j] = f._mm512_shuffle_f32x4::<0xDD>(a, b);
+        }
+    }
+    let mut w = v;
+    for i in 0..L / 2 {
+        w[i] = f._mm512_shuffle_f32x4::<0x88>(v[i], v[8 + i]);
+        w[8 + i] = f._mm512_shuffle_f32x4::<0xDD>(v[i], v[8 + i]);
+    }
+    w
 }
 
 /// A permutation reduced to the fewest output axes, each with its input stride.
@@ -238,6 +352,26 @@ mod tests {
         let mut got = vec![f32::NAN; x.len()];
         permute(&x, shape, perm, &mut got);
         assert_eq!(got, naive_permute(&x, shape, perm), "{shape:?} {perm:?}");
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn transpose16_is_the_transpose() {
+        use pulp::{Simd, cast};
+        const L: usize = 16;
+        let Some(simd) = V4::try_new() else { return };
+        let m: Vec<f32> = (0..L * L).map(|i| i as f32).collect();
+        let rows: [__m512; L] = std::array::from_fn(|i| cast(simd.partial_load_f32s(&m[i * L..][..L])));
+        let t = transpose16(simd, rows);
+        let mut got = vec![0.0f32; L * L];
+        for (i, v) in t.into_iter().enumerate() {
+            simd.partial_store_f32s(&mut got[i * L..][..L], cast(v));
+        }
+        for i in 0..L {
+            for j in 0..L {
+                assert_eq!(got[i * L + j], m[j * L + i], "({i}, {j})");
+            }
+        }
     }
 
     #[test]

@@ -24,6 +24,7 @@ use rayon::prelude::*;
 use crate::kernels::Epilogue;
 use crate::kernels::conv::{Conv2dShape, clamp_vector};
 use crate::kernels::elementwise;
+use crate::kernels::layout::transpose16 as transpose;
 
 use super::PADDED;
 
@@ -338,63 +339,5 @@ fn store_first(simd: V4, out: &mut [f32], v: __m512) {
     #[allow(unsafe_code)]
     unsafe {
         simd.avx512f._mm512_mask_storeu_ps(out.as_mut_ptr(), mask, v)
-    }
-}
-
-/// The transpose of a 16x16 block held as sixteen row vectors: unpacks of pairs of rows,
-/// then shuffles of 64-bit pairs, then two rounds of 128-bit lane shuffles.
-#[inline(always)]
-fn transpose(simd: V4, r: [__m512; L]) -> [__m512; L] {
-    // Loops over arrays rather than `array::from_fn`: its closures were compiled apart
-    // from the AVX-512 function, each intrinsic a call.
-    let f = simd.avx512f;
-    let mut t = r;
-    for i in 0..L / 2 {
-        t[2 * i] = f._mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
-        t[2 * i + 1] = f._mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
-    }
-    // u[4k + j]: rows 4k..4k + 4, column pairs.
-    let mut u = t;
-    for k in 0..L / 4 {
-        u[4 * k] = f._mm512_shuffle_ps::<0x44>(t[4 * k], t[4 * k + 2]);
-        u[4 * k + 1] = f._mm512_shuffle_ps::<0xEE>(t[4 * k], t[4 * k + 2]);
-        u[4 * k + 2] = f._mm512_shuffle_ps::<0x44>(t[4 * k + 1], t[4 * k + 3]);
-        u[4 * k + 3] = f._mm512_shuffle_ps::<0xEE>(t[4 * k + 1], t[4 * k + 3]);
-    }
-    let mut v = u;
-    for half in 0..2 {
-        for j in 0..4 {
-            let (a, b) = (u[8 * half + j], u[8 * half + 4 + j]);
-            v[8 * half + j] = f._mm512_shuffle_f32x4::<0x88>(a, b);
-            v[8 * half + 4 + j] = f._mm512_shuffle_f32x4::<0xDD>(a, b);
-        }
-    }
-    let mut w = v;
-    for i in 0..L / 2 {
-        w[i] = f._mm512_shuffle_f32x4::<0x88>(v[i], v[8 + i]);
-        w[8 + i] = f._mm512_shuffle_f32x4::<0xDD>(v[i], v[8 + i]);
-    }
-    w
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn transpose_is_the_transpose() {
-        let Some(simd) = V4::try_new() else { return };
-        let m: Vec<f32> = (0..L * L).map(|i| i as f32).collect();
-        let rows: [__m512; L] = std::array::from_fn(|i| cast(simd.partial_load_f32s(&m[i * L..][..L])));
-        let t = transpose(simd, rows);
-        let mut got = vec![0.0f32; L * L];
-        for (i, v) in t.into_iter().enumerate() {
-            simd.partial_store_f32s(&mut got[i * L..][..L], cast(v));
-        }
-        for i in 0..L {
-            for j in 0..L {
-                assert_eq!(got[i * L + j], m[j * L + i], "({i}, {j})");
-            }
-        }
     }
 }
