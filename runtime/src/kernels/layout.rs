@@ -42,8 +42,7 @@ pub fn permute(x: &[f32], shape: &[usize], perm: &[usize], out: &mut [f32]) {
     // Fills output rows (of length `n`) `first..` of `out`.
     let run = |first: usize, out: &mut [f32]| {
         if sl == 1 {
-            for (i, o) in out.chunks_mut(n).enumerate() {
-                let b = v.row_offset(first + i);
+            for (o, b) in out.chunks_mut(n).zip(v.row_offsets(first)) {
                 o.copy_from_slice(&x[b..b + n]);
             }
         } else if r >= 2 && v.strides[r - 2] == 1 {
@@ -57,8 +56,7 @@ pub fn permute(x: &[f32], shape: &[usize], perm: &[usize], out: &mut [f32]) {
             }
             swap_last_two(x, &v, first, out, NoTiles);
         } else {
-            for (i, o) in out.chunks_mut(n).enumerate() {
-                let b = v.row_offset(first + i);
+            for (o, b) in out.chunks_mut(n).zip(v.row_offsets(first)) {
                 for (j, o) in o.iter_mut().enumerate() {
                     *o = x[b + j * sl];
                 }
@@ -227,6 +225,23 @@ impl Permuted {
         Permuted { dims, strides }
     }
 
+    /// Input offsets of the first elements of output rows `first`, `first + 1`, ...: one
+    /// [`Permuted::row_offset`], then an odometer over the outer axes. A division and a
+    /// remainder per axis per row cost about what copying a short row does: Swin-T's
+    /// permutes (rows of 32 floats in its attention) took 0.89x their time with the
+    /// odometer, 2.48 to 2.20 ms a run at one thread, 1.77 to 1.57 at two (the two
+    /// alternating run by run in one process, 2026-12-06).
+    fn row_offsets(&self, first: usize) -> RowOffsets<'_> {
+        let outer = self.dims.len() - 1;
+        let mut idx = vec![0; outer];
+        let mut row = first;
+        for a in (0..outer).rev() {
+            idx[a] = row % self.dims[a];
+            row /= self.dims[a];
+        }
+        RowOffsets { v: self, idx, off: self.row_offset(first) }
+    }
+
     /// Input offset of the first element of output row `row` (rows run along the last axis).
     fn row_offset(&self, mut row: usize) -> usize {
         let mut off = 0;
@@ -235,6 +250,31 @@ impl Permuted {
             row /= d;
         }
         off
+    }
+}
+
+/// [`Permuted::row_offsets`]: the output's outer indices and the current row's offset.
+struct RowOffsets<'a> {
+    v: &'a Permuted,
+    idx: Vec<usize>,
+    off: usize,
+}
+
+impl Iterator for RowOffsets<'_> {
+    type Item = usize;
+
+    fn next(&mut self) -> Option<usize> {
+        let current = self.off;
+        for (a, i) in self.idx.iter_mut().enumerate().rev() {
+            *i += 1;
+            self.off += self.v.strides[a];
+            if *i < self.v.dims[a] {
+                break;
+            }
+            *i = 0;
+            self.off -= self.v.dims[a] * self.v.strides[a];
+        }
+        Some(current)
     }
 }
 
