@@ -260,8 +260,11 @@ fn pool_rows<R: Reduction>(s: &Pool2dShape, x: &[f32], first: usize, out: &mut [
                 2 => {
                     let half = b.len().div_ceil(2);
                     let (e, od) = (&mut even[..half], &mut odd[..half]);
-                    for ((e, od), c) in e.iter_mut().zip(od.iter_mut()).zip(b.chunks_exact(2)) {
+                    // A loop per phase: one loop writing both stays scalar.
+                    for (e, c) in e.iter_mut().zip(b.chunks_exact(2)) {
                         *e = c[0];
+                    }
+                    for (od, c) in od.iter_mut().zip(b.chunks_exact(2)) {
                         *od = c[1];
                     }
                     if b.len() % 2 == 1 {
