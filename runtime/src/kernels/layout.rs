@@ -278,6 +278,25 @@ impl Iterator for RowOffsets<'_> {
     }
 }
 
+/// Splits `src` into its even elements, written to `out` from `even_at`, and its odd ones,
+/// from `odd_at` (two runs that must not overlap): a strided row's columns by phase, so
+/// that a stride-2 window's taps are contiguous loads. A loop per phase: one loop writing
+/// both stays scalar. The stride-2 depthwise and direct convs' padded copy
+/// (`conv::pad_phases`) and the stride-2 pooling rows use it.
+#[inline(always)]
+pub(crate) fn split_phases(src: &[f32], out: &mut [f32], even_at: usize, odd_at: usize) {
+    let n = src.len();
+    for (d, pair) in out[even_at..][..n / 2].iter_mut().zip(src.chunks_exact(2)) {
+        *d = pair[0];
+    }
+    for (d, pair) in out[odd_at..][..n / 2].iter_mut().zip(src.chunks_exact(2)) {
+        *d = pair[1];
+    }
+    if n % 2 == 1 {
+        out[even_at + n / 2] = src[n - 1];
+    }
+}
+
 /// Concatenates `inputs` (each `(data, shape)`, row-major) along `axis` into `out`.
 ///
 /// All inputs have the same rank and the same sizes except along `axis`; `out` has their

@@ -5,6 +5,7 @@ use rayon::prelude::*;
 
 use readi_plan::ops::{Pool2d, adaptive_bin, window_out};
 
+use super::layout::split_phases;
 use super::reduce::{add_rows, max_nan, max_rows, max_simd, sum_simd};
 
 /// Below this much work (window reads) a kernel runs on the calling thread.
@@ -220,8 +221,7 @@ fn pool_rows<R: Reduction>(s: &Pool2dShape, x: &[f32], first: usize, out: &mut [
     // Output columns per tile: their windows' padded columns must fit in the stack buffer.
     let tile = if kw <= BUF { ((BUF - kw) / sw + 1).min(s.ow) } else { 1 };
     let mut buf = [0f32; BUF];
-    let mut even = [0f32; BUF / 2];
-    let mut odd = [0f32; BUF / 2];
+    let mut phases = [0f32; BUF];
     // Average pooling: each output column's share of the divisor (see `finish`), for the
     // tile starting at `div_for`.
     let mut div_x = [0f32; BUF];
@@ -258,19 +258,10 @@ fn pool_rows<R: Reduction>(s: &Pool2dShape, x: &[f32], first: usize, out: &mut [
             match sw {
                 1 => combine_into::<R>(o, kw, |dx| &b[dx..]),
                 2 => {
-                    let half = b.len().div_ceil(2);
-                    let (e, od) = (&mut even[..half], &mut odd[..half]);
-                    // A loop per phase: one loop writing both stays scalar.
-                    for (e, c) in e.iter_mut().zip(b.chunks_exact(2)) {
-                        *e = c[0];
-                    }
-                    for (od, c) in od.iter_mut().zip(b.chunks_exact(2)) {
-                        *od = c[1];
-                    }
-                    if b.len() % 2 == 1 {
-                        e[half - 1] = b[b.len() - 1];
-                    }
-                    combine_into::<R>(o, kw, |dx| if dx % 2 == 0 { &even[dx / 2..] } else { &odd[dx / 2..] });
+                    // The even columns in the first half of `phases`, the odd ones after.
+                    let half = BUF / 2;
+                    split_phases(b, &mut phases, 0, half);
+                    combine_into::<R>(o, kw, |dx| &phases[dx % 2 * half + dx / 2..]);
                 }
                 _ => {
                     o.fill(id);

@@ -739,20 +739,11 @@ fn pad_phases(s: &Conv2dShape, xc: &[f32], rows: usize, cols: usize, out: &mut [
     debug_assert_eq!(s.stride_w, 2, "pad_phases: strides 1 and 2");
     for (iy, src) in xc.chunks_exact(s.w).enumerate() {
         let row = |phase: usize| (phase * rows + iy + s.pad_h) * cols;
-        // The even input columns to one phase, the odd ones to the other, each by a loop
-        // over pairs of its own (one loop writing both stays scalar).
+        // The even input columns to one phase, the odd ones to the other.
         let pad = s.pad_w;
         let (e0, o0) = if pad.is_multiple_of(2) { (row(0), row(1)) } else { (row(1), row(0)) };
         let (even_at, odd_at) = (e0 + pad / 2, o0 + pad.div_ceil(2));
-        for (d, pair) in out[even_at..][..s.w.div_ceil(2)].iter_mut().zip(src.chunks_exact(2)) {
-            *d = pair[0];
-        }
-        for (d, pair) in out[odd_at..][..s.w / 2].iter_mut().zip(src.chunks_exact(2)) {
-            *d = pair[1];
-        }
-        if s.w % 2 == 1 {
-            out[even_at + s.w / 2] = src[s.w - 1];
-        }
+        crate::kernels::layout::split_phases(src, out, even_at, odd_at);
     }
 }
 
