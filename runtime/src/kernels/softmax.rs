@@ -155,18 +155,32 @@ pub(crate) fn exp_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S:
     // SIMD-enabled caller (a call per step, 11x slower).
     let c = |v: f32| simd.splat_f32s(v);
     let mut low = [simd.less_than_f32s(x[0], c(-87.0)); N];
-    let (mut xc, mut t, mut n, mut r, mut p) = (x, x, x, x, [c(EXP_POLY[0]); N]);
+    let mut xc = x;
     for i in 0..N {
         low[i] = simd.less_than_f32s(x[i], c(-87.0));
         xc[i] = simd.select_f32s(low[i], c(-87.0), x[i]);
         xc[i] = simd.select_f32s(simd.greater_than_f32s(xc[i], c(88.0)), c(88.0), xc[i]);
     }
+    let mut out = exp_in_range(simd, xc);
     for i in 0..N {
-        t[i] = simd.mul_add_e_f32s(xc[i], c(std::f32::consts::LOG2_E), c(ROUND));
+        out[i] = simd.select_f32s(low[i], c(0.0), out[i]);
+    }
+    out
+}
+
+/// [`exp_simd`] for inputs already within `-87..=89` (or NaN, which stays NaN): the
+/// Cody-Waite reduction, the polynomial and the scaling by `2^n`, without the clamps.
+/// From about 88.4 (`n = 128`) the scale, and so the result, is infinite.
+#[inline(always)]
+pub(crate) fn exp_in_range<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S::f32s; N] {
+    let c = |v: f32| simd.splat_f32s(v);
+    let (mut t, mut n, mut r, mut p) = (x, x, x, [c(EXP_POLY[0]); N]);
+    for i in 0..N {
+        t[i] = simd.mul_add_e_f32s(x[i], c(std::f32::consts::LOG2_E), c(ROUND));
         n[i] = simd.sub_f32s(t[i], c(ROUND));
     }
     for i in 0..N {
-        r[i] = simd.mul_add_e_f32s(n[i], c(-LN2_HI), xc[i]);
+        r[i] = simd.mul_add_e_f32s(n[i], c(-LN2_HI), x[i]);
         r[i] = simd.mul_add_e_f32s(n[i], c(-LN2_LO), r[i]);
     }
     for &k in &EXP_POLY[1..] {
@@ -179,7 +193,7 @@ pub(crate) fn exp_simd<S: Simd, const N: usize>(simd: S, x: [S::f32s; N]) -> [S:
         let er = simd.mul_add_e_f32s(simd.mul_f32s(p[i], r[i]), r[i], simd.add_f32s(r[i], c(1.0)));
         let bits = simd.sub_u32s(simd.transmute_u32s_f32s(t[i]), simd.splat_u32s(ROUND.to_bits() - 127));
         let scale = simd.transmute_f32s_u32s(simd.wrapping_dyn_shl_u32s(bits, simd.splat_u32s(23)));
-        out[i] = simd.select_f32s(low[i], c(0.0), simd.mul_f32s(er, scale));
+        out[i] = simd.mul_f32s(er, scale);
     }
     out
 }

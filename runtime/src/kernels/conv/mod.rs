@@ -62,7 +62,7 @@
 
 use rayon::prelude::*;
 
-use super::elementwise::relu;
+use super::elementwise::{clamp_vector, relu};
 use super::{Activation, Epilogue};
 
 mod adapter;
@@ -697,23 +697,6 @@ fn store_vector<S: pulp::Simd>(
         S::as_mut_simd_f32s(lane).0[0] = y;
         out.copy_from_slice(&lane[..out.len()]);
     }
-}
-
-/// `y` clamped to `lo..=hi` (a ReLU, ReLU6 or clamp: [`Epilogue::clamp`]), NaN kept.
-#[inline(always)]
-fn clamp_vector<S: pulp::Simd>(simd: S, y: S::f32s, (lo, hi): (f32, f32)) -> S::f32s {
-    // A NaN sum stays NaN, as the element-wise activations keep it: x86's vector max and
-    // min return their second operand when either is NaN, so the bound goes first; the
-    // scalar backend's (`f32::max`) drop NaN, so it compares instead (slower on vectors:
-    // 1.07-1.15x a depthwise layer's time).
-    let vector = size_of::<S::f32s>() > size_of::<f32>();
-    let b = simd.splat_f32s(lo);
-    let mut y = if vector { simd.max_f32s(b, y) } else { simd.select_f32s(simd.less_than_f32s(y, b), b, y) };
-    if hi < f32::INFINITY {
-        let b = simd.splat_f32s(hi);
-        y = if vector { simd.min_f32s(b, y) } else { simd.select_f32s(simd.greater_than_f32s(y, b), b, y) };
-    }
-    y
 }
 
 /// Copies input plane `xc` into the interior of its zero-padded copy `out` (rows of `cols =
