@@ -3,13 +3,17 @@
 //! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
 //! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
 //! in SIMD registers: with AVX-512, on output planes of at most 28x28, sixteen channels
-//! at a time in the lanes (`lanes.rs`); else by rows (`Registers`), or at stride 1 on
-//! planes with rows of at most 8 pixels (7x7) by the plane read flat (`flat.rs`); the
-//! rest through the loops of `depthwise_acc`.
+//! at a time in the lanes (`lanes.rs`), and on larger planes with rows of at least 16
+//! outputs (3x3, 5x5 and 7x7 at stride 1, 3x3 at stride 2, padding half the kernel) by
+//! rows read in place (`in_place.rs`); else by rows of a padded copy (`Registers`), or at
+//! stride 1 on planes with rows of at most 8 pixels (7x7) by the plane read flat
+//! (`flat.rs`); the rest through the loops of `depthwise_acc`.
 
 use rayon::prelude::*;
 
 mod flat;
+#[cfg(target_arch = "x86_64")]
+mod in_place;
 #[cfg(target_arch = "x86_64")]
 mod lanes;
 
@@ -26,6 +30,10 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     #[cfg(target_arch = "x86_64")]
     if lanes::applies(s) {
         return lanes::depthwise(s, w, ep, x, out, threads);
+    }
+    #[cfg(target_arch = "x86_64")]
+    if in_place::applies(s) {
+        return in_place::depthwise(s, w, ep, x, out, threads);
     }
     // Planes per task: several, so that a task's setup (a SIMD dispatch, zeroing the
     // padded copy) is shared by them (MobileNetV2's 7x7 planes took about as long to set
@@ -64,6 +72,16 @@ pub(super) fn flat_applies(s: &Conv2dShape) -> bool {
 pub(super) fn lanes_applies(s: &Conv2dShape) -> bool {
     #[cfg(target_arch = "x86_64")]
     return lanes::applies(s);
+    #[cfg(not(target_arch = "x86_64"))]
+    return false;
+}
+
+/// Whether a layer takes the read-in-place path (`in_place.rs`) on this machine, for the
+/// tests.
+#[cfg(test)]
+pub(super) fn in_place_applies(s: &Conv2dShape) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return !lanes::applies(s) && in_place::applies(s);
     #[cfg(not(target_arch = "x86_64"))]
     return false;
 }

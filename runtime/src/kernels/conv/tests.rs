@@ -237,7 +237,8 @@ fn depthwise_flat_small_planes() {
 /// Stride-2 depthwise layers whose output planes are too large for the channels-in-lanes
 /// path, so the row path copies each input row split into its even and odd columns: an
 /// even width, an odd one with a 5x5 kernel (padding 2, so the even columns go to phase
-/// 0), no padding, and a batch, each against the reference.
+/// 0), no padding, and a batch, each against the reference. (On AVX-512 machines the 3x3
+/// ones with padding 1 are read in place instead: [`depthwise_read_in_place`].)
 #[test]
 fn depthwise_strided_rows_split_by_phase() {
     let cases = [
@@ -248,6 +249,31 @@ fn depthwise_strided_rows_split_by_phase() {
     ];
     for s in &cases {
         assert!(s.oh * s.ow > 28 * 28 && !depthwise::lanes_applies(s), "{s:?} takes the row path");
+        check(s, ConvAlgo::Depthwise);
+    }
+}
+
+/// Depthwise layers on planes larger than the lanes path takes, which AVX-512 machines
+/// read in place (`depthwise/in_place.rs`): 3x3, 5x5 and 7x7 at stride 1 and 3x3 at
+/// stride 2, odd and even widths (at stride 2 an odd width's last window reaches into the
+/// padding), rows of exactly one vector and of a vector and a few pixels (the last vector
+/// overlapping), output rows past the blocks of four, two images. Elsewhere they take the
+/// row path, which the same cases check.
+#[test]
+fn depthwise_read_in_place() {
+    let cases = [
+        shape(2, 3, (40, 33), 3, (3, 3), (1, 1), (1, 1), (1, 1), 3),
+        shape(1, 2, (31, 45), 2, (5, 5), (1, 1), (2, 2), (1, 1), 2),
+        shape(1, 2, (30, 29), 2, (7, 7), (1, 1), (3, 3), (1, 1), 2),
+        shape(1, 2, (53, 16), 2, (3, 3), (1, 1), (1, 1), (1, 1), 2),
+        shape(2, 2, (75, 66), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2),
+        shape(1, 3, (61, 63), 3, (3, 3), (2, 2), (1, 1), (1, 1), 3),
+        shape(1, 2, (102, 32), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2),
+    ];
+    let avx512 = depthwise::in_place_applies(&cases[0]);
+    for s in &cases {
+        assert!(s.oh * s.ow > 28 * 28 && !depthwise::lanes_applies(s), "{s:?} is past the lanes path");
+        assert_eq!(depthwise::in_place_applies(s), avx512, "{s:?}");
         check(s, ConvAlgo::Depthwise);
     }
 }

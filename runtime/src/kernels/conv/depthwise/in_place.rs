@@ -1,0 +1,266 @@
+//! Depthwise layers on planes too large for the channels-in-lanes path (AVX-512), read in
+//! place: 3x3, 5x5 and 7x7 kernels at stride 1, 3x3 at stride 2, padding half the kernel.
+//!
+//! The row path ([`super::Registers`]) copies each input plane into a zero-bordered
+//! buffer (at stride 2 split into its even and odd columns) and reads the copy back. On
+//! MobileNetV2's 112 to 56 layer the copy and the reading each took about half the
+//! layer's time: the copy is bound by the core's stores, and a 50 KiB plane costs as much
+//! to copy from L2 as from L3. Here each input row is read where it lies, the columns that
+//! fall off the row (the padding) masked to zero in the loads. At stride 1 a kernel row's
+//! taps for sixteen outputs are `K` loads from consecutive columns. At stride 2 they come
+//! from three loads (columns `2 ox - 1` to `2 ox + 31`), split by two permutes into the
+//! odd and even columns, and by one lane shift into the odd columns one further on. Each
+//! input row feeds the sums of every output row of the block that reads it; the sums stay
+//! in registers, [`R`] output rows at a time, and the epilogue's scale, shift and clamp
+//! are applied as they are stored.
+//!
+//! Measured on the 2-core AMD EPYC (Zen 4, 2026-12-06), this path's time over the row
+//! path's. Alone, the two alternating call by call in one process (380 pairs, inputs warm,
+//! 1 / 2 threads): at stride 2, 96 channels 112 to 56 with ReLU6 0.52 / 0.50, 64 with ReLU
+//! 0.62 / 0.62, with SiLU (its pass after the conv unchanged) 0.73 / 0.72, 32 channels 224
+//! to 112 (a plane past the row path's copy, so its loops) 0.43 / 0.42; at stride 1 3x3 on
+//! 112x112 and 56x56 planes 0.77-1.05, 7x7 on 56x56 0.96-1.01, 5x5 0.69-0.72. In the
+//! models, one thread, per step (the two paths alternating run by run in one process,
+//! 150-200 rounds): MobileNetV2's 112 to 56 layer 0.60 to 0.39 ms, its 32-channel 112x112
+//! one 0.30 to 0.27, its 144-channel 56x56 one 0.39 to 0.33; MobileNetV3-Large's 112 to 56
+//! layer 0.39-0.40 to 0.25-0.28 ms, its 16-channel 112x112 one 0.17-0.18 to 0.15-0.16 (its
+//! 72-channel 56x56 one 0.12 to 0.13, the only step that lost); EfficientNet-B0's 112 to
+//! 56 layer 0.74 to 0.57, its 32-channel 112x112 one 0.48 to 0.44; ConvNeXt-T's 7x7 on
+//! 56x56 0.59-0.60 to 0.57-0.59. Whole models (medians of the rounds' ratios, 1 / 2
+//! threads): MobileNetV2 0.94 / 0.97, MobileNetV3-Large 0.97 and 1.01 in two runs / 1.00,
+//! EfficientNet-B0 0.98 / 0.97.
+
+use core::arch::x86_64::{__m512, __m512i};
+
+use pulp::x86::V4;
+use pulp::{Simd, cast};
+use rayon::prelude::*;
+
+use super::plane_operands;
+use crate::kernels::Epilogue;
+use crate::kernels::conv::{Conv2dShape, clamp_vector, vector_starts};
+
+/// Floats a vector holds (AVX-512).
+const L: usize = 16;
+
+/// Output rows whose sums one block keeps in registers.
+const R: usize = 4;
+
+/// Whether a depthwise layer takes this path: AVX-512 at run time, one output channel per
+/// input channel, a square kernel of 3, 5 or 7 at stride 1 or of 3 at stride 2, padding
+/// half the kernel, no dilation, and output rows of at least a vector.
+pub(super) fn applies(s: &Conv2dShape) -> bool {
+    let k = s.kh;
+    let kernel = match s.stride_w {
+        1 => matches!(k, 3 | 5 | 7),
+        2 => k == 3,
+        _ => false,
+    };
+    s.cin == s.groups
+        && s.cout == s.cin
+        && s.stride_h == s.stride_w
+        && s.kw == k
+        && kernel
+        && (s.pad_h, s.pad_w) == (k / 2, k / 2)
+        && (s.dil_h, s.dil_w) == (1, 1)
+        && s.ow >= L
+        && V4::try_new().is_some()
+}
+
+/// The depthwise conv `x -> out` with the epilogue, parallel over groups of planes. Only
+/// for layers [`applies`] takes.
+pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], out: &mut [f32], threads: usize) {
+    let simd = V4::try_new().expect("in_place::applies checks AVX-512");
+    let plane = s.oh * s.ow;
+    // Planes per task: several, at least four tasks a thread.
+    let per = (s.n * s.cout / (4 * threads.max(1))).clamp(1, 64);
+    let run = |(i, dst): (usize, &mut [f32])| {
+        // Compiled with AVX-512 enabled: everything `planes` calls is inlined into it.
+        let task = Task { s, w, ep, x, first: i * per, dst };
+        simd.vectorize(
+            #[inline(always)]
+            move || task.dispatch(simd),
+        )
+    };
+    if threads <= 1 {
+        out.chunks_mut(per * plane).enumerate().for_each(run);
+    } else {
+        out.par_chunks_mut(per * plane).enumerate().for_each(run);
+    }
+}
+
+/// The planes of `dst`, the first of them output plane `first`: what a task hands to the
+/// AVX-512 code as one value. (A closure capturing the seven one by one and calling a
+/// function that matches on the stride and kernel, or matching itself, was left out of
+/// line by `vectorize`, compiled without AVX-512: every intrinsic a call, ten times
+/// slower.)
+struct Task<'a> {
+    s: &'a Conv2dShape,
+    w: &'a [f32],
+    ep: &'a Epilogue<'a>,
+    x: &'a [f32],
+    first: usize,
+    dst: &'a mut [f32],
+}
+
+impl Task<'_> {
+    /// [`planes`] for the layer's stride and kernel.
+    #[inline(always)]
+    fn dispatch(self, simd: V4) {
+        let Task { s, w, ep, x, first, dst } = self;
+        match (s.stride_w, s.kh) {
+            (1, 3) => planes::<1, 3>(simd, s, w, ep, x, first, dst),
+            (1, 5) => planes::<1, 5>(simd, s, w, ep, x, first, dst),
+            (1, 7) => planes::<1, 7>(simd, s, w, ep, x, first, dst),
+            (2, 3) => planes::<2, 3>(simd, s, w, ep, x, first, dst),
+            _ => unreachable!("in_place::applies"),
+        }
+    }
+}
+
+/// The planes of `dst`, the first of them output plane `first`.
+#[inline(always)]
+fn planes<const ST: usize, const K: usize>(
+    simd: V4,
+    s: &Conv2dShape,
+    w: &[f32],
+    ep: &Epilogue,
+    x: &[f32],
+    first: usize,
+    dst: &mut [f32],
+) {
+    let clamp = ep.clamp();
+    for (j, dst) in dst.chunks_mut(s.oh * s.ow).enumerate() {
+        let (xc, k, c) = plane_operands(s, w, x, first + j);
+        // Each tap splatted (loops: closures are compiled without AVX-512).
+        let mut taps: [[__m512; K]; K] = [[cast(simd.splat_f32s(0.0)); K]; K];
+        for (ky, row) in taps.iter_mut().enumerate() {
+            for (kx, t) in row.iter_mut().enumerate() {
+                *t = cast(simd.splat_f32s(k[ky * K + kx]));
+            }
+        }
+        let g = Plane {
+            x: xc,
+            h: s.h,
+            w: s.w,
+            ow: s.ow,
+            scale: cast(simd.splat_f32s(ep.scale.map_or(1.0, |v| v[c]))),
+            shift: cast(simd.splat_f32s(ep.shift.map_or(0.0, |v| v[c]))),
+            clamp,
+        };
+        let full = s.oh / R * R;
+        for oy in (0..full).step_by(R) {
+            g.rows::<ST, K, R>(simd, &taps, oy, dst);
+        }
+        for oy in full..s.oh {
+            g.rows::<ST, K, 1>(simd, &taps, oy, dst);
+        }
+        ep.finish_unclamped(dst);
+    }
+}
+
+/// One input plane (`h x w`, row-major) and what its output plane's stores share.
+struct Plane<'a> {
+    x: &'a [f32],
+    h: usize,
+    w: usize,
+    ow: usize,
+    scale: __m512,
+    shift: __m512,
+    clamp: Option<(f32, f32)>,
+}
+
+impl Plane<'_> {
+    /// Output rows `oy0..oy0 + RR` of the plane `dst`, vector by vector along the rows.
+    #[inline(always)]
+    fn rows<const ST: usize, const K: usize, const RR: usize>(
+        &self,
+        simd: V4,
+        taps: &[[__m512; K]; K],
+        oy0: usize,
+        dst: &mut [f32],
+    ) {
+        let f = simd.avx512f;
+        let pad = K / 2;
+        let even: __m512i = cast(pulp::u32x16(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30));
+        let odd: __m512i = cast(pulp::u32x16(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31));
+        let w = self.w as isize;
+        for ox in vector_starts(self.ow, L) {
+            // Stride 1: the loads of tap kx from column `ox - pad + kx`. Stride 2 (K = 3):
+            // three loads from column `2 ox - 1`, 16 and 32 further, of the third only its
+            // first lane. Each masked to the columns inside the row.
+            let col = (ST * ox) as isize - pad as isize;
+            let mut from = [0isize; K];
+            let mut mask = [0u16; K];
+            for (kx, (fr, m)) in from.iter_mut().zip(mask.iter_mut()).enumerate() {
+                *fr = if ST == 1 { col + kx as isize } else { col + (kx * L) as isize };
+                *m = row_mask(*fr, w);
+            }
+            if ST == 2 {
+                mask[2] &= 1;
+            }
+            let mut acc = [f._mm512_setzero_ps(); RR];
+            for j in 0..ST * (RR - 1) + K {
+                // Input row `ST oy0 - pad + j`, read by output rows `r` with `j - ST r`
+                // in 0..K (the kernel row).
+                let iy = (ST * oy0 + j) as isize - pad as isize;
+                if iy < 0 || iy >= self.h as isize {
+                    continue;
+                }
+                let row = &self.x[iy as usize * self.w..][..self.w];
+                let mut t = [f._mm512_setzero_ps(); K];
+                for kx in 0..K {
+                    t[kx] = load(simd, row, from[kx], mask[kx]);
+                }
+                if ST == 2 {
+                    // Columns 2 (ox + i) - 1, 2 (ox + i) and 2 (ox + i) + 1.
+                    let (a, b, c) = (t[0], t[1], t[2]);
+                    t[0] = f._mm512_permutex2var_ps(a, even, b);
+                    t[1] = f._mm512_permutex2var_ps(a, odd, b);
+                    t[2] = f._mm512_castsi512_ps(
+                        f._mm512_alignr_epi32::<1>(f._mm512_castps_si512(c), f._mm512_castps_si512(t[0])),
+                    );
+                }
+                for (r, acc) in acc.iter_mut().enumerate() {
+                    let ky = j as isize - (ST * r) as isize;
+                    if (0..K as isize).contains(&ky) {
+                        for (&tap, &v) in taps[ky as usize].iter().zip(&t) {
+                            *acc = f._mm512_fmadd_ps(v, tap, *acc);
+                        }
+                    }
+                }
+            }
+            for (r, a) in acc.into_iter().enumerate() {
+                let mut y = f._mm512_fmadd_ps(a, self.scale, self.shift);
+                if let Some(bounds) = self.clamp {
+                    y = cast(clamp_vector(simd, cast(y), bounds));
+                }
+                let out = &mut dst[(oy0 + r) * self.ow + ox..][..L];
+                V4::as_mut_simd_f32s(out).0[0] = cast(y);
+            }
+        }
+    }
+}
+
+/// The lanes of a vector loaded from column `from` of a row of `w` floats that fall
+/// inside the row.
+#[inline(always)]
+fn row_mask(from: isize, w: isize) -> u16 {
+    let lo = (-from).clamp(0, L as isize);
+    let hi = (w - from).clamp(0, L as isize);
+    if hi <= lo { 0 } else { (((1u32 << hi) - 1) & !((1u32 << lo) - 1)) as u16 }
+}
+
+/// The lanes `m` of the sixteen floats from column `from` of `row` (zero elsewhere); `m`
+/// from [`row_mask`], so only columns inside the row are read.
+#[inline(always)]
+fn load(simd: V4, row: &[f32], from: isize, m: u16) -> __m512 {
+    debug_assert_eq!(m, m & row_mask(from, row.len() as isize), "in_place: a lane outside the row");
+    // SAFETY: the masked load reads only the lanes of `m`, columns `from + i` inside
+    // `0..row.len()` (`row_mask`); masked-off lanes do not fault, so the address before or
+    // past the row (`wrapping_offset`) is never dereferenced.
+    #[allow(unsafe_code)]
+    unsafe {
+        simd.avx512f._mm512_maskz_loadu_ps(m, row.as_ptr().wrapping_offset(from))
+    }
+}
