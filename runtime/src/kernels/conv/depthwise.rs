@@ -3,9 +3,9 @@
 //! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
 //! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
 //! in SIMD registers: with AVX-512, on output planes of at most 28x28, sixteen channels
-//! at a time in the lanes (`lanes.rs`), and on larger planes with rows of at least 16
-//! outputs (3x3, 5x5 and 7x7 at stride 1, 3x3 at stride 2, padding half the kernel) by
-//! rows read in place (`in_place.rs`); else by rows of a padded copy (`Registers`), or at
+//! at a time in the lanes (`lanes.rs`), and with rows of at least 16 outputs (3x3 on any
+//! plane, 5x5 and 7x7 on larger ones; 3x3 at stride 2, padding half the kernel) by rows
+//! read in place (`in_place.rs`); else by rows of a padded copy (`Registers`), or at
 //! stride 1 on planes with rows of at most 8 pixels (7x7) by the plane read flat
 //! (`flat.rs`); the rest through the loops of `depthwise_acc`.
 
@@ -28,12 +28,12 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if lanes::applies(s) {
-        return lanes::depthwise(s, w, ep, x, out, threads);
+    if reads_in_place(s) {
+        return in_place::depthwise(s, w, ep, x, out, threads);
     }
     #[cfg(target_arch = "x86_64")]
-    if in_place::applies(s) {
-        return in_place::depthwise(s, w, ep, x, out, threads);
+    if lanes::applies(s) {
+        return lanes::depthwise(s, w, ep, x, out, threads);
     }
     // Planes per task: several, so that a task's setup (a SIMD dispatch, zeroing the
     // padded copy) is shared by them (MobileNetV2's 7x7 planes took about as long to set
@@ -66,12 +66,23 @@ pub(super) fn flat_applies(s: &Conv2dShape) -> bool {
     flat::applies(s)
 }
 
+/// Whether a layer is read in place (`in_place.rs`): every layer that path takes but the
+/// 5x5 and 7x7 ones on planes the lanes path takes too. On MobileNetV2's 3x3 layers with
+/// 28x28 outputs, reading in place took 0.58 (144 channels, 56 to 28) and 0.85-0.90 (192
+/// channels, stride 1) of the lanes path's time in the model (per step, one and two
+/// threads, the two alternating run by run, 2026-12-06); MobileNetV3's 5x5 ones at 28x28
+/// 1.07 (there the lanes path reads each of 25 taps as one vector of sixteen channels).
+#[cfg(target_arch = "x86_64")]
+fn reads_in_place(s: &Conv2dShape) -> bool {
+    in_place::applies(s) && (s.kh == 3 || !lanes::applies(s))
+}
+
 /// Whether a layer takes the channels-in-lanes path (`lanes.rs`) on this machine, for
 /// the tests.
 #[cfg(test)]
 pub(super) fn lanes_applies(s: &Conv2dShape) -> bool {
     #[cfg(target_arch = "x86_64")]
-    return lanes::applies(s);
+    return !reads_in_place(s) && lanes::applies(s);
     #[cfg(not(target_arch = "x86_64"))]
     return false;
 }
@@ -81,7 +92,7 @@ pub(super) fn lanes_applies(s: &Conv2dShape) -> bool {
 #[cfg(test)]
 pub(super) fn in_place_applies(s: &Conv2dShape) -> bool {
     #[cfg(target_arch = "x86_64")]
-    return !lanes::applies(s) && in_place::applies(s);
+    return reads_in_place(s);
     #[cfg(not(target_arch = "x86_64"))]
     return false;
 }

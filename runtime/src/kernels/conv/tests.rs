@@ -165,7 +165,7 @@ fn depthwise_lanes() {
         shape(1, 20, (13, 30), 20, (3, 3), (1, 1), (0, 0), (1, 1), 20),
         shape(1, 300, (4, 4), 300, (3, 3), (1, 1), (1, 1), (1, 1), 300),
         shape(2, 8, (2, 3), 8, (3, 3), (1, 1), (1, 1), (1, 1), 8),
-        shape(1, 24, (56, 56), 24, (3, 3), (2, 2), (1, 1), (1, 1), 24),
+        shape(1, 24, (56, 56), 24, (3, 3), (2, 2), (0, 0), (1, 1), 24),
         shape(1, 3, (15, 17), 3, (7, 7), (2, 2), (3, 3), (1, 1), 3),
     ];
     let lanes = depthwise::lanes_applies(&cases[0]);
@@ -173,9 +173,11 @@ fn depthwise_lanes() {
         assert_eq!(depthwise::lanes_applies(s), lanes, "{s:?}");
         check(s, ConvAlgo::Depthwise);
     }
-    // Not: a 56x56 output, a channel multiplier, dilation, a 4x4 kernel, stride 3.
+    // Not: a 56x56 output, a 3x3 kernel with rows of 16 outputs or more (read in place
+    // instead), a channel multiplier, dilation, a 4x4 kernel, stride 3.
     for s in [
-        shape(1, 4, (56, 56), 4, (3, 3), (1, 1), (1, 1), (1, 1), 4),
+        shape(1, 4, (56, 56), 4, (5, 5), (1, 1), (2, 2), (1, 1), 4),
+        shape(1, 4, (56, 56), 4, (3, 3), (2, 2), (1, 1), (1, 1), 4),
         shape(1, 4, (14, 14), 8, (3, 3), (1, 1), (1, 1), (1, 1), 4),
         shape(1, 4, (14, 14), 4, (3, 3), (1, 1), (2, 2), (2, 2), 4),
         shape(1, 4, (14, 14), 4, (4, 4), (1, 1), (1, 1), (1, 1), 4),
@@ -253,12 +255,13 @@ fn depthwise_strided_rows_split_by_phase() {
     }
 }
 
-/// Depthwise layers on planes larger than the lanes path takes, which AVX-512 machines
-/// read in place (`depthwise/in_place.rs`): 3x3, 5x5 and 7x7 at stride 1 and 3x3 at
-/// stride 2, odd and even widths (at stride 2 an odd width's last window reaches into the
-/// padding), rows of exactly one vector and of a vector and a few pixels (the last vector
-/// overlapping), output rows past the blocks of four, two images. Elsewhere they take the
-/// row path, which the same cases check.
+/// Depthwise layers which AVX-512 machines read in place (`depthwise/in_place.rs`): 3x3,
+/// 5x5 and 7x7 at stride 1 and 3x3 at stride 2 on planes larger than the lanes path
+/// takes, and 3x3 on the 28x28 and 16-wide ones it would; odd and even widths (at stride
+/// 2 an odd width's last window reaches into the padding), rows of exactly one vector and
+/// of a vector and a few pixels (the last vector overlapping), output rows past the
+/// blocks of four, two images. Elsewhere they take the row path or the lanes, which the
+/// same cases check.
 #[test]
 fn depthwise_read_in_place() {
     let cases = [
@@ -269,10 +272,12 @@ fn depthwise_read_in_place() {
         shape(2, 2, (75, 66), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2),
         shape(1, 3, (61, 63), 3, (3, 3), (2, 2), (1, 1), (1, 1), 3),
         shape(1, 2, (102, 32), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2),
+        shape(1, 20, (56, 56), 20, (3, 3), (2, 2), (1, 1), (1, 1), 20),
+        shape(2, 3, (28, 17), 3, (3, 3), (1, 1), (1, 1), (1, 1), 3),
     ];
     let avx512 = depthwise::in_place_applies(&cases[0]);
     for s in &cases {
-        assert!(s.oh * s.ow > 28 * 28 && !depthwise::lanes_applies(s), "{s:?} is past the lanes path");
+        assert!(!depthwise::lanes_applies(s), "{s:?} takes no lanes");
         assert_eq!(depthwise::in_place_applies(s), avx512, "{s:?}");
         check(s, ConvAlgo::Depthwise);
     }

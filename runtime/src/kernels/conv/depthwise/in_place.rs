@@ -1,5 +1,7 @@
-//! Depthwise layers on planes too large for the channels-in-lanes path (AVX-512), read in
-//! place: 3x3, 5x5 and 7x7 kernels at stride 1, 3x3 at stride 2, padding half the kernel.
+//! Depthwise layers with rows of at least 16 outputs (AVX-512), read in place: 3x3, 5x5
+//! and 7x7 kernels at stride 1, 3x3 at stride 2, padding half the kernel. The 5x5 and 7x7
+//! ones on planes of up to 28x28 outputs stay with the channels-in-lanes path
+//! (`super::reads_in_place`).
 //!
 //! The row path ([`super::Registers`]) copies each input plane into a zero-bordered
 //! buffer (at stride 2 split into its even and odd columns) and reads the copy back. On
