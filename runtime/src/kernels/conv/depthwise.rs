@@ -3,11 +3,12 @@
 //! GEMM, no scratch but a zero-padded copy of the plane each thread keeps. Square 3x3,
 //! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
 //! in SIMD registers: with AVX-512, on output planes of at most 28x28, sixteen channels
-//! at a time in the lanes (`lanes.rs`), and with rows of at least 16 outputs (3x3 on any
-//! plane, 5x5 and 7x7 on larger ones; 3x3 at stride 2, padding half the kernel) by rows
-//! read in place (`in_place.rs`); else by rows of a padded copy (`Registers`), or at
-//! stride 1 on planes with rows of at most 8 pixels (7x7) by the plane read flat
-//! (`flat.rs`); the rest through the loops of `depthwise_acc`.
+//! at a time in the lanes (`lanes.rs`), and with rows of at least 16 outputs by rows read
+//! in place (`in_place.rs`: 3x3, 5x5 and 7x7 at stride 1 and 3x3 at stride 2, padding
+//! half the kernel; the 5x5 and 7x7 ones only on planes the lanes do not take); else by
+//! rows of a padded copy (`Registers`), or at stride 1 on planes with rows of at most 8
+//! pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
+//! `depthwise_acc`.
 
 use rayon::prelude::*;
 
