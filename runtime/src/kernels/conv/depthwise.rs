@@ -4,8 +4,9 @@
 //! 5x5 and 7x7 kernels at stride 1 and 2 (MobileNet's, EfficientNet's, ConvNeXt's) run
 //! in SIMD registers: with AVX-512, on output planes of at most 28x28, sixteen channels
 //! at a time in the lanes (`lanes.rs`), and with rows of at least 16 outputs by rows read
-//! in place (`in_place.rs`: 3x3, 5x5 and 7x7 at stride 1 and 3x3 at stride 2, padding
-//! half the kernel; the 5x5 and 7x7 ones only on planes the lanes do not take); else by
+//! in place (`in_place.rs`: 3x3, 5x5 and 7x7 at stride 1 and 3x3 and 5x5 at stride 2,
+//! padding half the kernel; at stride 1 the 5x5 and 7x7 ones only on planes the lanes do
+//! not take); else by
 //! rows of a padded copy (`Registers`), or at stride 1 on planes with rows of at most 8
 //! pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
 //! `depthwise_acc`.
@@ -68,14 +69,16 @@ pub(super) fn flat_applies(s: &Conv2dShape) -> bool {
 }
 
 /// Whether a layer is read in place (`in_place.rs`): every layer that path takes but the
-/// 5x5 and 7x7 ones on planes the lanes path takes too. On MobileNetV2's 3x3 layers with
-/// 28x28 outputs, reading in place took 0.58 (144 channels, 56 to 28) and 0.85-0.90 (192
-/// channels, stride 1) of the lanes path's time in the model (per step, one and two
-/// threads, the two alternating run by run, 2026-12-06); MobileNetV3's 5x5 ones at 28x28
-/// 1.07 (there the lanes path reads each of 25 taps as one vector of sixteen channels).
+/// 5x5 and 7x7 ones at stride 1 on planes the lanes path takes too. In the models (per
+/// step, one / two threads, the two paths alternating run by run, 2026-12-06), reading in
+/// place took of the lanes path's time: MobileNetV2's 3x3 layers with 28x28 outputs 0.58
+/// (144 channels, 56 to 28) and 0.85-0.90 (192 channels, stride 1); the 5x5 56 to 28
+/// layers 0.68 / 0.52 (MobileNetV3, 72 channels) and 0.82 / 0.70 (EfficientNet-B0, 144);
+/// MobileNetV3's 5x5 stride-1 layers at 28x28 1.07 (there the lanes path reads each of 25
+/// taps as one vector of sixteen channels, where this one shuffles none).
 #[cfg(target_arch = "x86_64")]
 fn reads_in_place(s: &Conv2dShape) -> bool {
-    in_place::applies(s) && (s.kh == 3 || !lanes::applies(s))
+    in_place::applies(s) && (s.kh == 3 || s.stride_w == 2 || !lanes::applies(s))
 }
 
 /// Whether a layer takes the channels-in-lanes path (`lanes.rs`) on this machine, for

@@ -256,8 +256,8 @@ fn depthwise_strided_rows_split_by_phase() {
 }
 
 /// Depthwise layers which AVX-512 machines read in place (`depthwise/in_place.rs`): 3x3,
-/// 5x5 and 7x7 at stride 1 and 3x3 at stride 2 on planes larger than the lanes path
-/// takes, and 3x3 on the 28x28 and 16-wide ones it would; odd and even widths (at stride
+/// 5x5 and 7x7 at stride 1 and 3x3 and 5x5 at stride 2 on planes larger than the lanes
+/// path takes, and 3x3 on the 28x28 and 16-wide ones it would; odd and even widths (at stride
 /// 2 an odd width's last window reaches into the padding), rows of exactly one vector and
 /// of a vector and a few pixels (the last vector overlapping), output rows past the
 /// blocks of four, two images. Elsewhere they take the row path or the lanes, which the
@@ -274,6 +274,8 @@ fn depthwise_read_in_place() {
         shape(1, 2, (102, 32), 2, (3, 3), (2, 2), (1, 1), (1, 1), 2),
         shape(1, 20, (56, 56), 20, (3, 3), (2, 2), (1, 1), (1, 1), 20),
         shape(2, 3, (28, 17), 3, (3, 3), (1, 1), (1, 1), (1, 1), 3),
+        shape(1, 2, (66, 70), 2, (5, 5), (2, 2), (2, 2), (1, 1), 2),
+        shape(2, 3, (63, 61), 3, (5, 5), (2, 2), (2, 2), (1, 1), 3),
     ];
     let avx512 = depthwise::in_place_applies(&cases[0]);
     for s in &cases {

@@ -1,7 +1,7 @@
 //! Depthwise layers with rows of at least 16 outputs (AVX-512), read in place: 3x3, 5x5
-//! and 7x7 kernels at stride 1, 3x3 at stride 2, padding half the kernel. The 5x5 and 7x7
-//! ones on planes of up to 28x28 outputs stay with the channels-in-lanes path
-//! (`super::reads_in_place`).
+//! and 7x7 kernels at stride 1, 3x3 and 5x5 at stride 2, padding half the kernel. The 5x5
+//! and 7x7 ones at stride 1 on planes of up to 28x28 outputs stay with the
+//! channels-in-lanes path (`super::reads_in_place`).
 //!
 //! The row path ([`super::Registers`]) copies each input plane into a zero-bordered
 //! buffer (at stride 2 split into its even and odd columns) and reads the copy back. On
@@ -10,8 +10,9 @@
 //! to copy from L2 as from L3. Here each input row is read where it lies, the columns that
 //! fall off the row (the padding) masked to zero in the loads. At stride 1 a kernel row's
 //! taps for sixteen outputs are `K` loads from consecutive columns. At stride 2 they come
-//! from three loads (columns `2 ox - 1` to `2 ox + 31`), split by two permutes into the
-//! odd and even columns, and by one lane shift into the odd columns one further on. Each
+//! from three loads (columns `2 ox - pad` on), split by two permutes into the even and
+//! odd columns, and each further tap by one more permute, one lane on from the tap two
+//! before (the third load supplying its last lane). Each
 //! input row feeds the sums of every output row of the block that reads it; the sums stay
 //! in registers, [`R`] output rows at a time, and the epilogue's scale, shift and clamp
 //! are applied as they are stored.
@@ -55,7 +56,7 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
     let k = s.kh;
     let kernel = match s.stride_w {
         1 => matches!(k, 3 | 5 | 7),
-        2 => k == 3,
+        2 => matches!(k, 3 | 5),
         _ => false,
     };
     s.cin == s.groups
@@ -115,6 +116,7 @@ impl Task<'_> {
             (1, 5) => planes::<1, 5>(simd, s, w, ep, x, first, dst),
             (1, 7) => planes::<1, 7>(simd, s, w, ep, x, first, dst),
             (2, 3) => planes::<2, 3>(simd, s, w, ep, x, first, dst),
+            (2, 5) => planes::<2, 5>(simd, s, w, ep, x, first, dst),
             _ => unreachable!("in_place::applies"),
         }
     }
@@ -186,20 +188,29 @@ impl Plane<'_> {
         let pad = K / 2;
         let even: __m512i = cast(pulp::u32x16(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30));
         let odd: __m512i = cast(pulp::u32x16(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31));
+        // Stride 2: tap kx >= 2 is tap kx - 2 one lane on, its last lane lane kx - 2 of the
+        // third load (`[t1, .., t15, c(kx - 2)]`).
+        let mut shift = [even; K];
+        for (m, v) in shift.iter_mut().enumerate() {
+            let mut lanes = pulp::u32x16(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16);
+            lanes.15 = 16 + m as u32;
+            *v = cast(lanes);
+        }
+        let loads = if ST == 1 { K } else { 3 };
         let w = self.w as isize;
         for ox in vector_starts(self.ow, L) {
-            // Stride 1: the loads of tap kx from column `ox - pad + kx`. Stride 2 (K = 3):
-            // three loads from column `2 ox - 1`, 16 and 32 further, of the third only its
-            // first lane. Each masked to the columns inside the row.
+            // Stride 1: the loads of tap kx from column `ox - pad + kx`. Stride 2: three
+            // loads from column `2 ox - pad`, 16 and 32 further, of the third only its first
+            // K - 2 lanes. Each masked to the columns inside the row.
             let col = (ST * ox) as isize - pad as isize;
             let mut from = [0isize; K];
             let mut mask = [0u16; K];
-            for (kx, (fr, m)) in from.iter_mut().zip(mask.iter_mut()).enumerate() {
+            for (kx, (fr, m)) in from.iter_mut().zip(mask.iter_mut()).enumerate().take(loads) {
                 *fr = if ST == 1 { col + kx as isize } else { col + (kx * L) as isize };
                 *m = row_mask(*fr, w);
             }
             if ST == 2 {
-                mask[2] &= 1;
+                mask[2] &= (1 << (K - 2)) - 1;
             }
             let mut acc = [f._mm512_setzero_ps(); RR];
             for j in 0..ST * (RR - 1) + K {
@@ -211,17 +222,18 @@ impl Plane<'_> {
                 }
                 let row = &self.x[iy as usize * self.w..][..self.w];
                 let mut t = [f._mm512_setzero_ps(); K];
-                for kx in 0..K {
+                for kx in 0..loads {
                     t[kx] = load(simd, row, from[kx], mask[kx]);
                 }
                 if ST == 2 {
-                    // Columns 2 (ox + i) - 1, 2 (ox + i) and 2 (ox + i) + 1.
+                    // Columns 2 (ox + i) - pad + kx: the even and odd columns of the first
+                    // two loads, then each one lane on from the one two taps before.
                     let (a, b, c) = (t[0], t[1], t[2]);
                     t[0] = f._mm512_permutex2var_ps(a, even, b);
                     t[1] = f._mm512_permutex2var_ps(a, odd, b);
-                    t[2] = f._mm512_castsi512_ps(
-                        f._mm512_alignr_epi32::<1>(f._mm512_castps_si512(c), f._mm512_castps_si512(t[0])),
-                    );
+                    for kx in 2..K {
+                        t[kx] = f._mm512_permutex2var_ps(t[kx - 2], shift[kx - 2], c);
+                    }
                 }
                 for (r, acc) in acc.iter_mut().enumerate() {
                     let ky = j as isize - (ST * r) as isize;
