@@ -30,11 +30,9 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if reads_in_place(s) {
-        return in_place::depthwise(s, w, ep, x, out, threads);
-    }
+    let in_place = reads_in_place(s);
     #[cfg(target_arch = "x86_64")]
-    if lanes::applies(s) {
+    if !in_place && lanes::applies(s) {
         return lanes::depthwise(s, w, ep, x, out, threads);
     }
     // Planes per task: several, so that a task's setup (a SIMD dispatch, zeroing the
@@ -44,6 +42,10 @@ pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], ou
     let flat = flat::applies(s);
     let registers = Registers::applies(s);
     let group = |(i, dst): (usize, &mut [f32])| {
+        #[cfg(target_arch = "x86_64")]
+        if in_place {
+            return in_place::planes(s, w, ep, x, i * per, dst);
+        }
         if flat {
             pulp::Arch::new().dispatch(flat::Flat { s, w, x, ep, first: i * per, dst });
         } else if registers {

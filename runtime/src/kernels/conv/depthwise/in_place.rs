@@ -37,11 +37,10 @@ use core::arch::x86_64::{__m512, __m512i};
 
 use pulp::x86::V4;
 use pulp::{Simd, cast};
-use rayon::prelude::*;
 
 use super::plane_operands;
 use crate::kernels::Epilogue;
-use crate::kernels::conv::{Conv2dShape, clamp_vector, vector_starts};
+use crate::kernels::conv::{Conv2dShape, store_vector, vector_starts};
 
 /// Floats a vector holds (AVX-512).
 const L: usize = 16;
@@ -70,26 +69,16 @@ pub(super) fn applies(s: &Conv2dShape) -> bool {
         && V4::try_new().is_some()
 }
 
-/// The depthwise conv `x -> out` with the epilogue, parallel over groups of planes. Only
-/// for layers [`applies`] takes.
-pub(super) fn depthwise(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], out: &mut [f32], threads: usize) {
+/// The planes of `dst` (output planes `first..`) with the epilogue, for a layer
+/// [`applies`] takes: one task of `depthwise`'s split of the planes.
+pub(super) fn planes(s: &Conv2dShape, w: &[f32], ep: &Epilogue, x: &[f32], first: usize, dst: &mut [f32]) {
     let simd = V4::try_new().expect("in_place::applies checks AVX-512");
-    let plane = s.oh * s.ow;
-    // Planes per task: several, at least four tasks a thread.
-    let per = (s.n * s.cout / (4 * threads.max(1))).clamp(1, 64);
-    let run = |(i, dst): (usize, &mut [f32])| {
-        // Compiled with AVX-512 enabled: everything `planes` calls is inlined into it.
-        let task = Task { s, w, ep, x, first: i * per, dst };
-        simd.vectorize(
-            #[inline(always)]
-            move || task.dispatch(simd),
-        )
-    };
-    if threads <= 1 {
-        out.chunks_mut(per * plane).enumerate().for_each(run);
-    } else {
-        out.par_chunks_mut(per * plane).enumerate().for_each(run);
-    }
+    let task = Task { s, w, ep, x, first, dst };
+    // Compiled with AVX-512 enabled: everything `dispatch` calls is inlined into it.
+    simd.vectorize(
+        #[inline(always)]
+        move || task.dispatch(simd),
+    )
 }
 
 /// The planes of `dst`, the first of them output plane `first`: what a task hands to the
@@ -107,24 +96,24 @@ struct Task<'a> {
 }
 
 impl Task<'_> {
-    /// [`planes`] for the layer's stride and kernel.
+    /// [`plane_rows`] for the layer's stride and kernel.
     #[inline(always)]
     fn dispatch(self, simd: V4) {
         let Task { s, w, ep, x, first, dst } = self;
         match (s.stride_w, s.kh) {
-            (1, 3) => planes::<1, 3>(simd, s, w, ep, x, first, dst),
-            (1, 5) => planes::<1, 5>(simd, s, w, ep, x, first, dst),
-            (1, 7) => planes::<1, 7>(simd, s, w, ep, x, first, dst),
-            (2, 3) => planes::<2, 3>(simd, s, w, ep, x, first, dst),
-            (2, 5) => planes::<2, 5>(simd, s, w, ep, x, first, dst),
+            (1, 3) => plane_rows::<1, 3>(simd, s, w, ep, x, first, dst),
+            (1, 5) => plane_rows::<1, 5>(simd, s, w, ep, x, first, dst),
+            (1, 7) => plane_rows::<1, 7>(simd, s, w, ep, x, first, dst),
+            (2, 3) => plane_rows::<2, 3>(simd, s, w, ep, x, first, dst),
+            (2, 5) => plane_rows::<2, 5>(simd, s, w, ep, x, first, dst),
             _ => unreachable!("in_place::applies"),
         }
     }
 }
 
-/// The planes of `dst`, the first of them output plane `first`.
+/// The planes of `dst`, the first of them output plane `first`, block of rows by block.
 #[inline(always)]
-fn planes<const ST: usize, const K: usize>(
+fn plane_rows<const ST: usize, const K: usize>(
     simd: V4,
     s: &Conv2dShape,
     w: &[f32],
@@ -148,8 +137,8 @@ fn planes<const ST: usize, const K: usize>(
             h: s.h,
             w: s.w,
             ow: s.ow,
-            scale: cast(simd.splat_f32s(ep.scale.map_or(1.0, |v| v[c]))),
-            shift: cast(simd.splat_f32s(ep.shift.map_or(0.0, |v| v[c]))),
+            scale: simd.splat_f32s(ep.scale.map_or(1.0, |v| v[c])),
+            shift: simd.splat_f32s(ep.shift.map_or(0.0, |v| v[c])),
             clamp,
         };
         let full = s.oh / R * R;
@@ -169,8 +158,8 @@ struct Plane<'a> {
     h: usize,
     w: usize,
     ow: usize,
-    scale: __m512,
-    shift: __m512,
+    scale: pulp::f32x16,
+    shift: pulp::f32x16,
     clamp: Option<(f32, f32)>,
 }
 
@@ -245,12 +234,8 @@ impl Plane<'_> {
                 }
             }
             for (r, a) in acc.into_iter().enumerate() {
-                let mut y = f._mm512_fmadd_ps(a, self.scale, self.shift);
-                if let Some(bounds) = self.clamp {
-                    y = cast(clamp_vector(simd, cast(y), bounds));
-                }
                 let out = &mut dst[(oy0 + r) * self.ow + ox..][..L];
-                V4::as_mut_simd_f32s(out).0[0] = cast(y);
+                store_vector(simd, cast(a), self.scale, self.shift, self.clamp, out);
             }
         }
     }
