@@ -239,8 +239,8 @@ fn depthwise_flat_small_planes() {
 /// Stride-2 depthwise layers whose output planes are too large for the channels-in-lanes
 /// path, so the row path copies each input row split into its even and odd columns: an
 /// even width, an odd one with a 5x5 kernel (padding 2, so the even columns go to phase
-/// 0), no padding, and a batch, each against the reference. (On AVX-512 machines the 3x3
-/// ones with padding 1 are read in place instead: [`depthwise_read_in_place`].)
+/// 0), no padding, and a batch, each against the reference. (On AVX-512 machines the ones
+/// padded by half their kernel are read in place instead: [`depthwise_read_in_place`].)
 #[test]
 fn depthwise_strided_rows_split_by_phase() {
     let cases = [
