@@ -136,8 +136,9 @@ impl Epilogue<'_> {
     }
 
     /// The activation a register path computes on its vectors before it stores them, on a
-    /// SIMD backend `S` of more than one lane: SiLU, sigmoid, GELU and tanh
-    /// ([`elementwise::act_simd`]), whose pass over the stored block would read it back.
+    /// SIMD backend `S` of more than one lane: SiLU, sigmoid, GELU, tanh, hardswish and
+    /// hardsigmoid ([`elementwise::act_simd`]), whose pass over the stored block would
+    /// read it back.
     #[inline(always)]
     pub fn vector_act<S: pulp::Simd>(&self) -> Option<Activation> {
         self.act.filter(|&a| size_of::<S::f32s>() > size_of::<f32>() && elementwise::on_vectors(a))
