@@ -6,9 +6,12 @@
 //!
 //! The `gemm` crate packs the weight on every call and computes a plane in whole vectors
 //! (a 7x7 plane's 49 pixels as 64). Here nothing is packed: the weight is read as `MR`
-//! row streams, each element broadcast once per tile of pixels. Pixels left over after the
-//! whole tiles run as narrower tiles, then a few last ones as dot products over the input
-//! channels, or the last fraction of a vector through scratch, zero-padded.
+//! row streams, each element broadcast once per tile of pixels. The whole tiles run by
+//! chunks of pixels whose input fits L2 ([`CHUNK_FLOATS`]), and within a chunk `MR`
+//! channels at a time over all its tiles: the outputs are written `MR` planes at a time
+//! (see [`CHUNK_FLOATS`] for why). Pixels left over after the whole tiles run as narrower
+//! tiles, then a few last ones as dot products over the input channels, or the last
+//! fraction of a vector through scratch, zero-padded.
 //!
 //! The same tiles run over an Im2col layer's unfolded rows ([`unfolded`]) on planes of
 //! one tile and a remainder (7x7: ResNet's strided convs of the last stage).
@@ -24,14 +27,33 @@ use crate::kernels::{Activation, Epilogue, elementwise};
 /// crate: one group, and planes of at most [`MAX_PLANE`] pixels with at most
 /// [`MAX_STREAMED`] weight floats streamed per image, or of at most [`ONE_TILE_PLANE`]
 /// whatever the weight; or, when the tiles compute the activation in registers (SiLU,
-/// sigmoid, GELU, tanh: [`Epilogue::vector_act`]), planes of any size under a weight of
-/// at most [`MAX_ACT_WEIGHT`] floats.
+/// sigmoid, GELU, tanh, hardswish: [`Epilogue::vector_act`]), planes of any size under a
+/// weight of at most [`MAX_ACT_WEIGHT`] floats; or an expansion of at most
+/// [`MAX_EXPANSION_CIN`] input channels, whatever its plane.
 pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
     let plane = s.oh * s.ow;
     let small = plane <= ONE_TILE_PLANE || (plane <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED);
     let in_registers = act.is_some_and(elementwise::on_vectors) && s.cin * s.cout <= MAX_ACT_WEIGHT;
-    s.groups == 1 && (small || in_registers)
+    let expansion = s.cout >= 2 * s.cin && s.cin <= MAX_EXPANSION_CIN;
+    s.groups == 1 && (small || in_registers || expansion)
 }
+
+/// The most input channels of an expansion (at least twice as many output channels as
+/// input ones) that [`applies`] takes the tiles for on planes of any size. Few multiply-
+/// adds per output value leave such a layer waiting on its output's writes, and the tiles
+/// write a large plane's outputs `MR` planes at a time ([`BLOCKED_PLANE`]), where the
+/// crate's path writes its GEMM's tile to scratch, then every channel's row from it. In
+/// the models (the AMD EPYC, Zen 4, 1 MiB L2, 2026-12-06; per step, the crate's path and
+/// the tiles chosen run by run in one session, 150 rounds, one / two threads), the tiles
+/// took of the crate's time: MobileNetV2's 16 to 96 on 112x112 0.79 / 0.67, its 24 to 144
+/// on 56x56 0.91-0.95 / 0.87-0.88, 32 to 192 on 28x28 1.0 / 0.94, 64 to 384 and 96 to
+/// 576 on 14x14 1.0; MobileNetV3-Large's 16 to 64 on 112x112 0.81 / 0.69, its hardswish
+/// 40 to 240 on 28x28 0.94 / 0.91 and 112 to 672 on 14x14 0.86-0.93 / 0.86-0.90;
+/// EfficientNet-B0's SiLU 80 to 480 and 112 to 672 on 14x14 0.88-0.92 / 0.82-0.93;
+/// ResNet-50's 64 to 256 on 56x56 (40 rounds) 0.98-1.0 / 0.95-1.03. Deeper ones run near
+/// the core's limit in the crate, where the tiles lost (two sessions, 60 rounds):
+/// ResNet-50's 128 to 512 on 28x28 1.06-1.10, 256 to 1024 on 14x14 1.04.
+const MAX_EXPANSION_CIN: usize = 112;
 
 /// The largest weight (floats) a Gemm1x1 layer of any plane size takes the tiles with when
 /// they compute its activation in registers. The crate's path writes the GEMM's tile to
@@ -107,6 +129,32 @@ const ONE_TILE_PLANE: usize = 64;
 /// unfolded matrix larger than L2 once per 6 channels, where the crate blocks it for the
 /// cache. One tile's plane, which takes the tiles whatever its weight.
 const MAX_UNFOLDED_PLANE: usize = ONE_TILE_PLANE;
+
+/// The input floats (64 Ki, 256 KiB: a quarter of the AMD EPYC's L2) of one chunk of
+/// pixels whose whole tiles run channel block by channel block ([`Image::range`], planes
+/// of at least [`BLOCKED_PLANE`]): the chunk's input is read from memory once and from L2
+/// by every further block of `MR` channels, and the outputs are written `MR` planes at a
+/// time. Tile by tile over all channels, a layer writes every one of its output planes a
+/// tile apart: writing 96 planes of 112x112 that way (vector stores alone, nothing
+/// computed, the caches flushed before each run) took 2.6-2.8x as long as writing them 6
+/// planes at a time over the whole plane, 1.8x as long as 6 at a time over chunks of
+/// 1536 pixels (a C loop on the AMD EPYC, 2026-12-06): the hardware prefetchers follow a
+/// few streams, not 96.
+const CHUNK_FLOATS: usize = 64 * 1024;
+
+/// The smallest plane (pixels) whose whole tiles run by chunks ([`CHUNK_FLOATS`]): 56x56.
+/// Against tile by tile over every channel (per step in the models, the two chosen run by
+/// run in one process, 150 rounds, one / two threads, AMD EPYC, 2026-12-06): 16 to 96 on
+/// 112x112 0.74 / 0.72 (MobileNetV2), 16 to 64 0.72 / 0.78 (MobileNetV3-Large), 24 to 144
+/// on 56x56 0.96 / 0.96; on 28x28 planes 1.05-1.19 at two threads (MobileNetV2's 32 to
+/// 192, MobileNetV3's 40 to 120), on 14x14 and 7x7 ones 1.02-1.12.
+const BLOCKED_PLANE: usize = 56 * 56;
+
+/// The smallest plane that runs by chunks when the tiles compute an activation on the
+/// sums (SiLU, hardswish: [`Epilogue::vector_act`]), less bound by writing: 112x112.
+/// EfficientNet-B0's SiLU expansions by chunks: 16 to 96 on 112x112 0.95 / 0.98 of the
+/// time tile by tile, 24 to 144 on 56x56 1.03-1.05.
+const BLOCKED_ACT_PLANE: usize = 112 * 112;
 
 /// Scratch floats of one part over `depth` input rows: a padded tail's input columns and
 /// its sums, for vectors of up to 16 lanes and micro-tiles of up to 8 rows; or the columns
@@ -232,9 +280,11 @@ pub(super) fn unfolded(
 }
 
 impl Image<'_> {
-    /// Channels `chans` of pixels `q` of the rows: whole tiles of `NV` vectors, then
+    /// Channels `chans` of pixels `q` of the rows: whole tiles of `NV` vectors (by chunks
+    /// of pixels, `MR` channels at a time over a chunk's tiles: [`CHUNK_FLOATS`]), then
     /// pairs and single vectors, then one padded vector, and the plane's last few pixels
-    /// (if in `q`) as dot products.
+    /// (if in `q`) as dot products. Every pixel of a channel sums its input channels in
+    /// the same order whichever of these takes it, but for the dot products.
     #[inline(always)]
     fn range<S: pulp::Simd, const MR: usize, const NV: usize>(
         self,
@@ -252,18 +302,31 @@ impl Image<'_> {
         let left = self.plane % lanes;
         let dots_at = if left > 0 && DOTS * left <= lanes { self.plane - left } else { self.plane };
         let end = q.end.min(dots_at.saturating_sub(self.first)).max(q.start);
-        let (x, stride) = (self.x, self.stride);
-        let mut p = q.start;
-        while p + NV * lanes <= end {
-            // The next tile's input rows, a plane apart: more streams than the hardware
-            // prefetcher follows.
-            if p + 2 * NV * lanes <= end {
-                for ci in 0..self.depth {
-                    (0..NV).for_each(|v| prefetch(&x[ci * stride + p + (NV + v) * lanes]));
+        let width = NV * lanes;
+        // Large planes: the whole tiles by chunks, `MR` channels at a time over a chunk.
+        let blocked =
+            self.plane >= BLOCKED_PLANE && (self.ep.vector_act::<S>().is_none() || self.plane >= BLOCKED_ACT_PLANE);
+        let whole = if blocked { q.start + (end - q.start) / width * width } else { q.start };
+        let chunk = (CHUNK_FLOATS / self.depth.max(1) / width * width).max(width);
+        for p0 in (q.start..whole).step_by(chunk) {
+            let p1 = whole.min(p0 + chunk);
+            for c in chans.clone().step_by(MR) {
+                let block = c..chans.end.min(c + MR);
+                for p in (p0..p1).step_by(width) {
+                    // The later blocks find the chunk's input in L2.
+                    if c == chans.start {
+                        self.fetch_next(p, width, end, lanes);
+                    }
+                    self.tile::<S, MR, NV>(simd, part, block.clone(), p);
                 }
             }
+        }
+        // Else tile by tile, every channel of a tile before the next.
+        let mut p = whole;
+        while p + width <= end {
+            self.fetch_next(p, width, end, lanes);
             self.tile::<S, MR, NV>(simd, part, chans.clone(), p);
-            p += NV * lanes;
+            p += width;
         }
         // What is left, less than a tile: pairs of vectors, then single ones, then a
         // padded one.
@@ -280,6 +343,18 @@ impl Image<'_> {
         }
         if end < q.end {
             self.dots::<S>(simd, part, chans, end, q.end, scratch);
+        }
+    }
+
+    /// Asks for the input rows of the tile of `width` pixels after the one at `p`, if it
+    /// is whole before `end`: rows a plane apart are more streams than the hardware
+    /// prefetcher follows.
+    #[inline(always)]
+    fn fetch_next(&self, p: usize, width: usize, end: usize, lanes: usize) {
+        if p + 2 * width <= end {
+            for ci in 0..self.depth {
+                (width..2 * width).step_by(lanes).for_each(|v| prefetch(&self.x[ci * self.stride + p + v]));
+            }
         }
     }
 

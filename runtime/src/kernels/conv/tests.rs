@@ -792,8 +792,9 @@ fn pointwise_tails_batches_and_residuals() {
     check_residual(&heavy, ConvAlgo::Gemm1x1, &[Some(Activation::Relu6)]);
     assert!(!pointwise::applies(&shape(1, 416, (14, 14), 400, (1, 1), (1, 1), (0, 0), (1, 1), 1), None));
     // Past the plane bound, a SiLU or sigmoid layer of a small weight takes the tiles too
-    // (the activation computed on the sums in registers), a ReLU one the GEMM.
-    let s = shape(2, 8, (21, 23), 24, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+    // (the activation computed on the sums in registers), a ReLU one the GEMM (unless an
+    // expansion: below).
+    let s = shape(2, 8, (21, 23), 12, (1, 1), (1, 1), (0, 0), (1, 1), 1);
     assert!(pointwise::applies(&s, Some(Activation::Silu)) && !pointwise::applies(&s, Some(Activation::Relu)));
     check_residual(&s, ConvAlgo::Gemm1x1, &[Some(Activation::Silu), Some(Activation::Sigmoid)]);
     assert_eq!(split_shape(&shape(1, 70, (3, 3), 64, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1, 2), (1, 2));
@@ -814,6 +815,26 @@ fn pointwise_tails_batches_and_residuals() {
         check(s, ConvAlgo::Im2col);
         check_residual(s, ConvAlgo::Im2col, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
     }
+}
+
+/// Expansions of few input channels take the tiles on planes of any size; on planes of
+/// 56x56 and more (112x112 with an activation computed in registers) their whole tiles
+/// run by chunks of pixels, six channels at a time over a chunk: planes that take two
+/// chunks and leave a pair of vectors or a padded one after them, output channels that
+/// leave a last block of fewer than six, an image split between threads, with and without
+/// a residual, before each kind of activation. A deeper expansion keeps the GEMM.
+#[test]
+fn pointwise_expansions_of_large_planes() {
+    // (batch, input channels, plane, output channels): 24 x 57x58 is two chunks and 42
+    // pixels (a pair of vectors and 10 padded); 8 x 113x112 two chunks and a pair.
+    let cases = [(1, 24, (57, 58), 50), (2, 8, (113, 112), 17)];
+    for (n, cin, hw, cout) in cases {
+        let s = shape(n, cin, hw, cout, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+        assert!(pointwise::applies(&s, None) && pointwise::applies(&s, Some(Activation::Relu6)), "{s:?}");
+        check(&s, ConvAlgo::Gemm1x1);
+        check_residual(&s, ConvAlgo::Gemm1x1, &[Some(Activation::Relu6), Some(Activation::Hardswish)]);
+    }
+    assert!(!pointwise::applies(&shape(1, 128, (28, 28), 512, (1, 1), (1, 1), (0, 0), (1, 1), 1), None));
 }
 
 /// The register path gives the same bits at every thread count: a split by rows cuts
