@@ -241,6 +241,8 @@ fn depthwise_flat_small_planes() {
 /// even width, an odd one with a 5x5 kernel (padding 2, so the even columns go to phase
 /// 0), no padding, and a batch, each against the reference. (On AVX-512 machines the ones
 /// padded by half their kernel are read in place instead: [`depthwise_read_in_place`].)
+/// The 7x7 one (padding 3) and the 5x5 one padded by 1 take the row path on every
+/// machine: an odd padding, so the input's even columns go to phase 1.
 #[test]
 fn depthwise_strided_rows_split_by_phase() {
     let cases = [
@@ -248,10 +250,15 @@ fn depthwise_strided_rows_split_by_phase() {
         shape(1, 2, (58, 67), 2, (5, 5), (2, 2), (2, 2), (1, 1), 2),
         shape(1, 2, (102, 33), 2, (3, 3), (2, 2), (0, 0), (1, 1), 2),
         shape(2, 3, (100, 32), 3, (3, 3), (2, 2), (1, 1), (1, 1), 3),
+        shape(1, 2, (64, 61), 2, (7, 7), (2, 2), (3, 3), (1, 1), 2),
+        shape(1, 3, (66, 59), 3, (5, 5), (2, 2), (1, 1), (1, 1), 3),
     ];
     for s in &cases {
         assert!(s.oh * s.ow > 28 * 28 && !depthwise::lanes_applies(s), "{s:?} takes the row path");
         check(s, ConvAlgo::Depthwise);
+    }
+    for s in &cases[4..] {
+        assert!(!depthwise::in_place_applies(s), "{s:?} takes the row path");
     }
 }
 
