@@ -25,14 +25,15 @@ use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer with activation `act` runs here rather than through the `gemm`
 /// crate: one group, and planes of at most [`MAX_PLANE`] pixels with at most
-/// [`MAX_STREAMED`] weight floats streamed per image, or of at most [`ONE_TILE_PLANE`]
-/// whatever the weight; or, when the tiles compute the activation in registers (SiLU,
+/// [`MAX_STREAMED`] weight floats streamed per image or no more output channels than
+/// input ones ([`MAX_STREAMED`]), or of at most [`ONE_TILE_PLANE`] whatever the weight; or, when the tiles compute the activation in registers (SiLU,
 /// sigmoid, GELU, tanh, hardswish: [`Epilogue::vector_act`]), planes of any size under a
 /// weight of at most [`MAX_ACT_WEIGHT`] floats; or an expansion of at most
 /// [`MAX_EXPANSION_CIN`] input channels, whatever its plane.
 pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
     let plane = s.oh * s.ow;
-    let small = plane <= ONE_TILE_PLANE || (plane <= MAX_PLANE && streamed(s, s.cin) <= MAX_STREAMED);
+    let light = streamed(s, s.cin) <= MAX_STREAMED || s.cout <= s.cin;
+    let small = plane <= ONE_TILE_PLANE || (plane <= MAX_PLANE && light);
     let in_registers = act.is_some_and(elementwise::on_vectors) && s.cin * s.cout <= MAX_ACT_WEIGHT;
     let expansion = s.cout >= 2 * s.cin && s.cin <= MAX_EXPANSION_CIN;
     s.groups == 1 && (small || in_registers || expansion)
@@ -98,6 +99,15 @@ fn streamed(s: &Conv2dShape, depth: usize) -> usize {
 /// 0.91-0.92 (its 7x7 1x1 downsampling, 0.26 Mi, 0.91 too, a 0.17 ms step the bound
 /// leaves in the tiles). With the bound, one thread: ResNet-50 0.944 of the time before,
 /// EfficientNet-B0 0.980, MobileNetV2 1.008 (two threads: 0.991, 1.024).
+///
+/// On the AMD EPYC (1 MiB L2, 2026-12-07; per step, the two paths chosen run by run in one
+/// session, 60 rounds, one / two threads) the bound held for the 14x14 expansions
+/// (ResNet-50's 256 to 1024 with its residual 1.07-1.08 in the tiles) but not for the
+/// reductions, which now take the tiles whatever their weight: the 672 to 112 projections
+/// with a residual of MobileNetV3-Large 0.86 / 0.85 and EfficientNet-B0 0.85-0.86 /
+/// 0.81-0.94, ResNet-50's 1024 to 256 0.96-0.98 / 0.94-0.97 and 1024 to 512 0.97-1.03.
+/// The models: MobileNetV3-Large 0.983 / 0.992, EfficientNet-B0 0.994 / 1.005, ResNet-50
+/// 0.994 / 0.996 (a noisy host: steps the rule does not touch moved by up to 3%).
 const MAX_STREAMED: usize = 320 * 1024;
 
 /// The largest plane (pixels of one image) [`applies`] takes. On an AMD EPYC (1 MiB L2,

@@ -792,12 +792,19 @@ fn pointwise_tails_batches_and_residuals() {
         check_residual(&s, ConvAlgo::Gemm1x1, &[None, Some(Activation::Relu6), Some(Activation::Silu)]);
     }
     // A 7x7 plane takes the tiles whatever its weight (416 x 400 floats streamed twice
-    // per image, past the bound larger planes keep); a 14x14 one of that weight does not.
+    // per image, past the bound larger planes keep); a 14x14 expansion of that weight
+    // does not.
     let heavy = shape(1, 416, (7, 7), 400, (1, 1), (1, 1), (0, 0), (1, 1), 1);
     assert!(pointwise::applies(&heavy, None), "{heavy:?} takes the register path");
     check(&heavy, ConvAlgo::Gemm1x1);
     check_residual(&heavy, ConvAlgo::Gemm1x1, &[Some(Activation::Relu6)]);
-    assert!(!pointwise::applies(&shape(1, 416, (14, 14), 400, (1, 1), (1, 1), (0, 0), (1, 1), 1), None));
+    assert!(!pointwise::applies(&shape(1, 400, (14, 14), 416, (1, 1), (1, 1), (0, 0), (1, 1), 1), None));
+    // But a reduction (no more output channels than input ones) of that plane does,
+    // whatever its weight (200 x 330 floats streamed five times per image).
+    let reduction = shape(1, 330, (14, 14), 200, (1, 1), (1, 1), (0, 0), (1, 1), 1);
+    assert!(pointwise::applies(&reduction, None), "{reduction:?} takes the register path");
+    check(&reduction, ConvAlgo::Gemm1x1);
+    check_residual(&reduction, ConvAlgo::Gemm1x1, &[Some(Activation::Relu)]);
     // Past the plane bound, a SiLU or sigmoid layer of a small weight takes the tiles too
     // (the activation computed on the sums in registers), a ReLU one the GEMM (unless an
     // expansion: below).
