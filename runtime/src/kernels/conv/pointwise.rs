@@ -25,11 +25,12 @@ use crate::kernels::{Activation, Epilogue, elementwise};
 
 /// Whether a Gemm1x1 layer with activation `act` runs here rather than through the `gemm`
 /// crate: one group, and planes of at most [`MAX_PLANE`] pixels with at most
-/// [`MAX_STREAMED`] weight floats streamed per image or no more output channels than
-/// input ones ([`MAX_STREAMED`]), or of at most [`ONE_TILE_PLANE`] whatever the weight; or, when the tiles compute the activation in registers (SiLU,
-/// sigmoid, GELU, tanh, hardswish: [`Epilogue::vector_act`]), planes of any size under a
-/// weight of at most [`MAX_ACT_WEIGHT`] floats; or an expansion of at most
-/// [`MAX_EXPANSION_CIN`] input channels, whatever its plane.
+/// [`MAX_STREAMED`] weight floats streamed per image or no more output channels than input
+/// ones, or of at most [`ONE_TILE_PLANE`] whatever the weight; or, when the tiles compute
+/// the activation in registers (SiLU, sigmoid, GELU, tanh, the hard ones:
+/// [`Epilogue::vector_act`]), planes of any size under a weight of at most
+/// [`MAX_ACT_WEIGHT`] floats; or an expansion of at most [`MAX_EXPANSION_CIN`] input
+/// channels, whatever its plane.
 pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
     let plane = s.oh * s.ow;
     let light = streamed(s, s.cin) <= MAX_STREAMED || s.cout <= s.cin;
@@ -64,8 +65,10 @@ const MAX_EXPANSION_CIN: usize = 112;
 /// alternating calls in one process, 2-3 runs, 1 / 2 threads): 16 to 96 channels on
 /// 112x112 0.89-0.92 / 0.92-0.95, 24 to 144 on 56x56 0.93 / 0.98, 40 to 240 on 28x28
 /// 0.98-1.02 / 0.85-0.91; 112 to 672 on 14x14 (75 Ki floats, past this bound) 0.98-1.07 /
-/// 1.00-1.06. With a ReLU the crate's path stays ahead on large planes (16 to 96 on
-/// 112x112: 1.10 / 1.15). GELU and tanh, costlier, take the same rule unmeasured.
+/// 1.00-1.06. With a ReLU the crate's path stayed ahead on large planes (16 to 96 on
+/// 112x112: 1.10 / 1.15) while the tiles went tile by tile over every channel; by chunks
+/// they now take such expansions whatever the activation ([`MAX_EXPANSION_CIN`]). GELU
+/// and tanh, costlier, take the same rule unmeasured.
 const MAX_ACT_WEIGHT: usize = 16 * 1024;
 
 /// Whether an Im2col layer's tiles run here ([`unfolded`]) rather than through the `gemm`
@@ -115,7 +118,8 @@ const MAX_STREAMED: usize = 320 * 1024;
 /// 0.76-0.81x the `gemm` crate's time (94-110 GFLOP/s against 75-86, one thread, warm),
 /// on 14x14 ones in 0.91-1.03x; on 28x28 and larger, 0.96-1.10x, and in the model a
 /// 112x112 expansion (16 to 96 channels, bound by writing its output) took 1.17x: the
-/// crate's path writes each output row from one long tile, this one 6 planes at a time.
+/// crate's path writes each output row from one long tile, this one then wrote every
+/// plane a tile apart (by chunks since: [`BLOCKED_PLANE`], [`MAX_EXPANSION_CIN`]).
 const MAX_PLANE: usize = 256;
 
 /// Planes of at most this many pixels (one AVX-512 tile of three vectors and a fourth:
@@ -154,7 +158,7 @@ const CHUNK_FLOATS: usize = 64 * 1024;
 
 /// The smallest plane (pixels) whose whole tiles run by chunks ([`CHUNK_FLOATS`]): 56x56.
 /// Against tile by tile over every channel (per step in the models, the two chosen run by
-/// run in one process, 150 rounds, one / two threads, AMD EPYC, 2026-12-06): 16 to 96 on
+/// run in one session, 150 rounds, one / two threads, AMD EPYC, 2026-12-06): 16 to 96 on
 /// 112x112 0.74 / 0.72 (MobileNetV2), 16 to 64 0.72 / 0.78 (MobileNetV3-Large), 24 to 144
 /// on 56x56 0.96 / 0.96; on 28x28 planes 1.05-1.19 at two threads (MobileNetV2's 32 to
 /// 192, MobileNetV3's 40 to 120), on 14x14 and 7x7 ones 1.02-1.12.
