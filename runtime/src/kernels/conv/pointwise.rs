@@ -47,10 +47,11 @@ pub(super) fn applies(s: &Conv2dShape, act: Option<Activation>) -> bool {
 /// crate's path writes its GEMM's tile to scratch, then every channel's row from it. In
 /// the models (the AMD EPYC, Zen 4, 1 MiB L2, 2026-12-06; per step, the crate's path and
 /// the tiles chosen run by run in one session, 150 rounds, one / two threads), the tiles
-/// took of the crate's time: MobileNetV2's 16 to 96 on 112x112 0.79 / 0.67, its 24 to 144
-/// on 56x56 0.91-0.95 / 0.87-0.88, 32 to 192 on 28x28 1.0 / 0.94, 64 to 384 and 96 to
-/// 576 on 14x14 1.0; MobileNetV3-Large's 16 to 64 on 112x112 0.81 / 0.69, its hardswish
-/// 40 to 240 on 28x28 0.94 / 0.91 and 112 to 672 on 14x14 0.86-0.93 / 0.86-0.90;
+/// took of the crate's time (two runs): MobileNetV2's 16 to 96 on 112x112 0.79-0.87 /
+/// 0.67-0.77, its 24 to 144 on 56x56 0.91-0.96 / 0.87-0.94, 32 to 192 on 28x28 1.0 /
+/// 0.94, 64 to 384 and 96 to 576 on 14x14 1.0; MobileNetV3-Large's 16 to 64 on 112x112
+/// 0.77-0.81 / 0.69-0.89, its hardswish 40 to 240 on 28x28 0.94 / 0.91 and 112 to 672 on
+/// 14x14 0.86-0.96 / 0.86-0.90;
 /// EfficientNet-B0's SiLU 80 to 480 and 112 to 672 on 14x14 0.88-0.92 / 0.82-0.93;
 /// ResNet-50's 64 to 256 on 56x56 (40 rounds) 0.98-1.0 / 0.95-1.03. Deeper ones run near
 /// the core's limit in the crate, where the tiles lost (two sessions, 60 rounds):
