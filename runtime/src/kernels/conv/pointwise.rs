@@ -318,15 +318,21 @@ impl Image<'_> {
         let dots_at = if left > 0 && DOTS * left <= lanes { self.plane - left } else { self.plane };
         let end = q.end.min(dots_at.saturating_sub(self.first)).max(q.start);
         let width = NV * lanes;
-        // Large planes: the whole tiles by chunks, `MR` channels at a time over a chunk.
+        let whole = q.start + (end - q.start) / width * width;
+        // The whole tiles by chunks of pixels, a block of channels at a time over a chunk:
+        // on large planes `MR` channels over as many pixels as `CHUNK_FLOATS` allows, else
+        // every channel over one tile.
         let blocked =
             self.plane >= BLOCKED_PLANE && (self.ep.vector_act::<S>().is_none() || self.plane >= BLOCKED_ACT_PLANE);
-        let whole = if blocked { q.start + (end - q.start) / width * width } else { q.start };
-        let chunk = (CHUNK_FLOATS / self.depth.max(1) / width * width).max(width);
+        let (chunk, channels) = if blocked {
+            ((CHUNK_FLOATS / self.depth.max(1) / width * width).max(width), MR)
+        } else {
+            (width, chans.len().max(1))
+        };
         for p0 in (q.start..whole).step_by(chunk) {
             let p1 = whole.min(p0 + chunk);
-            for c in chans.clone().step_by(MR) {
-                let block = c..chans.end.min(c + MR);
+            for c in chans.clone().step_by(channels) {
+                let block = c..chans.end.min(c + channels);
                 for p in (p0..p1).step_by(width) {
                     // The later blocks find the chunk's input in L2.
                     if c == chans.start {
@@ -336,13 +342,7 @@ impl Image<'_> {
                 }
             }
         }
-        // Else tile by tile, every channel of a tile before the next.
         let mut p = whole;
-        while p + width <= end {
-            self.fetch_next(p, width, end, lanes);
-            self.tile::<S, MR, NV>(simd, part, chans.clone(), p);
-            p += width;
-        }
         // What is left, less than a tile: pairs of vectors, then single ones, then a
         // padded one.
         while NV > 2 && p + 2 * lanes <= end {
