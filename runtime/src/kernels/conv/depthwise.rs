@@ -6,10 +6,9 @@
 //! at a time in the lanes (`lanes.rs`), and with rows of at least 16 outputs by rows read
 //! in place (`in_place.rs`: 3x3, 5x5 and 7x7 at stride 1 and 3x3 and 5x5 at stride 2,
 //! padding half the kernel; at stride 1 the 5x5 and 7x7 ones only on planes the lanes do
-//! not take); else by
-//! rows of a padded copy (`Registers`), or at stride 1 on planes with rows of at most 8
-//! pixels (7x7) by the plane read flat (`flat.rs`); the rest through the loops of
-//! `depthwise_acc`.
+//! not take); else by rows of a padded copy (`Registers`), or at stride 1 on planes with
+//! rows of at most 8 pixels (7x7) by the plane read flat (`flat.rs`); the rest through
+//! the loops of `depthwise_acc`.
 
 use rayon::prelude::*;
 

@@ -57,8 +57,8 @@ const MAX_COPY: usize = 64 * 1024;
 /// input channel, a square kernel of 3, 5 or 7 at stride 1 or 2 without dilation, and an
 /// output plane of at most [`MAX_OUT_PLANE`] pixels whose bordered input copy fits
 /// [`MAX_COPY`].
-/// (Of these, the 3x3 layers and those at stride 2 with rows of 16 outputs or more are read
-/// in place instead: `super::reads_in_place`.)
+/// (Of these, the 3x3 ones and the 5x5 ones at stride 2 with rows of 16 outputs or more,
+/// padded by half the kernel, are read in place instead: `super::reads_in_place`.)
 pub(super) fn applies(s: &Conv2dShape) -> bool {
     let side = |len: usize, pad: usize| len.saturating_add(pad.saturating_mul(2));
     let copy = side(s.h, s.pad_h).saturating_mul(side(s.w, s.pad_w)).saturating_mul(L);
