@@ -97,6 +97,8 @@ pub mod panel;
 pub mod pool;
 pub mod reduce;
 pub mod resize;
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod rows512;
 pub mod select;
 pub mod softmax;
 pub mod sparse;

@@ -665,9 +665,9 @@ fn check_shape(s: &Conv2dShape) {
 
 /// Where the SIMD vectors of an output row of `ow` values start, `width` (the lanes, at most
 /// `ow`) apart, the last one overlapping the one before it so that it ends with the row:
-/// the row walk of the register paths (`depthwise.rs`, `direct.rs`).
+/// the row walk of the register paths (`depthwise.rs`, `direct.rs`, `pool/in_place.rs`).
 #[inline(always)]
-fn vector_starts(ow: usize, width: usize) -> impl Iterator<Item = usize> {
+pub(crate) fn vector_starts(ow: usize, width: usize) -> impl Iterator<Item = usize> {
     (0..ow.div_ceil(width)).map(move |i| (i * width).min(ow - width))
 }
 

@@ -41,9 +41,7 @@ use pulp::{Simd, cast};
 use super::plane_operands;
 use crate::kernels::Epilogue;
 use crate::kernels::conv::{Conv2dShape, store_vector, vector_starts};
-
-/// Floats a vector holds (AVX-512).
-const L: usize = 16;
+use crate::kernels::rows512::{L, load_zero, row_mask};
 
 /// Output rows whose sums one block keeps in registers.
 const R: usize = 4;
@@ -212,7 +210,7 @@ impl Plane<'_> {
                 let row = &self.x[iy as usize * self.w..][..self.w];
                 let mut t = [f._mm512_setzero_ps(); K];
                 for kx in 0..loads {
-                    t[kx] = load(simd, row, from[kx], mask[kx]);
+                    t[kx] = load_zero(simd, row, from[kx], mask[kx]);
                 }
                 if ST == 2 {
                     // Columns 2 (ox + i) - pad + kx: the even and odd columns of the first
@@ -238,28 +236,5 @@ impl Plane<'_> {
                 store_vector(simd, cast(a), self.scale, self.shift, self.clamp, out);
             }
         }
-    }
-}
-
-/// The lanes of a vector loaded from column `from` of a row of `w` floats that fall
-/// inside the row.
-#[inline(always)]
-fn row_mask(from: isize, w: isize) -> u16 {
-    let lo = (-from).clamp(0, L as isize);
-    let hi = (w - from).clamp(0, L as isize);
-    if hi <= lo { 0 } else { (((1u32 << hi) - 1) & !((1u32 << lo) - 1)) as u16 }
-}
-
-/// The lanes `m` of the sixteen floats from column `from` of `row` (zero elsewhere); `m`
-/// from [`row_mask`], so only columns inside the row are read.
-#[inline(always)]
-fn load(simd: V4, row: &[f32], from: isize, m: u16) -> __m512 {
-    debug_assert_eq!(m, m & row_mask(from, row.len() as isize), "in_place: a lane outside the row");
-    // SAFETY: the masked load reads only the lanes of `m`, columns `from + i` inside
-    // `0..row.len()` (`row_mask`); masked-off lanes do not fault, so the address before or
-    // past the row (`wrapping_offset`) is never dereferenced.
-    #[allow(unsafe_code)]
-    unsafe {
-        simd.avx512f._mm512_maskz_loadu_ps(m, row.as_ptr().wrapping_offset(from))
     }
 }

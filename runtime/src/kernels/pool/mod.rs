@@ -1,7 +1,12 @@
 //! 2-D max and average pooling over `[nc, h, w]` planes, adaptive pooling, and global
-//! average pooling, with PyTorch's window, bin and divisor rules.
+//! average pooling, with PyTorch's window, bin and divisor rules. Max pooling 3x3 at
+//! stride 2 with rows of at least 16 outputs reads its rows in place with AVX-512
+//! (`in_place.rs`); every other pooling goes through a row buffer ([`pool_rows`]).
 
 use rayon::prelude::*;
+
+#[cfg(target_arch = "x86_64")]
+mod in_place;
 
 use readi_plan::ops::{Pool2d, adaptive_bin, window_out};
 
@@ -146,7 +151,17 @@ pub fn pool2d(kind: PoolKind, s: &Pool2dShape, x: &[f32], out: &mut [f32]) {
     }
     let s = *s;
     let rows_per_task = (TASK_WORK / (s.ow * s.kh * s.kw)).max(1);
-    let run = |first: usize, out: &mut [f32]| pulp::Arch::new().dispatch(PoolRows { kind, s: &s, x, first, out });
+    #[cfg(target_arch = "x86_64")]
+    let in_place = in_place::applies(kind, &s);
+    #[cfg(not(target_arch = "x86_64"))]
+    let in_place = false;
+    let run = |first: usize, out: &mut [f32]| {
+        #[cfg(target_arch = "x86_64")]
+        if in_place {
+            return in_place::rows(&s, x, first, out);
+        }
+        pulp::Arch::new().dispatch(PoolRows { kind, s: &s, x, first, out })
+    };
     if out.len() * s.kh * s.kw >= PAR_MIN && s.nc * s.oh > rows_per_task {
         out.par_chunks_mut(rows_per_task * s.ow).enumerate().for_each(|(t, o)| run(t * rows_per_task, o));
     } else {
@@ -567,7 +582,7 @@ mod tests {
                                 continue;
                             }
                             let v = x[(p * s.h + iy as usize) * s.w + ix as usize];
-                            max = max.max(v);
+                            max = if max.is_nan() || v.is_nan() { f32::NAN } else { max.max(v) };
                             total += v;
                             inside += 1;
                         }
@@ -696,6 +711,51 @@ mod tests {
         let s = shape(1, 5, 6, (2, 3), (2, 2), (0, 0), true, false);
         let want = [8.0, 10.0, 11.0, 20.0, 22.0, 23.0, 26.0, 28.0, 29.0];
         assert_close(&run(PoolKind::Max, &s, &x), &want, 0.0);
+    }
+
+    /// Max pooling 3x3 at stride 2 with rows of 16 outputs and more (the AVX-512 path,
+    /// `in_place.rs`, where the CPU has it): every padding of at most one on each axis, with
+    /// and without `ceil_mode`, rows of exactly a vector and of a vector and a bit, planes
+    /// split between tasks. The inputs are all negative, so a padding read as 0 would win;
+    /// NaN and `-inf` at corners, edges and inside must come out as PyTorch's (NaN
+    /// propagates). Compared bit for bit with the naive loops.
+    #[test]
+    fn max_pool_3x3_stride_2_rows_in_place() {
+        let mut cases = 0;
+        for (nc, h, w) in [(2, 33, 33), (1, 32, 34), (2, 7, 47), (3, 112, 112), (1, 9, 64)] {
+            for pad in [(0, 0), (1, 1), (0, 1), (1, 0)] {
+                for ceil in [false, true] {
+                    let s = shape(nc, h, w, (3, 3), (2, 2), pad, ceil, false);
+                    if s.ow < 16 {
+                        continue;
+                    }
+                    #[cfg(target_arch = "x86_64")]
+                    assert_eq!(in_place::applies(PoolKind::Max, &s), pulp::x86::V4::try_new().is_some(), "{s:?}");
+                    let mut x: Vec<f32> = data(nc * h * w, (h * 7 + w) as u64).iter().map(|v| v - 3.0).collect();
+                    let last = x.len() - 1;
+                    for (i, v) in [
+                        (0, f32::NAN),
+                        (w - 1, f32::NAN),
+                        (h * w / 2 + 5, f32::NAN),
+                        (w + 2, f32::NEG_INFINITY),
+                        (last, f32::NAN),
+                        (last - w, f32::NEG_INFINITY),
+                    ] {
+                        x[i] = v;
+                    }
+                    let (got, want) = (run(PoolKind::Max, &s, &x), naive(PoolKind::Max, &s, &x));
+                    for (i, (g, e)) in got.iter().zip(&want).enumerate() {
+                        assert!(
+                            g.to_bits() == e.to_bits() || g.is_nan() && e.is_nan(),
+                            "{s:?} output {i}: {g} against {e}"
+                        );
+                    }
+                    assert!(want.iter().any(|v| v.is_nan()), "{s:?}: no NaN reached an output");
+                    cases += 1;
+                }
+            }
+        }
+        assert_eq!(cases, 40);
     }
 
     #[test]
