@@ -93,8 +93,9 @@ pub fn layer_shape(conv: &readi_plan::ops::Conv2d, n: usize, h: usize, w: usize)
 /// For 3x3 stride-1 undilated convs with at least 32 channels in and out per group (with
 /// fewer, the transforms cost about what they save): Winograd F(4x4) when an image has at
 /// least [`WINOGRAD_MIN_TILES`] of its 4x4 tiles and its weight (4x the original) stays
-/// within 16 MiB, else F(2x2) when it has that many 2x2 tiles and its weight (1.8x) within
-/// 32 MiB; a plain GEMM for 1x1 stride-1 convs; the direct loop for depthwise convs;
+/// within 16 MiB, else F(2x2) when it has that many 2x2 tiles (or
+/// [`WINOGRAD2_WIDE_MIN_TILES`], with [`WINOGRAD2_WIDE`] channels in and out) and its weight
+/// (1.8x) within 32 MiB; a plain GEMM for 1x1 stride-1 convs; the direct loop for depthwise convs;
 /// weight panels ([`ConvAlgo::Panels`]) for other kernels of one group on planes of at most
 /// [`PANELS_MAX_PLANE`] pixels whose weight is too large for im2col's register tiles
 /// (`pointwise::light_unfolded`: there, at 64 and 128 channels at 7x7, the tiles took
@@ -114,7 +115,9 @@ pub fn choose(s: &Conv2dShape) -> ConvAlgo {
         if tiles(4) >= WINOGRAD_MIN_TILES && 36 * weight <= 4 << 20 {
             return ConvAlgo::Winograd4;
         }
-        if tiles(2) >= WINOGRAD_MIN_TILES && 16 * weight <= 8 << 20 {
+        let wide = cin_g >= WINOGRAD2_WIDE && cout_g >= WINOGRAD2_WIDE;
+        let enough = tiles(2) >= WINOGRAD_MIN_TILES || (wide && tiles(2) >= WINOGRAD2_WIDE_MIN_TILES);
+        if enough && 16 * weight <= 8 << 20 {
             return ConvAlgo::Winograd2;
         }
     }
@@ -138,6 +141,20 @@ pub use self::panels::MAX_PLANE as PANELS_MAX_PLANE;
 /// the rule asked for 12 and 5 output rows; on the previous host, an AMD EPYC with
 /// half the FMA throughput, the weight traffic weighed less against the arithmetic.)
 pub const WINOGRAD_MIN_TILES: usize = 32;
+
+/// Fewer 2x2 tiles an image may have for [`choose`] to take F(2x2) anyway when the layer
+/// has at least [`WINOGRAD2_WIDE`] channels in and out per group: on 7x7 planes (16 tiles)
+/// the 512-channel 3x3 convs of ResNet-18 and ResNet-50's last stage. Measured in the
+/// model on the AMD EPYC (Zen 4, 2026-12-07; `step_compare` of two plans, 60 rounds, one /
+/// two threads, F(2x2) over the weight panels): ResNet-18's three such layers 0.84-0.87 /
+/// 0.85-0.88, the model 0.94 / 0.95. There the weight comes from memory and the panels
+/// do 1.7x the multiply-adds for 0.56x its bytes. Alone, with the weight warm in L3, the
+/// layers took 0.88-1.0x im2col's time by F(2x2), and 192- to 384-channel ones 0.96-1.21x
+/// (none in the zoo): hence only the wide layers.
+pub const WINOGRAD2_WIDE_MIN_TILES: usize = 16;
+
+/// Channels in and out per group from which [`WINOGRAD2_WIDE_MIN_TILES`] applies.
+pub const WINOGRAD2_WIDE: usize = 512;
 
 /// Length of the weight packed for `algo` ([`ConvAlgo::packed_len`]).
 pub fn packed_weight_len(s: &Conv2dShape, algo: ConvAlgo) -> usize {

@@ -459,12 +459,17 @@ fn names_round_trip_and_choose_supports() {
         (shape(1, 64, (56, 56), 128, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 64, (56, 56), 128, (1, 1), (2, 2), (0, 0), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 64, (56, 56), 256, (1, 1), (1, 1), (0, 0), (1, 1), 1), ConvAlgo::Gemm1x1),
-        // 16 tiles of 4x4, 49 of 2x2; then 16 of 2x2 (fewer than WINOGRAD_MIN_TILES).
+        // 16 tiles of 4x4, 49 of 2x2; then 16 of 2x2 (fewer than WINOGRAD_MIN_TILES), F(2x2)
+        // only with WINOGRAD2_WIDE channels in and out.
         (shape(1, 256, (14, 14), 256, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 512, (8, 8), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Winograd2),
+        (shape(1, 512, (6, 6), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
         // At most PANELS_MAX_PLANE pixels: the weight in panels (but 1x1 kernels).
-        (shape(1, 512, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
+        (shape(1, 256, (7, 7), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
+        (shape(1, 512, (7, 7), 256, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Panels),
         (shape(1, 256, (14, 14), 512, (3, 3), (2, 2), (1, 1), (1, 1), 1), ConvAlgo::Panels),
-        (shape(1, 512, (8, 8), 512, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
+        (shape(1, 384, (8, 8), 384, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 64, (7, 8), 64, (3, 3), (1, 1), (1, 1), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 1024, (14, 14), 2048, (1, 1), (2, 2), (0, 0), (1, 1), 1), ConvAlgo::Im2col),
         (shape(1, 64, (7, 7), 64, (3, 3), (1, 1), (1, 1), (1, 1), 2), ConvAlgo::Im2col),
