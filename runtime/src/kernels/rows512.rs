@@ -1,10 +1,12 @@
 //! What the AVX-512 paths that read rows in place share: the mask of a vector's lanes that
 //! fall inside a row, and the masked load of those lanes (the rest filled), so that a
-//! row's padding is never read nor copied (`conv/depthwise/in_place.rs`,
+//! row's padding is never read nor copied; and at stride 2, the split of 32 consecutive
+//! columns into their even and odd ones (`conv/depthwise/in_place.rs`,
 //! `pool/in_place.rs`).
 
-use core::arch::x86_64::__m512;
+use core::arch::x86_64::{__m512, __m512i};
 
+use pulp::cast;
 use pulp::x86::V4;
 
 /// Floats a vector holds (AVX-512).
@@ -33,13 +35,19 @@ pub(crate) fn load_or(simd: V4, fill: __m512, row: &[f32], from: isize, m: u16) 
     }
 }
 
-/// [`load_or`] with zeros in the lanes outside the row.
+/// The even and odd columns of the 32 in `a` then `b` (two permutes).
 #[inline(always)]
-pub(crate) fn load_zero(simd: V4, row: &[f32], from: isize, m: u16) -> __m512 {
-    debug_assert_eq!(m, m & row_mask(from, row.len() as isize), "rows512: a lane outside the row");
-    // SAFETY: as `load_or`'s.
-    #[allow(unsafe_code)]
-    unsafe {
-        simd.avx512f._mm512_maskz_loadu_ps(m, row.as_ptr().wrapping_offset(from))
-    }
+pub(crate) fn even_odd(simd: V4, a: __m512, b: __m512) -> (__m512, __m512) {
+    let f = simd.avx512f;
+    let even: __m512i = cast(pulp::u32x16(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30));
+    let odd: __m512i = cast(pulp::u32x16(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31));
+    (f._mm512_permutex2var_ps(a, even, b), f._mm512_permutex2var_ps(a, odd, b))
+}
+
+/// The lanes of `t` one on, the last one lane `m` of `c`: at stride 2 the tap two columns
+/// after `t`'s, its last column from a third load (one permute).
+#[inline(always)]
+pub(crate) fn next_column(simd: V4, t: __m512, c: __m512, m: u32) -> __m512 {
+    let lanes: __m512i = cast(pulp::u32x16(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16 + m));
+    simd.avx512f._mm512_permutex2var_ps(t, lanes, c)
 }

@@ -6,8 +6,8 @@
 //! with `ceil_mode`) filled with `-inf`, which changes no maximum. Along each input row two
 //! permutes split the first two vectors into even and odd columns, the windows' first and
 //! second columns, and a third shifts the even ones one lane on for their third column
-//! (as the depthwise path's stride-2 taps, `conv/depthwise/in_place.rs`); the maximum of
-//! the three is that row's share of sixteen windows. A plane goes by columns of sixteen
+//! (`rows512::even_odd`, `next_column`: the depthwise path's stride-2 taps); the maximum
+//! of the three is that row's share of sixteen windows. A plane goes by columns of sixteen
 //! outputs, the output rows downwards, so that the row two windows share (the last of one,
 //! the first of the next) is read and combined once. NaN propagates: each maximum adds its
 //! operands where either is NaN.
@@ -18,14 +18,14 @@
 //! and odd columns split by scalar copies, selects for the maxima); row by row, every
 //! window's three rows loaded, 178 / 92. ORT took 128 us in the model.
 
-use core::arch::x86_64::{__m512, __m512i, _CMP_UNORD_Q};
+use core::arch::x86_64::{__m512, _CMP_UNORD_Q};
 
 use pulp::x86::V4;
 use pulp::{Simd, cast};
 
 use super::{Pool2dShape, PoolKind, window};
 use crate::kernels::conv::vector_starts;
-use crate::kernels::rows512::{L, load_or, row_mask};
+use crate::kernels::rows512::{L, even_odd, load_or, next_column, row_mask};
 
 /// Whether a pooling takes this path: max, a 3x3 window at stride 2, padding of at most
 /// one, output rows of at least a vector, AVX-512 at run time.
@@ -103,18 +103,13 @@ impl Task<'_> {
 /// `row`: columns `col..col + 33`, the lanes of `m` inside the row, `-inf` elsewhere.
 #[inline(always)]
 fn across(simd: V4, row: &[f32], col: isize, m: [u16; 3]) -> __m512 {
-    let f = simd.avx512f;
-    let even: __m512i = cast(pulp::u32x16(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30));
-    let odd: __m512i = cast(pulp::u32x16(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31));
-    // The even columns one lane on, the last lane the third load's first.
-    let next: __m512i = cast(pulp::u32x16(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16));
-    let low = f._mm512_set1_ps(f32::NEG_INFINITY);
+    let low = simd.avx512f._mm512_set1_ps(f32::NEG_INFINITY);
     let a = load_or(simd, low, row, col, m[0]);
     let b = load_or(simd, low, row, col + L as isize, m[1]);
     let c = load_or(simd, low, row, col + 2 * L as isize, m[2]);
-    let left = f._mm512_permutex2var_ps(a, even, b);
-    let mid = f._mm512_permutex2var_ps(a, odd, b);
-    let right = f._mm512_permutex2var_ps(left, next, c);
+    // The even columns, the odd ones, and the even ones one on (the last from `c`).
+    let (left, mid) = even_odd(simd, a, b);
+    let right = next_column(simd, left, c, 0);
     max_nan(simd, max_nan(simd, left, mid), right)
 }
 

@@ -33,7 +33,7 @@
 //! threads): MobileNetV2 0.94 / 0.97, MobileNetV3-Large 0.97 and 1.01 in two runs / 1.00,
 //! EfficientNet-B0 0.98 / 0.97.
 
-use core::arch::x86_64::{__m512, __m512i};
+use core::arch::x86_64::__m512;
 
 use pulp::x86::V4;
 use pulp::{Simd, cast};
@@ -41,7 +41,7 @@ use pulp::{Simd, cast};
 use super::plane_operands;
 use crate::kernels::Epilogue;
 use crate::kernels::conv::{Conv2dShape, store_vector, vector_starts};
-use crate::kernels::rows512::{L, load_zero, row_mask};
+use crate::kernels::rows512::{L, even_odd, load_or, next_column, row_mask};
 
 /// Output rows whose sums one block keeps in registers.
 const R: usize = 4;
@@ -173,16 +173,6 @@ impl Plane<'_> {
     ) {
         let f = simd.avx512f;
         let pad = K / 2;
-        let even: __m512i = cast(pulp::u32x16(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30));
-        let odd: __m512i = cast(pulp::u32x16(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31));
-        // Stride 2: tap kx >= 2 is tap kx - 2 one lane on, its last lane lane kx - 2 of the
-        // third load (`[t1, .., t15, c(kx - 2)]`).
-        let mut shift = [even; K];
-        for (m, v) in shift.iter_mut().enumerate() {
-            let mut lanes = pulp::u32x16(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16);
-            lanes.15 = 16 + m as u32;
-            *v = cast(lanes);
-        }
         let loads = if ST == 1 { K } else { 3 };
         let w = self.w as isize;
         for ox in vector_starts(self.ow, L) {
@@ -208,18 +198,19 @@ impl Plane<'_> {
                     continue;
                 }
                 let row = &self.x[iy as usize * self.w..][..self.w];
-                let mut t = [f._mm512_setzero_ps(); K];
+                let zero = f._mm512_setzero_ps();
+                let mut t = [zero; K];
                 for kx in 0..loads {
-                    t[kx] = load_zero(simd, row, from[kx], mask[kx]);
+                    t[kx] = load_or(simd, zero, row, from[kx], mask[kx]);
                 }
                 if ST == 2 {
                     // Columns 2 (ox + i) - pad + kx: the even and odd columns of the first
-                    // two loads, then each one lane on from the one two taps before.
-                    let (a, b, c) = (t[0], t[1], t[2]);
-                    t[0] = f._mm512_permutex2var_ps(a, even, b);
-                    t[1] = f._mm512_permutex2var_ps(a, odd, b);
+                    // two loads, then each one lane on from the one two taps before, its
+                    // last lane lane kx - 2 of the third load.
+                    let c = t[2];
+                    (t[0], t[1]) = even_odd(simd, t[0], t[1]);
                     for kx in 2..K {
-                        t[kx] = f._mm512_permutex2var_ps(t[kx - 2], shift[kx - 2], c);
+                        t[kx] = next_column(simd, t[kx - 2], c, (kx - 2) as u32);
                     }
                 }
                 for (r, acc) in acc.iter_mut().enumerate() {
